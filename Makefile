@@ -1,0 +1,44 @@
+# codedvideo: thin make targets over the CLI.  `make run` and `make test` do all set-up.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+CLI    := $(BIN)/codedvideo
+STAMP  := $(VENV)/.installed
+CONFIG ?= pipeline.yaml
+
+.PHONY: help setup run test bench report train simulate reconstruct submit clean
+
+help:  ## list the targets
+	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+setup: $(STAMP)  ## create .venv and install the project
+
+run: $(STAMP)  ## run the whole pipeline on the embedded default scene
+	$(CLI) run $(CONFIG)
+
+test: $(STAMP)  ## run the test suite
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)  ## time reconstruction against GAP-TV and a matrix multiply
+	$(BIN)/python tasks/bench.py
+
+train: $(STAMP)  ## train the dictionary pipeline.yaml describes
+	$(BIN)/python tasks/train.py $(CONFIG)
+
+simulate: $(STAMP)  ## simulate the coded capture pipeline.yaml describes
+	$(BIN)/python tasks/simulate.py $(CONFIG)
+
+reconstruct: $(STAMP)  ## reconstruct (trains/simulates first if needed)
+	$(BIN)/python tasks/reconstruct.py $(CONFIG)
+
+submit: $(STAMP)  ## run pipeline.yaml on a dask.distributed scheduler: make submit SCHEDULER=tcp://host:8786
+	$(BIN)/python tasks/submit.py $(CONFIG) $(SCHEDULER)
+
+clean:  ## remove outputs and caches (not .venv)
+	rm -rf out cache

@@ -1,0 +1,118 @@
+"""pipeline.yaml: every parameter of a run, validated on load.
+
+Unknown or mistyped keys are errors (pydantic ``extra="forbid"``), and every
+error names the file and the key.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from .errors import ConfigError
+
+STAGES = ("train", "simulate", "reconstruct", "evaluate")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SceneConfig(_Strict):
+    #: ``synth:NAME`` for a generated scene, or a path to a video / frame sequence.
+    video: str = "synth:default"
+    size: tuple[int, int] = (256, 256)
+    #: First frame taken from a video file.
+    start: int = Field(0, ge=0)
+
+
+class CodeConfig(_Strict):
+    name: Literal["hitomi", "hitomi-tiled", "bernoulli", "global"] = "hitomi"
+    bump: int = Field(2, ge=1)
+    p: float = Field(0.5, gt=0, le=1)
+
+
+class NoiseConfig(_Strict):
+    #: Gaussian read noise, standard deviation in grey levels (frame units).
+    sigma: float = Field(0.0, ge=0)
+
+
+class DictionaryConfig(_Strict):
+    kind: Literal["learned", "dct"] = "learned"
+    atoms: int = Field(512, ge=1)
+    samples: int = Field(20000, ge=100)
+    iterations: int = Field(10, ge=0)
+    sparsity: int = Field(6, ge=1)
+    #: ``synth:train`` (synthetic motion of the training photographs) or video paths.
+    training: list[str] = ["synth:train"]
+    clips: int = Field(36, ge=1)
+    #: An existing dictionary to use instead of training one.
+    path: str | None = None
+
+
+class ReconstructConfig(_Strict):
+    max_atoms: int = Field(8, ge=1, le=49)
+    #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
+    tol_rms: float | Literal["auto"] = "auto"
+    tile: int = Field(128, ge=8)
+    batch: int = Field(4096, ge=1)
+    scheduler: str | None = None
+    workers: int | None = Field(None, ge=1)
+
+
+class OutputConfig(_Strict):
+    dir: str = "out/run"
+    video: str = "recon.mp4"
+    frames: Literal["tiff16", "exr", "none"] = "tiff16"
+    fps: int = Field(30, ge=1)
+
+
+class PipelineConfig(_Strict):
+    seed: int = 0
+    frames: int = Field(8, ge=1, le=64)
+    cache: str = "cache"
+    stages: list[Literal["train", "simulate", "reconstruct", "evaluate"]] = list(STAGES)
+    scene: SceneConfig = SceneConfig()
+    code: CodeConfig = CodeConfig()
+    noise: NoiseConfig = NoiseConfig()
+    dictionary: DictionaryConfig = DictionaryConfig()
+    reconstruct: ReconstructConfig = ReconstructConfig()
+    output: OutputConfig = OutputConfig()
+
+    @field_validator("stages")
+    @classmethod
+    def _known_order(cls, v: list[str]) -> list[str]:
+        return [s for s in STAGES if s in v]
+
+
+def auto_tolerance(sigma: float) -> float:
+    """Default RMS residual tolerance of Eq. 3 for read noise ``sigma``.
+
+    Without noise a floor of 0.5 grey levels (half a quantisation step of an
+    8-bit sensor) stops OMP on patches that are already explained.
+    """
+    return float(max(sigma, 0.5))
+
+
+def load_config(path: str | Path) -> PipelineConfig:
+    """Read and validate pipeline.yaml; raise :class:`ConfigError` naming the key."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"config {path}: no such file")
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config {path}: not valid YAML ({str(exc).splitlines()[0]})") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"config {path}: expected a mapping at the top level")
+    try:
+        return PipelineConfig.model_validate(raw)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"]) or "(top level)"
+        msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+        more = f" (and {len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else ""
+        raise ConfigError(f"config {path}: {where}: {msg}{more}") from exc

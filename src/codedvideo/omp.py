@@ -1,0 +1,305 @@
+"""Batched orthogonal matching pursuit (OMP) for many small problems at once.
+
+Every patch ``p`` is its own sparse-coding problem (Hitomi et al. 2011, Eq. 3)::
+
+    min ||alpha||_0  subject to  ||A_p alpha - y_p||^2 <= tol,  ||alpha||_0 <= max_atoms
+
+with ``A_p = Phi_p D``: the dictionary ``D`` (``N*M*M x K``, unit-norm atoms)
+seen through the patch's shutter code ``Phi_p``.  The columns of ``A_p`` are not
+unit-norm, so atoms are selected by the normalised correlation
+``|a_k^T r| / ||a_k||`` (as scikit-learn's OMP assumes unit atoms, we normalise
+explicitly).
+
+All patches of a batch advance together, one atom per iteration:
+
+* correlations of all active patches are one matrix product,
+  ``A_p^T r = D^T (Phi_p^T r)``;
+* the selected columns are orthogonalised against the patch's earlier ones by
+  classical Gram-Schmidt applied twice (numerically as good as Householder QR
+  for these sizes), which keeps a thin QR ``A_sel = Q R`` per patch;
+* the residual is updated by one projection, ``r -= (q^T r) q``, so the exact
+  OMP residual is available without solving any system inside the loop;
+* a patch leaves the active set when its residual is within ``tol``, when it
+  reaches ``max_atoms``, or when its best new column is (numerically) in the
+  span of the selected ones -- a linear dependence that is counted and
+  reported, never a NaN;
+* the coefficients come from one batched back-substitution ``R alpha = Q^T y``
+  at the end.
+
+Operators
+---------
+The loop only needs three things of ``A_p`` and is written against a small
+protocol: ``correlate(r, rows)`` -> ``(len(rows), K)``, ``column(j, rows)`` ->
+``(len(rows), m)`` and ``norms(rows)`` -> ``(len(rows), K)``.
+:class:`PlainOperator` (``A_p = D``, used by K-SVD) and :class:`MaskedOperator`
+(coded patches) implement it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Relative size of a new column's component outside the span of the selected
+#: columns below which it counts as linearly dependent.
+DEPENDENCE_TOL = 1e-4
+_TINY = 1e-12
+
+
+@dataclass
+class OmpResult:
+    """Sparse codes of a batch of patches.
+
+    Attributes
+    ----------
+    index : ndarray of shape (P, max_atoms), int32
+        Selected atoms; entries at and beyond ``count[p]`` are meaningless.
+    coef : ndarray of shape (P, max_atoms), float32
+        Coefficients (0 beyond ``count[p]``).
+    count : ndarray of shape (P,), int32
+        Number of atoms used by each patch.
+    residual : ndarray of shape (P,), float32
+        Final squared residual ``||A_p alpha - y_p||^2``.
+    dependent : ndarray of shape (P,), bool
+        Patches that stopped early because the next column was dependent.
+    """
+
+    index: np.ndarray
+    coef: np.ndarray
+    count: np.ndarray
+    residual: np.ndarray
+    dependent: np.ndarray
+
+    def dense(self, n_atoms: int) -> np.ndarray:
+        """Coefficients as a dense array of shape (P, K)."""
+        out = np.zeros((self.count.size, n_atoms), dtype=np.float32)
+        rows = np.repeat(np.arange(self.count.size), self.count)
+        cols = np.concatenate([self.index[p, : self.count[p]] for p in range(self.count.size)]) if rows.size else rows
+        vals = np.concatenate([self.coef[p, : self.count[p]] for p in range(self.count.size)]) if rows.size else rows
+        np.add.at(out, (rows, cols), vals)
+        return out
+
+
+class PlainOperator:
+    """``A_p = D`` for every patch (unmasked sparse coding, used by K-SVD).
+
+    Parameters
+    ----------
+    D : ndarray of shape (m, K)
+    """
+
+    def __init__(self, D: np.ndarray):
+        self.D = np.ascontiguousarray(D, dtype=np.float32)
+        self.Dt = np.ascontiguousarray(self.D.T)
+        self._norms = np.sqrt((self.D.astype(np.float64) ** 2).sum(0)).astype(np.float32)
+
+    def correlate(self, r: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return r @ self.D
+
+    def column(self, j: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return self.Dt[j]
+
+    def norms(self, rows: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(self._norms, (len(rows), self._norms.size))
+
+
+class MaskedOperator:
+    """``A_p = Phi_p D`` for coded patches.
+
+    ``(A_p)[i, k] = sum_t S_p[t, i] D[t*m + i, k]`` for pixel ``i`` of the patch.
+
+    The column norms are computed exactly through a table of the distinct
+    per-pixel shutter patterns: with ``B[i, u, k] = sum_t pattern_u[t] D[t*m+i, k]``,
+    ``||a_k||^2 = sum_i B[i, u_p(i), k]^2``, one matrix product of a one-hot
+    pattern indicator with ``B**2``.  Single-bump codes have at most ``N - L + 1``
+    patterns, so the product is about as cheap as one correlation.  Masks with
+    many distinct patterns (e.g. Bernoulli with large N) fall back to one small
+    product per pixel position.
+
+    Parameters
+    ----------
+    S : ndarray of shape (P, N, m)
+        Shutter code of every patch (binary).
+    D : ndarray of shape (N*m, K)
+        Dictionary, rows ordered ``(t, i)``.
+    """
+
+    #: Above this many (pixel, pattern) pairs the one-hot product is not used.
+    MAX_ONEHOT = 2048
+
+    def __init__(self, S: np.ndarray, D: np.ndarray):
+        P, N, m = S.shape
+        self.N, self.m = N, m
+        self.S = np.ascontiguousarray(S, dtype=np.float32)
+        self.D = np.ascontiguousarray(D, dtype=np.float32)
+        self.K = self.D.shape[1]
+        if self.D.shape[0] != N * m:
+            raise ValueError(f"dictionary has {self.D.shape[0]} rows, patches need N*m = {N * m}")
+        self.Dt = np.ascontiguousarray(self.D.T)
+        self._norms = self._column_norms()
+
+    def _column_norms(self) -> np.ndarray:
+        P, N, m = self.S.shape
+        D3 = self.D.reshape(N, m, self.K)
+        if P == 0:
+            return np.zeros((0, self.K), np.float32)
+        # distinct per-pixel patterns, as integers (N <= 64)
+        bits = (self.S.transpose(0, 2, 1) > 0).astype(np.uint64)  # (P, m, N)
+        weights = np.left_shift(np.uint64(1), np.arange(N, dtype=np.uint64))
+        codes = (bits * weights).sum(-1, dtype=np.uint64)
+        uniq, inv = np.unique(codes, return_inverse=True)
+        inv = inv.reshape(P, m)
+        U = uniq.size
+        if m * U <= self.MAX_ONEHOT:
+            patterns = ((uniq[:, None] >> np.arange(N, dtype=np.uint64)) & np.uint64(1)).astype(np.float32)
+            B = np.einsum("un,nik->iuk", patterns, D3, optimize=True)  # (m, U, K)
+            onehot = np.zeros((P, m * U), dtype=np.float32)
+            onehot[np.arange(P)[:, None], np.arange(m)[None, :] * U + inv] = 1.0
+            sq = onehot @ (B * B).reshape(m * U, self.K)
+        else:
+            sq = np.zeros((P, self.K), dtype=np.float32)
+            for i in range(m):
+                a = self.S[:, :, i] @ D3[:, i, :]
+                sq += a * a
+        return np.sqrt(np.maximum(sq, 0.0))
+
+    def correlate(self, r: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        z = (self.S[rows] * r[:, None, :]).reshape(len(rows), -1)
+        return z @ self.D
+
+    def column(self, j: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        atoms = self.Dt[j].reshape(len(rows), self.N, self.m)
+        return np.einsum("pnm,pnm->pm", atoms, self.S[rows])
+
+    def norms(self, rows: np.ndarray) -> np.ndarray:
+        return self._norms[rows]
+
+
+def omp(
+    y: np.ndarray,
+    op,
+    *,
+    max_atoms: int,
+    tol: float | np.ndarray = 0.0,
+    dependence_tol: float = DEPENDENCE_TOL,
+) -> OmpResult:
+    """Batched OMP with both stopping rules of Eq. 3.
+
+    Parameters
+    ----------
+    y : ndarray of shape (P, m)
+        Measurements of every patch.
+    op : PlainOperator or MaskedOperator
+        The per-patch matrices ``A_p``.
+    max_atoms : int
+        Maximum number of atoms per patch (``<= m``).
+    tol : float or ndarray of shape (P,)
+        Stop when the squared residual ``||A_p alpha - y_p||^2 <= tol``.
+    dependence_tol : float
+        A new column whose component orthogonal to the selected ones is below
+        this fraction of its norm ends the patch (counted in ``dependent``).
+
+    Returns
+    -------
+    OmpResult
+    """
+    y = np.ascontiguousarray(y, dtype=np.float32)
+    P, m = y.shape
+    kmax = int(min(max_atoms, m))
+    index = np.zeros((P, kmax), np.int32)
+    count = np.zeros(P, np.int32)
+    Q = np.zeros((P, kmax, m), np.float32)
+    R = np.zeros((P, kmax, kmax), np.float32)
+    qy = np.zeros((P, kmax), np.float32)
+    dependent = np.zeros(P, bool)
+    r = y.copy()
+    res2 = np.einsum("pm,pm->p", r, r)
+    tol = np.broadcast_to(np.asarray(tol, dtype=np.float32), (P,))
+    active = np.flatnonzero(res2 > tol)
+    for k in range(kmax):
+        if active.size == 0:
+            break
+        ra = r[active]
+        nrm = op.norms(active)
+        score = np.abs(op.correlate(ra, active))
+        good = nrm > _TINY * max(float(nrm.max(initial=0.0)), 1.0)
+        score = np.where(good, score / np.where(good, nrm, 1.0), 0.0)
+        j = score.argmax(1).astype(np.int32)
+        best = score[np.arange(active.size), j]
+        a = op.column(j, active).astype(np.float32)
+        Qa = Q[active, :k]
+        h = np.einsum("pkm,pm->pk", Qa, a)
+        q = a - np.einsum("pk,pkm->pm", h, Qa)
+        h2 = np.einsum("pkm,pm->pk", Qa, q)
+        q -= np.einsum("pk,pkm->pm", h2, Qa)
+        h += h2
+        qn = np.sqrt(np.einsum("pm,pm->p", q, q))
+        an = np.sqrt(np.einsum("pm,pm->p", a, a))
+        ok = (qn > dependence_tol * np.maximum(an, _TINY)) & (best > 0)
+        dependent[active[~ok]] = True
+        rows = active[ok]
+        q = q[ok] / qn[ok, None]
+        c = np.einsum("pm,pm->p", q, ra[ok])
+        Q[rows, k] = q
+        R[rows, :k, k] = h[ok]
+        R[rows, k, k] = qn[ok]
+        qy[rows, k] = c
+        r[rows] = ra[ok] - c[:, None] * q
+        index[rows, k] = j[ok]
+        count[rows] = k + 1
+        res2[rows] = np.einsum("pm,pm->p", r[rows], r[rows])
+        active = rows[res2[rows] > tol[rows]]
+    coef = _back_substitute(R, qy, count)
+    return OmpResult(index=index, coef=coef, count=count, residual=res2.astype(np.float32), dependent=dependent)
+
+
+def _back_substitute(R: np.ndarray, qy: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Solve ``R[:n, :n] x = qy[:n]`` for every patch (upper triangular)."""
+    P, kmax = qy.shape
+    x = np.zeros((P, kmax), np.float32)
+    for k in range(kmax - 1, -1, -1):
+        valid = count > k
+        if not valid.any():
+            continue
+        rhs = qy[:, k] - np.einsum("pj,pj->p", R[:, k, k + 1 :], x[:, k + 1 :])
+        x[:, k] = np.where(valid, rhs / np.where(valid, R[:, k, k], 1.0), 0.0)
+    return x
+
+
+def synthesize(result: OmpResult, D: np.ndarray) -> np.ndarray:
+    """Patch estimates ``E_p = D alpha_p``, shape (P, D.shape[0]) float32."""
+    Dt = np.ascontiguousarray(np.asarray(D, dtype=np.float32).T)
+    P = result.count.size
+    out = np.zeros((P, Dt.shape[1]), np.float32)
+    for k in range(int(result.count.max(initial=0))):
+        rows = np.flatnonzero(result.count > k)
+        out[rows] += result.coef[rows, k, None] * Dt[result.index[rows, k]]
+    return out
+
+
+def omp_reference(A: np.ndarray, y: np.ndarray, *, max_atoms: int, tol: float = 0.0) -> np.ndarray:
+    """Textbook OMP for one problem ``A alpha ~ y`` (for tests).
+
+    Normalised selection, least squares by ``numpy.linalg.lstsq`` each step.
+    Returns the dense coefficient vector of shape (K,), float64.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    norms = np.linalg.norm(A, axis=0)
+    usable = norms > _TINY * max(norms.max(initial=0.0), 1.0)
+    sel: list[int] = []
+    coef = np.zeros(0)
+    r = y.copy()
+    while len(sel) < min(max_atoms, A.shape[0]) and r @ r > tol:
+        score = np.where(usable, np.abs(A.T @ r) / np.where(usable, norms, 1.0), 0.0)
+        score[sel] = 0.0
+        j = int(score.argmax())
+        if score[j] <= 0:
+            break
+        sel.append(j)
+        coef, *_ = np.linalg.lstsq(A[:, sel], y, rcond=None)
+        r = y - A[:, sel] @ coef
+    out = np.zeros(A.shape[1])
+    out[sel] = coef
+    return out

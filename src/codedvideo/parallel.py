@@ -1,0 +1,158 @@
+"""Dask wiring: the tile plan, the task graph and its executors.
+
+This is the only module that imports dask.  The plan is plain data
+(:func:`plan_tiles`), the graph is one ``dask.delayed`` task per tile, and the
+same graph runs on the local threaded scheduler (default: both cores), the
+synchronous scheduler (tests, debugging) or a dask.distributed scheduler given
+by address (a cluster started by hand, or by dask-jobqueue on Slurm/PBS).
+
+A tile task reads its region *with a halo of* ``patch - 1`` pixels from the Zarr
+working store, reconstructs it, keeps the core (whose pixels then see exactly
+the patches they see in the whole image) and writes the core and a statistics
+row back to the store.  Tiles are the store's chunks, so concurrent tasks never
+write the same chunk, and a rerun skips the tiles whose statistics exist.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from dataclasses import dataclass
+
+import dask
+import numpy as np
+
+from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region
+from .store import WorkStore
+
+
+@dataclass(frozen=True)
+class Tile:
+    """One tile of the plan: its index, its core and its halo region (y0, y1, x0, x1)."""
+
+    index: int
+    core: tuple[int, int, int, int]
+    halo: tuple[int, int, int, int]
+
+
+def plan_tiles(shape: tuple[int, int], tile: int, *, patch: int = 7) -> list[Tile]:
+    """Cut an image into ``tile x tile`` cores (the last ones smaller) with halos.
+
+    The halo is ``patch - 1`` pixels on every side, clipped at the image border,
+    so every patch that covers a core pixel lies inside the tile's halo region.
+    """
+    h, w = shape
+    if tile < 1:
+        raise ValueError(f"tile size must be >= 1, got {tile}")
+    halo = patch - 1
+    tiles = []
+    for y0 in range(0, h, tile):
+        for x0 in range(0, w, tile):
+            y1, x1 = min(y0 + tile, h), min(x0 + tile, w)
+            region = (max(0, y0 - halo), min(h, y1 + halo), max(0, x0 - halo), min(w, x1 + halo))
+            tiles.append(Tile(len(tiles), (y0, y1, x0, x1), region))
+    return tiles
+
+
+def _tile_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings, patch: int) -> np.ndarray:
+    store = WorkStore(store_path)
+    hy0, hy1, hx0, hx1 = tile.halo
+    y0, y1, x0, x1 = tile.core
+    coded, mask = store.read_inputs(hy0, hy1, hx0, hx1)
+    try:
+        volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch)
+    except Exception as exc:  # name the tile, keep the cause
+        raise RuntimeError(f"tile {tile.index} (rows {y0}:{y1}, cols {x0}:{x1}): {exc}") from exc
+    core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]
+    store.write_tile(tile.index, tile.core, core, stats)
+    return stats
+
+
+def build_graph(store_path: str, tiles: list[Tile], D: np.ndarray, settings: OmpSettings, *, patch: int = 7):
+    """One delayed task per tile, sharing a single dictionary node."""
+    d_node = dask.delayed(D, pure=True, name="dictionary-" + dask.base.tokenize(D))
+    task = dask.delayed(_tile_task, pure=False)
+    return [task(store_path, t, d_node, settings, patch, dask_key_name=f"tile-{t.index}") for t in tiles]
+
+
+@contextlib.contextmanager
+def _single_threaded_blas(enabled: bool):
+    """Limit BLAS to one thread per worker when workers already use the cores."""
+    if not enabled:
+        yield
+        return
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl is a dependency
+        yield
+        return
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+def run_graph(
+    tasks: list,
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> list:
+    """Execute tile tasks and return their results in order.
+
+    Parameters
+    ----------
+    scheduler : None, "threads", "sync" or a dask.distributed address
+        None and "threads" run on the local threaded scheduler; "sync" runs
+        in this thread; anything containing "://" or ":" is a scheduler address.
+    workers : int, optional
+        Local worker threads (default: the number of cores).
+    progress : bool
+        Show a progress bar.
+    """
+    if not tasks:
+        return []
+    if scheduler and scheduler not in ("threads", "sync"):
+        from distributed import Client, progress as dprogress
+
+        with Client(scheduler) as client:
+            futures = client.compute(tasks)
+            if progress:
+                dprogress(futures)
+            return client.gather(futures)
+    from dask.diagnostics import ProgressBar
+
+    n_workers = workers or os.cpu_count() or 1
+    bar = ProgressBar(dt=0.5) if progress else contextlib.nullcontext()
+    if scheduler == "sync":
+        with bar:
+            return list(dask.compute(*tasks, scheduler="sync"))
+    with bar, _single_threaded_blas(n_workers > 1):
+        return list(dask.compute(*tasks, scheduler="threads", num_workers=n_workers))
+
+
+def reconstruct_tiles(
+    store: WorkStore,
+    D: np.ndarray,
+    settings: OmpSettings,
+    *,
+    tile: int,
+    patch: int = 7,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> dict:
+    """Reconstruct every tile of a working store that is not done yet.
+
+    Returns a summary: tiles done now and reused, and the summed statistics.
+    """
+    shape = tuple(store.group["coded"].shape)
+    tiles = plan_tiles(shape, tile, patch=patch)
+    done = store.done_tiles()
+    todo = [t for t in tiles if not done[t.index]]
+    run_graph(build_graph(str(store.path), todo, D, settings, patch=patch), scheduler=scheduler, workers=workers, progress=progress)
+    stats = store.stats()
+    if not np.isfinite(stats).all():
+        missing = np.flatnonzero(~np.isfinite(stats).all(1)).tolist()
+        raise RuntimeError(f"working store {store.path}: tiles {missing} did not finish")
+    totals = dict(zip(STAT_NAMES, stats.sum(0).tolist()))
+    return dict(tiles=len(tiles), tiles_computed=len(todo), tiles_reused=len(tiles) - len(todo), **totals)
