@@ -45,6 +45,8 @@ import numpy as np
 #: columns below which it counts as linearly dependent.
 DEPENDENCE_TOL = 1e-4
 _TINY = 1e-12
+#: Correlations within this relative distance of the best count as tied.
+TIE_RTOL = 1e-4
 
 
 @dataclass
@@ -225,8 +227,10 @@ def omp(
         score = np.abs(op.correlate(ra, active))
         good = nrm > _TINY * max(float(nrm.max(initial=0.0)), 1.0)
         score = np.where(good, score / np.where(good, nrm, 1.0), 0.0)
-        j = score.argmax(1).astype(np.int32)
-        best = score[np.arange(active.size), j]
+        # near-ties (within TIE_RTOL) go to the lowest atom index, so that the choice
+        # does not depend on roundoff (batch size, chunking, BLAS blocking)
+        best = score.max(1)
+        j = (score >= (best * (1.0 - TIE_RTOL))[:, None]).argmax(1).astype(np.int32)
         a = op.column(j, active).astype(np.float32)
         Qa = Q[active, :k]
         h = np.einsum("pkm,pm->pk", Qa, a)
@@ -294,7 +298,7 @@ def omp_reference(A: np.ndarray, y: np.ndarray, *, max_atoms: int, tol: float = 
     while len(sel) < min(max_atoms, A.shape[0]) and r @ r > tol:
         score = np.where(usable, np.abs(A.T @ r) / np.where(usable, norms, 1.0), 0.0)
         score[sel] = 0.0
-        j = int(score.argmax())
+        j = int((score >= score.max() * (1.0 - TIE_RTOL)).argmax())
         if score[j] <= 0:
             break
         sel.append(j)

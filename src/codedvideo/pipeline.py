@@ -1,0 +1,347 @@
+"""The application layer: stages that read files, cache results and report metrics.
+
+Stages (train, simulate, reconstruct, evaluate) are functions of their settings
+and inputs; each result is cached under a key that hashes both, so a rerun
+reuses a dictionary, a simulated capture or finished reconstruction tiles
+instead of recomputing them.  Every reconstruction writes a metrics JSON beside
+its output: seconds per stage, patches per second, atoms used, and PSNR/SSIM
+when the truth is known (no-reference statistics otherwise).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from . import io as cio
+from . import physics, synth
+from .codes import make_code
+from .config import PipelineConfig, auto_tolerance
+from .dictionaries import dct_dictionary, learn_dictionary
+from .errors import InputError
+from .metrics import evaluate
+from .parallel import plan_tiles, reconstruct_tiles
+from .reconstruct import STAT_NAMES, OmpSettings
+from .store import WorkStore, load_array, load_dictionary, save_array, save_dictionary
+
+log = logging.getLogger("codedvideo")
+
+PATCH = 7
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".gif")
+
+
+# ----------------------------------------------------------------------------- hashing
+def content_key(*parts) -> str:
+    """A short sha256 over settings (JSON-able) and arrays."""
+    h = hashlib.sha256()
+    for part in parts:
+        if isinstance(part, np.ndarray):
+            h.update(str((part.shape, part.dtype.str)).encode())
+            h.update(np.ascontiguousarray(part).tobytes())
+        else:
+            h.update(json.dumps(part, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:16]
+
+
+def _write_json(path: Path, payload: dict) -> Path:
+    with cio.atomic_output(path) as tmp:
+        Path(tmp).write_text(json.dumps(payload, indent=2, default=_json_default) + "\n")
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+# ----------------------------------------------------------------------------- inputs
+def load_video(spec: str, *, frames: int, size: tuple[int, int] | None, seed: int = 0, start: int = 0) -> np.ndarray:
+    """A scene as (frames, H, W) float32: ``synth:NAME`` or a video / frame-sequence path.
+
+    Files are centre-cropped to ``size`` when they are larger.
+    """
+    if spec.startswith("synth:"):
+        return synth.make_scene(spec.split(":", 1)[1], frames=frames, size=tuple(size or (256, 256)), seed=seed)
+    video = cio.read_video(spec, max_frames=frames, start=start)
+    if video.shape[0] < frames:
+        raise InputError(f"video {spec}: has {video.shape[0]} frames from frame {start}, need {frames}")
+    if size is not None:
+        h, w = size
+        if video.shape[1] < h or video.shape[2] < w:
+            raise InputError(f"video {spec}: frames {video.shape[1:]} smaller than the requested size {tuple(size)}")
+        y0 = (video.shape[1] - h) // 2
+        x0 = (video.shape[2] - w) // 2
+        video = video[:, y0 : y0 + h, x0 : x0 + w]
+    return np.ascontiguousarray(video[:frames], dtype=np.float32)
+
+
+def training_videos(specs: list[str], *, frames: int, clips: int, seed: int) -> list[np.ndarray]:
+    """Training clips: ``synth:train`` (generated) and/or user video paths."""
+    videos: list[np.ndarray] = []
+    for spec in specs:
+        if spec == "synth:train":
+            videos.extend(synth.training_videos(frames=frames, count=clips, seed=seed))
+        else:
+            videos.append(cio.read_video(spec, max_frames=max(frames * 16, 64)))
+    return videos
+
+
+# ----------------------------------------------------------------------------- train
+def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, progress: bool = True) -> tuple[Path, dict]:
+    """Train (or reuse from the cache) the dictionary the config describes."""
+    dc = cfg.dictionary
+    if dc.path:
+        D, meta = load_dictionary(dc.path)
+        _check_dictionary(meta, cfg.frames, dc.path)
+        return Path(dc.path), dict(meta, reused=True, seconds=0.0)
+    settings = dict(dc.model_dump(exclude={"path"}), frames=cfg.frames, seed=cfg.seed, patch=PATCH)
+    key = content_key("dictionary-v1", settings)
+    cached = Path(cfg.cache) / f"dict-{key}.zarr"
+    t0 = time.perf_counter()
+    cached_ok = False
+    if cached.exists():
+        try:
+            load_dictionary(cached)
+            cached_ok = True
+            log.info("dictionary: reusing %s", cached)
+        except InputError as exc:
+            log.warning("dictionary cache %s is unreadable (%s); training again", cached, exc)
+    result = cached
+    if not cached_ok:
+        if dc.kind == "dct":
+            D = dct_dictionary(cfg.frames)
+            meta = dict(patch=PATCH, frames=cfg.frames, method="dct3d", seed=cfg.seed, iterations=0)
+        else:
+            videos = training_videos(dc.training, frames=cfg.frames, clips=dc.clips, seed=cfg.seed)
+            bar = _progress_bar(dc.iterations, "K-SVD") if progress else None
+            D, meta = learn_dictionary(
+                videos,
+                frames=cfg.frames,
+                atoms=dc.atoms,
+                samples=dc.samples,
+                iterations=dc.iterations,
+                sparsity=dc.sparsity,
+                seed=cfg.seed,
+                progress=(lambda it, rmse: (bar.update(1), bar.set_postfix(rmse=f"{rmse:.2f}"))) if bar else None,
+            )
+            if bar:
+                bar.close()
+            meta["training_set"] = list(dc.training)
+            meta["clips"] = dc.clips
+        meta["settings_key"] = key
+        result = save_dictionary(cached, D, meta)
+    if output is not None and Path(output) != result:
+        D, meta = load_dictionary(result)
+        save_dictionary(output, D, {k: v for k, v in meta.items() if k not in ("atoms", "sha256", "kind", "format_version")})
+        result = Path(output)
+    _, meta = load_dictionary(result)
+    return result, dict(meta, reused=cached_ok, seconds=time.perf_counter() - t0)
+
+
+def _check_dictionary(meta: dict, frames: int, path) -> None:
+    if meta.get("patch") != PATCH:
+        raise InputError(f"dictionary {path}: patch size {meta.get('patch')} != {PATCH}")
+    if meta.get("frames") != frames:
+        raise InputError(f"dictionary {path}: built for N = {meta.get('frames')} sub-frames, the mask has N = {frames}")
+
+
+def _progress_bar(total: int, desc: str):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="it", leave=False)
+
+
+# ----------------------------------------------------------------------------- simulate
+def simulate_capture(
+    video: np.ndarray, *, code: str, bump: int, sigma: float, seed: int, p: float = 0.5
+) -> dict[str, np.ndarray]:
+    """Coded capture of a video: mask, coded image (noisy) and the truth."""
+    n = video.shape[0]
+    ss = np.random.SeedSequence(seed)
+    code_rng, noise_rng = (np.random.default_rng(s) for s in ss.spawn(2))
+    mask = make_code(code, video.shape[1:], frames=n, bump=bump, p=p, rng=code_rng)
+    coded = physics.simulate(video, mask, sigma=sigma, rng=noise_rng)
+    return dict(coded=coded, mask=mask, truth=np.asarray(video, np.float32))
+
+
+def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[str, Path]:
+    """Write coded.npy, mask.npy, truth.npy and coded.tif into ``outdir``."""
+    outdir = Path(outdir)
+    paths = {}
+    for name in ("coded", "mask", "truth"):
+        paths[name] = outdir / f"{name}.npy"
+        cio.write_array(paths[name], capture[name])
+    paths["coded_tif"] = outdir / "coded.tif"
+    cio.write_image(paths["coded_tif"], capture["coded"])
+    return paths
+
+
+# ----------------------------------------------------------------------------- reconstruct
+def read_coded(path: str | Path) -> np.ndarray:
+    coded = cio.read_image(path)
+    if not np.isfinite(coded).all():
+        raise InputError(f"coded image {path}: contains NaN or Inf")
+    return coded
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    mask = cio.read_stack(path)
+    if not np.isin(mask, (0, 1)).all():
+        raise InputError(f"mask {path}: not binary (values other than 0 and 1)")
+    return mask.astype(np.uint8)
+
+
+def reconstruct_volume(
+    coded: np.ndarray,
+    mask: np.ndarray,
+    D: np.ndarray,
+    *,
+    settings: OmpSettings,
+    tile: int = 128,
+    cache: str | Path = "cache",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    dictionary_key: str = "",
+) -> tuple[np.ndarray, dict]:
+    """Reconstruct a coded image through the Zarr working store and the dask graph.
+
+    Returns the volume (N, H, W) float32 and a dict of statistics and timings.
+    """
+    physics.check_pair(coded.shape, mask.shape)
+    n, h, w = mask.shape
+    if D.shape[0] != n * PATCH * PATCH:
+        raise InputError(f"dictionary has {D.shape[0]} rows, the mask needs N*49 = {n * PATCH * PATCH} (N = {n})")
+    if h < PATCH or w < PATCH:
+        raise InputError(f"coded image {h}x{w} is smaller than one {PATCH}x{PATCH} patch")
+    never_open = int((~mask.astype(bool).any(0)).sum())
+    if never_open:
+        warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=2)
+    timings = {}
+    t0 = time.perf_counter()
+    tiles = plan_tiles((h, w), tile, patch=PATCH)
+    key = content_key("recon-v1", coded, mask, dictionary_key or content_key(D), settings.__dict__, tile)
+    store = WorkStore.create(
+        Path(cache) / f"recon-{key}.zarr", coded, mask, tile=tile, n_stats=len(STAT_NAMES), n_tiles=len(tiles),
+        attrs=dict(key=key, settings=settings.__dict__, tile=tile),
+    )
+    timings["store_inputs"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    summary = reconstruct_tiles(store, D, settings, tile=tile, patch=PATCH, scheduler=scheduler, workers=workers, progress=progress)
+    timings["reconstruct"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    volume = store.volume()
+    timings["assemble"] = time.perf_counter() - t0
+    if not np.isfinite(volume).all():
+        raise RuntimeError(f"working store {store.path}: volume has unwritten or non-finite pixels")
+    residual = physics.forward(volume, mask) - coded
+    info = dict(
+        summary,
+        never_open_pixels=never_open,
+        atoms_mean=summary["atoms_total"] / max(summary["patches"], 1),
+        patches_per_second=summary["patches"] / max(summary["seconds_total"], 1e-9) * (summary["tiles_computed"] > 0),
+        measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))),
+        work_store=str(store.path),
+        seconds=timings,
+    )
+    return volume, info
+
+
+def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 255.0, fps: int = 30) -> Path:
+    """Write a volume by the output's suffix: .npy, .zarr, a video file, or a frame folder."""
+    output = Path(output)
+    suffix = output.suffix.lower()
+    if suffix == ".npy":
+        cio.write_array(output, volume.astype(np.float32))
+    elif suffix == ".zarr":
+        save_array(output, volume.astype(np.float32), chunks=(volume.shape[0], 256, 256))
+    elif suffix in VIDEO_SUFFIXES:
+        cio.write_video(output, volume, data_range=data_range, fps=fps)
+    elif suffix in ("", ".d"):
+        cio.write_frames(output, volume, fmt="tiff16", data_range=data_range)
+    else:
+        raise InputError(f"output {output}: unknown format {suffix!r} (use .npy, .zarr, .mp4, .mkv, .gif or a folder)")
+    return output
+
+
+def metrics_path(output: str | Path) -> Path:
+    output = Path(output)
+    return output.with_name((output.stem if output.suffix else output.name) + ".metrics.json")
+
+
+def read_volume(path: str | Path) -> np.ndarray:
+    path = Path(path)
+    if path.suffix == ".zarr":
+        return load_array(path)
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        return cio.read_video(path)
+    return cio.read_stack(path)
+
+
+def trivial_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Every sub-frame = coded / open count: the baseline a method must beat."""
+    return physics.static_estimate(coded, mask)
+
+
+def run_pipeline(cfg: PipelineConfig, *, progress: bool = True) -> dict:
+    """Run the stages the config names; return the metrics written."""
+    out = Path(cfg.output.dir)
+    report: dict = dict(config=cfg.model_dump(mode="json"), seconds={})
+    dict_path = None
+    if "train" in cfg.stages or "reconstruct" in cfg.stages:
+        t0 = time.perf_counter()
+        dict_path, dmeta = train_dictionary(cfg, progress=progress)
+        report["seconds"]["train"] = time.perf_counter() - t0
+        report["dictionary"] = dict(path=str(dict_path), reused=dmeta["reused"], atoms=dmeta["atoms"],
+                                    method=dmeta.get("method"), final_rmse=dmeta.get("final_rmse"))
+    capture = None
+    if "simulate" in cfg.stages or "reconstruct" in cfg.stages:
+        t0 = time.perf_counter()
+        video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
+        capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed, p=cfg.code.p)
+        report["capture"] = {k: str(v) for k, v in write_capture(capture, out / "capture").items()}
+        report["seconds"]["simulate"] = time.perf_counter() - t0
+    if "reconstruct" in cfg.stages:
+        D, dmeta = load_dictionary(dict_path)
+        _check_dictionary(dmeta, cfg.frames, dict_path)
+        rc = cfg.reconstruct
+        tol = auto_tolerance(cfg.noise.sigma) if rc.tol_rms == "auto" else float(rc.tol_rms)
+        settings = OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch)
+        t0 = time.perf_counter()
+        volume, info = reconstruct_volume(
+            capture["coded"], capture["mask"], D, settings=settings, tile=rc.tile, cache=cfg.cache,
+            scheduler=rc.scheduler, workers=rc.workers, progress=progress, dictionary_key=dmeta["sha256"],
+        )
+        report["seconds"]["reconstruct"] = time.perf_counter() - t0
+        report["reconstruction"] = info
+        t0 = time.perf_counter()
+        video_path = write_volume(volume, out / cfg.output.video, fps=cfg.output.fps)
+        report["outputs"] = dict(video=str(video_path))
+        if cfg.output.frames != "none":
+            report["outputs"]["frames"] = str(out / "frames")
+            cio.write_frames(out / "frames", volume, fmt=cfg.output.frames)
+        cio.write_array(out / "recon.npy", volume)
+        report["outputs"]["volume"] = str(out / "recon.npy")
+        report["seconds"]["write"] = time.perf_counter() - t0
+        if "evaluate" in cfg.stages:
+            t0 = time.perf_counter()
+            report["quality"] = evaluate(volume, capture["truth"])
+            report["trivial"] = evaluate(trivial_estimate(capture["coded"], capture["mask"]), capture["truth"])
+            report["seconds"]["evaluate"] = time.perf_counter() - t0
+    report["seconds"]["total"] = sum(report["seconds"].values())
+    _write_json(metrics_path(out / cfg.output.video), report)
+    report["metrics_path"] = str(metrics_path(out / cfg.output.video))
+    return report

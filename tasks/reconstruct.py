@@ -1,0 +1,17 @@
+"""Stage: reconstruct the capture (trains and simulates first when their results are not cached)."""
+import sys
+
+from _common import config_from_argv, guarded
+
+from codedvideo.pipeline import run_pipeline
+
+
+def main() -> None:
+    cfg = config_from_argv()
+    cfg = cfg.model_copy(update=dict(stages=["train", "simulate", "reconstruct", "evaluate"]))
+    report = run_pipeline(cfg)
+    print(f"video: {report['outputs']['video']}\nmetrics: {report['metrics_path']}")
+
+
+if __name__ == "__main__":
+    sys.exit(guarded(main))
