@@ -276,7 +276,8 @@ def _oiio_write(path: Path, pages: list[np.ndarray], fmt: str) -> None:
         for i, page in enumerate(pages):
             if i > 0 and not out.open(str(path), spec, "AppendSubimage"):
                 raise OutputError(f"image {path}: cannot append page {i} ({out.geterror()})")
-            if not out.write_image(np.ascontiguousarray(page)):
+            # OpenImageIO wants (H, W, C) pixels; a 2-D array is misread
+            if not out.write_image(np.ascontiguousarray(page.reshape(h, w, 1))):
                 raise OutputError(f"image {path}: cannot write ({out.geterror()})")
     finally:
         out.close()
