@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from . import io as cio
-from . import physics, synth
+from . import manifest, physics, synth
 from .codes import make_code
 from .config import PipelineConfig, auto_tolerance
 from .dictionaries import dct_dictionary, learn_dictionary
@@ -74,8 +74,10 @@ def load_video(spec: str, *, frames: int, size: tuple[int, int] | None, seed: in
     Files are centre-cropped to ``size`` when they are larger.
     """
     if spec.startswith("synth:"):
-        return synth.make_scene(spec.split(":", 1)[1], frames=frames, size=tuple(size or (256, 256)), seed=seed)
-    video = cio.read_video(spec, max_frames=frames, start=start)
+        name = spec.split(":", 1)[1]
+        manifest.verify_ids(manifest.SCENE_PHOTOS.get(name, synth.TEST_PHOTOS))
+        return synth.make_scene(name, frames=frames, size=tuple(size or (256, 256)), seed=seed)
+    video = cio.read_video(resolve_data(spec), max_frames=frames, start=start)
     if video.shape[0] < frames:
         raise InputError(f"video {spec}: has {video.shape[0]} frames from frame {start}, need {frames}")
     if size is not None:
@@ -93,10 +95,19 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int) -> 
     videos: list[np.ndarray] = []
     for spec in specs:
         if spec == "synth:train":
+            manifest.verify_ids(synth.TRAIN_PHOTOS)
             videos.extend(synth.training_videos(frames=frames, count=clips, seed=seed))
         else:
-            videos.append(cio.read_video(spec, max_frames=max(frames * 16, 64)))
+            videos.append(cio.read_video(resolve_data(spec), max_frames=max(frames * 16, 64)))
     return videos
+
+
+def resolve_data(spec: str) -> str:
+    """``manifest:ID`` -> the verified file of that data_manifest entry; a path stays a path."""
+    if spec.startswith("manifest:"):
+        entry = manifest.lookup(spec.split(":", 1)[1])
+        return str(manifest.verify(entry))
+    return spec
 
 
 # ----------------------------------------------------------------------------- train
