@@ -62,6 +62,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--max-atoms", type=int, default=PipelineConfig().reconstruct.max_atoms)
     r.add_argument("--tol-rms", type=float, default=None, help="residual tolerance, RMS per pixel (default: from --noise-sigma)")
     r.add_argument("--noise-sigma", type=float, default=0.0, help="read noise of the capture, grey levels")
+    r.add_argument("--static-atoms", type=int, default=PipelineConfig().reconstruct.static_atoms,
+                   help="still-scene test: 2D DCT atoms before full OMP (0: off)")
     r.add_argument("--tile", type=int, default=PipelineConfig().reconstruct.tile)
     r.add_argument("--batch", type=int, default=PipelineConfig().reconstruct.batch)
     r.add_argument("--scheduler", default=None, help="dask.distributed scheduler address (default: local, both cores)")
@@ -136,7 +138,7 @@ def _cmd_reconstruct(a) -> int:
         raise InputError(f"truth {a.truth}: shape {truth.shape} != mask shape {mask.shape}")
     t_read = time.perf_counter() - t0
     tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
-    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch)
+    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms)
     volume, info = reconstruct_volume(coded, mask, D, settings=settings, tile=a.tile, cache=a.cache,
                                       scheduler=a.scheduler, workers=a.workers, progress=not a.quiet,
                                       dictionary_key=meta["sha256"])

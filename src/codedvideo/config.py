@@ -57,6 +57,8 @@ class ReconstructConfig(_Strict):
     max_atoms: int = Field(8, ge=1, le=49)
     #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
     tol_rms: float | Literal["auto"] = "auto"
+    #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
+    static_atoms: int = Field(4, ge=0, le=49)
     tile: int = Field(128, ge=8)
     batch: int = Field(4096, ge=1)
     scheduler: str | None = None

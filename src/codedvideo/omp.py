@@ -73,6 +73,10 @@ class OmpResult:
     residual: np.ndarray
     dependent: np.ndarray
 
+    def select(self, rows: np.ndarray) -> "OmpResult":
+        """The results of a subset of patches (boolean mask or indices)."""
+        return OmpResult(self.index[rows], self.coef[rows], self.count[rows], self.residual[rows], self.dependent[rows])
+
     def dense(self, n_atoms: int) -> np.ndarray:
         """Coefficients as a dense array of shape (P, K)."""
         out = np.zeros((self.count.size, n_atoms), dtype=np.float32)

@@ -262,7 +262,8 @@ def reconstruct_volume(
     info = dict(
         summary,
         never_open_pixels=never_open,
-        atoms_mean=summary["atoms_total"] / max(summary["patches"], 1),
+        atoms_mean=summary["atoms_total"] / max(summary["patches"] - summary["patches_static"], 1),
+        static_fraction=summary["patches_static"] / max(summary["patches"], 1),
         patches_per_second=summary["patches"] / max(summary["seconds_total"], 1e-9) * (summary["tiles_computed"] > 0),
         measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))),
         work_store=str(store.path),
@@ -330,7 +331,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True) -> dict:
         _check_dictionary(dmeta, cfg.frames, dict_path)
         rc = cfg.reconstruct
         tol = auto_tolerance(cfg.noise.sigma) if rc.tol_rms == "auto" else float(rc.tol_rms)
-        settings = OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch)
+        settings = OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms)
         t0 = time.perf_counter()
         volume, info = reconstruct_volume(
             capture["coded"], capture["mask"], D, settings=settings, tile=rc.tile, cache=cfg.cache,

@@ -1,0 +1,252 @@
+"""make bench: time reconstruction against GAP-TV, a naive OMP and a matrix multiply.
+
+Cases (issue "Fast reconstruction"):
+
+  a        256x256, N = 8, L = 2: the default settings, beside GAP-TV and the naive OMP
+  b        1280x720, N = 18, L = 2: peak memory; also run with one worker (scaling)
+  c        512x512, N = 36, L = 3 (the paper's N), sliding and tiled codes
+  static   the default scene fully moving against 70 % still, still-scene test on/off
+
+Every case runs in its own process so that its peak resident memory is its
+own; each also times a fixed-size SGEMM so figures can be read as ratios
+independent of the machine's speed that day.  Results go to
+bench/results/latest.json and a table is printed.
+
+    python tasks/bench.py [--cases a,b,c,static] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+
+
+def sgemm_gflops(n: int = 2048, repeats: int = 5) -> float:
+    a = np.random.default_rng(0).random((n, n), dtype=np.float32)
+    b = a.T.copy()
+    a @ b
+    t = time.perf_counter()
+    for _ in range(repeats):
+        a @ b
+    return 2 * n**3 * repeats / (time.perf_counter() - t) / 1e9
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def dictionary_for(frames: int):
+    from codedvideo.config import PipelineConfig
+    from codedvideo.pipeline import train_dictionary
+    from codedvideo.store import load_dictionary
+
+    cfg = PipelineConfig(frames=frames, cache=str(ROOT / "cache"))
+    path, _ = train_dictionary(cfg, progress=False)
+    return load_dictionary(path)
+
+
+def capture(scene: str, frames: int, size, code: str, bump: int, seed: int = 0):
+    from codedvideo.pipeline import load_video, simulate_capture
+
+    video = load_video(f"synth:{scene}", frames=frames, size=size, seed=seed)
+    return simulate_capture(video, code=code, bump=bump, sigma=0.0, seed=seed)
+
+
+def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128):
+    from codedvideo.config import PipelineConfig, auto_tolerance
+    from codedvideo.metrics import evaluate
+    from codedvideo.pipeline import reconstruct_volume
+    from codedvideo.reconstruct import OmpSettings
+    import tempfile
+
+    rc = PipelineConfig().reconstruct
+    s = OmpSettings(max_atoms=rc.max_atoms, tol_rms=auto_tolerance(0.0), batch=rc.batch,
+                    static_atoms=rc.static_atoms if static_atoms is None else static_atoms)
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # fresh store: nothing reused
+        t = time.perf_counter()
+        vol, info = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s, tile=tile, cache=tmp,
+                                       workers=workers, progress=False, dictionary_key=meta["sha256"])
+        seconds = time.perf_counter() - t
+    q = evaluate(vol, cap["truth"])
+    return dict(seconds=seconds, psnr=q["psnr"], ssim=q["ssim"], patches=info["patches"],
+                patches_per_second=info["patches"] / seconds, static_fraction=info["static_fraction"],
+                atoms_mean=info["atoms_mean"], stages=info["seconds"], settings=s.__dict__, workers=workers or os.cpu_count())
+
+
+def timed_gaptv(cap):
+    from codedvideo.baselines import gap_tv
+    from codedvideo.metrics import evaluate
+
+    t = time.perf_counter()
+    vol = gap_tv(cap["coded"], cap["mask"])
+    seconds = time.perf_counter() - t
+    q = evaluate(vol, cap["truth"])
+    return dict(seconds=seconds, psnr=q["psnr"], ssim=q["ssim"])
+
+
+def naive_omp(cap, D, *, crop=48):
+    """The naive implementation: per patch, build S_p D in Python loops and run textbook OMP."""
+    from codedvideo import patches as P
+    from codedvideo.config import PipelineConfig, auto_tolerance
+    from codedvideo.metrics import evaluate
+    from codedvideo.omp import omp_reference
+    from codedvideo.reconstruct import OmpSettings, reconstruct_region
+
+    coded = cap["coded"][:crop, :crop]
+    mask = cap["mask"][:, :crop, :crop]
+    truth = cap["truth"][:, :crop, :crop]
+    n = mask.shape[0]
+    rc = PipelineConfig().reconstruct
+    tol_rms = auto_tolerance(0.0)
+    y = P.extract(coded)
+    S = P.extract(mask)
+    D3 = D.reshape(n, 49, -1)
+    t = time.perf_counter()
+    est = np.empty((y.shape[0], D.shape[0]), np.float32)
+    for p in range(y.shape[0]):
+        A = np.zeros((49, D.shape[1]))
+        for i in range(49):
+            for tt in range(n):
+                if S[p, tt, i]:
+                    A[i] += D3[tt, i]
+        alpha = omp_reference(A, y[p], max_atoms=rc.max_atoms, tol=49 * tol_rms**2)
+        est[p] = D @ alpha
+    naive_s = time.perf_counter() - t
+    vol = P.fold(est, coded.shape) / P.coverage(coded.shape)[None]
+    t = time.perf_counter()
+    fast, _ = reconstruct_region(coded, mask, D, OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol_rms, static_atoms=0))
+    fast_s = time.perf_counter() - t
+    return dict(crop=crop, patches=int(y.shape[0]), naive_seconds=naive_s, fast_seconds=fast_s,
+                naive_psnr=evaluate(vol, truth)["psnr"], fast_psnr=evaluate(fast, truth)["psnr"],
+                naive_seconds_per_patch=naive_s / y.shape[0])
+
+
+def case_a(quick: bool) -> dict:
+    D, meta = dictionary_for(8)
+    cap = capture("default", 8, (256, 256), "hitomi", 2)
+    out = dict(case="a", size=[256, 256], frames=8, bump=2, sgemm_gflops=sgemm_gflops())
+    out["omp"] = timed_reconstruct(cap, D, meta)
+    out["gaptv"] = timed_gaptv(cap)
+    out["naive"] = naive_omp(cap, D, crop=24 if quick else 48)
+    out["naive"]["extrapolated_full_seconds"] = out["naive"]["naive_seconds_per_patch"] * out["omp"]["patches"]
+    return out
+
+
+def case_b(quick: bool) -> dict:
+    size = (360, 640) if quick else (720, 1280)
+    D, meta = dictionary_for(18)
+    cap = capture("default", 18, size, "hitomi", 2)
+    out = dict(case="b", size=list(size), frames=18, bump=2, sgemm_gflops=sgemm_gflops())
+    out["omp"] = timed_reconstruct(cap, D, meta)
+    out["gaptv"] = timed_gaptv(cap)
+    out["peak_rss_mb"] = peak_rss_mb()
+    return out
+
+
+def case_b1(quick: bool) -> dict:
+    size = (360, 640) if quick else (720, 1280)
+    D, meta = dictionary_for(18)
+    cap = capture("default", 18, size, "hitomi", 2)
+    return dict(case="b1", size=list(size), frames=18, omp=timed_reconstruct(cap, D, meta, workers=1),
+                peak_rss_mb=peak_rss_mb(), sgemm_gflops=sgemm_gflops())
+
+
+def case_c(quick: bool) -> dict:
+    size = (256, 256) if quick else (512, 512)
+    D, meta = dictionary_for(36)
+    out = dict(case="c", size=list(size), frames=36, bump=3, sgemm_gflops=sgemm_gflops())
+    for code in ("hitomi", "hitomi-tiled"):
+        cap = capture("default", 36, size, code, 3)
+        out[code] = timed_reconstruct(cap, D, meta)
+    out["gaptv"] = timed_gaptv(capture("default", 36, size, "hitomi", 3))
+    out["peak_rss_mb"] = peak_rss_mb()
+    return out
+
+
+def case_static(quick: bool) -> dict:
+    D, meta = dictionary_for(8)
+    out = dict(case="static", size=[256, 256], frames=8, bump=2, sgemm_gflops=sgemm_gflops())
+    for scene in ("default", "default-static70"):
+        cap = capture(scene, 8, (256, 256), "hitomi", 2)
+        out[scene] = dict(skip=timed_reconstruct(cap, D, meta), no_skip=timed_reconstruct(cap, D, meta, static_atoms=0))
+    return out
+
+
+CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static)
+
+
+def run_child(name: str, quick: bool) -> dict:
+    cmd = [sys.executable, __file__, "--child", name] + (["--quick"] if quick else [])
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode != 0:
+        return dict(case=name, error=proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def table(results: dict) -> str:
+    rows = []
+    fmt = "{:<34} {:>9} {:>9} {:>8} {:>12} {:>9}"
+    rows.append(fmt.format("case", "seconds", "PSNR dB", "SSIM", "patches/s", "peak MB"))
+    for name, r in results["cases"].items():
+        if "error" in r:
+            rows.append(f"{name:<34} error: {r['error']}")
+            continue
+        peak = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
+        for key, label in (("omp", "omp"), ("hitomi", "omp sliding"), ("hitomi-tiled", "omp tiled"), ("gaptv", "gap-tv")):
+            if key in r:
+                v = r[key]
+                rows.append(fmt.format(f"{name} {r.get('size')} N={r.get('frames')} {label}", f"{v['seconds']:.2f}",
+                                       f"{v['psnr']:.2f}", f"{v['ssim']:.3f}",
+                                       f"{v['patches_per_second']:.0f}" if "patches_per_second" in v else "", peak))
+        if "naive" in r:
+            nv = r["naive"]
+            rows.append(f"  naive OMP on a {nv['crop']}x{nv['crop']} crop: {nv['naive_seconds']:.1f} s, {nv['naive_psnr']:.2f} dB "
+                        f"(fast: {nv['fast_seconds']:.2f} s, {nv['fast_psnr']:.2f} dB); full image extrapolated "
+                        f"{nv['extrapolated_full_seconds']:.0f} s")
+        for scene in ("default", "default-static70"):
+            if scene in r:
+                s = r[scene]
+                rows.append(f"  {scene}: still-scene test {s['skip']['seconds']:.2f} s {s['skip']['psnr']:.2f} dB "
+                            f"({100 * s['skip']['static_fraction']:.0f}% patches still) vs off {s['no_skip']['seconds']:.2f} s "
+                            f"{s['no_skip']['psnr']:.2f} dB")
+    c = results["cases"]
+    if "b" in c and "b1" in c and "error" not in c["b"] and "error" not in c["b1"]:
+        rows.append(f"two workers vs one on b: {c['b1']['omp']['seconds'] / c['b']['omp']['seconds']:.2f}x")
+    return "\n".join(rows)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--cases", default="a,static,b,b1,c")
+    ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
+    ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.child:
+        print(json.dumps(CASES[a.child](a.quick), default=float))
+        return 0
+    results = dict(machine=dict(platform=platform.platform(), cpus=os.cpu_count(), python=platform.python_version()),
+                   quick=a.quick, date=time.strftime("%Y-%m-%d %H:%M:%S"), cases={})
+    for name in a.cases.split(","):
+        print(f"bench: case {name} ...", file=sys.stderr, flush=True)
+        results["cases"][name] = run_child(name, a.quick)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "latest.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
+    print(table(results))
+    print(f"results: {RESULTS / 'latest.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
