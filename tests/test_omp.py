@@ -81,3 +81,23 @@ def test_duplicate_and_zero_atoms_stay_finite(rng):
     assert (res.index[:, :1] != 2).all()  # a zero atom is never chosen
     # the residual never grows beyond the signal
     assert (res.residual <= (Y**2).sum(1) * (1 + 1e-5)).all()
+
+
+def test_grouped_operator_equals_masked_on_tiled_code(rng):
+    from codedvideo.omp import GroupedOperator, masked_operator
+
+    n, K = 6, 150
+    D = random_dictionary(rng, n * 49, K)
+    mask = make_code("hitomi-tiled", (30, 33), frames=n, bump=2, rng=5)
+    S = P.extract(mask)
+    Y = rng.normal(size=(S.shape[0], 49)).astype(np.float32) * 20
+    grouped = masked_operator(S, D)
+    assert isinstance(grouped, GroupedOperator) and grouped.A.shape[0] <= 49
+    rows = np.arange(S.shape[0])
+    np.testing.assert_allclose(grouped.norms(rows), MaskedOperator(S, D).norms(rows), rtol=1e-4)
+    a = omp(Y, grouped, max_atoms=6, tol=49.0)
+    b = omp(Y, MaskedOperator(S, D), max_atoms=6, tol=49.0)
+    np.testing.assert_array_equal(a.count, b.count)
+    np.testing.assert_allclose(synthesize(a, D), synthesize(b, D), atol=1e-2, rtol=1e-3)
+    # the sliding code has (almost) as many codes as patches: no grouping
+    assert isinstance(masked_operator(P.extract(make_code("hitomi", (30, 33), frames=n, bump=2)), D), MaskedOperator)

@@ -93,10 +93,11 @@ class PipelineConfig(_Strict):
 def auto_tolerance(sigma: float) -> float:
     """Default RMS residual tolerance of Eq. 3 for read noise ``sigma``.
 
-    Without noise a floor of 0.5 grey levels (half a quantisation step of an
-    8-bit sensor) stops OMP on patches that are already explained.
+    Without noise a floor of 2 grey levels stops OMP on patches that are
+    already explained: on the default scenes it costs under 0.02 dB against
+    0.5 and saves about 10 % of the atoms (measured, see README).
     """
-    return float(max(sigma, 0.5))
+    return float(max(sigma, 2.0))
 
 
 def load_config(path: str | Path) -> PipelineConfig:

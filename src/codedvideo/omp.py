@@ -182,6 +182,65 @@ class MaskedOperator:
         return self._norms[rows]
 
 
+class GroupedOperator:
+    """``A_p = Phi_p D`` when few distinct patch codes exist (tiled or global codes).
+
+    A periodic code with a 7x7 period gives at most 49 distinct patch codes
+    (one per phase), so every ``A_u`` (``m x K``) is built once and the
+    correlations of a group are one product ``r @ A_u``: ``N`` times fewer
+    operations than ``D^T (Phi^T r)``.
+
+    Parameters
+    ----------
+    S : ndarray of shape (P, N, m)
+    D : ndarray of shape (N*m, K)
+    groups : tuple (codes, inverse), optional
+        Precomputed ``numpy.unique(..., return_inverse=True)`` of the patch codes.
+    """
+
+    def __init__(self, S: np.ndarray, D: np.ndarray, groups=None):
+        P, N, m = S.shape
+        D3 = np.asarray(D, dtype=np.float32).reshape(N, m, -1)
+        if groups is None:
+            groups = patch_code_groups(S)
+        first, self.inv = groups
+        self.A = np.einsum("unm,nmk->umk", S[first].astype(np.float32), D3, optimize=True)  # (U, m, K)
+        self.At = np.ascontiguousarray(self.A.transpose(0, 2, 1))  # (U, K, m)
+        self._norms = np.sqrt(np.einsum("umk,umk->uk", self.A, self.A))
+        self.K = D3.shape[2]
+
+    def correlate(self, r: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        g = self.inv[rows]
+        out = np.empty((len(rows), self.K), np.float32)
+        order = np.argsort(g, kind="stable")
+        bounds = np.searchsorted(g[order], np.arange(self.A.shape[0] + 1))
+        for u in np.flatnonzero(np.diff(bounds)):
+            sel = order[bounds[u] : bounds[u + 1]]
+            out[sel] = r[sel] @ self.A[u]
+        return out
+
+    def column(self, j: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return self.At[self.inv[rows], j]
+
+    def norms(self, rows: np.ndarray) -> np.ndarray:
+        return self._norms[self.inv[rows]]
+
+
+def patch_code_groups(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct patch codes: (index of each code's first patch, group of every patch)."""
+    packed = np.packbits(S.reshape(S.shape[0], -1) > 0, axis=1)
+    _, first, inv = np.unique(packed, axis=0, return_index=True, return_inverse=True)
+    return first, inv.ravel()
+
+
+def masked_operator(S: np.ndarray, D: np.ndarray, *, max_groups: int = 64):
+    """The cheaper exact operator for a batch: grouped when few distinct codes exist."""
+    groups = patch_code_groups(S)
+    if len(groups[0]) <= max_groups and S.shape[0] >= 4 * len(groups[0]):
+        return GroupedOperator(S, D, groups)
+    return MaskedOperator(S, D)
+
+
 def omp(
     y: np.ndarray,
     op,

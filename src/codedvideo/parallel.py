@@ -77,7 +77,7 @@ def build_graph(store_path: str, tiles: list[Tile], D: np.ndarray, settings: Omp
 
 @contextlib.contextmanager
 def _single_threaded_blas(enabled: bool):
-    """Limit BLAS to one thread per worker when workers already use the cores."""
+    """Limit BLAS to one thread: each dask worker thread is one core."""
     if not enabled:
         yield
         return
@@ -126,7 +126,7 @@ def run_graph(
     if scheduler == "sync":
         with bar:
             return list(dask.compute(*tasks, scheduler="sync"))
-    with bar, _single_threaded_blas(n_workers > 1):
+    with bar, _single_threaded_blas(True):  # one core per worker thread
         return list(dask.compute(*tasks, scheduler="threads", num_workers=n_workers))
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import patches as P
-from .omp import MaskedOperator, omp, synthesize
+from .omp import masked_operator, omp, synthesize
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 STAT_NAMES = (
@@ -110,13 +110,13 @@ def reconstruct_region(
         t0 = time.perf_counter()
         rows = np.arange(y.shape[0])
         if D_still is not None:
-            still = omp(y, MaskedOperator(S, D_still), max_atoms=settings.static_atoms, tol=tol)
+            still = omp(y, masked_operator(S, D_still), max_atoms=settings.static_atoms, tol=tol)
             ok = still.residual <= tol
             est[s + rows[ok]] = synthesize(still.select(ok), D_still)
             n_static += int(ok.sum())
             rows = rows[~ok]
         if rows.size:
-            res = omp(y[rows], MaskedOperator(S[rows], D), max_atoms=settings.max_atoms, tol=tol[rows])
+            res = omp(y[rows], masked_operator(S[rows], D), max_atoms=settings.max_atoms, tol=tol[rows])
             est[s + rows] = synthesize(res, D)
             atoms += int(res.count.sum())
             hit += int((res.count >= settings.max_atoms).sum())
