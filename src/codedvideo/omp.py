@@ -49,6 +49,13 @@ _TINY = 1e-12
 TIE_RTOL = 1e-4
 
 
+def _safe_inverse(norms: np.ndarray) -> np.ndarray:
+    """1 / norm for usable atoms, 0 for (numerically) zero ones, which are never chosen."""
+    norms = np.asarray(norms, dtype=np.float32)
+    good = norms > _TINY * max(float(norms.max(initial=0.0)), 1.0)
+    return np.where(good, 1.0 / np.where(good, norms, 1.0), 0.0).astype(np.float32)
+
+
 @dataclass
 class OmpResult:
     """Sparse codes of a batch of patches.
@@ -80,10 +87,9 @@ class OmpResult:
     def dense(self, n_atoms: int) -> np.ndarray:
         """Coefficients as a dense array of shape (P, K)."""
         out = np.zeros((self.count.size, n_atoms), dtype=np.float32)
-        rows = np.repeat(np.arange(self.count.size), self.count)
-        cols = np.concatenate([self.index[p, : self.count[p]] for p in range(self.count.size)]) if rows.size else rows
-        vals = np.concatenate([self.coef[p, : self.count[p]] for p in range(self.count.size)]) if rows.size else rows
-        np.add.at(out, (rows, cols), vals)
+        used = np.arange(self.index.shape[1])[None, :] < self.count[:, None]
+        rows = np.broadcast_to(np.arange(self.count.size)[:, None], used.shape)[used]
+        out[rows, self.index[used]] = self.coef[used]  # atoms of a patch are distinct
         return out
 
 
@@ -108,6 +114,11 @@ class PlainOperator:
 
     def norms(self, rows: np.ndarray) -> np.ndarray:
         return np.broadcast_to(self._norms, (len(rows), self._norms.size))
+
+    def inv_norms(self, rows: np.ndarray) -> np.ndarray:
+        if not hasattr(self, "_inv"):
+            self._inv = _safe_inverse(self._norms)
+        return np.broadcast_to(self._inv, (len(rows), self._inv.size))
 
 
 class MaskedOperator:
@@ -181,6 +192,11 @@ class MaskedOperator:
     def norms(self, rows: np.ndarray) -> np.ndarray:
         return self._norms[rows]
 
+    def inv_norms(self, rows: np.ndarray) -> np.ndarray:
+        if not hasattr(self, "_inv"):
+            self._inv = _safe_inverse(self._norms)
+        return self._inv[rows]
+
 
 class GroupedOperator:
     """``A_p = Phi_p D`` when few distinct patch codes exist (tiled or global codes).
@@ -224,6 +240,11 @@ class GroupedOperator:
 
     def norms(self, rows: np.ndarray) -> np.ndarray:
         return self._norms[self.inv[rows]]
+
+    def inv_norms(self, rows: np.ndarray) -> np.ndarray:
+        if not hasattr(self, "_inv"):
+            self._inv = _safe_inverse(self._norms)
+        return self._inv[self.inv[rows]]
 
 
 def patch_code_groups(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -286,10 +307,9 @@ def omp(
         if active.size == 0:
             break
         ra = r[active]
-        nrm = op.norms(active)
-        score = np.abs(op.correlate(ra, active))
-        good = nrm > _TINY * max(float(nrm.max(initial=0.0)), 1.0)
-        score = np.where(good, score / np.where(good, nrm, 1.0), 0.0)
+        score = op.correlate(ra, active)
+        score *= op.inv_norms(active)
+        np.abs(score, out=score)
         # near-ties (within TIE_RTOL) go to the lowest atom index, so that the choice
         # does not depend on roundoff (batch size, chunking, BLAS blocking)
         best = score.max(1)
@@ -336,13 +356,9 @@ def _back_substitute(R: np.ndarray, qy: np.ndarray, count: np.ndarray) -> np.nda
 
 def synthesize(result: OmpResult, D: np.ndarray) -> np.ndarray:
     """Patch estimates ``E_p = D alpha_p``, shape (P, D.shape[0]) float32."""
-    Dt = np.ascontiguousarray(np.asarray(D, dtype=np.float32).T)
-    P = result.count.size
-    out = np.zeros((P, Dt.shape[1]), np.float32)
-    for k in range(int(result.count.max(initial=0))):
-        rows = np.flatnonzero(result.count > k)
-        out[rows] += result.coef[rows, k, None] * Dt[result.index[rows, k]]
-    return out
+    D = np.asarray(D, dtype=np.float32)
+    # scatter into dense coefficients, then one matrix product (faster than gathers)
+    return result.dense(D.shape[1]) @ D.T
 
 
 def omp_reference(A: np.ndarray, y: np.ndarray, *, max_atoms: int, tol: float = 0.0) -> np.ndarray:
