@@ -24,14 +24,14 @@ def workdir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def dictionary(workdir):
-    run("train", "--frames", 4, "--output", "dict.zarr", "--atoms", 160, "--iterations", 4, "--samples", 3000,
+    run("train", "--frames", 8, "--output", "dict.zarr", "--atoms", 256, "--iterations", 4, "--samples", 4000,
         "--seed", 1, "--cache", "cache", cwd=workdir)
     return workdir / "dict.zarr"
 
 
 @pytest.fixture(scope="module")
 def capture(workdir):
-    run("simulate", "synth:default", "--frames", 4, "--bump", 2, "--noise-sigma", 0, "--seed", 3,
+    run("simulate", "synth:default", "--frames", 8, "--bump", 2, "--noise-sigma", 0, "--seed", 3,
         "--size", 64, 64, "--output", "cap", cwd=workdir)
     return workdir / "cap"
 
@@ -41,8 +41,8 @@ def test_simulate_writes_the_contract_files(capture):
     mask = np.load(capture / "mask.npy")
     truth = np.load(capture / "truth.npy")
     assert coded.shape == (64, 64) and coded.dtype == np.float32
-    assert mask.shape == (4, 64, 64) and mask.dtype == np.uint8
-    assert truth.shape == (4, 64, 64) and truth.dtype == np.float32
+    assert mask.shape == (8, 64, 64) and mask.dtype == np.uint8
+    assert truth.shape == (8, 64, 64) and truth.dtype == np.float32
     np.testing.assert_allclose(coded, (mask * truth).sum(0), rtol=1e-5, atol=1e-3)
     assert (capture / "coded.tif").stat().st_size > 0
 
@@ -54,7 +54,7 @@ def test_reconstruct_beats_trivial_estimate_and_writes_metrics(workdir, dictiona
     summary = json.loads(proc.stdout.strip().splitlines()[-1])
     metrics = json.loads((workdir / "recon.metrics.json").read_text())
     vol = np.load(out)
-    assert vol.shape == (4, 64, 64) and np.isfinite(vol).all()
+    assert vol.shape == (8, 64, 64) and np.isfinite(vol).all()
     assert metrics["quality"]["psnr"] == pytest.approx(summary["psnr"], abs=0.01)
     assert metrics["quality"]["psnr"] > metrics["trivial"]["psnr"] + 3.0
     assert metrics["reconstruction"]["patches"] > 0 and metrics["reconstruction"]["patches_per_second"] > 0
@@ -62,7 +62,7 @@ def test_reconstruct_beats_trivial_estimate_and_writes_metrics(workdir, dictiona
     # evaluate agrees with the metrics written by reconstruct
     ev = json.loads(run("evaluate", "--recon", out, "--truth", capture / "truth.npy", cwd=workdir).stdout)
     assert ev["psnr"] == pytest.approx(metrics["quality"]["psnr"], abs=1e-6)
-    assert len(ev["psnr_per_frame"]) == 4
+    assert len(ev["psnr_per_frame"]) == 8
 
 
 def test_reconstruct_to_mp4_and_tiff_mask(workdir, dictionary, capture):
@@ -72,14 +72,14 @@ def test_reconstruct_to_mp4_and_tiff_mask(workdir, dictionary, capture):
     run("reconstruct", "--coded", capture / "coded.tif", "--mask", workdir / "mask.tif", "--dictionary", dictionary,
         "--output", workdir / "recon.mp4", "--cache", "cache", cwd=workdir)
     frames = read_video(workdir / "recon.mp4")
-    assert frames.shape[0] == 4 and frames.shape[1:] == (64, 64)
+    assert frames.shape[0] == 8 and frames.shape[1:] == (64, 64)
     ref = np.load(workdir / "recon.npy")
     assert np.abs(frames - np.clip(ref, 0, 255)).mean() < 4.0
     assert json.loads((workdir / "recon.metrics.json").read_text())["output"].endswith("recon.mp4")
 
 
 def test_bad_inputs_give_one_line_errors(workdir, dictionary, capture):
-    np.save(workdir / "wrong_mask.npy", np.ones((4, 10, 10), np.uint8))
+    np.save(workdir / "wrong_mask.npy", np.ones((8, 10, 10), np.uint8))
     proc = run("reconstruct", "--coded", capture / "coded.npy", "--mask", workdir / "wrong_mask.npy", "--dictionary",
                dictionary, "--output", workdir / "x.npy", cwd=workdir, check=False)
     assert proc.returncode == 2

@@ -43,12 +43,12 @@ class NoiseConfig(_Strict):
 class DictionaryConfig(_Strict):
     kind: Literal["learned", "dct"] = "learned"
     atoms: int = Field(512, ge=1)
-    samples: int = Field(20000, ge=100)
-    iterations: int = Field(10, ge=0)
+    samples: int = Field(40000, ge=100)
+    iterations: int = Field(20, ge=0)
     sparsity: int = Field(6, ge=1)
     #: ``synth:train`` (synthetic motion of the training photographs) or video paths.
     training: list[str] = ["synth:train"]
-    clips: int = Field(36, ge=1)
+    clips: int = Field(72, ge=1)
     #: An existing dictionary to use instead of training one.
     path: str | None = None
 
