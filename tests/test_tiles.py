@@ -88,3 +88,31 @@ def test_still_patches_take_the_cheap_path_with_the_same_answer():
     moving = np.stack([128 + 60 * np.sin((xx - 2.0 * t) / 2.5) for t in range(n)]).astype(np.float32)
     _, st_mov = reconstruct_region(simulate(moving, mask), mask, D, OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=4))
     assert dict(zip(STAT_NAMES, st_mov))["patches_static"] < 0.05 * dict(zip(STAT_NAMES, st_mov))["patches"]
+
+
+@pytest.mark.parametrize("code", ["hitomi", "hitomi-tiled", "bernoulli"])
+def test_still_test_equals_omp_over_the_still_dictionary(code):
+    """The closed-form still test (no dictionary search) agrees with OMP over the still atoms."""
+    from codedvideo import patches as P
+    from codedvideo.omp import MaskedOperator, omp, synthesize
+    from codedvideo.reconstruct import static_dictionary, still_patches
+
+    rng = np.random.default_rng(11)
+    n, h, w = 6, 24, 26
+    yy, xx = np.mgrid[0:h, 0:w]
+    still = 90 + 40 * np.cos(xx / 9.0) + 25 * np.sin(yy / 11.0) + rng.normal(0, 0.2, (h, w))
+    video = np.repeat(still[None].astype(np.float32), n, axis=0)
+    video[:, :, w // 2 :] = np.stack([128 + 60 * np.sin((xx[:, w // 2 :] - 2.0 * t) / 2.0) for t in range(n)])
+    mask = make_code(code, (h, w), frames=n, bump=2, rng=5)
+    y, S = P.extract(simulate(video, mask)), P.extract(mask)
+    tol = (S.any(1)).sum(1).astype(np.float32) * 1.5**2
+    ok, est = still_patches(y, S, tol, 8)
+    assert 0 < ok.sum() < ok.size  # the still half passes, the moving half does not
+    # every accepted estimate explains its measurement within the tolerance
+    resid = y[ok] - (S[ok] * est.reshape(-1, n, 49)).sum(1)
+    assert ((resid**2).sum(1) <= tol[ok] * (1 + 1e-4) + 1e-3).all()
+    if code != "bernoulli":  # fixed bump: exactly OMP over the still dictionary
+        Dst = static_dictionary(n)
+        ref = omp(y, MaskedOperator(S, Dst), max_atoms=8, tol=tol)
+        np.testing.assert_array_equal(ok, ref.residual <= tol)
+        np.testing.assert_allclose(est, synthesize(ref.select(ok), Dst), atol=2e-2)

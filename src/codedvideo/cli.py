@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .codes import CODE_NAMES
 from .config import PipelineConfig, auto_tolerance, load_config
 from .errors import CodedVideoError, InputError
 
@@ -46,22 +47,42 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("video", help="synth:NAME or a video / frame-sequence path")
     s.add_argument("--frames", "-N", type=int, required=True)
     s.add_argument("--bump", "-L", type=int, default=2)
-    s.add_argument("--code", default="hitomi", choices=("hitomi", "hitomi-tiled", "bernoulli", "global"))
+    s.add_argument("--code", default=None, choices=CODE_NAMES,
+                   help="shutter code (default: hitomi, or file with --code-file); see README")
+    s.add_argument("--code-file", default=None, metavar="PATH", help="mask of --code file: .npy (N, H, W) or multi-page TIFF")
+    s.add_argument("--p", type=float, default=PipelineConfig().code.p, help="open probability of bernoulli / shifting")
     s.add_argument("--noise-sigma", type=float, default=0.0, help="read noise, grey levels")
+    s.add_argument("--shot-noise", action="store_true", help="Poisson photon noise (see --full-well, --gain)")
+    s.add_argument("--full-well", type=float, default=PipelineConfig().noise.full_well, help="full-well capacity, electrons")
+    s.add_argument("--gain", type=float, default=PipelineConfig().noise.gain, help="electrons per grey level")
+    s.add_argument("--bits", type=int, default=None, help="quantise the coded image to this bit depth")
+    s.add_argument("--white-level", type=float, default=None, help="clip the coded image at this grey level (saturation)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None, help="centre crop (synth: size)")
     s.add_argument("--start", type=int, default=0, help="first frame of a video file")
     s.add_argument("--output", "-o", required=True, help="output folder")
+    s.add_argument("--cacti-out", default=None, metavar="FILE.mat",
+                   help="also write the capture as a CACTI benchmark .mat (orig, mask, meas; one measurement)")
 
     r = sub.add_parser("reconstruct", help="recover the video from a coded image and its mask")
-    r.add_argument("--coded", required=True, help="coded image: .npy, .tif, .exr or .png (H, W)")
-    r.add_argument("--mask", required=True, help="mask: .npy (N, H, W) or a multi-page TIFF")
+    r.add_argument("--coded", default=None, help="coded image: .npy, .tif, .exr, .dpx or .png (H, W); required unless --cacti")
+    r.add_argument("--mask", default=None, help="mask: .npy (N, H, W), a multi-page TIFF or frames; required unless --cacti")
+    r.add_argument("--cacti", default=None, metavar="FILE.mat",
+                   help="instead of --coded/--mask: a CACTI .mat (mask, meas, orig); every measurement is reconstructed")
+    r.add_argument("--measurement", type=int, default=None, metavar="Q",
+                   help="with --cacti: reconstruct only measurement Q (1-based)")
+    r.add_argument("--color", choices=("luma", "channels"), default="luma",
+                   help="colour coded image: its luma (default), or each channel with the same mask (colour output)")
     r.add_argument("--dictionary", required=True, help="dictionary store (.zarr)")
-    r.add_argument("--output", "-o", required=True, help=".npy, .zarr, .mp4/.mkv/.gif or a folder of frames")
+    r.add_argument("--output", "-o", required=True,
+                   help=".npy, .zarr, .mat, .tif, .mp4/.mkv/.gif or a folder of frames (--cacti: all measurements, time-first)")
     r.add_argument("--truth", default=None, help="ground truth (N, H, W) for PSNR/SSIM in the metrics")
     r.add_argument("--max-atoms", type=int, default=PipelineConfig().reconstruct.max_atoms)
     r.add_argument("--tol-rms", type=float, default=None, help="residual tolerance, RMS per pixel (default: from --noise-sigma)")
     r.add_argument("--noise-sigma", type=float, default=0.0, help="read noise of the capture, grey levels")
+    r.add_argument("--white-level", type=float, default=None,
+                   help="saturation level of the coded image: pixels at or above it are treated as missing")
+    r.add_argument("--trust-saturated", action="store_true", help="with --white-level: use saturated pixels anyway")
     r.add_argument("--static-atoms", type=int, default=PipelineConfig().reconstruct.static_atoms,
                    help="still-scene test: 2D DCT atoms before full OMP (0: off)")
     r.add_argument("--tile", type=int, default=PipelineConfig().reconstruct.tile)
@@ -73,8 +94,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--cache", default="cache")
 
     e = sub.add_parser("evaluate", help="per-frame and mean PSNR/SSIM as JSON")
-    e.add_argument("--recon", required=True)
-    e.add_argument("--truth", required=True)
+    e.add_argument("--recon", required=True, help=".npy, .zarr, .mat, .tif, a video or frames")
+    e.add_argument("--truth", required=True, help="as --recon; a .mat gives 'recon', else a CACTI file's 'orig'")
     e.add_argument("--data-range", type=float, default=255.0)
     e.add_argument("--output", "-o", default=None, help="write the JSON here too")
 
@@ -109,8 +130,22 @@ def _cmd_simulate(a) -> int:
 
     size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
     video = load_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start)
-    cap = simulate_capture(video, code=a.code, bump=a.bump, sigma=a.noise_sigma, seed=a.seed)
+    code = a.code or ("file" if a.code_file else "hitomi")
+    if a.code_file and code != "file":
+        raise InputError(f"--code-file {a.code_file}: only used with --code file (got --code {code})")
+    sensor = None
+    if a.shot_noise or a.bits is not None or a.white_level is not None:
+        from .physics import SensorModel
+
+        sensor = SensorModel(shot_noise=a.shot_noise, full_well=a.full_well, gain=a.gain, bits=a.bits,
+                             white_level=a.white_level)
+    cap = simulate_capture(video, code=code, bump=a.bump, sigma=a.noise_sigma, seed=a.seed, p=a.p,
+                           code_path=a.code_file, sensor=sensor)
     paths = write_capture(cap, a.output)
+    if a.cacti_out:
+        from .cacti import write_cacti
+
+        paths["cacti"] = write_cacti(a.cacti_out, mask=cap["mask"], meas=cap["coded"][None], orig=cap["truth"])
     print(json.dumps({k: str(v) for k, v in paths.items()}))
     return 0
 
@@ -124,6 +159,12 @@ def _cmd_reconstruct(a) -> int:
     from .reconstruct import OmpSettings
     from .store import load_dictionary
 
+    if a.cacti or a.color == "channels":
+        return _cmd_reconstruct_multi(a)
+    if not (a.coded and a.mask):
+        raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
+    if a.measurement is not None:
+        raise InputError("reconstruct: --measurement applies to --cacti only")
     t_all = time.perf_counter()
     t0 = time.perf_counter()
     coded = read_coded(a.coded)
@@ -139,9 +180,15 @@ def _cmd_reconstruct(a) -> int:
     t_read = time.perf_counter() - t0
     tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
     settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms)
-    volume, info = reconstruct_volume(coded, mask, D, settings=settings, tile=a.tile, cache=a.cache,
+    coded_used, mask_used, saturated = coded, mask, 0
+    if a.white_level is not None and not a.trust_saturated:  # saturated pixels are missing measurements
+        from .pipeline import drop_saturated
+
+        coded_used, mask_used, saturated = drop_saturated(coded, mask, a.white_level)
+    volume, info = reconstruct_volume(coded_used, mask_used, D, settings=settings, tile=a.tile, cache=a.cache,
                                       scheduler=a.scheduler, workers=a.workers, progress=not a.quiet,
                                       dictionary_key=meta["sha256"])
+    info["saturated_pixels"] = saturated
     t0 = time.perf_counter()
     write_volume(volume, a.output, data_range=a.data_range, fps=a.fps)
     info["seconds"] = dict(read=t_read, **info["seconds"], write=time.perf_counter() - t0)
@@ -159,6 +206,112 @@ def _cmd_reconstruct(a) -> int:
                    patches_per_second=round(info["patches_per_second"]))
     if truth is not None:
         summary.update(psnr=round(metrics["quality"]["psnr"], 2), ssim=round(metrics["quality"]["ssim"], 4))
+    print(json.dumps(summary))
+    return 0
+
+
+def _cmd_reconstruct_multi(a) -> int:
+    """Several coded images sharing one mask: a CACTI file's measurements, or the channels of a colour image.
+
+    Output: measurements' volumes concatenated time-first (Q*N, H, W), or
+    channels stacked first (C, N, H, W); one metrics JSON with an entry per
+    measurement (channel) and the mean over all of them.
+    """
+    from .metrics import evaluate
+    from .physics import check_pair
+    from .pipeline import (
+        _check_dictionary, _write_json, metrics_path, read_coded, read_mask, read_volume,
+        reconstruct_volume, trivial_estimate, write_volume,
+    )
+    from .reconstruct import OmpSettings
+    from .store import load_dictionary
+
+    t_all = t0 = time.perf_counter()
+    if a.cacti:
+        from .cacti import read_cacti
+
+        if a.coded or a.mask or a.truth:
+            raise InputError(f"reconstruct --cacti {a.cacti}: takes coded images, mask and truth from the file "
+                             "(drop --coded, --mask and --truth)")
+        if a.color != "luma":
+            raise InputError(f"reconstruct --cacti {a.cacti}: CACTI files are grey; --color channels does not apply")
+        data = read_cacti(a.cacti)
+        mask, kind = data.mask, "measurements"
+        if a.measurement is not None and not 1 <= a.measurement <= data.measurements:
+            raise InputError(f"--measurement {a.measurement}: {a.cacti} holds measurements 1..{data.measurements}")
+        chosen = range(data.measurements) if a.measurement is None else [a.measurement - 1]
+        labels = [dict(measurement=q + 1) for q in chosen]
+        codeds = [data.meas[q] for q in chosen]
+        truths = None if data.orig is None else [data.truth(q) for q in chosen]
+        inputs = dict(cacti=a.cacti, dictionary=a.dictionary, measurements=[q + 1 for q in chosen])
+    else:
+        if not (a.coded and a.mask):
+            raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
+        if a.measurement is not None:
+            raise InputError("reconstruct: --measurement applies to --cacti only")
+        coded = read_coded(a.coded, color="channels")
+        mask, kind = read_mask(a.mask), "channels"
+        check_pair(coded.shape[1:], mask.shape, where=f"mask {a.mask}")
+        codeds = list(coded)
+        labels = [dict(channel=c) for c in range(len(codeds))]
+        truths = None
+        if a.truth:
+            truth = read_volume(a.truth, color="channels")
+            truth = truth[None] if truth.ndim == 3 else truth
+            if truth.shape != (len(codeds), *mask.shape):
+                raise InputError(f"truth {a.truth}: shape {truth.shape} != (channels, N, H, W) "
+                                 f"{(len(codeds), *mask.shape)}")
+            truths = list(truth)
+        inputs = dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, color=a.color)
+    D, meta = load_dictionary(a.dictionary)
+    _check_dictionary(meta, mask.shape[0], a.dictionary)
+    t_read = time.perf_counter() - t0
+    tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
+    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms)
+    volumes, entries = [], []
+    for label, coded in zip(labels, codeds):
+        coded_used, mask_used, saturated = coded, mask, 0
+        if getattr(a, "white_level", None) is not None and not a.trust_saturated:
+            from .pipeline import drop_saturated
+
+            coded_used, mask_used, saturated = drop_saturated(coded, mask, a.white_level)
+        volume, info = reconstruct_volume(coded_used, mask_used, D, settings=settings, tile=a.tile, cache=a.cache,
+                                          scheduler=a.scheduler, workers=a.workers, progress=not a.quiet,
+                                          dictionary_key=meta["sha256"])
+        info["saturated_pixels"] = saturated
+        volumes.append(volume)
+        entries.append(dict(label, reconstruction=info))
+    volume = np.concatenate(volumes) if kind == "measurements" else np.stack(volumes)
+    t0 = time.perf_counter()
+    write_volume(volume, a.output, data_range=a.data_range, fps=a.fps)
+    t_write = time.perf_counter() - t0
+    patches = sum(e["reconstruction"]["patches"] for e in entries)
+    t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
+    metrics = dict(
+        output=str(a.output), inputs=inputs, layout="(Q*N, H, W)" if kind == "measurements" else "(C, N, H, W)",
+        settings=dict(settings.__dict__, tile=a.tile, scheduler=a.scheduler, workers=a.workers, dictionary_atoms=D.shape[1]),
+        reconstruction=dict(patches=patches, patches_per_second=patches / max(t_rec, 1e-9),
+                            seconds=dict(read=t_read, reconstruct=t_rec, write=t_write)),
+    )
+    summary = dict(output=str(a.output))
+    if truths is not None:
+        for entry, vol, coded, truth in zip(entries, volumes, codeds, truths):
+            entry["quality"] = evaluate(vol, truth, data_range=a.data_range)
+            entry["trivial"] = evaluate(trivial_estimate(coded, mask), truth, data_range=a.data_range)
+        # every measurement (channel) has N frames: the mean over all frames is the mean of their means
+        metrics["quality"] = evaluate(np.concatenate(volumes), np.concatenate(truths), data_range=a.data_range)
+        metrics["trivial"] = evaluate(np.concatenate([trivial_estimate(c, mask) for c in codeds]),
+                                      np.concatenate(truths), data_range=a.data_range)
+        per = {f"psnr_per_{kind[:-1]}": [e["quality"]["psnr"] for e in entries],
+               f"ssim_per_{kind[:-1]}": [e["quality"]["ssim"] for e in entries]}
+        metrics["quality"].update(per)
+        summary.update(psnr=round(metrics["quality"]["psnr"], 2), ssim=round(metrics["quality"]["ssim"], 4),
+                       **{k: [round(v, 2 if k.startswith("psnr") else 4) for v in vals] for k, vals in per.items()})
+    metrics[kind] = entries
+    metrics["reconstruction"]["seconds"]["total"] = time.perf_counter() - t_all
+    mpath = _write_json(metrics_path(a.output), metrics)
+    summary.update(metrics=str(mpath), seconds=round(metrics["reconstruction"]["seconds"]["total"], 2),
+                   patches_per_second=round(metrics["reconstruction"]["patches_per_second"]))
     print(json.dumps(summary))
     return 0
 

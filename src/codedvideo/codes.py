@@ -12,6 +12,40 @@ Hardware constraints of a CMOS sensor with per-pixel exposure control
 * every ``M x M`` window (M = 7) covers all ``N`` sub-frames, so that every patch
   that is reconstructed has seen every instant at least once.
 
+:func:`check_code` reports which of them a mask meets.
+
+Codes
+-----
+Every code below is built by :func:`make_code` (names in :data:`CODE_NAMES`).
+"binary" holds for all of them; "7x7" is the window-coverage constraint.
+
+================  ==========================================  ======  =========  ==========================
+name              what it is                                  single  fixed      every 7x7 window covers
+                                                              bump    bump       all N sub-frames
+================  ==========================================  ======  =========  ==========================
+``hitomi``        the paper's sliding single-bump code        yes     yes (L)    yes (needs ``49 L >= N``)
+``hitomi-tiled``  one random 7x7 single-bump tile, repeated   yes     yes (L)    yes (needs ``49 L >= N``)
+``rowwise``       coded rolling shutter: one random bump per  yes     yes (L)    yes when ``7 L >= N``;
+                  row, 7 consecutive rows cover all N                            no guarantee otherwise
+``thinout``       draft mode: row ``y`` open at ``y % N``     yes     yes (1)    only when ``N <= 7``
+``grid``          ``n x n`` cells (``n = ceil(sqrt N)``),     yes     yes (1)    only when ``n <= 7``
+                  each position its own sub-frame                                (``N <= 49``)
+``flutter``       one random binary sequence, every pixel     no      no         no (about half the
+                  (global flutter shutter)                    (*)                sub-frames are closed)
+``bernoulli``     i.i.d. Bernoulli(p) per pixel, sub-frame    no      no         not guaranteed
+``shifting``      one Bernoulli(p) image, shifted one pixel   no      no         not guaranteed
+                  along x (circularly) per sub-frame
+``global``        ordinary exposure, always open              yes     yes (N)    yes
+``file``          a mask read from .npy or multi-page TIFF    --      --         checked, not built
+================  ==========================================  ======  =========  ==========================
+
+(*) a flutter sequence is a single bump only by chance (e.g. ``N <= 2``).
+``thinout``, ``grid`` and ``global`` are deterministic; all other built codes
+are deterministic functions of ``rng``.  ``flutter`` and ``global`` are the
+same for every pixel (a global shutter, no per-pixel control needed);
+``rowwise`` and ``thinout`` need only per-row control (a rolling-shutter
+sensor); the others need per-pixel control.
+
 The sliding construction
 ------------------------
 The paper picks bump starts for the top-left ``M x M`` patch so that the union
@@ -25,12 +59,14 @@ pixels of the first patch the same bump start (its *role*), and by drawing all
 other pixels independently at random.  Every window then contains exactly one
 pixel of each role, so coverage holds for every window by construction and for
 any ``N <= M*M*L``; the non-covering pixels (``M*M - ceil(N/L)`` of the 49 per
-window) are i.i.d. uniform, as in the paper's random code.
+window) are i.i.d. uniform, as in the paper's random code.  ``rowwise`` applies
+the same idea to rows: roles are ``y mod M``.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,15 +76,18 @@ from .errors import InputError
 PATCH = 7
 
 #: Names accepted by :func:`make_code`.
-CODE_NAMES = ("hitomi", "hitomi-tiled", "bernoulli", "global")
+CODE_NAMES = (
+    "hitomi", "hitomi-tiled", "rowwise", "thinout", "grid", "flutter", "bernoulli", "shifting", "global", "file",
+)
 
 
-def _check_bump(frames: int, bump: int, patch: int) -> None:
+def _check_bump(frames: int, bump: int, patch: int | None) -> None:
+    """Validate N and L; with ``patch``, also that ``patch x patch`` windows can cover N."""
     if frames < 1:
         raise InputError(f"code: frames must be >= 1, got {frames}")
     if not 1 <= bump <= frames:
         raise InputError(f"code: bump length must be in 1..{frames} (frames), got {bump}")
-    if patch * patch * bump < frames:
+    if patch is not None and patch * patch * bump < frames:
         raise InputError(
             f"code: coverage impossible: {patch}x{patch} windows with bump length {bump} "
             f"cover at most {patch * patch * bump} sub-frames < N = {frames}; "
@@ -133,6 +172,150 @@ def starts_to_mask(starts: np.ndarray, *, frames: int, bump: int) -> np.ndarray:
     return ((t >= starts[None]) & (t < starts[None] + bump)).astype(np.uint8)
 
 
+def row_starts(
+    height: int,
+    *,
+    frames: int,
+    bump: int,
+    rng: np.random.Generator | int | None = 0,
+    patch: int = PATCH,
+) -> np.ndarray:
+    """Bump starts of the row-wise code: one start per row (coded rolling shutter).
+
+    The sliding construction of :func:`bump_starts` applied to rows: the
+    ``ceil(N / L)`` covering starts are given to random *roles* ``y mod M``
+    and every row of a role copies its start; the other rows are drawn
+    uniformly.  Every ``M`` consecutive rows then hold one row of each role,
+    so their bumps cover ``[0, N)`` -- guaranteed whenever ``M * L >= N``.
+    When ``M * L < N`` no ``M`` rows can cover ``N`` sub-frames: every row is
+    then drawn uniformly and nothing is guaranteed.
+
+    Parameters
+    ----------
+    height : int
+        Number of rows H.
+    frames : int
+        Number of sub-frames N.
+    bump : int
+        Bump length L of every row.
+    rng : Generator or int
+    patch : int
+        M, the number of consecutive rows that must cover all sub-frames.
+
+    Returns
+    -------
+    starts : ndarray of shape (H,), int16
+        Start sub-frame of each row's bump, in ``0 .. N - L``.
+    """
+    _check_bump(frames, bump, None)
+    rng = np.random.default_rng(rng)
+    nstart = frames - bump + 1
+    free = rng.integers(0, nstart, size=height)
+    if patch * bump < frames:
+        return free.astype(np.int16)
+    cover = _covering_starts(frames, bump, rng)
+    roles = rng.permutation(patch)[: len(cover)]
+    role_start = np.full(patch, -1)
+    role_start[roles] = cover
+    by_role = role_start[np.arange(height) % patch]
+    return np.where(by_role >= 0, by_role, free).astype(np.int16)
+
+
+def thinout_code(shape: tuple[int, int], *, frames: int) -> np.ndarray:
+    """Draft (thin-out) readout: sub-frame ``t`` reads the rows with ``y % N == t``.
+
+    Every pixel is open for exactly one sub-frame (a single bump of length 1);
+    any ``N`` consecutive rows cover all sub-frames, so every 7x7 window does
+    when ``N <= 7``.  Deterministic.
+
+    Returns
+    -------
+    mask : ndarray of shape (N, H, W), uint8
+    """
+    if frames < 1:
+        raise InputError(f"code thinout: frames must be >= 1, got {frames}")
+    h, w = shape
+    rows = (np.arange(frames)[:, None] == (np.arange(h) % frames)[None, :]).astype(np.uint8)
+    return np.ascontiguousarray(np.broadcast_to(rows[:, :, None], (frames, h, w)))
+
+
+def grid_code(shape: tuple[int, int], *, frames: int) -> np.ndarray:
+    """Pixel-wise grid exposure (for 3D interpolation).
+
+    With ``n = ceil(sqrt(N))`` the image is tiled by ``n x n`` cells; the pixel
+    at cell position ``k = (y % n) * n + (x % n)`` is open during sub-frame
+    ``k % N`` only (so positions ``k >= N`` repeat the first sub-frames).
+    Every pixel is open exactly once, every ``n x n`` window (aligned or not)
+    covers all ``N`` sub-frames, hence every 7x7 window does when ``n <= 7``.
+    Deterministic.
+
+    Returns
+    -------
+    mask : ndarray of shape (N, H, W), uint8
+    """
+    if frames < 1:
+        raise InputError(f"code grid: frames must be >= 1, got {frames}")
+    h, w = shape
+    n = math.isqrt(frames - 1) + 1  # ceil(sqrt(N)) without floating point
+    yy, xx = np.mgrid[0:h, 0:w]
+    slot = ((yy % n) * n + (xx % n)) % frames
+    return (np.arange(frames)[:, None, None] == slot[None]).astype(np.uint8)
+
+
+def flutter_sequence(frames: int, *, rng: np.random.Generator | int | None = 0) -> np.ndarray:
+    """A random binary flutter-shutter sequence: ``ceil(N / 2)`` of ``N`` sub-frames open.
+
+    The open sub-frames are a uniformly random subset of that size, so at
+    least one is open and about half are.
+
+    Returns
+    -------
+    seq : ndarray of shape (N,), uint8
+    """
+    if frames < 1:
+        raise InputError(f"code flutter: frames must be >= 1, got {frames}")
+    rng = np.random.default_rng(rng)
+    seq = np.zeros(frames, np.uint8)
+    seq[rng.permutation(frames)[: (frames + 1) // 2]] = 1
+    return seq
+
+
+def load_code_file(
+    path: str | os.PathLike,
+    *,
+    frames: int | None = None,
+    shape: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """A user-supplied code: a .npy ``(N, H, W)`` array or a multi-page TIFF.
+
+    Parameters
+    ----------
+    path : str or path
+    frames : int, optional
+        Required number of sub-frames N.
+    shape : (H, W), optional
+        Required image size.
+
+    Returns
+    -------
+    mask : ndarray of shape (N, H, W), uint8
+
+    Raises
+    ------
+    InputError
+        Naming the file when it is missing, unreadable, not binary, or its
+        N or (H, W) differ from the ones asked for.
+    """
+    from .pipeline import read_mask  # lazy: pipeline imports this module
+
+    mask = read_mask(path)
+    if frames is not None and mask.shape[0] != frames:
+        raise InputError(f"code file {path}: has N = {mask.shape[0]} sub-frames, expected N = {frames}")
+    if shape is not None and tuple(mask.shape[1:]) != tuple(shape):
+        raise InputError(f"code file {path}: size {tuple(mask.shape[1:])} does not match the video {tuple(shape)}")
+    return mask
+
+
 def make_code(
     name: str,
     shape: tuple[int, int],
@@ -141,23 +324,35 @@ def make_code(
     bump: int = 2,
     p: float = 0.5,
     rng: np.random.Generator | int | None = 0,
+    path: str | os.PathLike | None = None,
 ) -> np.ndarray:
-    """Build a named shutter code.
+    """Build a named shutter code (see the table in the module docstring).
 
     Parameters
     ----------
-    name : {"hitomi", "hitomi-tiled", "bernoulli", "global"}
+    name : one of :data:`CODE_NAMES`
         ``hitomi``: the paper's sliding single-bump code; ``hitomi-tiled``: one
-        random 7x7 single-bump tile repeated; ``bernoulli``: i.i.d. Bernoulli(p)
-        per pixel and sub-frame (the snapshot-compressive-imaging benchmarks);
-        ``global``: an ordinary exposure, every pixel open in every sub-frame.
+        random 7x7 single-bump tile repeated; ``rowwise``: one random bump of
+        length ``bump`` per row, every 7 consecutive rows covering all
+        sub-frames when ``7 * bump >= frames``; ``thinout``: row ``y`` open in
+        sub-frame ``y % N``; ``grid``: each position of an ``n x n`` cell open
+        in its own sub-frame; ``flutter``: one random binary sequence for every
+        pixel; ``bernoulli``: i.i.d. Bernoulli(p) per pixel and sub-frame (the
+        snapshot-compressive-imaging benchmarks); ``shifting``: one
+        Bernoulli(p) image shifted one pixel along x per sub-frame; ``global``:
+        an ordinary exposure, every pixel open in every sub-frame; ``file``: the
+        mask stored at ``path`` (checked against ``frames`` and ``shape``).
     shape : (H, W)
     frames : int
+        Number of sub-frames N.
     bump : int
-        Bump length for the single-bump codes.
+        Bump length for ``hitomi``, ``hitomi-tiled`` and ``rowwise``.
     p : float
-        Open probability of the Bernoulli code.
+        Open probability of ``bernoulli`` and ``shifting``.
     rng : Generator or int
+        Seed or generator of the random codes.
+    path : str or path, optional
+        The mask file of code ``file``.
 
     Returns
     -------
@@ -166,11 +361,31 @@ def make_code(
     if name in ("hitomi", "hitomi-tiled"):
         starts = bump_starts(shape, frames=frames, bump=bump, rng=rng, tiled=name == "hitomi-tiled")
         return starts_to_mask(starts, frames=frames, bump=bump)
+    if name == "rowwise":
+        starts = row_starts(shape[0], frames=frames, bump=bump, rng=rng)
+        cols = np.broadcast_to(starts[:, None], shape)
+        return starts_to_mask(cols, frames=frames, bump=bump)
+    if name == "thinout":
+        return thinout_code(shape, frames=frames)
+    if name == "grid":
+        return grid_code(shape, frames=frames)
+    if name == "file":
+        if path is None:
+            raise InputError("code file: no mask file given (set the code's path / --code-file)")
+        return load_code_file(path, frames=frames, shape=shape)
+    if name == "flutter":
+        seq = flutter_sequence(frames, rng=rng)
+        return np.ascontiguousarray(np.broadcast_to(seq[:, None, None], (frames, *shape)))
     rng = np.random.default_rng(rng)
-    if name == "bernoulli":
+    if name in ("bernoulli", "shifting"):
         if not 0.0 < p <= 1.0:
-            raise InputError(f"code bernoulli: p must be in (0, 1], got {p}")
-        return (rng.random((frames, *shape)) < p).astype(np.uint8)
+            raise InputError(f"code {name}: p must be in (0, 1], got {p}")
+        if frames < 1:
+            raise InputError(f"code {name}: frames must be >= 1, got {frames}")
+        if name == "bernoulli":
+            return (rng.random((frames, *shape)) < p).astype(np.uint8)
+        base = (rng.random(shape) < p).astype(np.uint8)
+        return np.stack([np.roll(base, t, axis=1) for t in range(frames)])
     if name == "global":
         return np.ones((frames, *shape), dtype=np.uint8)
     raise InputError(f"code: unknown code {name!r}; choose one of {', '.join(CODE_NAMES)}")
@@ -198,7 +413,32 @@ def window_coverage(mask: np.ndarray, patch: int = PATCH) -> np.ndarray:
 
 @dataclass(frozen=True)
 class CodeReport:
-    """Which hardware constraints a mask meets (see :func:`check_code`)."""
+    """Which hardware constraints a mask meets (see :func:`check_code`).
+
+    Attributes
+    ----------
+    frames : int
+        N.
+    binary : bool
+        Every value is 0 or 1.
+    single_bump : bool
+        Every pixel is open for at most one contiguous run of sub-frames.
+    fixed_bump : bool
+        Single bump and every pixel that opens is open for the same length.
+    bump_length : int or None
+        That length, when fixed.
+    window_coverage : bool
+        Every ``patch x patch`` window has an open pixel in every sub-frame
+        (for images smaller than a window: the whole image does).
+    uncovered_windows : int
+        Number of windows that miss at least one sub-frame.
+    never_open_pixels : int
+        Pixels closed in every sub-frame (no measurement).
+    open_fraction : float
+        Mean of the mask.
+    patch : int
+        The window size M used for the coverage test.
+    """
 
     frames: int
     binary: bool
@@ -208,13 +448,27 @@ class CodeReport:
     window_coverage: bool
     never_open_pixels: int
     open_fraction: float
+    uncovered_windows: int = 0
+    patch: int = PATCH
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
 
 
 def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
-    """Report the hardware constraints that a mask ``(N, H, W)`` meets."""
+    """Report the hardware constraints that a mask ``(N, H, W)`` meets.
+
+    Parameters
+    ----------
+    mask : ndarray of shape (N, H, W)
+        Any numeric values; non-zero counts as open.
+    patch : int
+        Window size M of the coverage constraint.
+
+    Returns
+    -------
+    report : CodeReport
+    """
     mask = np.asarray(mask)
     if mask.ndim != 3:
         raise InputError(f"mask: expected shape (N, H, W), got {mask.shape}")
@@ -227,16 +481,19 @@ def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
     open_counts = counts[counts > 0]
     fixed = single and open_counts.size > 0 and bool((open_counts == open_counts[0]).all())
     if min(mask.shape[1:]) >= patch:
-        covered = bool((window_coverage(m, patch) > 0).all())
+        missing = (window_coverage(m, patch) == 0).any(0)
+        uncovered = int(missing.sum())
     else:
-        covered = bool((m.reshape(m.shape[0], -1).max(1) > 0).all())
+        uncovered = int(not (m.reshape(m.shape[0], -1).max(1) > 0).all())
     return CodeReport(
         frames=int(mask.shape[0]),
         binary=binary,
         single_bump=single,
         fixed_bump=fixed,
         bump_length=int(open_counts[0]) if fixed else None,
-        window_coverage=covered,
+        window_coverage=uncovered == 0,
         never_open_pixels=int((counts == 0).sum()),
         open_fraction=float(m.mean()),
+        uncovered_windows=uncovered,
+        patch=patch,
     )

@@ -10,9 +10,10 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import ConfigError
+from .physics import SensorModel
 
 STAGES = ("train", "simulate", "reconstruct", "evaluate")
 
@@ -29,15 +30,48 @@ class SceneConfig(_Strict):
     start: int = Field(0, ge=0)
 
 
+#: The names of :data:`codedvideo.codes.CODE_NAMES` (a test keeps them equal).
+CodeName = Literal[
+    "hitomi", "hitomi-tiled", "rowwise", "thinout", "grid", "flutter", "bernoulli", "shifting", "global", "file"
+]
+
+
 class CodeConfig(_Strict):
-    name: Literal["hitomi", "hitomi-tiled", "bernoulli", "global"] = "hitomi"
+    #: A code of :func:`codedvideo.codes.make_code`; ``file`` reads ``path``.
+    name: CodeName = "hitomi"
     bump: int = Field(2, ge=1)
     p: float = Field(0.5, gt=0, le=1)
+    #: The mask file (.npy (N, H, W) or multi-page TIFF) of code ``file``.
+    path: str | None = None
+
+    @model_validator(mode="after")
+    def _path_with_file(self) -> "CodeConfig":
+        if self.name == "file" and not self.path:
+            raise ValueError("code 'file' needs code.path (a .npy or multi-page TIFF mask)")
+        if self.name != "file" and self.path:
+            raise ValueError(f"code.path is only used with name: file (name is {self.name!r})")
+        return self
 
 
 class NoiseConfig(_Strict):
+    """Noise and sensor of the simulated capture (:class:`codedvideo.physics.SensorModel`).
+
+    The defaults (read noise ``sigma`` only) reproduce the plain read-noise model.
+    """
+
     #: Gaussian read noise, standard deviation in grey levels (frame units).
     sigma: float = Field(0.0, ge=0)
+    #: Poisson photon noise on the clean coded image.
+    shot_noise: bool = False
+    #: Full-well capacity, electrons (with shot_noise).
+    full_well: float = Field(SensorModel.full_well, gt=0)
+    #: Electrons per grey level (with shot_noise).
+    gain: float = Field(SensorModel.gain, gt=0)
+    #: Quantise the coded image to this many bits (null: no quantisation).
+    bits: int | None = Field(None, ge=1, le=32)
+    #: Clip the coded image at this grey level; reconstruction then treats
+    #: pixels at or above it as missing (null: no saturation).
+    white_level: float | None = Field(None, gt=0)
 
 
 class DictionaryConfig(_Strict):
@@ -58,7 +92,7 @@ class ReconstructConfig(_Strict):
     #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
     tol_rms: float | Literal["auto"] = "auto"
     #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
-    static_atoms: int = Field(4, ge=0, le=49)
+    static_atoms: int = Field(8, ge=0, le=49)
     tile: int = Field(128, ge=8)
     batch: int = Field(4096, ge=1)
     scheduler: str | None = None

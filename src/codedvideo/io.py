@@ -4,6 +4,21 @@ Arrays are time-first ``(N, H, W)`` float32 inside the project; values keep
 the units of the file (0..255 for 8-bit, 0..65535 for 16-bit).  Every writer
 goes through :func:`atomic_output`: a temporary name in the target's folder,
 renamed onto the target only when writing succeeded.
+
+Colour is an explicit choice of every reader (``color=``):
+
+``"luma"`` (default)
+    Rec.601 luma of the first three channels, so an image is ``(H, W)``, a
+    stack or a video ``(N, H, W)``.
+``"channels"``
+    The channels kept apart, first: an image is ``(C, H, W)``, a stack or a
+    video ``(C, N, H, W)``.  Grey files give ``C = 1``; an alpha channel
+    (grey+alpha or RGBA) is dropped.
+``"error"``
+    Refuse colour input (grey files only), shapes as for ``"luma"``.
+
+Writers take the same layouts: ``(H, W)`` or ``(C, H, W)`` images and
+``(N, H, W)`` or ``(C, N, H, W)`` frames, with ``C`` = 1 or 3.
 """
 
 from __future__ import annotations
@@ -22,6 +37,21 @@ from .errors import InputError, OutputError
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".dpx", ".jpg", ".jpeg")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".gif")
 LUMA = np.array([0.299, 0.587, 0.114], np.float32)
+COLOR_CHOICES = ("luma", "channels", "error")
+# pixel types read as they are stored (anything else is read as float)
+_NATIVE = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float", "half", "double")
+
+
+def _one_line(msg: str) -> str:
+    """Library error text (often several lines) as one line."""
+    return "; ".join(part.strip() for part in str(msg).splitlines() if part.strip()) or "unknown error"
+
+
+def check_color(color: str) -> str:
+    """Validate a colour policy (see the module docstring)."""
+    if color not in COLOR_CHOICES:
+        raise InputError(f"color: unknown choice {color!r} (use {', '.join(COLOR_CHOICES)})")
+    return color
 
 
 # ----------------------------------------------------------------------------- atomic writes
@@ -70,8 +100,19 @@ def _finite(arr: np.ndarray, path, what: str = "image") -> np.ndarray:
     return arr
 
 
+def _to_channels(arr: np.ndarray) -> np.ndarray:
+    """(H, W, C) or (H, W) pixels -> (C', H, W) float32, alpha dropped."""
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    c = arr.shape[-1]
+    keep = 1 if c <= 2 else 3  # grey(+alpha) or RGB(+alpha/extra)
+    return np.moveaxis(arr[..., :keep], -1, 0).astype(np.float32)
+
+
 def _to_gray(arr: np.ndarray, path, color: str) -> np.ndarray:
-    """(H, W, C) or (H, W) -> (H, W) float32."""
+    """(H, W, C) or (H, W) -> (H, W) float32 (``"luma"``, ``"error"``) or (C, H, W) (``"channels"``)."""
+    if color == "channels":
+        return _to_channels(arr)
     if arr.ndim == 2:
         return arr.astype(np.float32)
     if arr.shape[-1] == 1:
@@ -80,7 +121,10 @@ def _to_gray(arr: np.ndarray, path, color: str) -> np.ndarray:
         raise InputError(f"image {path}: has {arr.shape[-1]} channels; a single-channel image is required")
     if arr.shape[-1] in (2,):  # grey + alpha
         return arr[..., 0].astype(np.float32)
-    return np.tensordot(arr[..., :3].astype(np.float32), LUMA, axes=([-1], [0]))
+    rgb = arr[..., :3]
+    if (rgb[..., 0] == rgb[..., 1]).all() and (rgb[..., 1] == rgb[..., 2]).all():
+        return rgb[..., 0].astype(np.float32)  # grey stored as RGB (e.g. GIF): exact, no rounding of the weights
+    return np.tensordot(rgb.astype(np.float32), LUMA, axes=([-1], [0]))
 
 
 def _oiio_read_all(path: Path, color: str, first_only: bool) -> list[np.ndarray]:
@@ -88,9 +132,13 @@ def _oiio_read_all(path: Path, color: str, first_only: bool) -> list[np.ndarray]
 
     if not path.exists():
         raise InputError(f"image {path}: no such file")
-    inp = oiio.ImageInput.open(str(path))
+    if path.is_dir():
+        raise InputError(f"image {path}: is a folder, not an image file")
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # colour values as stored, not multiplied by alpha
+    inp = oiio.ImageInput.open(str(path), config)
     if inp is None:
-        raise InputError(f"image {path}: cannot read ({oiio.geterror() or 'unknown format or corrupt file'})")
+        raise InputError(f"image {path}: cannot read ({_one_line(oiio.geterror() or 'unknown format or corrupt file')})")
     pages = []
     try:
         sub = 0
@@ -99,9 +147,9 @@ def _oiio_read_all(path: Path, color: str, first_only: bool) -> list[np.ndarray]
                 break
             spec = inp.spec()
             native = spec.format
-            data = inp.read_image(native if str(native) in ("uint8", "uint16", "float", "half") else "float")
-            if data is None:
-                raise InputError(f"image {path}: corrupt or truncated ({inp.geterror() or oiio.geterror()})")
+            data = inp.read_image(native if str(native) in _NATIVE else "float")
+            if data is None or inp.has_error:
+                raise InputError(f"image {path}: corrupt or truncated ({_one_line(inp.geterror() or oiio.geterror())})")
             pages.append(_to_gray(np.asarray(data), path, color))
             sub += 1
             if first_only:
@@ -124,52 +172,96 @@ def _read_npy(path: Path) -> np.ndarray:
 
 
 def read_image(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
-    """One image as ``(H, W)`` float32 in the file's units.
+    """One image in the file's units.
 
     Parameters
     ----------
     path : .npy, .png, .tif/.tiff (first page), .exr, .dpx, .jpg
-    color : {"luma", "error"}
-        Convert colour to Rec.601 luma, or refuse colour input.
+        A .npy holds (H, W), or (H, W, C) with C in 1..4.
+    color : {"luma", "channels", "error"}
+        Convert colour to Rec.601 luma, keep the channels apart, or refuse
+        colour input.
+
+    Returns
+    -------
+    ndarray of shape (H, W), or (C, H, W) for ``color="channels"``, float32
     """
     path = Path(path)
+    check_color(color)
     if path.suffix.lower() == ".npy":
         arr = _read_npy(path)
-        if arr.ndim == 3 and arr.shape[-1] in (3, 4):
+        if arr.ndim == 3 and arr.shape[-1] in (1, 2, 3, 4):
             arr = _to_gray(arr, path, color)
-        if arr.ndim != 2:
-            raise InputError(f"image {path}: expected shape (H, W), got {arr.shape}")
+        elif arr.ndim == 2 and color == "channels":
+            arr = arr[None]
+        if arr.ndim != (3 if color == "channels" else 2):
+            raise InputError(f"image {path}: expected shape (H, W) or (H, W, C), got {arr.shape}")
         return _finite(arr.astype(np.float32), path)
     return _finite(_oiio_read_all(path, color, first_only=True)[0], path)
 
 
+_PATTERN = re.compile(r"%0?\d*d")
+
+
+def is_pattern(spec: str | os.PathLike) -> bool:
+    """True for a printf-style frame pattern such as ``frames/%04d.png``."""
+    return len(_PATTERN.findall(Path(spec).name)) == 1
+
+
 def _pattern_frames(pattern: str) -> list[Path]:
-    first = 0 if Path(pattern % 0).exists() else 1
-    out = []
-    i = first
-    while Path(pattern % i).exists():
-        out.append(Path(pattern % i))
-        i += 1
+    """The files of a printf pattern: numbers from 0 (or 1) up to the first gap."""
+    try:
+        first = 0 if Path(pattern % 0).exists() else 1
+        out = []
+        i = first
+        while Path(pattern % i).exists():
+            out.append(Path(pattern % i))
+            i += 1
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"frames {pattern}: not a usable printf pattern ({exc})") from exc
     return out
 
 
+def _natural_key(path: Path):
+    """Sort frame_2 before frame_10."""
+    return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", path.name)]
+
+
 def read_stack(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
-    """A stack ``(N, H, W)`` float32: .npy, multi-page TIFF, a folder of frames or a printf pattern."""
+    """A stack of frames in the file's units.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        .npy (N, H, W) (or (C, N, H, W) with ``color="channels"``), a
+        multi-page TIFF or multi-part EXR, a folder of image files (in
+        natural order: ``f_2`` before ``f_10``) or a printf pattern such as
+        ``frames/%04d.png`` (numbers from 0 or 1 up to the first gap).
+    color : {"luma", "channels", "error"}
+
+    Returns
+    -------
+    ndarray of shape (N, H, W), or (C, N, H, W) for ``color="channels"``, float32
+    """
+    check_color(color)
     spath = str(path)
     path = Path(path)
-    if re.search(r"%0?\d*d", spath):
+    if is_pattern(spath) and not path.exists():
         files = _pattern_frames(spath)
         if not files:
             raise InputError(f"frames {spath}: no file matches the pattern")
         frames = [read_image(f, color=color) for f in files]
     elif path.is_dir():
-        files = sorted(f for f in path.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith("."))
+        files = sorted((f for f in path.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")),
+                       key=_natural_key)
         if not files:
             raise InputError(f"frames {path}: the folder holds no image files")
         frames = [read_image(f, color=color) for f in files]
     elif path.suffix.lower() == ".npy":
         arr = _read_npy(path)
-        if arr.ndim != 3:
+        if color == "channels" and arr.ndim == 3:
+            arr = arr[None]
+        if arr.ndim != (4 if color == "channels" else 3):
             raise InputError(f"stack {path}: expected shape (N, H, W), got {arr.shape}")
         return _finite(arr.astype(np.float32), path, "stack")
     else:
@@ -177,39 +269,84 @@ def read_stack(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
     shapes = {f.shape for f in frames}
     if len(shapes) != 1:
         raise InputError(f"stack {path}: frames differ in shape {sorted(shapes)}")
-    return _finite(np.stack(frames).astype(np.float32), path, "stack")
+    stack = np.stack(frames, axis=1 if color == "channels" else 0)
+    return _finite(stack.astype(np.float32), path, "stack")
 
 
 def read_video(
     path: str | os.PathLike, *, max_frames: int | None = None, start: int = 0, color: str = "luma"
 ) -> np.ndarray:
-    """Frames ``(F, H, W)`` float32 of a video file (PyAV) or an image sequence."""
+    """Frames of a video file (PyAV) or an image sequence (:func:`read_stack`).
+
+    Grey videos (gray, gray16le pixels, e.g. FFV1) are read exactly; colour
+    ones through 8-bit RGB.
+
+    Returns
+    -------
+    ndarray of shape (F, H, W), or (C, F, H, W) for ``color="channels"``, float32
+    """
+    check_color(color)
     path = Path(path)
     if path.suffix.lower() not in VIDEO_SUFFIXES:
         stack = read_stack(path, color=color)
-        return stack[start : None if max_frames is None else start + max_frames]
+        sl = slice(start, None if max_frames is None else start + max_frames)
+        return stack[:, sl] if color == "channels" else stack[sl]
     import av
 
     if not path.exists():
         raise InputError(f"video {path}: no such file")
     frames = []
+    decoded = 0
     try:
         with av.open(str(path)) as container:
             if not container.streams.video:
                 raise InputError(f"video {path}: has no video stream")
+            stream = container.streams.video[0]
+            expected = _expected_frames(container, stream)
             for i, frame in enumerate(container.decode(video=0)):
+                decoded = i + 1
                 if i < start:
                     continue
-                if color == "error" and frame.format.name not in ("gray", "gray8", "gray16le"):
+                grey = frame.format.name in ("gray", "gray8", "gray16le")
+                if color == "error" and not grey:
                     raise InputError(f"video {path}: frames are in colour ({frame.format.name}); grey frames are required")
-                frames.append(_to_gray(frame.to_ndarray(format="rgb24"), path, "luma"))
+                pixels = frame.to_ndarray() if grey else frame.to_ndarray(format="rgb24")
+                frames.append(_to_gray(pixels, path, "channels" if color == "channels" else "luma"))
                 if max_frames is not None and len(frames) >= max_frames:
                     break
+            else:  # decoded to the end: a stream that ends early was cut short
+                if expected is not None and decoded < expected - 1:
+                    raise InputError(f"video {path}: truncated (decoded {decoded} of {expected} frames)")
     except (av.error.FFmpegError, OSError) as exc:
-        raise InputError(f"video {path}: cannot decode ({exc})") from exc
+        raise InputError(f"video {path}: cannot decode ({_one_line(exc)})") from exc
+    if path.suffix.lower() == ".gif" and not _gif_complete(path):
+        raise InputError(f"video {path}: truncated (no GIF trailer)")
     if not frames:
         raise InputError(f"video {path}: no frames decoded (from frame {start})")
-    return np.stack(frames).astype(np.float32)
+    return np.stack(frames, axis=1 if color == "channels" else 0).astype(np.float32)
+
+
+def _expected_frames(container, stream) -> int | None:
+    """Frame count from the container's header (duration x rate), or None when unknown.
+
+    Streaming formats (Matroska, GIF) decode a truncated file without error;
+    the duration recorded in the header tells how many frames there were
+    (to within one frame).
+    """
+    rate = stream.average_rate
+    if container.duration and rate:
+        return int(round(container.duration / 1e6 * float(rate)))
+    return None
+
+
+def _gif_complete(path: Path) -> bool:
+    """A complete GIF ends with the trailer byte 0x3B."""
+    with open(path, "rb") as fh:
+        fh.seek(0, os.SEEK_END)
+        if fh.tell() == 0:
+            return False
+        fh.seek(-1, os.SEEK_END)
+        return fh.read(1) == b";"
 
 
 # ----------------------------------------------------------------------------- writing
@@ -217,27 +354,47 @@ def _to_uint8(frames: np.ndarray, data_range: float) -> np.ndarray:
     return np.clip(np.rint(np.asarray(frames, np.float64) * (255.0 / data_range)), 0, 255).astype(np.uint8)
 
 
-def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: float = 255.0, fps: int = 30) -> Path:
-    """Write (N, H, W) frames as a video: .mp4 (H.264), .mkv/.avi (FFV1, lossless), .gif.
+def _frames_last(frames: np.ndarray, path, what: str) -> np.ndarray:
+    """(N, H, W) or (C, N, H, W) with C in (1, 3) -> (N, H, W) grey or (N, H, W, 3) colour."""
+    frames = np.asarray(frames)
+    if frames.ndim == 4:
+        if frames.shape[0] not in (1, 3):
+            raise InputError(f"{what} {path}: colour frames need 1 or 3 channels, got shape {frames.shape}")
+        return frames[0] if frames.shape[0] == 1 else np.moveaxis(frames, 0, -1)
+    if frames.ndim != 3:
+        raise InputError(f"{what} {path}: expected frames (N, H, W) or (C, N, H, W), got shape {frames.shape}")
+    return frames
 
-    Frames are scaled so ``data_range`` maps to 255.  H.264 in yuv420p needs
-    even sizes: odd sizes are padded by repeating the last row/column.
+
+def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: float = 255.0, fps: int = 30) -> Path:
+    """Write frames as a video: .mp4 (H.264), .mkv/.avi (FFV1, lossless), .gif.
+
+    Parameters
+    ----------
+    frames : ndarray of shape (N, H, W), or (C, N, H, W) with C = 3 for colour
+        Scaled so ``data_range`` maps to 255, then rounded to 8 bits.  FFV1
+        stores the 8-bit frames exactly (grey, or RGB as bgr0); GIF is exact
+        for grey and quantised to 3-3-2 bit RGB for colour.  H.264 in yuv420p
+        needs even sizes: odd sizes are padded by repeating the last
+        row/column.
     """
     import av
 
     path = Path(path)
     suffix = path.suffix.lower()
-    data = _to_uint8(frames, data_range)
+    data = _to_uint8(_frames_last(frames, path, "video"), data_range)
+    colour = data.ndim == 4
     if suffix == ".mp4":
         codec, pix_fmt, options = "libx264", "yuv420p", {"crf": "17", "preset": "medium"}
-        pad = ((0, 0), (0, data.shape[1] % 2), (0, data.shape[2] % 2))
+        pad = ((0, 0), (0, data.shape[1] % 2), (0, data.shape[2] % 2)) + (((0, 0),) if colour else ())
         data = np.pad(data, pad, mode="edge")
     elif suffix in (".mkv", ".avi"):
-        codec, pix_fmt, options = "ffv1", "gray", {}
+        codec, pix_fmt, options = "ffv1", "bgr0" if colour else "gray", {}
     elif suffix == ".gif":
-        codec, pix_fmt, options = "gif", "gray", {}
+        codec, pix_fmt, options = "gif", "rgb8" if colour else "gray", {}
     else:
         raise InputError(f"video {path}: unsupported container {suffix!r} (use .mp4, .mkv, .avi or .gif)")
+    in_fmt = "rgb24" if colour else "gray"
     with atomic_output(path) as tmp:
         try:
             with av.open(str(tmp), mode="w") as container:
@@ -247,7 +404,7 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
                 if options:
                     stream.options = options
                 for img in data:
-                    for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="gray")):
+                    for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format=in_fmt)):
                         container.mux(packet)
                 for packet in stream.encode(None):
                     container.mux(packet)
@@ -257,13 +414,18 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
 
 
 def _oiio_write(path: Path, pages: list[np.ndarray], fmt: str) -> None:
+    """Write pages of (H, W) or (C, H, W) pixels (one subimage each)."""
     import OpenImageIO as oiio
 
     out = oiio.ImageOutput.create(str(path))
     if out is None:
-        raise OutputError(f"image {path}: no writer for this format ({oiio.geterror()})")
-    h, w = pages[0].shape
-    spec = oiio.ImageSpec(w, h, 1, fmt)
+        raise OutputError(f"image {path}: no writer for this format ({_one_line(oiio.geterror())})")
+    # OpenImageIO wants (H, W, C) pixels; a 2-D array is misread
+    pages = [p[..., None] if p.ndim == 2 else np.moveaxis(p, 0, -1) for p in pages]
+    h, w, c = pages[0].shape
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    if c in (2, 4):
+        spec.attribute("oiio:UnassociatedAlpha", 1)  # colour values are not premultiplied by alpha
     try:
         if len(pages) > 1:
             if not out.supports("multiimage"):
@@ -276,43 +438,94 @@ def _oiio_write(path: Path, pages: list[np.ndarray], fmt: str) -> None:
         for i, page in enumerate(pages):
             if i > 0 and not out.open(str(path), spec, "AppendSubimage"):
                 raise OutputError(f"image {path}: cannot append page {i} ({out.geterror()})")
-            # OpenImageIO wants (H, W, C) pixels; a 2-D array is misread
-            if not out.write_image(np.ascontiguousarray(page.reshape(h, w, 1))):
+            if not out.write_image(np.ascontiguousarray(page)):
                 raise OutputError(f"image {path}: cannot write ({out.geterror()})")
     finally:
         out.close()
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype=None) -> Path:
-    """Write an (H, W) image: .tif (float32, or ``dtype``), .exr (float32), .png (uint8), .npy."""
-    path = Path(path)
+# suffix -> (pixel types it can hold, default)
+_IMAGE_TYPES = {
+    ".png": (("uint8", "uint16"), "uint8"),
+    ".tif": (("uint8", "uint16", "float32"), "float32"),
+    ".tiff": (("uint8", "uint16", "float32"), "float32"),
+    ".exr": (("float16", "float32"), "float32"),
+    ".dpx": (("uint8", "uint16", "float32"), "uint16"),
+}
+_OIIO_FMT = {"uint8": "uint8", "uint16": "uint16", "float16": "half", "float32": "float"}
+
+
+def _pixels(path: Path, values: np.ndarray, dtype) -> tuple[np.ndarray, str]:
+    """Values in the file's units -> (array of the pixel type, OpenImageIO type name)."""
     suffix = path.suffix.lower()
-    image = np.asarray(image)
-    if suffix == ".npy":
-        return write_array(path, image)
-    if suffix == ".png":
-        arr, fmt = np.clip(np.rint(image), 0, 255).astype(np.uint8), "uint8"
-    elif suffix in (".tif", ".tiff"):
-        dt = np.dtype(dtype or np.float32)
-        arr = image.astype(dt) if dt.kind == "f" else np.clip(np.rint(image), 0, np.iinfo(dt).max).astype(dt)
-        fmt = {"float32": "float", "uint16": "uint16", "uint8": "uint8"}[dt.name]
-    elif suffix == ".exr":
-        arr, fmt = image.astype(np.float32), "float"
+    if suffix not in _IMAGE_TYPES:
+        raise InputError(f"image {path}: unsupported format {suffix!r} (use .png, .tif, .exr, .dpx or .npy)")
+    allowed, default = _IMAGE_TYPES[suffix]
+    dt = np.dtype(dtype or default)
+    if dt.name not in allowed:
+        raise InputError(f"image {path}: {suffix} cannot hold {dt.name} pixels (use {', '.join(allowed)})")
+    if dt.kind == "f":
+        arr = values.astype(dt)
     else:
-        raise InputError(f"image {path}: unsupported format {suffix!r}")
+        arr = np.clip(np.rint(values), 0, np.iinfo(dt).max).astype(dt)
+    return arr, _OIIO_FMT[dt.name]
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype=None) -> Path:
+    """Write one image, values in the file's units (no scaling; integers are rounded and clipped).
+
+    Parameters
+    ----------
+    path : .png (uint8 or uint16), .tif/.tiff (float32, uint8 or uint16),
+        .exr (float32 or float16), .dpx (uint16, uint8 or float32) or .npy
+        (the array as given); the first type named is the default.
+    image : ndarray of shape (H, W), or (C, H, W) with C in (1, 3, 4)
+    dtype : pixel type, optional
+    """
+    path = Path(path)
+    image = np.asarray(image)
+    if path.suffix.lower() == ".npy":
+        return write_array(path, image)
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[0] not in (1, 3, 4)):
+        raise InputError(f"image {path}: expected shape (H, W) or (C, H, W), got {image.shape}")
+    arr, fmt = _pixels(path, image, dtype)
     with atomic_output(path) as tmp:
         _oiio_write(tmp, [arr], fmt)
     return path
 
 
-def write_multipage_tiff(path: str | os.PathLike, stack: np.ndarray) -> Path:
-    """Write an (N, H, W) uint8 or uint16 stack (e.g. a mask) as a multi-page TIFF."""
+def write_stack(path: str | os.PathLike, stack: np.ndarray, *, dtype=None) -> Path:
+    """Write an (N, H, W) stack as one multi-page file: TIFF pages or EXR parts.
+
+    Values are stored in the file's units (no scaling).  ``dtype`` as for
+    :func:`write_image` (TIFF: float32 by default, uint8 or uint16; EXR:
+    float32 or float16).  A (C, N, H, W) colour stack gives C-channel pages.
+    """
     path = Path(path)
     stack = np.asarray(stack)
-    fmt = "uint16" if stack.dtype == np.uint16 else "uint8"
+    if path.suffix.lower() not in (".tif", ".tiff", ".exr"):
+        raise InputError(f"stack {path}: multi-page files are .tif/.tiff or .exr, not {path.suffix!r}")
+    if stack.ndim == 4:
+        stack = np.moveaxis(stack, 0, 1)  # (N, C, H, W): one C-channel page per frame
+    elif stack.ndim != 3:
+        raise InputError(f"stack {path}: expected shape (N, H, W) or (C, N, H, W), got {stack.shape}")
+    arr, fmt = _pixels(path, stack, dtype)
     with atomic_output(path) as tmp:
-        _oiio_write(tmp, [p.astype(fmt) for p in stack], fmt)
+        _oiio_write(tmp, list(arr), fmt)
     return path
+
+
+def write_multipage_tiff(path: str | os.PathLike, stack: np.ndarray) -> Path:
+    """Write an (N, H, W) stack (e.g. a mask) as a multi-page TIFF of its own type.
+
+    uint8 and uint16 stay integer (a mask of 0/1 stays 0/1); anything else is
+    written as float32 pages.
+    """
+    stack = np.asarray(stack)
+    dtype = stack.dtype if stack.dtype in (np.uint8, np.uint16) else np.float32
+    if stack.dtype == bool:
+        stack, dtype = stack.astype(np.uint8), np.uint8
+    return write_stack(path, stack, dtype=dtype)
 
 
 def write_frames(
@@ -320,19 +533,34 @@ def write_frames(
 ) -> list[Path]:
     """One file per frame in a folder, written as a whole (temporary folder, then rename).
 
-    fmt : "tiff16" (uint16, ``data_range`` -> 65535), "exr" (float32, raw values) or "png" (8-bit).
+    Parameters
+    ----------
+    frames : ndarray of shape (N, H, W), or (C, N, H, W) for colour (RGB files)
+    fmt : {"tiff16", "exr", "png", "png16", "dpx"}
+        "tiff16" (uint16, ``data_range`` -> 65535), "exr" (float32, raw
+        values), "png" (8-bit, ``data_range`` -> 255), "png16" and "dpx"
+        (16-bit, ``data_range`` -> 65535).
     """
     directory = Path(directory)
+    frames = np.asarray(frames)
+    if frames.ndim == 4:
+        frames = np.moveaxis(frames, 0, 1)  # (N, C, H, W): one colour file per frame
+    elif frames.ndim != 3:
+        raise InputError(f"frames {directory}: expected shape (N, H, W) or (C, N, H, W), got {frames.shape}")
     names = []
     with atomic_output(directory) as tmp:
         tmp.mkdir()
-        for i, frame in enumerate(np.asarray(frames)):
+        for i, frame in enumerate(frames):
             if fmt == "tiff16":
                 name, arr, ofmt = f"{prefix}_{i:04d}.tif", np.clip(np.rint(frame * (65535.0 / data_range)), 0, 65535).astype(np.uint16), "uint16"
             elif fmt == "exr":
                 name, arr, ofmt = f"{prefix}_{i:04d}.exr", frame.astype(np.float32), "float"
             elif fmt == "png":
                 name, arr, ofmt = f"{prefix}_{i:04d}.png", _to_uint8(frame, data_range), "uint8"
+            elif fmt in ("png16", "dpx"):
+                ext = "png" if fmt == "png16" else "dpx"
+                name, ofmt = f"{prefix}_{i:04d}.{ext}", "uint16"
+                arr = np.clip(np.rint(frame * (65535.0 / data_range)), 0, 65535).astype(np.uint16)
             else:
                 raise InputError(f"frames {directory}: unknown frame format {fmt!r}")
             _oiio_write(tmp / name, [arr], ofmt)

@@ -28,11 +28,13 @@ All patches of a batch advance together, one atom per iteration:
 
 Operators
 ---------
-The loop only needs three things of ``A_p`` and is written against a small
-protocol: ``correlate(r, rows)`` -> ``(len(rows), K)``, ``column(j, rows)`` ->
-``(len(rows), m)`` and ``norms(rows)`` -> ``(len(rows), K)``.
-:class:`PlainOperator` (``A_p = D``, used by K-SVD) and :class:`MaskedOperator`
-(coded patches) implement it.
+An operator builds a *view* of the active patches, compacted as patches finish,
+with ``scores(r)`` -> ``(P_active, K)`` normalised correlations
+``a_k^T r / ||a_k||`` (zero for a zero column), ``column(j)`` -> ``(P_active, m)``
+and ``keep(mask)``; its ``order`` (or None) is the order in which it prefers the
+patches.  :class:`PlainOperator` (``A_p = D``, used by K-SVD),
+:class:`MaskedOperator` (any coded patches) and :class:`GroupedOperator`
+(few distinct patch codes: tiled and global codes) implement it.
 """
 
 from __future__ import annotations
@@ -101,24 +103,34 @@ class PlainOperator:
     D : ndarray of shape (m, K)
     """
 
+    order = None
+
     def __init__(self, D: np.ndarray):
         self.D = np.ascontiguousarray(D, dtype=np.float32)
         self.Dt = np.ascontiguousarray(self.D.T)
+        self.K = self.D.shape[1]
         self._norms = np.sqrt((self.D.astype(np.float64) ** 2).sum(0)).astype(np.float32)
-
-    def correlate(self, r: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return r @ self.D
-
-    def column(self, j: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return self.Dt[j]
+        self._Dn = self.D * _safe_inverse(self._norms)[None, :]  # unit columns; zero atoms stay 0
 
     def norms(self, rows: np.ndarray) -> np.ndarray:
         return np.broadcast_to(self._norms, (len(rows), self._norms.size))
 
-    def inv_norms(self, rows: np.ndarray) -> np.ndarray:
-        if not hasattr(self, "_inv"):
-            self._inv = _safe_inverse(self._norms)
-        return np.broadcast_to(self._inv, (len(rows), self._inv.size))
+    def view(self, rows: np.ndarray) -> "_PlainView":
+        return _PlainView(self)
+
+
+class _PlainView:
+    def __init__(self, op: PlainOperator):
+        self.op = op
+
+    def scores(self, r: np.ndarray) -> np.ndarray:
+        return r @ self.op._Dn
+
+    def column(self, j: np.ndarray) -> np.ndarray:
+        return self.op.Dt[j]
+
+    def keep(self, keep: np.ndarray) -> None:
+        pass
 
 
 class MaskedOperator:
@@ -144,6 +156,7 @@ class MaskedOperator:
 
     #: Above this many (pixel, pattern) pairs the one-hot product is not used.
     MAX_ONEHOT = 2048
+    order = None
 
     def __init__(self, S: np.ndarray, D: np.ndarray):
         P, N, m = S.shape
@@ -181,21 +194,35 @@ class MaskedOperator:
                 sq += a * a
         return np.sqrt(np.maximum(sq, 0.0))
 
-    def correlate(self, r: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        z = (self.S[rows] * r[:, None, :]).reshape(len(rows), -1)
-        return z @ self.D
-
-    def column(self, j: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        atoms = self.Dt[j].reshape(len(rows), self.N, self.m)
-        return np.einsum("pnm,pnm->pm", atoms, self.S[rows])
-
     def norms(self, rows: np.ndarray) -> np.ndarray:
         return self._norms[rows]
 
-    def inv_norms(self, rows: np.ndarray) -> np.ndarray:
-        if not hasattr(self, "_inv"):
-            self._inv = _safe_inverse(self._norms)
-        return self._inv[rows]
+    def view(self, rows: np.ndarray) -> "_MaskedView":
+        return _MaskedView(self, rows)
+
+
+class _MaskedView:
+    """The active patches of a :class:`MaskedOperator`, compacted as patches finish."""
+
+    def __init__(self, op: MaskedOperator, rows: np.ndarray):
+        self.op = op
+        self.S = op.S[rows]
+        self.inv = _safe_inverse(op._norms[rows])
+
+    def scores(self, r: np.ndarray) -> np.ndarray:
+        # A_p^T r = D^T (Phi_p^T r): one matrix product for all active patches
+        z = (self.S * r[:, None, :]).reshape(r.shape[0], -1)
+        out = z @ self.op.D
+        out *= self.inv
+        return out
+
+    def column(self, j: np.ndarray) -> np.ndarray:
+        atoms = self.op.Dt[j].reshape(len(j), self.op.N, self.op.m)
+        return np.einsum("pnm,pnm->pm", atoms, self.S)
+
+    def keep(self, keep: np.ndarray) -> None:
+        self.S = self.S[keep]
+        self.inv = self.inv[keep]
 
 
 class GroupedOperator:
@@ -204,7 +231,9 @@ class GroupedOperator:
     A periodic code with a 7x7 period gives at most 49 distinct patch codes
     (one per phase), so every ``A_u`` (``m x K``) is built once and the
     correlations of a group are one product ``r @ A_u``: ``N`` times fewer
-    operations than ``D^T (Phi^T r)``.
+    operations than ``D^T (Phi^T r)``.  OMP visits the patches in group order
+    (:attr:`order`), so every group is a contiguous block of the active set and
+    its correlations are one matrix product on a slice, without gathers.
 
     Parameters
     ----------
@@ -220,31 +249,41 @@ class GroupedOperator:
         if groups is None:
             groups = patch_code_groups(S)
         first, self.inv = groups
-        self.A = np.einsum("unm,nmk->umk", S[first].astype(np.float32), D3, optimize=True)  # (U, m, K)
+        # contiguous: einsum may return a strided layout, and BLAS needs unit strides
+        self.A = np.ascontiguousarray(np.einsum("unm,nmk->umk", S[first].astype(np.float32), D3, optimize=True))  # (U, m, K)
         self.At = np.ascontiguousarray(self.A.transpose(0, 2, 1))  # (U, K, m)
         self._norms = np.sqrt(np.einsum("umk,umk->uk", self.A, self.A))
+        self._An = np.ascontiguousarray(self.A * _safe_inverse(self._norms)[:, None, :])  # unit columns per group
         self.K = D3.shape[2]
-
-    def correlate(self, r: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        g = self.inv[rows]
-        out = np.empty((len(rows), self.K), np.float32)
-        order = np.argsort(g, kind="stable")
-        bounds = np.searchsorted(g[order], np.arange(self.A.shape[0] + 1))
-        for u in np.flatnonzero(np.diff(bounds)):
-            sel = order[bounds[u] : bounds[u + 1]]
-            out[sel] = r[sel] @ self.A[u]
-        return out
-
-    def column(self, j: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        return self.At[self.inv[rows], j]
+        #: Patches in group order (stable): OMP solves them in this order.
+        self.order = np.argsort(self.inv, kind="stable")
 
     def norms(self, rows: np.ndarray) -> np.ndarray:
         return self._norms[self.inv[rows]]
 
-    def inv_norms(self, rows: np.ndarray) -> np.ndarray:
-        if not hasattr(self, "_inv"):
-            self._inv = _safe_inverse(self._norms)
-        return self._inv[self.inv[rows]]
+    def view(self, rows: np.ndarray) -> "_GroupedView":
+        """``rows`` index the patches in :attr:`order`."""
+        return _GroupedView(self, self.inv[self.order][rows])
+
+
+class _GroupedView:
+    def __init__(self, op: GroupedOperator, groups: np.ndarray):
+        self.op = op
+        self.g = groups  # non-decreasing
+
+    def scores(self, r: np.ndarray) -> np.ndarray:
+        out = np.empty((r.shape[0], self.op.K), np.float32)
+        bounds = np.searchsorted(self.g, np.arange(self.op.A.shape[0] + 1))
+        for u in np.flatnonzero(np.diff(bounds)):
+            b0, b1 = bounds[u], bounds[u + 1]
+            np.matmul(r[b0:b1], self.op._An[u], out=out[b0:b1])
+        return out
+
+    def column(self, j: np.ndarray) -> np.ndarray:
+        return self.op.At[self.g, j]
+
+    def keep(self, keep: np.ndarray) -> None:
+        self.g = self.g[keep]
 
 
 def patch_code_groups(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -254,11 +293,47 @@ def patch_code_groups(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, inv.ravel()
 
 
-def masked_operator(S: np.ndarray, D: np.ndarray, *, max_groups: int = 64):
-    """The cheaper exact operator for a batch: grouped when few distinct codes exist."""
-    groups = patch_code_groups(S)
-    if len(groups[0]) <= max_groups and S.shape[0] >= 4 * len(groups[0]):
-        return GroupedOperator(S, D, groups)
+def periodic_groups(mask: np.ndarray, patch: int) -> np.ndarray | None:
+    """Group of every patch when the code repeats with period 1 or ``patch``, else None.
+
+    A code that repeats every ``patch`` pixels along both axes (``hitomi-tiled``)
+    gives identical codes to patches whose corners agree modulo ``patch``; a code
+    that is the same at every pixel (``global``, ``flutter``) gives one code to
+    all.  Checked in O(image) on the mask, unlike a comparison of all patch codes.
+
+    Parameters
+    ----------
+    mask : ndarray of shape (N, h, w)
+
+    Returns
+    -------
+    groups : ndarray of shape (P,), int, or None
+        In the raster order of :func:`codedvideo.patches.extract`.
+    """
+    n, h, w = mask.shape
+    hp, wp = h - patch + 1, w - patch + 1
+    if hp < 1 or wp < 1:
+        return None
+    for period in (1, patch):
+        if (mask[:, period:, :] == mask[:, :-period, :]).all() and (mask[:, :, period:] == mask[:, :, :-period]).all():
+            yy, xx = np.mgrid[0:hp, 0:wp]
+            return ((yy % period) * period + xx % period).ravel()
+    return None
+
+
+def masked_operator(S: np.ndarray, D: np.ndarray, *, groups: np.ndarray | None = None, max_groups: int = 64):
+    """The cheaper exact operator for a batch: grouped when few distinct codes exist.
+
+    ``groups`` (one id per patch, patches with equal ids have equal codes), when
+    known, saves the comparison of all patch codes.
+    """
+    if groups is not None:
+        _, first, inv = np.unique(groups, return_index=True, return_inverse=True)
+        found = (first, inv.ravel())
+    else:
+        found = patch_code_groups(S)
+    if len(found[0]) <= max_groups and S.shape[0] >= 4 * len(found[0]):
+        return GroupedOperator(S, D, found)
     return MaskedOperator(S, D)
 
 
@@ -276,7 +351,7 @@ def omp(
     ----------
     y : ndarray of shape (P, m)
         Measurements of every patch.
-    op : PlainOperator or MaskedOperator
+    op : PlainOperator, MaskedOperator or GroupedOperator
         The per-patch matrices ``A_p``.
     max_atoms : int
         Maximum number of atoms per patch (``<= m``).
@@ -293,52 +368,65 @@ def omp(
     y = np.ascontiguousarray(y, dtype=np.float32)
     P, m = y.shape
     kmax = int(min(max_atoms, m))
+    tol = np.broadcast_to(np.asarray(tol, dtype=np.float32), (P,))
+    order = op.order
+    if order is not None:  # the operator's preferred order; undone at the end
+        y, tol = y[order], tol[order]
     index = np.zeros((P, kmax), np.int32)
     count = np.zeros(P, np.int32)
-    Q = np.zeros((P, kmax, m), np.float32)
     R = np.zeros((P, kmax, kmax), np.float32)
     qy = np.zeros((P, kmax), np.float32)
     dependent = np.zeros(P, bool)
-    r = y.copy()
-    res2 = np.einsum("pm,pm->p", r, r)
-    tol = np.broadcast_to(np.asarray(tol, dtype=np.float32), (P,))
-    active = np.flatnonzero(res2 > tol)
+    res2 = np.einsum("pm,pm->p", y, y)
+    # working arrays hold the active patches only, compacted as patches finish
+    rows = np.flatnonzero(res2 > tol)
+    view = op.view(rows)
+    r = y[rows]
+    Q = np.zeros((rows.size, kmax, m), np.float32)
     for k in range(kmax):
-        if active.size == 0:
+        if rows.size == 0:
             break
-        ra = r[active]
-        score = op.correlate(ra, active)
-        score *= op.inv_norms(active)
+        score = view.scores(r)  # normalised correlations |a_k^T r| / ||a_k||
         np.abs(score, out=score)
         # near-ties (within TIE_RTOL) go to the lowest atom index, so that the choice
         # does not depend on roundoff (batch size, chunking, BLAS blocking)
         best = score.max(1)
         j = (score >= (best * (1.0 - TIE_RTOL))[:, None]).argmax(1).astype(np.int32)
-        a = op.column(j, active).astype(np.float32)
-        Qa = Q[active, :k]
-        h = np.einsum("pkm,pm->pk", Qa, a)
-        q = a - np.einsum("pk,pkm->pm", h, Qa)
-        h2 = np.einsum("pkm,pm->pk", Qa, q)
-        q -= np.einsum("pk,pkm->pm", h2, Qa)
+        del score
+        a = view.column(j).astype(np.float32, copy=False)
+        Qk = Q[:, :k]
+        h = np.einsum("pkm,pm->pk", Qk, a)
+        q = a - np.einsum("pk,pkm->pm", h, Qk)
+        h2 = np.einsum("pkm,pm->pk", Qk, q)
+        q -= np.einsum("pk,pkm->pm", h2, Qk)
         h += h2
         qn = np.sqrt(np.einsum("pm,pm->p", q, q))
         an = np.sqrt(np.einsum("pm,pm->p", a, a))
         ok = (qn > dependence_tol * np.maximum(an, _TINY)) & (best > 0)
-        dependent[active[~ok]] = True
-        rows = active[ok]
-        q = q[ok] / qn[ok, None]
-        c = np.einsum("pm,pm->p", q, ra[ok])
-        Q[rows, k] = q
-        R[rows, :k, k] = h[ok]
-        R[rows, k, k] = qn[ok]
-        qy[rows, k] = c
-        r[rows] = ra[ok] - c[:, None] * q
-        index[rows, k] = j[ok]
-        count[rows] = k + 1
-        res2[rows] = np.einsum("pm,pm->p", r[rows], r[rows])
-        active = rows[res2[rows] > tol[rows]]
+        q /= np.where(ok, qn, 1.0)[:, None]
+        c = np.einsum("pm,pm->p", q, r)
+        r_new = r - c[:, None] * q
+        rr = np.einsum("pm,pm->p", r_new, r_new)
+        done = rows[ok]
+        dependent[rows[~ok]] = True
+        Q[:, k] = q
+        R[done, :k, k] = h[ok]
+        R[done, k, k] = qn[ok]
+        qy[done, k] = c[ok]
+        index[done, k] = j[ok]
+        count[done] = k + 1
+        res2[done] = rr[ok]
+        keep = ok & (rr > tol[rows])
+        if keep.all():
+            r = r_new
+        else:
+            rows, r, Q = rows[keep], r_new[keep], Q[keep]
+            view.keep(keep)
     coef = _back_substitute(R, qy, count)
-    return OmpResult(index=index, coef=coef, count=count, residual=res2.astype(np.float32), dependent=dependent)
+    result = OmpResult(index=index, coef=coef, count=count, residual=res2.astype(np.float32), dependent=dependent)
+    if order is not None:
+        result = result.select(np.argsort(order))
+    return result
 
 
 def _back_substitute(R: np.ndarray, qy: np.ndarray, count: np.ndarray) -> np.ndarray:

@@ -6,11 +6,31 @@ Sum convention (Hitomi et al. 2011, Eq. 1), used everywhere in codedvideo::
 
 A pixel open for ``k`` sub-frames records the *sum* of ``k`` frame values, in the
 units of the frames (no division by the bump length).  The measurement of a
-simulated camera is ``sensor(noise(S E))``; here the noise is Gaussian read
-noise of standard deviation ``sigma`` in the same units.
+simulated camera is ``sensor(noise(S E))`` (:func:`measure`, described by a
+:class:`SensorModel`), every part optional:
+
+1. photon shot noise: the clean coded image ``S E`` (grey levels) times the
+   ``gain`` (electrons per grey level) is the mean of a Poisson electron count,
+   which saturates at the ``full_well`` capacity; divided by the gain again it
+   is back in grey levels;
+2. Gaussian read noise of standard deviation ``read_sigma`` grey levels;
+3. the sensor's output: clipping at the ``white_level`` (saturation) and
+   quantisation to ``bits`` bits.  With both, the ADC maps ``[0, white_level]``
+   onto ``2**bits`` levels; with ``bits`` alone one level is one grey level
+   (``[0, 2**bits - 1]``).  The result stays in grey levels (float32).
+
+Noise streams are independent and seeded: read noise is drawn from the given
+generator (so plain read noise is exactly what :func:`add_read_noise` draws),
+shot noise from a child of its ``SeedSequence`` (``Generator.spawn``).
+
+A saturated pixel recorded the white level, not the sum of its frames: with
+:func:`saturated_as_missing` reconstruction treats it as not measured.
 """
 
 from __future__ import annotations
+
+import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -62,11 +82,207 @@ def add_read_noise(coded: np.ndarray, sigma: float, rng: np.random.Generator | i
     return (coded + rng.normal(0.0, sigma, size=coded.shape)).astype(np.float32)
 
 
-def simulate(
-    video: np.ndarray, mask: np.ndarray, *, sigma: float = 0.0, rng: np.random.Generator | int | None = 0
+@dataclass(frozen=True)
+class SensorModel:
+    """Noise and read-out of a simulated sensor (see the module docstring).
+
+    Attributes
+    ----------
+    shot_noise : bool
+        Apply Poisson photon noise (and full-well saturation) to ``S E``.
+    full_well : float
+        Full-well capacity, electrons (used with ``shot_noise``).
+    gain : float
+        Electrons per grey level (used with ``shot_noise``): a grey level of
+        ``I`` has a shot-noise standard deviation of ``sqrt(I / gain)``.
+    read_sigma : float
+        Gaussian read noise, standard deviation in grey levels.
+    bits : int or None
+        Quantise the output to this many bits (None: no quantisation).
+    white_level : float or None
+        Saturation: outputs are clipped at this grey level (None: no clipping).
+    """
+
+    shot_noise: bool = False
+    full_well: float = 20000.0
+    gain: float = 10.0
+    read_sigma: float = 0.0
+    bits: int | None = None
+    white_level: float | None = None
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.full_well) and self.full_well > 0):
+            raise InputError(f"sensor: full_well must be finite and > 0 electrons, got {self.full_well}")
+        if not (math.isfinite(self.gain) and self.gain > 0):
+            raise InputError(f"sensor: gain must be finite and > 0 electrons per grey level, got {self.gain}")
+        if not (math.isfinite(self.read_sigma) and self.read_sigma >= 0):
+            raise InputError(f"sensor: read_sigma must be finite and >= 0, got {self.read_sigma}")
+        if self.bits is not None and not (isinstance(self.bits, (int, np.integer)) and 1 <= self.bits <= 32):
+            raise InputError(f"sensor: bits must be an integer in 1..32, got {self.bits}")
+        if self.white_level is not None and not (math.isfinite(self.white_level) and self.white_level > 0):
+            raise InputError(f"sensor: white_level must be finite and > 0, got {self.white_level}")
+
+    @property
+    def full_scale(self) -> float | None:
+        """The largest output value in grey levels (None when unbounded)."""
+        if self.white_level is not None:
+            return float(self.white_level)
+        if self.bits is not None:
+            return float(2**self.bits - 1)
+        return None
+
+    @property
+    def step(self) -> float | None:
+        """The quantisation step in grey levels (None without quantisation)."""
+        if self.bits is None:
+            return None
+        return self.full_scale / (2**self.bits - 1)
+
+    def noise_sigma(self, level: float) -> float:
+        """Standard deviation of the measurement noise at a signal ``level`` (grey levels).
+
+        Read, shot (``level / gain``) and quantisation (``step**2 / 12``)
+        variances added; clipping is ignored.
+        """
+        var = self.read_sigma**2
+        if self.shot_noise:
+            var += max(float(level), 0.0) / self.gain
+        if self.bits is not None:
+            var += self.step**2 / 12.0
+        return float(math.sqrt(var))
+
+    def measure(self, clean: np.ndarray, rng: np.random.Generator | int | None = 0) -> np.ndarray:
+        """``sensor(noise(clean))``; see :func:`measure`."""
+        return measure(clean, self, rng)
+
+
+def add_shot_noise(
+    coded: np.ndarray, *, gain: float, full_well: float, rng: np.random.Generator | int | None
 ) -> np.ndarray:
-    """``noise(S E)``: the coded image a camera with this code would record."""
-    return add_read_noise(forward(video, mask), sigma, rng)
+    """Poisson photon noise: ``min(Poisson(gain * coded), full_well) / gain``.
+
+    Parameters
+    ----------
+    coded : ndarray of shape (H, W)
+        Clean coded image, grey levels (negative values count as 0).
+    gain : float
+        Electrons per grey level.
+    full_well : float
+        Full-well capacity, electrons.
+    rng : Generator or int
+
+    Returns
+    -------
+    noisy : ndarray of shape (H, W), float32
+        Mean ``coded`` and variance ``coded / gain`` below saturation.
+    """
+    rng = np.random.default_rng(rng)
+    electrons = np.clip(np.asarray(coded, dtype=np.float64), 0.0, None) * gain
+    counts = np.minimum(rng.poisson(electrons), full_well)
+    return (counts / gain).astype(np.float32)
+
+
+def quantise(coded: np.ndarray, *, bits: int, full_scale: float) -> np.ndarray:
+    """Clip to ``[0, full_scale]`` and round to ``2**bits`` equally spaced levels.
+
+    Returns float32 in grey levels; the top level is exactly ``full_scale``.
+    """
+    top = 2**bits - 1
+    step = full_scale / top
+    levels = np.rint(np.clip(np.asarray(coded, dtype=np.float64), 0.0, full_scale) / step)
+    return np.where(levels >= top, full_scale, levels * step).astype(np.float32)
+
+
+def measure(
+    clean: np.ndarray, model: SensorModel, rng: np.random.Generator | int | None = 0
+) -> np.ndarray:
+    """The recorded coded image: ``sensor(noise(clean))``.
+
+    Parameters
+    ----------
+    clean : ndarray of shape (H, W)
+        Noise-free coded image ``S E`` (:func:`forward`), grey levels.
+    model : SensorModel
+    rng : Generator, int or None
+        Seed of the noise.  Read noise is drawn from ``default_rng(rng)``
+        itself (identical to :func:`add_read_noise`); shot noise from an
+        independent child stream spawned from its ``SeedSequence``.
+
+    Returns
+    -------
+    coded : ndarray of shape (H, W), float32
+    """
+    gen = np.random.default_rng(rng)
+    out = np.asarray(clean, dtype=np.float32)
+    if model.shot_noise:
+        (shot_rng,) = gen.spawn(1)
+        out = add_shot_noise(out, gain=model.gain, full_well=model.full_well, rng=shot_rng)
+    out = add_read_noise(out, model.read_sigma, gen)
+    if model.bits is not None:
+        out = quantise(out, bits=model.bits, full_scale=model.full_scale)
+    elif model.white_level is not None:
+        out = np.minimum(out, np.float32(model.white_level))
+    return out
+
+
+def simulate(
+    video: np.ndarray,
+    mask: np.ndarray,
+    *,
+    sigma: float = 0.0,
+    rng: np.random.Generator | int | None = 0,
+    sensor: SensorModel | None = None,
+) -> np.ndarray:
+    """``sensor(noise(S E))``: the coded image a camera with this code would record.
+
+    Parameters
+    ----------
+    video : ndarray of shape (N, H, W)
+    mask : ndarray of shape (N, H, W)
+    sigma : float
+        Gaussian read noise (grey levels) when no ``sensor`` is given.
+    rng : Generator, int or None
+    sensor : SensorModel, optional
+        The full sensor model; then ``sigma`` must be 0 (use ``read_sigma``).
+
+    Returns
+    -------
+    coded : ndarray of shape (H, W), float32
+    """
+    if sensor is None:
+        return add_read_noise(forward(video, mask), sigma, rng)
+    if sigma:
+        raise InputError(f"simulate: give the read noise as sensor.read_sigma, not sigma = {sigma}")
+    return measure(forward(video, mask), sensor, rng)
+
+
+def saturated_as_missing(
+    coded: np.ndarray, mask: np.ndarray, white_level: float
+) -> tuple[np.ndarray, int]:
+    """Treat saturated pixels as not measured.
+
+    Parameters
+    ----------
+    coded : ndarray of shape (H, W)
+    mask : ndarray of shape (N, H, W)
+    white_level : float
+        Pixels with ``coded >= white_level`` (compared in float32) are saturated.
+
+    Returns
+    -------
+    mask : ndarray of shape (N, H, W)
+        A copy of ``mask`` (same dtype) with every sub-frame of every saturated
+        pixel set to 0; reconstruction fills those pixels from their neighbours.
+    count : int
+        Number of saturated pixels.
+    """
+    check_pair(np.shape(coded), np.shape(mask), where="saturated_as_missing")
+    if not (math.isfinite(white_level) and white_level > 0):
+        raise InputError(f"white level must be finite and > 0, got {white_level}")
+    saturated = np.asarray(coded, dtype=np.float32) >= np.float32(white_level)
+    out = np.array(mask, copy=True)
+    out[:, saturated] = 0
+    return out, int(saturated.sum())
 
 
 def static_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ when the truth is known (no-reference statistics otherwise).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -33,6 +34,9 @@ from .store import WorkStore, load_array, load_dictionary, save_array, save_dict
 log = logging.getLogger("codedvideo")
 
 PATCH = 7
+#: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
+#: its output, so that tiles computed by an older version are never reused.
+RECON_VERSION = "recon-v2"
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".gif")
 
 
@@ -177,15 +181,65 @@ def _progress_bar(total: int, desc: str):
 
 # ----------------------------------------------------------------------------- simulate
 def simulate_capture(
-    video: np.ndarray, *, code: str, bump: int, sigma: float, seed: int, p: float = 0.5
+    video: np.ndarray,
+    *,
+    code: str,
+    bump: int,
+    sigma: float,
+    seed: int,
+    p: float = 0.5,
+    code_path: str | Path | None = None,
+    sensor: physics.SensorModel | None = None,
 ) -> dict[str, np.ndarray]:
-    """Coded capture of a video: mask, coded image (noisy) and the truth."""
+    """Coded capture of a video: mask, coded image (noisy) and the truth.
+
+    Parameters
+    ----------
+    video : ndarray of shape (N, H, W)
+    code, bump, p, code_path
+        The code (:func:`codedvideo.codes.make_code`; ``code_path`` for ``file``).
+    sigma : float
+        Gaussian read noise, grey levels.
+    seed : int
+        Code and noise use independent streams spawned from it.
+    sensor : SensorModel, optional
+        Shot noise, quantisation and clipping; its ``read_sigma`` is replaced
+        by ``sigma``.  None: read noise only.
+
+    Returns
+    -------
+    dict with ``coded`` (H, W) float32, ``mask`` (N, H, W) uint8, ``truth`` (N, H, W) float32
+    """
     n = video.shape[0]
     ss = np.random.SeedSequence(seed)
     code_rng, noise_rng = (np.random.default_rng(s) for s in ss.spawn(2))
-    mask = make_code(code, video.shape[1:], frames=n, bump=bump, p=p, rng=code_rng)
-    coded = physics.simulate(video, mask, sigma=sigma, rng=noise_rng)
+    mask = make_code(code, video.shape[1:], frames=n, bump=bump, p=p, rng=code_rng, path=code_path)
+    if sensor is None:
+        coded = physics.simulate(video, mask, sigma=sigma, rng=noise_rng)
+    else:
+        sensor = dataclasses.replace(sensor, read_sigma=sigma)
+        coded = physics.simulate(video, mask, rng=noise_rng, sensor=sensor)
     return dict(coded=coded, mask=mask, truth=np.asarray(video, np.float32))
+
+
+def sensor_model(noise) -> physics.SensorModel | None:
+    """The :class:`~codedvideo.physics.SensorModel` of a ``NoiseConfig`` (None: read noise only)."""
+    if not noise.shot_noise and noise.bits is None and noise.white_level is None:
+        return None
+    return physics.SensorModel(shot_noise=noise.shot_noise, full_well=noise.full_well, gain=noise.gain,
+                               read_sigma=noise.sigma, bits=noise.bits, white_level=noise.white_level)
+
+
+def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Saturated pixels as missing measurements (:func:`codedvideo.physics.saturated_as_missing`).
+
+    Returns the coded image with saturated pixels set to 0 (so that the
+    measurement residual ignores them), the mask without them, and their count.
+    """
+    mask_used, count = physics.saturated_as_missing(coded, mask, white_level)
+    if count:
+        coded = np.where(coded >= np.float32(white_level), np.float32(0), coded).astype(np.float32)
+    return coded, mask_used, count
 
 
 def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[str, Path]:
@@ -201,8 +255,9 @@ def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[st
 
 
 # ----------------------------------------------------------------------------- reconstruct
-def read_coded(path: str | Path) -> np.ndarray:
-    coded = cio.read_image(path)
+def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
+    """A coded image (H, W) float32, or (C, H, W) with ``color="channels"`` (see :mod:`codedvideo.io`)."""
+    coded = cio.read_image(path, color=color)
     if not np.isfinite(coded).all():
         raise InputError(f"coded image {path}: contains NaN or Inf")
     return coded
@@ -244,7 +299,7 @@ def reconstruct_volume(
     timings = {}
     t0 = time.perf_counter()
     tiles = plan_tiles((h, w), tile, patch=PATCH)
-    key = content_key("recon-v1", coded, mask, dictionary_key or content_key(D), settings.__dict__, tile)
+    key = content_key(RECON_VERSION, coded, mask, dictionary_key or content_key(D), settings.__dict__, tile)
     store = WorkStore.create(
         Path(cache) / f"recon-{key}.zarr", coded, mask, tile=tile, n_stats=len(STAT_NAMES), n_tiles=len(tiles),
         attrs=dict(key=key, settings=settings.__dict__, tile=tile),
@@ -273,19 +328,39 @@ def reconstruct_volume(
 
 
 def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 255.0, fps: int = 30) -> Path:
-    """Write a volume by the output's suffix: .npy, .zarr, a video file, or a frame folder."""
+    """Write a volume by the output's suffix.
+
+    Parameters
+    ----------
+    volume : ndarray of shape (N, H, W), or (C, N, H, W) for colour
+    output : str or Path
+        ``.npy`` (float32, as given), ``.zarr`` (float32 Zarr array), ``.mat``
+        (MATLAB v5, ``recon`` (H, W, N) single), ``.tif``/``.tiff``
+        (multi-page float32), ``.mp4`` (H.264), ``.mkv``/``.avi`` (FFV1,
+        lossless 8-bit), ``.gif``, or a name without suffix (or ``.d``): a
+        folder of 16-bit TIFF frames.  Videos and frames scale ``data_range``
+        to full scale.
+    """
     output = Path(output)
     suffix = output.suffix.lower()
+    volume = np.asarray(volume)
     if suffix == ".npy":
         cio.write_array(output, volume.astype(np.float32))
     elif suffix == ".zarr":
-        save_array(output, volume.astype(np.float32), chunks=(volume.shape[0], 256, 256))
+        save_array(output, volume.astype(np.float32), chunks=volume.shape[:-2] + (256, 256))
+    elif suffix == ".mat":
+        from .cacti import write_mat_volume
+
+        write_mat_volume(output, volume)
+    elif suffix in (".tif", ".tiff"):
+        cio.write_stack(output, volume, dtype=np.float32)
     elif suffix in VIDEO_SUFFIXES:
         cio.write_video(output, volume, data_range=data_range, fps=fps)
     elif suffix in ("", ".d"):
         cio.write_frames(output, volume, fmt="tiff16", data_range=data_range)
     else:
-        raise InputError(f"output {output}: unknown format {suffix!r} (use .npy, .zarr, .mp4, .mkv, .gif or a folder)")
+        raise InputError(f"output {output}: unknown format {suffix!r} "
+                         "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .gif or a folder)")
     return output
 
 
@@ -294,13 +369,35 @@ def metrics_path(output: str | Path) -> Path:
     return output.with_name((output.stem if output.suffix else output.name) + ".metrics.json")
 
 
-def read_volume(path: str | Path) -> np.ndarray:
+def read_volume(path: str | Path, *, color: str = "luma") -> np.ndarray:
+    """Read a volume written by :func:`write_volume` (or any stack :func:`codedvideo.io.read_stack` reads).
+
+    A ``.mat`` file gives its ``recon`` variable, else ``orig`` (a CACTI
+    file's ground truth).  ``.npy``, ``.zarr`` and ``.mat`` give the array as
+    stored (N, H, W) or (C, N, H, W); images and videos follow ``color``.
+
+    Returns
+    -------
+    ndarray of shape (N, H, W) (or (C, N, H, W)), float32
+    """
     path = Path(path)
-    if path.suffix == ".zarr":
+    suffix = path.suffix.lower()
+    if suffix == ".zarr":
         return load_array(path)
-    if path.suffix.lower() in VIDEO_SUFFIXES:
-        return cio.read_video(path)
-    return cio.read_stack(path)
+    if suffix == ".mat":
+        from .cacti import read_mat_volume
+
+        return read_mat_volume(path)
+    if suffix == ".npy":
+        arr = cio.read_array(path)
+        if arr.ndim not in (3, 4):
+            raise InputError(f"volume {path}: expected shape (N, H, W) or (C, N, H, W), got {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise InputError(f"volume {path}: contains NaN or Inf")
+        return arr.astype(np.float32)
+    if suffix in VIDEO_SUFFIXES:
+        return cio.read_video(path, color=color)
+    return cio.read_stack(path, color=color)
 
 
 def trivial_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -323,22 +420,29 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True) -> dict:
     if "simulate" in cfg.stages or "reconstruct" in cfg.stages:
         t0 = time.perf_counter()
         video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
-        capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed, p=cfg.code.p)
+        capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed,
+                                   p=cfg.code.p, code_path=cfg.code.path, sensor=sensor_model(cfg.noise))
         report["capture"] = {k: str(v) for k, v in write_capture(capture, out / "capture").items()}
         report["seconds"]["simulate"] = time.perf_counter() - t0
     if "reconstruct" in cfg.stages:
         D, dmeta = load_dictionary(dict_path)
         _check_dictionary(dmeta, cfg.frames, dict_path)
         rc = cfg.reconstruct
-        tol = auto_tolerance(cfg.noise.sigma) if rc.tol_rms == "auto" else float(rc.tol_rms)
+        sensor = sensor_model(cfg.noise)
+        # with shot noise / quantisation: the RMS noise at the mean coded level
+        sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
+        tol = auto_tolerance(sigma) if rc.tol_rms == "auto" else float(rc.tol_rms)
         settings = OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms)
+        coded, mask, saturated = capture["coded"], capture["mask"], 0
+        if cfg.noise.white_level is not None:  # saturated pixels are missing measurements
+            coded, mask, saturated = drop_saturated(coded, mask, cfg.noise.white_level)
         t0 = time.perf_counter()
         volume, info = reconstruct_volume(
-            capture["coded"], capture["mask"], D, settings=settings, tile=rc.tile, cache=cfg.cache,
+            coded, mask, D, settings=settings, tile=rc.tile, cache=cfg.cache,
             scheduler=rc.scheduler, workers=rc.workers, progress=progress, dictionary_key=dmeta["sha256"],
         )
         report["seconds"]["reconstruct"] = time.perf_counter() - t0
-        report["reconstruction"] = info
+        report["reconstruction"] = dict(info, saturated_pixels=saturated)
         t0 = time.perf_counter()
         video_path = write_volume(volume, out / cfg.output.video, fps=cfg.output.fps)
         report["outputs"] = dict(video=str(video_path))

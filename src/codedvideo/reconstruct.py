@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import patches as P
-from .omp import masked_operator, omp, synthesize
+from .omp import MaskedOperator, masked_operator, omp, periodic_groups, synthesize
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 STAT_NAMES = (
@@ -46,7 +46,7 @@ class OmpSettings:
     max_atoms: int = 8
     tol_rms: float = 1.0
     batch: int = 4096
-    static_atoms: int = 4
+    static_atoms: int = 8
 
 
 def static_dictionary(frames: int, patch: int = P.PATCH) -> np.ndarray:
@@ -63,6 +63,69 @@ def static_dictionary(frames: int, patch: int = P.PATCH) -> np.ndarray:
     return (np.tile(C, (frames, 1)) / np.sqrt(frames)).astype(np.float32)
 
 
+def still_patches(
+    y: np.ndarray, S: np.ndarray, tol: np.ndarray, atoms: int, *, patch: int = P.PATCH
+) -> tuple[np.ndarray, np.ndarray]:
+    """The still-scene test: which patches a still, spatially sparse scene explains.
+
+    A still scene has every sub-frame equal to one image ``s``, so pixel ``i``
+    records ``y_i = n_i s_i`` (``n_i`` its open sub-frames) and ``s = y / n``.
+    A patch passes when ``s`` keeps the residual ``||n * (s - s_k)||^2`` within
+    the tolerance, ``s_k`` holding at most ``atoms`` of the largest coefficients
+    of ``s`` in the orthonormal 2D DCT (a flat patch needs one); it then gets
+    ``s_k`` in every sub-frame.  Where ``n_i`` is the same over the patch (every
+    fixed-bump code) this is exactly OMP over :func:`static_dictionary` seen
+    through the code, whose atoms are then orthogonal with equal norms; for
+    other codes it is the same greedy choice with the residual measured
+    exactly.  No dictionary search is run.  Patches with a pixel that is never
+    open are left to the full dictionary.
+
+    Parameters
+    ----------
+    y : ndarray of shape (P, m)
+    S : ndarray of shape (P, N, m)
+    tol : ndarray of shape (P,)
+        Squared residual tolerance.
+    atoms : int
+
+    Returns
+    -------
+    ok : ndarray of shape (P,), bool
+    estimate : ndarray of shape (ok.sum(), N * m), float32
+    """
+    n = S.shape[1]
+    m = patch * patch
+    C = static_dictionary(1, patch)  # the orthonormal 2D DCT, (m, m), low frequencies first
+    n_pix = S.sum(1, dtype=np.int32).astype(np.float32)  # (P, m)
+    cand = np.flatnonzero(n_pix.min(1) > 0)
+    ok = np.zeros(y.shape[0], bool)
+    if cand.size == 0:
+        return ok, np.zeros((0, n * m), np.float32)
+    w = n_pix[cand]
+    still = y[cand] / w
+    c = still @ C
+    k = min(atoms, m)
+    order = np.argsort(-np.abs(c), axis=1, kind="stable")[:, :k]
+    top = np.take_along_axis(c, order, 1)
+    tol_c = tol[cand]
+    approx = np.zeros_like(still)
+    used = np.full(cand.size, -1)
+    passed = np.einsum("pm,pm->p", y[cand], y[cand]) <= tol_c  # zero atoms suffice
+    used[passed] = 0
+    for j in range(k):  # greedy: add the next largest coefficient, measure the residual exactly
+        approx += top[:, j, None] * C.T[order[:, j]]
+        err = w * (still - approx)
+        fits = (~passed) & (np.einsum("pm,pm->p", err, err) <= tol_c)
+        used[fits] = j + 1
+        passed |= fits
+    top[np.arange(k)[None, :] >= used[:, None]] = 0.0
+    coef = np.zeros_like(c)
+    np.put_along_axis(coef, order, top, 1)
+    frame = coef[passed] @ C.T  # s_k of the passing patches
+    ok[cand[passed]] = True
+    return ok, np.tile(frame, (1, n)).astype(np.float32)
+
+
 def reconstruct_region(
     coded: np.ndarray, mask: np.ndarray, D: np.ndarray, settings: OmpSettings, *, patch: int = P.PATCH
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -75,12 +138,12 @@ def reconstruct_region(
     D : ndarray of shape (N * patch**2, K)
     settings : OmpSettings
 
-    Patches that a still scene explains -- OMP over :func:`static_dictionary`
-    reaches the residual tolerance with at most ``settings.static_atoms`` atoms
-    (a flat patch needs one) -- keep that answer and skip the full dictionary.
-    A moving scene leaves a pixel-random, code-dependent residual that few
-    smooth still atoms cannot explain, so this test only accepts patches
-    whose motion is below the noise level.
+    Patches that a still scene explains (:func:`still_patches`: at most
+    ``settings.static_atoms`` atoms of the 2D DCT, constant in time, reach the
+    residual tolerance; a flat patch needs one) keep that answer and skip the
+    full dictionary.  A moving scene leaves a pixel-random, code-dependent
+    residual that few smooth still atoms cannot explain, so this test only
+    accepts patches whose motion is below the noise level.
 
     Returns
     -------
@@ -99,24 +162,26 @@ def reconstruct_region(
     open_any = mask.any(0)
     y_all = P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch)  # (Pn, m)
     S_all = P.extract(mask.astype(np.uint8), patch)  # (Pn, N, m)
+    groups = periodic_groups(mask, patch)
     n_open = (S_all.any(1)).sum(1).astype(np.float32)
     est = np.empty((y_all.shape[0], n * patch * patch), np.float32)
     atoms = hit = dep = n_static = 0
     t_omp = 0.0
-    D_still = static_dictionary(n, patch) if settings.static_atoms > 0 else None
     for s in range(0, y_all.shape[0], settings.batch):
         sl = slice(s, s + settings.batch)
         y, S, tol = y_all[sl], S_all[sl], n_open[sl] * settings.tol_rms**2
+        g = None if groups is None else groups[sl]
         t0 = time.perf_counter()
         rows = np.arange(y.shape[0])
-        if D_still is not None:
-            still = omp(y, masked_operator(S, D_still), max_atoms=settings.static_atoms, tol=tol)
-            ok = still.residual <= tol
-            est[s + rows[ok]] = synthesize(still.select(ok), D_still)
+        if settings.static_atoms > 0:
+            ok, still = still_patches(y, S, tol, settings.static_atoms, patch=patch)
+            est[s + rows[ok]] = still
             n_static += int(ok.sum())
             rows = rows[~ok]
         if rows.size:
-            res = omp(y[rows], masked_operator(S[rows], D), max_atoms=settings.max_atoms, tol=tol[rows])
+            # periodic codes share few patch operators; any other code has its own per patch
+            op = MaskedOperator(S[rows], D) if g is None else masked_operator(S[rows], D, groups=g[rows])
+            res = omp(y[rows], op, max_atoms=settings.max_atoms, tol=tol[rows])
             est[s + rows] = synthesize(res, D)
             atoms += int(res.count.sum())
             hit += int((res.count >= settings.max_atoms).sum())
