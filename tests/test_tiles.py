@@ -116,3 +116,21 @@ def test_still_test_equals_omp_over_the_still_dictionary(code):
         ref = omp(y, MaskedOperator(S, Dst), max_atoms=8, tol=tol)
         np.testing.assert_array_equal(ok, ref.residual <= tol)
         np.testing.assert_allclose(est, synthesize(ref.select(ok), Dst), atol=2e-2)
+
+
+@pytest.mark.parametrize("side", [3, 10, 14, 30])
+def test_never_open_regions_are_filled_from_neighbours_not_zeros(side, tmp_path):
+    """Patches with no measured pixel are left out of the average; wider holes are filled and counted."""
+    n, h, w = 6, 48, 52
+    yy, xx = np.mgrid[0:h, 0:w]
+    video = np.repeat((100 + 0.3 * xx + 0.2 * yy)[None].astype(np.float32), n, axis=0)
+    mask = make_code("hitomi", (h, w), frames=n, bump=2, rng=1)
+    mask[:, 10 : 10 + side, 12 : 12 + side] = 0
+    with pytest.warns(UserWarning, match="never open"):
+        vol, info = reconstruct_volume(simulate(video, mask), mask, dct_dictionary(n), settings=OmpSettings(),
+                                       tile=16, cache=tmp_path, progress=False)
+    hole = (slice(None), slice(10, 10 + side), slice(12, 12 + side))
+    assert np.isfinite(vol).all()
+    assert np.abs(vol[hole] - video[hole]).max() < 0.3 * side + 2  # a ramp filled by its nearest neighbours
+    assert info["never_open_pixels"] == side * side
+    assert info["filled_pixels"] == max(side - 12, 0) ** 2  # pixels farther than 6 from any measurement

@@ -261,6 +261,14 @@ class GroupedOperator:
     def norms(self, rows: np.ndarray) -> np.ndarray:
         return self._norms[self.inv[rows]]
 
+    def subset(self, rows: np.ndarray) -> "GroupedOperator":
+        """The operator of some of the patches, sharing the per-group tables (no rebuild)."""
+        sub = object.__new__(GroupedOperator)
+        sub.__dict__.update(self.__dict__)
+        sub.inv = self.inv[rows]
+        sub.order = np.argsort(sub.inv, kind="stable")
+        return sub
+
     def view(self, rows: np.ndarray) -> "_GroupedView":
         """``rows`` index the patches in :attr:`order`."""
         return _GroupedView(self, self.inv[self.order][rows])

@@ -59,13 +59,34 @@ def fold(patches: np.ndarray, shape: tuple[int, int], patch: int = PATCH) -> np.
     p = patches.shape[0]
     if p != hp * wp:
         raise ValueError(f"fold: {p} patches do not tile an image of shape {shape}")
-    pt = patches.reshape(hp, wp, -1, patch, patch)
-    n = pt.shape[2]
+    n = patches.reshape(p, -1).shape[1] // (patch * patch)
     out = np.zeros((n, *shape), dtype=np.float32)
+    fold_rows(patches, out, 0, patch)
+    return out
+
+
+def fold_rows(patches: np.ndarray, out: np.ndarray, row: int, patch: int = PATCH) -> None:
+    """Add whole rows of patches into ``out`` in place: a band of :func:`fold`.
+
+    Parameters
+    ----------
+    patches : ndarray of shape (k * Wp, N, M*M) or (k * Wp, N*M*M)
+        The patches whose corners lie in grid rows ``row .. row + k - 1``, in
+        raster order (``Wp = W - M + 1``).
+    out : ndarray of shape (N, H, W)
+        Accumulator.
+    row : int
+        First grid row of the band.
+    """
+    n, h, w = out.shape
+    wp = w - patch + 1
+    k = patches.shape[0] // wp
+    if k * wp != patches.shape[0] or row + k > h - patch + 1:
+        raise ValueError(f"fold_rows: {patches.shape[0]} patches are not whole rows of a {h}x{w} grid from row {row}")
+    pt = patches.reshape(k, wp, n, patch, patch)
     for dy in range(patch):
         for dx in range(patch):
-            out[:, dy : dy + hp, dx : dx + wp] += np.moveaxis(pt[:, :, :, dy, dx], 2, 0)
-    return out
+            out[:, row + dy : row + dy + k, dx : dx + wp] += np.moveaxis(pt[:, :, :, dy, dx], 2, 0)
 
 
 def coverage(shape: tuple[int, int], patch: int = PATCH) -> np.ndarray:
@@ -82,3 +103,21 @@ def coverage(shape: tuple[int, int], patch: int = PATCH) -> np.ndarray:
         return np.maximum(hi - lo + 1, 0)
 
     return (axis_count(shape[0])[:, None] * axis_count(shape[1])[None, :]).astype(np.int32)
+
+
+def uncovered_pixels(open_any: np.ndarray, patch: int = PATCH) -> np.ndarray:
+    """Pixels that no patch with a measured pixel covers, shape (H, W) bool.
+
+    A patch is measured when any of its pixels is ever open; the average of
+    overlapping estimates leaves out unmeasured patches, so these pixels get
+    no estimate and are filled from their neighbours instead.
+    """
+    def box(a: np.ndarray) -> np.ndarray:  # sums over patch x patch windows ending at each index
+        c = np.pad(a.astype(np.int64).cumsum(0).cumsum(1), ((patch, 0), (patch, 0)))
+        return c[patch:, patch:] - c[:-patch, patch:] - c[patch:, :-patch] + c[:-patch, :-patch]
+
+    h, w = open_any.shape
+    measured = np.zeros((h, w), bool)  # at each patch corner: does the patch see a measurement?
+    hp, wp = grid_shape((h, w), patch)
+    measured[:hp, :wp] = box(open_any)[patch - 1 :, patch - 1 :] > 0
+    return box(measured) == 0

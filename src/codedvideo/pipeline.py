@@ -19,8 +19,10 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from . import io as cio
+from . import patches as P
 from . import manifest, physics, synth
 from .codes import make_code
 from .config import PipelineConfig, auto_tolerance
@@ -294,6 +296,8 @@ def reconstruct_volume(
     if h < PATCH or w < PATCH:
         raise InputError(f"coded image {h}x{w} is smaller than one {PATCH}x{PATCH} patch")
     never_open = int((~mask.astype(bool).any(0)).sum())
+    if never_open == h * w:
+        raise InputError("mask: no pixel is ever open; there is nothing to reconstruct")
     if never_open:
         warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=2)
     timings = {}
@@ -311,12 +315,17 @@ def reconstruct_volume(
     t0 = time.perf_counter()
     volume = store.volume()
     timings["assemble"] = time.perf_counter() - t0
-    if not np.isfinite(volume).all():
+    holes = P.uncovered_pixels(mask.astype(bool).any(0), PATCH)
+    if not np.isfinite(volume[:, ~holes]).all():
         raise RuntimeError(f"working store {store.path}: volume has unwritten or non-finite pixels")
+    if holes.any():  # no measured patch covers them: the nearest reconstructed pixel
+        _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
+        volume[:, holes] = volume[:, iy[holes], ix[holes]]
     residual = physics.forward(volume, mask) - coded
     info = dict(
         summary,
         never_open_pixels=never_open,
+        filled_pixels=int(holes.sum()),
         atoms_mean=summary["atoms_total"] / max(summary["patches"] - summary["patches_static"], 1),
         static_fraction=summary["patches_static"] / max(summary["patches"], 1),
         patches_per_second=summary["patches"] / max(summary["seconds_total"], 1e-9) * (summary["tiles_computed"] > 0),

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import patches as P
-from .omp import MaskedOperator, masked_operator, omp, periodic_groups, synthesize
+from .omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, synthesize
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 STAT_NAMES = (
@@ -158,38 +158,51 @@ def reconstruct_region(
     n, h, w = mask.shape
     if h < patch or w < patch:
         raise ValueError(f"region {h}x{w} is smaller than one {patch}x{patch} patch")
+    m = patch * patch
     coded = np.asarray(coded, dtype=np.float32)
     open_any = mask.any(0)
     y_all = P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch)  # (Pn, m)
     S_all = P.extract(mask.astype(np.uint8), patch)  # (Pn, N, m)
+    hp, wp = P.grid_shape((h, w), patch)
     groups = periodic_groups(mask, patch)
+    # periodic codes: the few distinct patch operators are built once for the region
+    grouped = None if groups is None else masked_operator(S_all, D, groups=groups)
+    if not isinstance(grouped, GroupedOperator):
+        grouped = None
     n_open = (S_all.any(1)).sum(1).astype(np.float32)
-    est = np.empty((y_all.shape[0], n * patch * patch), np.float32)
+    # a patch without any measured pixel has nothing to say: it is left out of the
+    # average, and pixels no patch with a measurement covers are NaN (filled later)
+    valid = n_open > 0
+    summed = np.zeros((n, h, w), np.float32)
+    weight = P.fold(np.repeat(valid.astype(np.float32)[:, None], m, 1), (h, w), patch)[0]
     atoms = hit = dep = n_static = 0
     t_omp = 0.0
-    for s in range(0, y_all.shape[0], settings.batch):
-        sl = slice(s, s + settings.batch)
+    band = max(1, settings.batch // wp)  # whole rows of patches, folded as they finish
+    for r0 in range(0, hp, band):
+        r1 = min(hp, r0 + band)
+        s = r0 * wp
+        sl = slice(s, r1 * wp)
         y, S, tol = y_all[sl], S_all[sl], n_open[sl] * settings.tol_rms**2
-        g = None if groups is None else groups[sl]
+        est = np.zeros((y.shape[0], n * m), np.float32)
         t0 = time.perf_counter()
-        rows = np.arange(y.shape[0])
-        if settings.static_atoms > 0:
-            ok, still = still_patches(y, S, tol, settings.static_atoms, patch=patch)
-            est[s + rows[ok]] = still
+        rows = np.flatnonzero(valid[sl])
+        if settings.static_atoms > 0 and rows.size:
+            ok, still = still_patches(y[rows], S[rows], tol[rows], settings.static_atoms, patch=patch)
+            est[rows[ok]] = still
             n_static += int(ok.sum())
             rows = rows[~ok]
         if rows.size:
             # periodic codes share few patch operators; any other code has its own per patch
-            op = MaskedOperator(S[rows], D) if g is None else masked_operator(S[rows], D, groups=g[rows])
+            op = MaskedOperator(S[rows], D) if grouped is None else grouped.subset(s + rows)
             res = omp(y[rows], op, max_atoms=settings.max_atoms, tol=tol[rows])
-            est[s + rows] = synthesize(res, D)
+            est[rows] = synthesize(res, D)
             atoms += int(res.count.sum())
             hit += int((res.count >= settings.max_atoms).sum())
             dep += int(res.dependent.sum())
         t_omp += time.perf_counter() - t0
-    summed = P.fold(est, (h, w), patch)
-    cover = P.coverage((h, w), patch)
-    volume = summed / cover[None].astype(np.float32)
+        P.fold_rows(est, summed, r0, patch)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
     stats = np.array(
         [y_all.shape[0], n_static, atoms, hit, dep, t_omp, time.perf_counter() - t_start],
         dtype=np.float64,
