@@ -47,8 +47,20 @@ import numpy as np
 #: columns below which it counts as linearly dependent.
 DEPENDENCE_TOL = 1e-4
 _TINY = 1e-12
-#: Correlations within this relative distance of the best count as tied.
-TIE_RTOL = 1e-4
+#: Selection compares correlations with their sign bit and the 10 lowest mantissa
+#: bits cleared (one integer AND on the float32 bits: absolute value and rounding
+#: down to 13 significant bits, a relative step of 2**-13 ~ 1.2e-4).  Near-ties
+#: then become exact ties, which go to the lowest atom index, so the choice does
+#: not depend on roundoff (batch size, chunking, BLAS blocking).
+SELECT_BITS = np.int32(0x7FFFFC00)
+
+
+def _select(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Best atom of every row of float32 ``score`` (overwritten) and its rounded |score|."""
+    bits = score.view(np.int32)
+    np.bitwise_and(bits, SELECT_BITS, out=bits)
+    j = score.argmax(1)
+    return j.astype(np.int32), score[np.arange(score.shape[0]), j]
 
 
 def _safe_inverse(norms: np.ndarray) -> np.ndarray:
@@ -394,13 +406,7 @@ def omp(
     for k in range(kmax):
         if rows.size == 0:
             break
-        score = view.scores(r)  # normalised correlations |a_k^T r| / ||a_k||
-        np.abs(score, out=score)
-        # near-ties (within TIE_RTOL) go to the lowest atom index, so that the choice
-        # does not depend on roundoff (batch size, chunking, BLAS blocking)
-        best = score.max(1)
-        j = (score >= (best * (1.0 - TIE_RTOL))[:, None]).argmax(1).astype(np.int32)
-        del score
+        j, best = _select(view.scores(r))  # normalised correlations |a_k^T r| / ||a_k||
         a = view.column(j).astype(np.float32, copy=False)
         Qk = Q[:, :k]
         h = np.einsum("pkm,pm->pk", Qk, a)
@@ -471,10 +477,11 @@ def omp_reference(A: np.ndarray, y: np.ndarray, *, max_atoms: int, tol: float = 
     coef = np.zeros(0)
     r = y.copy()
     while len(sel) < min(max_atoms, A.shape[0]) and r @ r > tol:
-        score = np.where(usable, np.abs(A.T @ r) / np.where(usable, norms, 1.0), 0.0)
+        score = np.where(usable, (A.T @ r) / np.where(usable, norms, 1.0), 0.0).astype(np.float32)
         score[sel] = 0.0
-        j = int((score >= score.max() * (1.0 - TIE_RTOL)).argmax())
-        if score[j] <= 0:
+        jj, best = _select(score[None])
+        j = int(jj[0])
+        if best[0] <= 0:
             break
         sel.append(j)
         coef, *_ = np.linalg.lstsq(A[:, sel], y, rcond=None)
