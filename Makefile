@@ -28,6 +28,9 @@ test: $(STAMP)  ## run the test suite
 bench: $(STAMP)  ## time reconstruction against GAP-TV and a matrix multiply
 	$(BIN)/python tasks/bench.py
 
+report: $(STAMP)  ## the paper's experiments and error against run time: out/report/report.html (+ .csv)
+	$(CLI) report $(CONFIG)
+
 train: $(STAMP)  ## train the dictionary pipeline.yaml describes
 	$(BIN)/python tasks/train.py $(CONFIG)
 

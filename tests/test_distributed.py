@@ -29,3 +29,84 @@ def test_distributed_equals_local(cluster, tmp_path):
                                       scheduler=cluster.scheduler_address)
     assert info["tiles_computed"] == info["tiles"] == 12
     np.testing.assert_allclose(remote, local, rtol=1e-5, atol=1e-3)
+
+
+def _scene(size=(40, 52)):
+    video = make_scene("default", frames=4, size=size)
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
+    return simulate(video, mask, sigma=2.0, rng=4), mask, dct_dictionary(4)
+
+
+def _one_two_remote(cluster, tmp_path, s):
+    coded, mask, D = _scene()
+    one, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "1", progress=False, workers=1)
+    two, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "2", progress=False, workers=2)
+    remote, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "d", progress=False,
+                                   scheduler=cluster.scheduler_address)
+    np.testing.assert_array_equal(two, one)
+    np.testing.assert_array_equal(remote, one)
+
+
+def test_distributed_is_bit_identical_to_one_and_two_local_workers(cluster, tmp_path):
+    """Same seed, same result: 1 or 2 local threads and 2 distributed worker processes agree bit for bit."""
+    _one_two_remote(cluster, tmp_path, OmpSettings(max_atoms=6, tol_rms=2.0, static_atoms=0))
+
+
+def test_distributed_with_the_still_test_agrees_to_the_last_bit_or_two(cluster, tmp_path):
+    """With the still-scene test on, a worker process may differ from local threads in the last bit of
+    a rare pixel (seen: 1 pixel in 8320, 2e-6; the same tile alone in another process is bit-identical,
+    so the cause lies in the worker's environment, not found yet).  Local 1 vs 2 workers stay bit-identical."""
+    coded, mask, D = _scene()
+    s = OmpSettings(max_atoms=6, tol_rms=2.0)
+    one, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "1", progress=False, workers=1)
+    two, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "2", progress=False, workers=2)
+    remote, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "d", progress=False,
+                                   scheduler=cluster.scheduler_address)
+    np.testing.assert_array_equal(two, one)
+    np.testing.assert_allclose(remote, one, rtol=1e-6, atol=0)
+    assert (remote != one).mean() < 1e-3
+
+
+@pytest.mark.slow
+def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_path):
+    """SIGKILL one of two worker processes while tiles run: its tasks are rescheduled, nothing is lost."""
+    import os
+    import signal
+    import threading
+    import time
+
+    import zarr
+
+    distributed = pytest.importorskip("distributed")
+    coded, mask, D = _scene((96, 128))
+    s = OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0)
+    local, _ = reconstruct_volume(coded, mask, D, settings=s, tile=8, cache=tmp_path / "local", progress=False)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        pids = list(client.run(os.getpid).values())
+        result = {}
+
+        def run():
+            try:
+                result["value"] = reconstruct_volume(coded, mask, D, settings=s, tile=8, cache=tmp_path / "remote",
+                                                     progress=False, scheduler=cluster.scheduler_address)
+            except BaseException as exc:  # reported below
+                result["error"] = exc
+
+        thread = threading.Thread(target=run)
+        thread.start()
+        t0, done = time.monotonic(), 0
+        while thread.is_alive() and time.monotonic() - t0 < 120 and done < 10:
+            stores = list((tmp_path / "remote").glob("recon-*.zarr"))
+            try:
+                done = int(np.isfinite(zarr.open_group(str(stores[0]), mode="r")["stats"][:]).all(1).sum()) if stores else 0
+            except Exception:
+                done = 0
+            time.sleep(0.02)
+        assert thread.is_alive(), "the run finished before a worker could be killed; make the scene larger"
+        os.kill(pids[0], signal.SIGKILL)
+        thread.join(300)
+    assert "error" not in result, result.get("error")
+    remote, info = result["value"]
+    assert info["tiles_computed"] == info["tiles"] == 192
+    np.testing.assert_array_equal(remote, local)

@@ -1,4 +1,4 @@
-"""Command line: ``codedvideo train | simulate | reconstruct | evaluate | run | codes``.
+"""Command line: ``codedvideo train | simulate | reconstruct | evaluate | run | report | codes``.
 
 Any :class:`~codedvideo.errors.CodedVideoError` becomes one line on stderr
 (``codedvideo: error: ...``) and exit status 2; nothing half-written is left
@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .baselines import METHODS
 from .codes import CODE_NAMES
 from .config import PipelineConfig, auto_tolerance, load_config
 from .errors import CodedVideoError, InputError
@@ -73,7 +74,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="with --cacti: reconstruct only measurement Q (1-based)")
     r.add_argument("--color", choices=("luma", "channels"), default="luma",
                    help="colour coded image: its luma (default), or each channel with the same mask (colour output)")
-    r.add_argument("--dictionary", required=True, help="dictionary store (.zarr)")
+    r.add_argument("--dictionary", default=None, help="dictionary store (.zarr); needed by --method omp only")
+    r.add_argument("--method", choices=METHODS, default="omp",
+                   help="omp: learned dictionary (default); dct: 3D DCT dictionary, same OMP; "
+                        "thinout, interp, gaptv: baselines (see README)")
     r.add_argument("--output", "-o", required=True,
                    help=".npy, .zarr, .mat, .tif, .mp4/.mkv/.gif or a folder of frames (--cacti: all measurements, time-first)")
     r.add_argument("--truth", default=None, help="ground truth (N, H, W) for PSNR/SSIM in the metrics")
@@ -102,6 +106,9 @@ def _parser() -> argparse.ArgumentParser:
     u = sub.add_parser("run", help="run the stages a pipeline.yaml names")
     u.add_argument("config", help="pipeline.yaml")
 
+    rp = sub.add_parser("report", help="the paper's experiments and error against run time, as HTML + CSV")
+    rp.add_argument("config", help="pipeline.yaml (its report: section)")
+
     c = sub.add_parser("codes", help="shutter codes")
     csub = c.add_subparsers(dest="codes_command", required=True, metavar="ACTION")
     ck = csub.add_parser("check", help="report which hardware constraints a mask meets")
@@ -110,8 +117,10 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _cmd_train(a) -> int:
+    from .io import check_writable
     from .pipeline import train_dictionary
 
+    check_writable(a.output)  # before training
     base = PipelineConfig()
     cfg = base.model_copy(update=dict(
         frames=a.frames, seed=a.seed, cache=a.cache,
@@ -126,8 +135,12 @@ def _cmd_train(a) -> int:
 
 
 def _cmd_simulate(a) -> int:
+    from .io import check_writable
     from .pipeline import load_video, simulate_capture, write_capture
 
+    check_writable(Path(a.output) / "coded.npy")  # before any work
+    if a.cacti_out:
+        check_writable(a.cacti_out)
     size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
     video = load_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start)
     code = a.code or ("file" if a.code_file else "hitomi")
@@ -153,11 +166,11 @@ def _cmd_simulate(a) -> int:
 def _cmd_reconstruct(a) -> int:
     from .metrics import evaluate
     from .pipeline import (
-        _check_dictionary, _write_json, metrics_path, read_coded, read_mask, read_volume,
-        reconstruct_volume, trivial_estimate, write_volume,
+        _check_dictionary, _write_json, check_output, check_size, metrics_path, read_coded, read_mask, read_volume,
+        trivial_estimate, write_volume,
     )
+    from .baselines import reconstruct_method
     from .reconstruct import OmpSettings
-    from .store import load_dictionary
 
     if a.cacti or a.color == "channels":
         return _cmd_reconstruct_multi(a)
@@ -165,15 +178,16 @@ def _cmd_reconstruct(a) -> int:
         raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
     if a.measurement is not None:
         raise InputError("reconstruct: --measurement applies to --cacti only")
+    check_output(a.output)  # before any work: a known format in a writable place
     t_all = time.perf_counter()
     t0 = time.perf_counter()
     coded = read_coded(a.coded)
+    check_size(coded.shape, a.coded)
     mask = read_mask(a.mask)
     from .physics import check_pair
 
     check_pair(coded.shape, mask.shape, where=f"mask {a.mask}")
-    D, meta = load_dictionary(a.dictionary)
-    _check_dictionary(meta, mask.shape[0], a.dictionary)
+    D, meta = _method_dictionary(a, mask.shape[0])
     truth = read_volume(a.truth) if a.truth else None
     if truth is not None and truth.shape != mask.shape:
         raise InputError(f"truth {a.truth}: shape {truth.shape} != mask shape {mask.shape}")
@@ -185,16 +199,18 @@ def _cmd_reconstruct(a) -> int:
         from .pipeline import drop_saturated
 
         coded_used, mask_used, saturated = drop_saturated(coded, mask, a.white_level)
-    volume, info = reconstruct_volume(coded_used, mask_used, D, settings=settings, tile=a.tile, cache=a.cache,
-                                      scheduler=a.scheduler, workers=a.workers, progress=not a.quiet,
-                                      dictionary_key=meta["sha256"])
+        _check_not_all_saturated(mask_used, saturated, a.coded, a.white_level)
+    volume, info = reconstruct_method(a.method, coded_used, mask_used, dictionary=D, settings=settings, tile=a.tile,
+                                      cache=a.cache, scheduler=a.scheduler, workers=a.workers, progress=not a.quiet,
+                                      dictionary_key=meta.get("sha256", ""))
     info["saturated_pixels"] = saturated
     t0 = time.perf_counter()
     write_volume(volume, a.output, data_range=a.data_range, fps=a.fps)
     info["seconds"] = dict(read=t_read, **info["seconds"], write=time.perf_counter() - t0)
     metrics = dict(
         output=str(a.output), inputs=dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth),
-        settings=dict(settings.__dict__, tile=a.tile, scheduler=a.scheduler, workers=a.workers, dictionary_atoms=D.shape[1]),
+        settings=dict(settings.__dict__, method=a.method, tile=a.tile, scheduler=a.scheduler, workers=a.workers,
+                      dictionary_atoms=info.get("dictionary_atoms")),
         reconstruction=info,
     )
     if truth is not None:
@@ -210,6 +226,26 @@ def _cmd_reconstruct(a) -> int:
     return 0
 
 
+def _method_dictionary(a, frames: int):
+    """``(D, meta)`` of ``--dictionary`` for ``--method omp``; ``(None, {})`` for the other methods."""
+    from .pipeline import _check_dictionary
+    from .store import load_dictionary
+
+    if a.method != "omp":
+        return None, {}
+    if not a.dictionary:
+        raise InputError("reconstruct --method omp: give --dictionary DICT.zarr (or --method dct, thinout, interp, gaptv)")
+    D, meta = load_dictionary(a.dictionary)
+    _check_dictionary(meta, frames, a.dictionary)
+    return D, meta
+
+
+def _check_not_all_saturated(mask_used: np.ndarray, saturated: int, coded_path, white_level) -> None:
+    if saturated and not mask_used.any():
+        raise InputError(f"coded image {coded_path}: every measured pixel is at or above --white-level {white_level}; "
+                         "nothing is left to reconstruct (--trust-saturated uses them anyway)")
+
+
 def _cmd_reconstruct_multi(a) -> int:
     """Several coded images sharing one mask: a CACTI file's measurements, or the channels of a colour image.
 
@@ -220,12 +256,13 @@ def _cmd_reconstruct_multi(a) -> int:
     from .metrics import evaluate
     from .physics import check_pair
     from .pipeline import (
-        _check_dictionary, _write_json, metrics_path, read_coded, read_mask, read_volume,
-        reconstruct_volume, trivial_estimate, write_volume,
+        _check_dictionary, _write_json, check_output, check_size, metrics_path, read_coded, read_mask, read_volume,
+        trivial_estimate, write_volume,
     )
+    from .baselines import reconstruct_method
     from .reconstruct import OmpSettings
-    from .store import load_dictionary
 
+    check_output(a.output)  # before any work: a known format in a writable place
     t_all = t0 = time.perf_counter()
     if a.cacti:
         from .cacti import read_cacti
@@ -250,6 +287,7 @@ def _cmd_reconstruct_multi(a) -> int:
         if a.measurement is not None:
             raise InputError("reconstruct: --measurement applies to --cacti only")
         coded = read_coded(a.coded, color="channels")
+        check_size(coded.shape, a.coded)
         mask, kind = read_mask(a.mask), "channels"
         check_pair(coded.shape[1:], mask.shape, where=f"mask {a.mask}")
         codeds = list(coded)
@@ -263,8 +301,7 @@ def _cmd_reconstruct_multi(a) -> int:
                                  f"{(len(codeds), *mask.shape)}")
             truths = list(truth)
         inputs = dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, color=a.color)
-    D, meta = load_dictionary(a.dictionary)
-    _check_dictionary(meta, mask.shape[0], a.dictionary)
+    D, meta = _method_dictionary(a, mask.shape[0])
     t_read = time.perf_counter() - t0
     tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
     settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms)
@@ -275,9 +312,10 @@ def _cmd_reconstruct_multi(a) -> int:
             from .pipeline import drop_saturated
 
             coded_used, mask_used, saturated = drop_saturated(coded, mask, a.white_level)
-        volume, info = reconstruct_volume(coded_used, mask_used, D, settings=settings, tile=a.tile, cache=a.cache,
-                                          scheduler=a.scheduler, workers=a.workers, progress=not a.quiet,
-                                          dictionary_key=meta["sha256"])
+            _check_not_all_saturated(mask_used, saturated, a.cacti or a.coded, a.white_level)
+        volume, info = reconstruct_method(a.method, coded_used, mask_used, dictionary=D, settings=settings,
+                                          tile=a.tile, cache=a.cache, scheduler=a.scheduler, workers=a.workers,
+                                          progress=not a.quiet, dictionary_key=meta.get("sha256", ""))
         info["saturated_pixels"] = saturated
         volumes.append(volume)
         entries.append(dict(label, reconstruction=info))
@@ -289,7 +327,8 @@ def _cmd_reconstruct_multi(a) -> int:
     t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
     metrics = dict(
         output=str(a.output), inputs=inputs, layout="(Q*N, H, W)" if kind == "measurements" else "(C, N, H, W)",
-        settings=dict(settings.__dict__, tile=a.tile, scheduler=a.scheduler, workers=a.workers, dictionary_atoms=D.shape[1]),
+        settings=dict(settings.__dict__, method=a.method, tile=a.tile, scheduler=a.scheduler, workers=a.workers,
+                      dictionary_atoms=info.get("dictionary_atoms")),
         reconstruction=dict(patches=patches, patches_per_second=patches / max(t_rec, 1e-9),
                             seconds=dict(read=t_read, reconstruct=t_rec, write=t_write)),
     )
@@ -318,8 +357,11 @@ def _cmd_reconstruct_multi(a) -> int:
 
 def _cmd_evaluate(a) -> int:
     from .metrics import evaluate
+    from .io import check_writable
     from .pipeline import _write_json, read_volume
 
+    if a.output:
+        check_writable(a.output)
     result = evaluate(read_volume(a.recon), read_volume(a.truth), data_range=a.data_range)
     if a.output:
         _write_json(Path(a.output), result)
@@ -345,6 +387,17 @@ def _cmd_run(a) -> int:
     return 0
 
 
+def _cmd_report(a) -> int:
+    from .report import run_report
+
+    result = run_report(load_config(a.config), progress=not a.quiet)
+    lines = [f"report: {result['html']}", f"numbers: {result['csv']}", f"video: {result['video']}"]
+    lines += [f"{'reproduced' if f['holds'] else 'NOT reproduced'}: {f['claim']} ({f['detail']})" for f in result["findings"]]
+    lines.append(f"experiments: {result['computed']} computed, {result['reused']} reused; {result['seconds']:.0f} s")
+    print("\n".join(lines))
+    return 0
+
+
 def _cmd_codes(a) -> int:
     from .codes import check_code
     from .pipeline import read_mask
@@ -354,7 +407,7 @@ def _cmd_codes(a) -> int:
 
 
 COMMANDS = dict(train=_cmd_train, simulate=_cmd_simulate, reconstruct=_cmd_reconstruct, evaluate=_cmd_evaluate,
-                run=_cmd_run, codes=_cmd_codes)
+                run=_cmd_run, report=_cmd_report, codes=_cmd_codes)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -106,6 +106,88 @@ class OutputConfig(_Strict):
     fps: int = Field(30, ge=1)
 
 
+class ReportDictionaryConfig(_Strict):
+    """Overrides of ``dictionary:`` for the report's learned dictionaries (null: the pipeline's value).
+
+    The report trains one dictionary per N of the Fig. 7 sweep and one per
+    size of the speed study (all cached); these defaults keep that short.
+    """
+
+    atoms: int | None = Field(None, ge=1)
+    samples: int | None = Field(20000, ge=100)
+    iterations: int | None = Field(10, ge=0)
+
+
+class ReportConfig(_Strict):
+    """``codedvideo report``: the paper's experiments, error against run time (:mod:`codedvideo.report`)."""
+
+    #: Where report.html, report.csv, the figures and the video go.
+    dir: str = "out/report"
+    #: Test scenes (synth names, never ``train-K``) every number is averaged over.
+    scenes: list[str] = Field(["default", "coins-translate", "camera-rotate"], min_length=1)
+    size: tuple[int, int] = (96, 96)
+    #: N of Table 1, Fig. 4, the speed study and the video.
+    frames: int = Field(8, ge=2, le=64)
+    #: Bump length of the hitomi / rowwise codes outside Table 1.
+    bump: int = Field(2, ge=1)
+    #: Table 1: bump lengths (rows) and read-noise sigmas in grey levels (columns).
+    table_bumps: list[int] = Field([1, 2, 3, 4, 5, 6], min_length=1)
+    table_sigmas: list[float] = Field([0, 1, 4, 8, 15, 40], min_length=1)
+    #: Fig. 7: the N swept.
+    fig7_frames: list[int] = Field([4, 8, 12], min_length=1)
+    #: Speed study: OMP max_atoms and tol_rms values, dictionary sizes (atoms), codes.
+    speed_max_atoms: list[int] = [2, 4, 8, 16]
+    speed_tol_rms: list[float] = [1.0, 2.0, 4.0, 8.0]
+    speed_atoms: list[int] = [128, 256]
+    speed_codes: list[Literal["hitomi", "hitomi-tiled"]] = ["hitomi", "hitomi-tiled"]
+    #: The scene of the frame strips and the side-by-side video.
+    video_scene: str = "default"
+    fps: int = Field(4, ge=1)
+    #: Each wall time plotted (Fig. 7 and the speed study) is the best of this many runs.
+    repeats: int = Field(3, ge=1)
+    dictionary: ReportDictionaryConfig = ReportDictionaryConfig()
+
+    @field_validator("scenes", "video_scene")
+    @classmethod
+    def _test_scenes(cls, v):
+        for name in [v] if isinstance(v, str) else v:
+            if name.startswith("train-") or name.startswith("synth:"):
+                raise ValueError(f"scene {name!r}: give a synth test scene name (e.g. default, coins-translate); "
+                                 "training scenes are never used for evaluation")
+        return v
+
+    @field_validator("table_bumps", "fig7_frames", "speed_max_atoms", "speed_atoms")
+    @classmethod
+    def _positive(cls, v: list[int]) -> list[int]:
+        if any(x < 1 for x in v):
+            raise ValueError(f"every value must be >= 1, got {v}")
+        return v
+
+    @field_validator("table_sigmas", "speed_tol_rms")
+    @classmethod
+    def _non_negative(cls, v: list[float]) -> list[float]:
+        if any(not (x >= 0 and x < float("inf")) for x in v):
+            raise ValueError(f"every value must be finite and >= 0, got {v}")
+        return v
+
+    @field_validator("size")
+    @classmethod
+    def _patch_size(cls, v: tuple[int, int]) -> tuple[int, int]:
+        if min(v) < 7:
+            raise ValueError(f"size {v}: at least one 7x7 patch is needed")
+        return v
+
+    @model_validator(mode="after")
+    def _bumps_fit(self) -> "ReportConfig":
+        if max(self.table_bumps) > self.frames or self.bump > self.frames:
+            raise ValueError(f"bump lengths must be <= frames = {self.frames} (table_bumps {self.table_bumps}, bump {self.bump})")
+        if max(self.fig7_frames) > 64 or self.bump * 49 < max(self.fig7_frames):
+            raise ValueError(f"fig7_frames {self.fig7_frames}: need N <= 64 and N <= 49 * bump")
+        if min(self.fig7_frames) < self.bump:
+            raise ValueError(f"fig7_frames {self.fig7_frames}: every N must be >= bump = {self.bump}")
+        return self
+
+
 class PipelineConfig(_Strict):
     seed: int = 0
     frames: int = Field(8, ge=1, le=64)
@@ -117,6 +199,7 @@ class PipelineConfig(_Strict):
     dictionary: DictionaryConfig = DictionaryConfig()
     reconstruct: ReconstructConfig = ReconstructConfig()
     output: OutputConfig = OutputConfig()
+    report: ReportConfig = ReportConfig()
 
     @field_validator("stages")
     @classmethod

@@ -72,7 +72,24 @@ def atomic_output(path: str | os.PathLike):
         raise OutputError(f"{path}: folder {path.parent} is not writable")
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}{path.suffix}")
     try:
-        yield tmp
+        try:
+            yield tmp
+        except OSError as exc:  # disk full, permissions...: one line naming the output
+            if isinstance(exc, OutputError):
+                raise
+            raise OutputError(f"{path}: cannot write ({exc.strerror or _one_line(exc)})") from exc
+        _rename_into_place(tmp, path)
+    except BaseException:
+        if tmp.is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            tmp.unlink(missing_ok=True)
+        raise
+
+
+def _rename_into_place(tmp: Path, path: Path) -> None:
+    """Rename a finished temporary file or folder onto ``path`` (replacing what is there)."""
+    try:
         if tmp.is_dir():
             if path.exists():
                 old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
@@ -85,12 +102,25 @@ def atomic_output(path: str | os.PathLike):
             if path.is_dir():
                 shutil.rmtree(path)
             os.replace(tmp, path)
-    except BaseException:
-        if tmp.is_dir():
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            tmp.unlink(missing_ok=True)
-        raise
+    except OSError as exc:
+        raise OutputError(f"{path}: cannot rename the finished output into place ({exc.strerror or exc})") from exc
+
+
+def check_writable(path: str | os.PathLike) -> Path:
+    """Raise :class:`OutputError` unless ``path`` could be written (checked before any work is done).
+
+    The nearest existing folder above ``path`` must be a writable folder
+    (missing folders are created by the writer).  Nothing is created here.
+    """
+    path = Path(path)
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputError(f"{path}: cannot create it, {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"{path}: folder {parent} is not writable")
+    return path
 
 
 # ----------------------------------------------------------------------------- reading
@@ -156,6 +186,36 @@ def _oiio_read_all(path: Path, color: str, first_only: bool) -> list[np.ndarray]
                 break
     finally:
         inp.close()
+    if not first_only and path.suffix.lower() in (".tif", ".tiff"):
+        expected = _tiff_page_count(path)
+        if expected != len(pages):  # a cut page chain reads as a shorter stack otherwise
+            raise InputError(f"image {path}: corrupt or truncated (read {len(pages)} of {expected} TIFF pages)")
+    return pages
+
+
+def _tiff_page_count(path: Path) -> int:
+    """Pages in the main IFD chain of a (Big)TIFF; :class:`InputError` when the chain runs past the end."""
+    import struct
+
+    data = path.read_bytes()
+    if len(data) < 8 or data[:2] not in (b"II", b"MM"):
+        raise InputError(f"image {path}: not a TIFF file")
+    e = "<" if data[:2] == b"II" else ">"
+    big = struct.unpack(e + "H", data[2:4])[0] == 43
+    fmt, size, count_fmt, entry = (e + "Q", 8, e + "Q", 20) if big else (e + "I", 4, e + "H", 12)
+    offset = struct.unpack(fmt, data[8:16] if big else data[4:8])[0]
+    pages, seen = 0, set()
+    while offset:
+        csize = struct.calcsize(count_fmt)
+        if offset in seen or offset + csize > len(data):
+            raise InputError(f"image {path}: corrupt or truncated (TIFF page {pages} lies past the end of the file)")
+        seen.add(offset)
+        n = struct.unpack(count_fmt, data[offset : offset + csize])[0]
+        end = offset + csize + n * entry
+        if end + size > len(data):
+            raise InputError(f"image {path}: corrupt or truncated (TIFF page {pages} lies past the end of the file)")
+        offset = struct.unpack(fmt, data[end : end + size])[0]
+        pages += 1
     return pages
 
 

@@ -63,10 +63,24 @@ def _select(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return j.astype(np.int32), score[np.arange(score.shape[0]), j]
 
 
-def _safe_inverse(norms: np.ndarray) -> np.ndarray:
-    """1 / norm for usable atoms, 0 for (numerically) zero ones, which are never chosen."""
+#: A coded column ``Phi_p d_k`` whose norm is below this fraction of the atom's own
+#: norm ``||d_k||`` is never selected: the code barely sees that atom, so its
+#: coefficient would be fitted to roundoff or noise and blown up by the inverse
+#: (e.g. temporal DCT atoms summed over a bump that is open all the time).
+MIN_VISIBLE = 0.05
+
+
+def _safe_inverse(norms: np.ndarray, atom_norms: np.ndarray | None = None) -> np.ndarray:
+    """1 / norm for usable columns, 0 for the others, which are never chosen.
+
+    A column is unusable when it is (numerically) zero or, given the norms of
+    the atoms themselves (broadcast against ``norms``), when it keeps less than
+    :data:`MIN_VISIBLE` of its atom's norm.
+    """
     norms = np.asarray(norms, dtype=np.float32)
     good = norms > _TINY * max(float(norms.max(initial=0.0)), 1.0)
+    if atom_norms is not None:
+        good &= norms > MIN_VISIBLE * np.asarray(atom_norms, dtype=np.float32)
     return np.where(good, 1.0 / np.where(good, norms, 1.0), 0.0).astype(np.float32)
 
 
@@ -179,6 +193,7 @@ class MaskedOperator:
         if self.D.shape[0] != N * m:
             raise ValueError(f"dictionary has {self.D.shape[0]} rows, patches need N*m = {N * m}")
         self.Dt = np.ascontiguousarray(self.D.T)
+        self.atom_norms = np.sqrt((self.D.astype(np.float64) ** 2).sum(0)).astype(np.float32)
         self._norms = self._column_norms()
 
     def _column_norms(self) -> np.ndarray:
@@ -219,7 +234,7 @@ class _MaskedView:
     def __init__(self, op: MaskedOperator, rows: np.ndarray):
         self.op = op
         self.S = op.S[rows]
-        self.inv = _safe_inverse(op._norms[rows])
+        self.inv = _safe_inverse(op._norms[rows], op.atom_norms[None, :])
 
     def scores(self, r: np.ndarray) -> np.ndarray:
         # A_p^T r = D^T (Phi_p^T r): one matrix product for all active patches
@@ -265,7 +280,8 @@ class GroupedOperator:
         self.A = np.ascontiguousarray(np.einsum("unm,nmk->umk", S[first].astype(np.float32), D3, optimize=True))  # (U, m, K)
         self.At = np.ascontiguousarray(self.A.transpose(0, 2, 1))  # (U, K, m)
         self._norms = np.sqrt(np.einsum("umk,umk->uk", self.A, self.A))
-        self._An = np.ascontiguousarray(self.A * _safe_inverse(self._norms)[:, None, :])  # unit columns per group
+        atom_norms = np.sqrt((D3.astype(np.float64) ** 2).sum((0, 1))).astype(np.float32)
+        self._An = np.ascontiguousarray(self.A * _safe_inverse(self._norms, atom_norms[None, :])[:, None, :])  # unit columns
         self.K = D3.shape[2]
         #: Patches in group order (stable): OMP solves them in this order.
         self.order = np.argsort(self.inv, kind="stable")

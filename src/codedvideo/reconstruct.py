@@ -103,7 +103,9 @@ def still_patches(
         return ok, np.zeros((0, n * m), np.float32)
     w = n_pix[cand]
     still = y[cand] / w
-    c = still @ C
+    # einsum, not BLAS: BLAS picks kernels by the number of rows, which would make a
+    # patch's result depend on its batch (and so on the tile size)
+    c = np.einsum("pm,mk->pk", still, C)
     k = min(atoms, m)
     order = np.argsort(-np.abs(c), axis=1, kind="stable")[:, :k]
     top = np.take_along_axis(c, order, 1)
@@ -121,7 +123,7 @@ def still_patches(
     top[np.arange(k)[None, :] >= used[:, None]] = 0.0
     coef = np.zeros_like(c)
     np.put_along_axis(coef, order, top, 1)
-    frame = coef[passed] @ C.T  # s_k of the passing patches
+    frame = np.einsum("pk,mk->pm", coef[passed], C)  # s_k of the passing patches
     ok[cand[passed]] = True
     return ok, np.tile(frame, (1, n)).astype(np.float32)
 

@@ -1,0 +1,328 @@
+"""Bad input: one line on stderr naming the file and the problem, exit status 2, nothing written.
+
+tests/test_io.py and tests/test_cacti.py already cover the readers of every format; this file covers what
+they do not: the command line end to end (exit status, one line, no output left), the dictionary store,
+the remaining formats (JPEG, multi-part EXR, AVI, a folder with one broken frame), pipeline.yaml, missing
+inputs and outputs that cannot be written.
+"""
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from codedvideo import io as cio
+from codedvideo.cli import main
+from codedvideo.codes import make_code
+from codedvideo.dictionaries import dct_dictionary
+from codedvideo.errors import InputError
+from codedvideo.physics import simulate
+from codedvideo.pipeline import read_volume, write_volume
+from codedvideo.store import load_dictionary, save_dictionary
+from codedvideo.synth import make_scene
+
+N, H, W = 4, 24, 30
+
+
+@pytest.fixture
+def files(tmp_path):
+    """A valid capture, mask, truth and DCT dictionary in tmp_path/in; outputs go to tmp_path/out."""
+    d = tmp_path / "in"
+    d.mkdir()
+    video = make_scene("default", frames=N, size=(H, W))
+    mask = make_code("hitomi", (H, W), frames=N, bump=2, rng=1)
+    np.save(d / "coded.npy", simulate(video, mask))
+    np.save(d / "mask.npy", mask)
+    np.save(d / "truth.npy", video)
+    save_dictionary(d / "d.zarr", dct_dictionary(N), dict(patch=7, frames=N))
+    return d
+
+
+def files_under(root: Path) -> set:
+    return {p.relative_to(root) for p in root.rglob("*")} if root.exists() else set()
+
+
+def fails(capsys, args, *names, root=None):
+    """Run the CLI; it must exit 2 with one line naming every name, and write nothing under ``root``."""
+    before = files_under(root) if root else None
+    capsys.readouterr()
+    rc = main(["-q", *map(str, args)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("codedvideo: error: "), err
+    for name in names:
+        assert str(name) in err, err
+    if root is not None:
+        assert files_under(root) == before, files_under(root) - before
+    return err
+
+
+def reconstruct_args(files, tmp_path, **over):
+    args = dict(coded=files / "coded.npy", mask=files / "mask.npy", dictionary=files / "d.zarr",
+                output=tmp_path / "out" / "r.npy", cache=tmp_path / "cache")
+    args.update(over)
+    out = ["reconstruct"]
+    for k, v in args.items():
+        if v is not None:
+            out += [f"--{k}", v]
+    return out
+
+
+def test_the_valid_inputs_work(files, tmp_path, capsys):
+    assert main(["-q", *map(str, reconstruct_args(files, tmp_path, truth=files / "truth.npy"))]) == 0
+    assert (tmp_path / "out" / "r.npy").exists() and (tmp_path / "out" / "r.metrics.json").exists()
+
+
+# ----------------------------------------------------------------------------- NaN / Inf in the coded image
+@pytest.mark.parametrize("name,bad", [("c.npy", np.inf), ("c.npy", -np.inf), ("c.tif", np.nan), ("c.exr", np.inf)])
+def test_nan_or_inf_in_the_coded_image(files, tmp_path, capsys, name, bad):
+    coded = np.load(files / "coded.npy")
+    coded[3, 4] = bad
+    path = files / name
+    np.save(path, coded) if name.endswith(".npy") else cio.write_image(path, coded, dtype=np.float32)
+    err = fails(capsys, reconstruct_args(files, tmp_path, coded=path), name, "NaN or Inf", root=tmp_path)
+    assert not (tmp_path / "cache").exists()  # refused before any work
+
+
+# ----------------------------------------------------------------------------- mask / image disagreements
+@pytest.mark.parametrize("kind", ["transposed", "channels-last", "other-size", "2d", "4d"])
+def test_mask_and_image_shapes_disagree(files, tmp_path, capsys, kind):
+    mask = np.load(files / "mask.npy")
+    bad = dict(transposed=mask.transpose(0, 2, 1), **{"channels-last": np.moveaxis(mask, 0, -1)},
+               **{"other-size": mask[:, :-1]}, **{"2d": mask[0]}, **{"4d": mask[None]})[kind]
+    np.save(files / "bad_mask.npy", bad)
+    fails(capsys, reconstruct_args(files, tmp_path, mask=files / "bad_mask.npy"), "bad_mask.npy", root=tmp_path)
+
+
+@pytest.mark.parametrize("scale,what", [(255, "[255"), (0.5, "0.5"), (-1, "-1")])
+def test_non_binary_mask(files, tmp_path, capsys, scale, what):
+    mask = np.load(files / "mask.npy").astype(np.float32) * scale
+    np.save(files / "grey.npy", mask)
+    err = fails(capsys, reconstruct_args(files, tmp_path, mask=files / "grey.npy"), "grey.npy", "not binary",
+                root=tmp_path)
+    assert what in err  # names an offending value
+
+
+def test_non_binary_mask_as_a_tiff_of_0_and_255(files, tmp_path, capsys):
+    cio.write_multipage_tiff(files / "m255.tif", np.load(files / "mask.npy") * 255)
+    fails(capsys, reconstruct_args(files, tmp_path, mask=files / "m255.tif"), "m255.tif", "not binary", root=tmp_path)
+
+
+def test_mask_never_open_anywhere(files, tmp_path, capsys):
+    np.save(files / "zeros.npy", np.zeros((N, H, W), np.uint8))
+    fails(capsys, reconstruct_args(files, tmp_path, mask=files / "zeros.npy"), "zeros.npy", "ever open", root=tmp_path)
+
+
+def test_every_pixel_saturated(files, tmp_path, capsys):
+    fails(capsys, [*reconstruct_args(files, tmp_path), "--white-level", "0.001"], "coded.npy", "white-level",
+          root=tmp_path)
+
+
+@pytest.mark.parametrize("shape", [(1, W), (H, 1), (6, 6)])
+def test_coded_image_smaller_than_a_patch_names_the_file(files, tmp_path, capsys, shape):
+    """One-pixel strips and anything under 7x7 are refused: no patch fits (see README, Guarantees)."""
+    np.save(files / "tiny.npy", np.ones(shape, np.float32))
+    mask = np.zeros((N, *shape), np.uint8)
+    mask[0] = 1
+    np.save(files / "tiny_mask.npy", mask)
+    fails(capsys, reconstruct_args(files, tmp_path, coded=files / "tiny.npy", mask=files / "tiny_mask.npy"),
+          "tiny.npy", "smaller than one 7x7 patch", root=tmp_path)
+
+
+# ----------------------------------------------------------------------------- dictionaries
+def test_dictionary_for_another_n(files, tmp_path, capsys):
+    save_dictionary(files / "d8.zarr", dct_dictionary(8), dict(patch=7, frames=8))
+    fails(capsys, reconstruct_args(files, tmp_path, dictionary=files / "d8.zarr"), "d8.zarr", "N = 8", root=tmp_path)
+
+
+def test_dictionary_for_another_patch_size(files, tmp_path, capsys):
+    save_dictionary(files / "p5.zarr", np.eye(N * 25, dtype=np.float32), dict(patch=5, frames=N))
+    fails(capsys, reconstruct_args(files, tmp_path, dictionary=files / "p5.zarr"), "p5.zarr", "patch size 5",
+          root=tmp_path)
+
+
+def _atoms_chunk(store: Path) -> Path:
+    return next(p for p in (store / "atoms").rglob("*") if p.is_file() and p.name != "zarr.json")
+
+
+@pytest.mark.parametrize("damage", ["truncated-chunk", "flipped-bytes", "no-chunk", "bad-metadata", "not-a-dictionary"])
+def test_corrupt_dictionary_store(files, tmp_path, capsys, damage):
+    store = files / "d.zarr"
+    if damage == "truncated-chunk":
+        chunk = _atoms_chunk(store)
+        chunk.write_bytes(chunk.read_bytes()[: chunk.stat().st_size // 2])
+    elif damage == "flipped-bytes":
+        chunk = _atoms_chunk(store)
+        data = bytearray(chunk.read_bytes())
+        data[len(data) // 2 : len(data) // 2 + 8] = bytes(8)
+        chunk.write_bytes(bytes(data))
+    elif damage == "no-chunk":
+        _atoms_chunk(store).unlink()
+    elif damage == "bad-metadata":
+        (store / "zarr.json").write_text("{ not json")
+    else:
+        write_volume(np.zeros((N, 8, 8), np.float32), files / "plain.zarr")
+        store = files / "plain.zarr"
+    with pytest.raises(InputError) as info:
+        load_dictionary(store)
+    assert store.name in str(info.value) and "\n" not in str(info.value)
+    fails(capsys, reconstruct_args(files, tmp_path, dictionary=store), store.name, root=tmp_path)
+
+
+def test_dictionary_with_nan_atoms(files, tmp_path, capsys):
+    D = dct_dictionary(N)
+    D[:, 5] = np.nan
+    save_dictionary(files / "nan.zarr", D, dict(patch=7, frames=N))
+    fails(capsys, reconstruct_args(files, tmp_path, dictionary=files / "nan.zarr"), "nan.zarr", "NaN", root=tmp_path)
+
+
+# ----------------------------------------------------------------------------- formats test_io does not cut
+def _cut(path: Path, frac: float) -> Path:
+    data = path.read_bytes()
+    out = path.with_name(f"cut_{path.name}")
+    out.write_bytes(data[: max(int(len(data) * frac), 1)])
+    return out
+
+
+@pytest.mark.parametrize("frac", [0.02, 0.5, 0.9])
+def test_truncated_jpeg_multipart_exr_and_avi(tmp_path, frac):
+    import OpenImageIO as oiio
+
+    yy, xx = np.mgrid[0:21, 0:31]
+    frames = np.stack([128 + 60 * np.sin((xx + 2 * t) / 5.0) * np.cos(yy / 7.0) for t in range(5)]).astype(np.float32)
+    jpg = tmp_path / "i.jpg"
+    out = oiio.ImageOutput.create(str(jpg))
+    out.open(str(jpg), oiio.ImageSpec(31, 21, 1, "uint8"))
+    out.write_image(np.rint(frames[0]).astype(np.uint8)[..., None])
+    out.close()
+    cio.write_stack(tmp_path / "s.exr", frames)
+    write_volume(frames, tmp_path / "v.avi")
+    for path, read in ((jpg, cio.read_image), (tmp_path / "s.exr", cio.read_stack), (tmp_path / "v.avi", read_volume)):
+        cut = _cut(path, frac)
+        with pytest.raises(InputError) as info:
+            read(cut)
+        assert cut.name in str(info.value) and "\n" not in str(info.value)
+
+
+def test_folder_of_frames_with_one_truncated_frame(files, tmp_path, capsys):
+    mask = np.load(files / "mask.npy")
+    (files / "maskframes").mkdir()
+    for t, frame in enumerate(mask):
+        cio.write_image(files / "maskframes" / f"m_{t}.png", frame)
+    broken = files / "maskframes" / "m_2.png"
+    broken.write_bytes(broken.read_bytes()[:40])
+    fails(capsys, reconstruct_args(files, tmp_path, mask=files / "maskframes"), "m_2.png", root=tmp_path)
+
+
+@pytest.mark.parametrize("frac", [0.3, 0.5, 0.7, 0.9])
+def test_truncated_mask_tiff_through_the_cli(files, tmp_path, capsys, frac):
+    """A multi-page TIFF cut between pages used to read as a shorter stack (then blamed on the dictionary's N)."""
+    cio.write_multipage_tiff(files / "m.tif", np.load(files / "mask.npy"))
+    cut = _cut(files / "m.tif", frac)
+    fails(capsys, reconstruct_args(files, tmp_path, mask=cut), cut.name, "truncated", root=tmp_path)
+
+
+# ----------------------------------------------------------------------------- pipeline.yaml
+@pytest.mark.parametrize("text,names", [
+    ("frame: 8\n", ["frame", "unknown key"]),                                    # mistyped top-level key
+    ("noise: {sgima: 3}\n", ["noise.sgima", "unknown key"]),                     # mistyped nested key
+    ("reconstruct: {max_atom: 8}\n", ["reconstruct.max_atom", "unknown key"]),
+    ("frames: eight\n", ["frames", "integer"]),                                 # wrong type
+    ("frames: 65\n", ["frames", "64"]),                                         # out of range
+    ("code: {name: hitomy}\n", ["code.name", "hitomi"]),                        # not one of the choices
+    ("code: {name: file}\n", ["code", "path"]),                                 # a rule between keys
+    ("stages: [train, recontruct]\n", ["stages", "reconstruct"]),
+    ("frames: [8\n", ["not valid YAML"]),                                       # broken YAML
+    ("- frames\n- 8\n", ["mapping"]),                                           # not a mapping
+])
+def test_bad_pipeline_yaml(tmp_path, capsys, text, names):
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(text + "output: {dir: " + str(tmp_path / "runout") + "}\n" if not text.startswith("-") else text)
+    fails(capsys, ["run", cfg], "p.yaml", *names, root=tmp_path)
+    assert not (tmp_path / "runout").exists()
+
+
+# ----------------------------------------------------------------------------- missing inputs
+@pytest.mark.parametrize("which", ["coded", "mask", "dictionary", "truth"])
+def test_missing_reconstruct_inputs(files, tmp_path, capsys, which):
+    missing = files / f"absent_{which}.npy"
+    if which == "dictionary":
+        missing = files / "absent.zarr"
+    err = fails(capsys, reconstruct_args(files, tmp_path, **{which: missing}), missing.name, root=tmp_path)
+    assert "no such file" in err
+
+
+def test_missing_config_video_and_training_video(tmp_path, capsys):
+    fails(capsys, ["run", tmp_path / "absent.yaml"], "absent.yaml", "no such file", root=tmp_path)
+    fails(capsys, ["simulate", tmp_path / "absent.mkv", "--frames", N, "--output", tmp_path / "cap"], "absent.mkv",
+          root=tmp_path)
+    fails(capsys, ["train", tmp_path / "absent.mp4", "--frames", N, "--output", tmp_path / "d.zarr", "--iterations", 1,
+                   "--cache", tmp_path / "cache"], "absent.mp4", root=tmp_path)
+    fails(capsys, ["evaluate", "--recon", tmp_path / "absent.npy", "--truth", tmp_path / "absent2.npy"], "absent.npy",
+          root=tmp_path)
+
+
+# ----------------------------------------------------------------------------- outputs that cannot be written
+def test_output_under_a_file(files, tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    for output in ("afile/r.npy", "afile/deeper/r.mkv", "afile/frames"):
+        fails(capsys, reconstruct_args(files, tmp_path, output=tmp_path / output), output.split("/")[0], root=tmp_path)
+    assert not (tmp_path / "cache").exists()  # refused before any work, not after the reconstruction
+    fails(capsys, reconstruct_args(files, tmp_path, cache=tmp_path / "afile" / "cache"), "afile", root=tmp_path)
+    fails(capsys, ["train", "--kind", "dct", "--frames", N, "--output", tmp_path / "afile" / "d.zarr"], "afile",
+          root=tmp_path)
+    fails(capsys, ["simulate", "synth:default", "--frames", N, "--size", H, W, "--output", tmp_path / "afile" / "cap"],
+          "afile", root=tmp_path)
+    fails(capsys, ["evaluate", "--recon", files / "truth.npy", "--truth", files / "truth.npy", "--output",
+                   tmp_path / "afile" / "e.json"], "afile", root=tmp_path)
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(f"frames: {N}\ndictionary: {{kind: dct}}\nscene: {{size: [{H}, {W}]}}\n"
+                   f"cache: {tmp_path / 'cache'}\noutput: {{dir: {tmp_path / 'afile' / 'run'}}}\n")
+    fails(capsys, ["run", cfg], "afile", root=tmp_path)
+
+
+def test_unknown_output_format_is_refused_before_the_work(files, tmp_path, capsys):
+    fails(capsys, reconstruct_args(files, tmp_path, output=tmp_path / "out" / "r.xyz"), "r.xyz", "unknown format",
+          root=tmp_path)
+    assert not (tmp_path / "cache").exists()
+
+
+@pytest.mark.skipif(hasattr(os, "geteuid") and os.geteuid() == 0, reason="root writes into read-only folders")
+def test_read_only_output_folder(files, tmp_path, capsys):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    try:
+        fails(capsys, reconstruct_args(files, tmp_path, output=ro / "r.npy"), "ro", "not writable", root=tmp_path)
+    finally:
+        ro.chmod(0o755)
+
+
+def test_read_only_folder_through_os_access(files, tmp_path, capsys, monkeypatch):
+    """The same check as a read-only folder, also where the tests run as root (os.access is what is asked)."""
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    real = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if Path(p) == ro else real(p, mode, **kw))
+    fails(capsys, reconstruct_args(files, tmp_path, output=ro / "r.npy"), "ro", "not writable", root=tmp_path)
+
+
+def test_write_failure_midway_leaves_the_old_output_and_no_temporary(files, tmp_path, monkeypatch):
+    """A disk-full style OSError inside a writer: a one-line OutputError, the old file intact, no temporary."""
+    from codedvideo.errors import OutputError
+
+    target = tmp_path / "out" / "r.npy"
+    cio.write_array(target, np.arange(3))
+
+    def full(fh, arr, **kw):
+        fh.write(b"partial")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(np, "save", full)
+    with pytest.raises(OutputError, match="No space left on device") as info:
+        cio.write_array(target, np.zeros(5))
+    assert "r.npy" in str(info.value)
+    monkeypatch.undo()
+    np.testing.assert_array_equal(np.load(target), np.arange(3))
+    assert sorted(p.name for p in target.parent.iterdir()) == ["r.npy"]

@@ -1,0 +1,96 @@
+"""A miniature `codedvideo report` end to end: every table and figure, finite numbers, and the cache."""
+import base64
+import csv
+import math
+
+import pytest
+import yaml
+
+from codedvideo.config import load_config
+from codedvideo.errors import ConfigError
+from codedvideo.report import pareto_front, run_report
+
+MINI = dict(
+    seed=0,
+    frames=4,
+    report=dict(
+        scenes=["default"], size=[32, 32], frames=4, bump=2, table_bumps=[1, 2], table_sigmas=[0, 8],
+        fig7_frames=[4], speed_max_atoms=[4], speed_tol_rms=[4.0], speed_atoms=[32], speed_codes=["hitomi-tiled"],
+        video_scene="default", dictionary=dict(atoms=64, samples=1000, iterations=1),
+    ),
+)
+
+
+@pytest.fixture(scope="module")
+def mini(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    raw = dict(MINI, cache=str(root / "cache"))
+    raw["report"] = dict(MINI["report"], dir=str(root / "out"))
+    path = root / "mini.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    cfg = load_config(path)
+    first = run_report(cfg)
+    second = run_report(cfg)
+    return root, first, second
+
+
+def test_every_table_and_figure_is_produced(mini):
+    root, first, _ = mini
+    out = root / "out"
+    for name in ("table1", "fig7", "fig4", "speed", "strips"):
+        png = (out / "figures" / f"{name}.png").read_bytes()
+        assert png.startswith(b"\x89PNG")
+    page = (out / "report.html").read_text()
+    for heading in ("Table 1", "Fig. 7", "Fig. 4", "Error against run time", "Findings of the paper", "Frames"):
+        assert heading in page
+    assert page.count("data:image/png;base64,") == 5
+    b64 = page.split("data:image/png;base64,")[1].split('"')[0]
+    assert base64.b64decode(b64).startswith(b"\x89PNG")
+    assert (out / "side_by_side.mp4").stat().st_size > 0
+    assert first["video"] == out / "side_by_side.mp4"
+    assert len(first["findings"]) == 6 and all(isinstance(f["holds"], bool) for f in first["findings"])
+    assert first["computed"] > 0
+
+
+def test_every_csv_number_is_finite(mini):
+    root, _, _ = mini
+    with open(root / "out" / "report.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    experiments = {r["experiment"] for r in rows}
+    assert experiments == {"table1", "fig7", "fig4", "speed"}
+    # Table 1: 2 bumps x 2 sigmas, one scene plus the mean
+    assert sum(r["experiment"] == "table1" and r["scene"] == "mean" for r in rows) == 4
+    numbers = 0
+    for r in rows:
+        assert r["psnr"] != ""
+        for k in ("frames", "bump", "sigma", "max_atoms", "tol_rms", "dictionary_atoms", "psnr", "ssim", "seconds",
+                  "atoms_mean"):
+            if r.get(k, "") != "":
+                assert math.isfinite(float(r[k])), (k, r)
+                numbers += 1
+    assert numbers > 50
+
+
+def test_second_run_hits_the_cache(mini):
+    _, first, second = mini
+    assert second["computed"] == 0
+    assert second["reused"] == first["computed"] + first["reused"]
+    assert [f["detail"] for f in second["findings"]] == [f["detail"] for f in first["findings"]]
+
+
+def test_pareto_front():
+    pts = [(1.0, 20.0), (2.0, 25.0), (3.0, 24.0), (0.5, 10.0), (2.0, 25.0)]
+    assert pareto_front(pts) == [True, True, False, True, True]
+
+
+def test_report_config_rejects_training_scenes_and_unknown_keys(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(dict(report=dict(scenes=["train-3"]))))
+    with pytest.raises(ConfigError, match="report.scenes"):
+        load_config(path)
+    path.write_text(yaml.safe_dump(dict(report=dict(nope=1))))
+    with pytest.raises(ConfigError, match="unknown key"):
+        load_config(path)
+    path.write_text(yaml.safe_dump(dict(report=dict(frames=4, table_bumps=[1, 5]))))
+    with pytest.raises(ConfigError, match="bump"):
+        load_config(path)
