@@ -40,6 +40,8 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--iterations", type=int, default=PipelineConfig().dictionary.iterations)
     t.add_argument("--samples", type=int, default=PipelineConfig().dictionary.samples)
     t.add_argument("--sparsity", type=int, default=PipelineConfig().dictionary.sparsity)
+    t.add_argument("--max-speed", type=float, default=PipelineConfig().dictionary.max_speed,
+                   help="fastest synthetic training motion, pixels per sub-frame")
     t.add_argument("--kind", choices=("learned", "dct"), default="learned")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--cache", default="cache")
@@ -126,7 +128,7 @@ def _cmd_train(a) -> int:
         frames=a.frames, seed=a.seed, cache=a.cache,
         dictionary=base.dictionary.model_copy(update=dict(
             kind=a.kind, atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
-            training=list(a.videos) or ["synth:train"])),
+            max_speed=a.max_speed, training=list(a.videos) or ["synth:train"])),
     ))
     path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet)
     print(json.dumps(dict(dictionary=str(path), atoms=meta["atoms"], frames=meta["frames"], method=meta.get("method"),

@@ -77,12 +77,14 @@ class NoiseConfig(_Strict):
 class DictionaryConfig(_Strict):
     kind: Literal["learned", "dct"] = "learned"
     atoms: int = Field(512, ge=1)
-    samples: int = Field(40000, ge=100)
+    samples: int = Field(80000, ge=100)
     iterations: int = Field(20, ge=0)
     sparsity: int = Field(6, ge=1)
     #: ``synth:train`` (synthetic motion of the training photographs) or video paths.
     training: list[str] = ["synth:train"]
-    clips: int = Field(72, ge=1)
+    clips: int = Field(144, ge=1)
+    #: Fastest synthetic training motion, pixels per sub-frame (speeds are log-uniform from 0.2).
+    max_speed: float = Field(4.0, gt=0.2, le=16.0)
     #: An existing dictionary to use instead of training one.
     path: str | None = None
 

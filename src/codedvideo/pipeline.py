@@ -101,13 +101,13 @@ def load_video(spec: str, *, frames: int, size: tuple[int, int] | None, seed: in
     return np.ascontiguousarray(video[:frames], dtype=np.float32)
 
 
-def training_videos(specs: list[str], *, frames: int, clips: int, seed: int) -> list[np.ndarray]:
+def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max_speed: float = synth.MAX_SPEED) -> list[np.ndarray]:
     """Training clips: ``synth:train`` (generated) and/or user video paths."""
     videos: list[np.ndarray] = []
     for spec in specs:
         if spec == "synth:train":
             manifest.verify_ids(synth.TRAIN_PHOTOS)
-            videos.extend(synth.training_videos(frames=frames, count=clips, seed=seed))
+            videos.extend(synth.training_videos(frames=frames, count=clips, seed=seed, max_speed=max_speed))
         else:
             videos.append(cio.read_video(resolve_data(spec), max_frames=max(frames * 16, 64)))
     return videos
@@ -147,7 +147,7 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
             D = dct_dictionary(cfg.frames)
             meta = dict(patch=PATCH, frames=cfg.frames, method="dct3d", seed=cfg.seed, iterations=0)
         else:
-            videos = training_videos(dc.training, frames=cfg.frames, clips=dc.clips, seed=cfg.seed)
+            videos = training_videos(dc.training, frames=cfg.frames, clips=dc.clips, seed=cfg.seed, max_speed=dc.max_speed)
             bar = _progress_bar(dc.iterations, "K-SVD") if progress else None
             D, meta = learn_dictionary(
                 videos,

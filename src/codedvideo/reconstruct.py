@@ -41,12 +41,20 @@ class OmpSettings:
         OMP stops once ``||A alpha - y||^2 <= n_open * tol_rms**2``.
     batch : int
         Patches solved together (bounds memory: about ``batch * K * 8`` bytes).
+    static_atoms : int
+        Still-scene test: 2D DCT atoms allowed (0: off), see :func:`still_patches`.
+    weighting : {"uniform", "fit"}
+        How the overlapping estimates of a pixel are averaged.
     """
 
     max_atoms: int = 8
     tol_rms: float = 1.0
     batch: int = 4096
     static_atoms: int = 8
+    #: "uniform": every overlapping estimate counts the same (the paper's average);
+    #: "fit": each counts ``1 / (1 + e**2 / tol_rms**2)``, ``e`` the RMS misfit of its
+    #: patch to the measurement, so estimates that explain their data poorly weigh less.
+    weighting: str = "uniform"
 
 
 def static_dictionary(frames: int, patch: int = P.PATCH) -> np.ndarray:
@@ -175,8 +183,10 @@ def reconstruct_region(
     # a patch without any measured pixel has nothing to say: it is left out of the
     # average, and pixels no patch with a measurement covers are NaN (filled later)
     valid = n_open > 0
+    if settings.weighting not in ("uniform", "fit"):
+        raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
     summed = np.zeros((n, h, w), np.float32)
-    weight = P.fold(np.repeat(valid.astype(np.float32)[:, None], m, 1), (h, w), patch)[0]
+    weight = np.zeros((1, h, w), np.float32)
     atoms = hit = dep = n_static = 0
     t_omp = 0.0
     band = max(1, settings.batch // wp)  # whole rows of patches, folded as they finish
@@ -202,7 +212,15 @@ def reconstruct_region(
             hit += int((res.count >= settings.max_atoms).sum())
             dep += int(res.dependent.sum())
         t_omp += time.perf_counter() - t0
+        wp_ = valid[sl].astype(np.float32)
+        if settings.weighting == "fit":
+            misfit = y - (S * est.reshape(-1, n, m)).sum(1)
+            e2 = np.einsum("pm,pm->p", misfit, misfit) / np.maximum(n_open[sl], 1)
+            wp_ = wp_ / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
+            est *= wp_[:, None]
         P.fold_rows(est, summed, r0, patch)
+        P.fold_rows(np.repeat(wp_[:, None], m, 1), weight, r0, patch)
+    weight = weight[0]
     with np.errstate(invalid="ignore", divide="ignore"):
         volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
     stats = np.array(
