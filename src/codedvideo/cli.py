@@ -89,6 +89,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--white-level", type=float, default=None,
                    help="saturation level of the coded image: pixels at or above it are treated as missing")
     r.add_argument("--trust-saturated", action="store_true", help="with --white-level: use saturated pixels anyway")
+    r.add_argument("--weighting", choices=("uniform", "fit"), default=PipelineConfig().reconstruct.weighting,
+                   help="average of overlapping estimates: uniform (the paper) or weighted by each patch's misfit")
     r.add_argument("--static-atoms", type=int, default=PipelineConfig().reconstruct.static_atoms,
                    help="still-scene test: 2D DCT atoms before full OMP (0: off)")
     r.add_argument("--tile", type=int, default=PipelineConfig().reconstruct.tile)
@@ -195,7 +197,8 @@ def _cmd_reconstruct(a) -> int:
         raise InputError(f"truth {a.truth}: shape {truth.shape} != mask shape {mask.shape}")
     t_read = time.perf_counter() - t0
     tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
-    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms)
+    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms,
+                           weighting=a.weighting)
     coded_used, mask_used, saturated = coded, mask, 0
     if a.white_level is not None and not a.trust_saturated:  # saturated pixels are missing measurements
         from .pipeline import drop_saturated
@@ -306,7 +309,8 @@ def _cmd_reconstruct_multi(a) -> int:
     D, meta = _method_dictionary(a, mask.shape[0])
     t_read = time.perf_counter() - t0
     tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
-    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms)
+    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms,
+                           weighting=a.weighting)
     volumes, entries = [], []
     for label, coded in zip(labels, codeds):
         coded_used, mask_used, saturated = coded, mask, 0

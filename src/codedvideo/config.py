@@ -95,6 +95,8 @@ class ReconstructConfig(_Strict):
     tol_rms: float | Literal["auto"] = "auto"
     #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
     static_atoms: int = Field(8, ge=0, le=49)
+    #: Average of overlapping estimates: "uniform" (the paper) or "fit" (weighted by misfit).
+    weighting: Literal["uniform", "fit"] = "uniform"
     tile: int = Field(128, ge=8)
     batch: int = Field(4096, ge=1)
     scheduler: str | None = None

@@ -513,7 +513,8 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True) -> dict:
         # with shot noise / quantisation: the RMS noise at the mean coded level
         sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
         tol = auto_tolerance(sigma) if rc.tol_rms == "auto" else float(rc.tol_rms)
-        settings = OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms)
+        settings = OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms,
+                               weighting=rc.weighting)
         coded, mask, saturated = capture["coded"], capture["mask"], 0
         if cfg.noise.white_level is not None:  # saturated pixels are missing measurements
             coded, mask, saturated = drop_saturated(coded, mask, cfg.noise.white_level)
