@@ -316,7 +316,16 @@ def main() -> int:
         print(f"bench: case {name} ...", file=sys.stderr, flush=True)
         results["cases"][name] = run_child(name, a.quick)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "latest.json").write_text(json.dumps(results, indent=2, default=float) + "\n")
+    latest = RESULTS / "latest.json"
+    if latest.exists() and not a.quick:  # keep the other cases of the last full run, each with its date
+        previous = json.loads(latest.read_text())
+        if not previous.get("quick"):
+            for case in previous.get("cases", {}).values():
+                case.setdefault("date", previous.get("date"))
+            results["cases"] = {**previous.get("cases", {}), **results["cases"]}
+    for case in results["cases"].values():
+        case.setdefault("date", results["date"])
+    latest.write_text(json.dumps(results, indent=2, default=float) + "\n")
     print(table(results))
     print(f"results: {RESULTS / 'latest.json'}")
     return 0
