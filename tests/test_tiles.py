@@ -134,3 +134,17 @@ def test_never_open_regions_are_filled_from_neighbours_not_zeros(side, tmp_path)
     assert np.abs(vol[hole] - video[hole]).max() < 0.3 * side + 2  # a ramp filled by its nearest neighbours
     assert info["never_open_pixels"] == side * side
     assert info["filled_pixels"] == max(side - 12, 0) ** 2  # pixels farther than 6 from any measurement
+
+
+def test_one_shutter_pattern_for_all_pixels_gives_the_static_estimate(capture, tmp_path):
+    """A flutter code (one temporal sequence for every pixel) holds no per-pixel timing: no invented motion."""
+    from codedvideo.physics import static_estimate
+
+    _, mask, video = capture
+    flutter = make_code("flutter", video.shape[1:], frames=video.shape[0], rng=3)
+    coded = simulate(video, flutter)
+    vol, info = reconstruct_volume(coded, flutter, dct_dictionary(video.shape[0]), settings=OmpSettings(),
+                                   tile=16, cache=tmp_path, progress=False)
+    assert info["method"] == "static"
+    np.testing.assert_allclose(vol, static_estimate(coded, flutter), rtol=1e-6)
+    assert 0 < flutter.sum(0).min() < video.shape[0]  # a real flutter sequence, not all open
