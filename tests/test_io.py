@@ -197,8 +197,6 @@ def test_volume_outputs_round_trip(tmp_path, smooth, name, tol):
 
     write_volume(smooth, tmp_path / name)
     back = read_volume(tmp_path / name)
-    if name == "frames":
-        back = back * (255 / 65535)  # 16-bit TIFF frames are read in their own units
     if name.endswith(".mp4"):
         back = back[:, :21, :31]  # H.264 pads odd sizes
     assert back.shape == smooth.shape and back.dtype == np.float32
@@ -215,7 +213,7 @@ def test_colour_volume_outputs(tmp_path, smooth):
     for name in ("c.npy", "c.zarr", "c.mat"):
         write_volume(colour, tmp_path / name)
         np.testing.assert_array_equal(read_volume(tmp_path / name), colour)
-    for name, scale, tol in (("c.mkv", 1, 0.5), ("cf", 255 / 65535, 255 / 65535 + 1e-4)):
+    for name, scale, tol in (("c.mkv", 1, 0.5), ("cf", 1, 255 / 65535 + 1e-4)):  # frame folders: frame units
         write_volume(colour, tmp_path / name)
         assert np.abs(read_volume(tmp_path / name, color="channels") * scale - colour).max() <= tol
 
@@ -290,3 +288,16 @@ def test_cli_reconstruct_colour_channels(tmp_path, smooth, capsys):
     # the default (luma) gives one grey video
     assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.tif"), *common, "--output", str(tmp_path / "l.npy")]) == 0
     assert np.load(tmp_path / "l.npy").shape == mask.shape
+
+
+@pytest.mark.parametrize("fmt,tol", [("tiff16", 255 / 65535), ("png", 0.5), ("exr", 0.0)])
+def test_frame_folders_read_back_in_frame_units(tmp_path, fmt, tol):
+    """evaluate on a folder of frames compares like with like: stored full scale maps back to data_range."""
+    from codedvideo.io import write_frames
+    from codedvideo.pipeline import read_volume
+
+    vol = np.random.default_rng(0).uniform(0, 255, (3, 9, 11)).astype(np.float32)
+    write_frames(tmp_path / "f", vol, fmt=fmt)
+    back = read_volume(tmp_path / "f")
+    assert back.shape == vol.shape
+    np.testing.assert_allclose(back, vol, atol=tol + 1e-4)

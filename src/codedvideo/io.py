@@ -24,6 +24,7 @@ Writers take the same layouts: ``(H, W)`` or ``(C, H, W)`` images and
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import shutil
@@ -35,6 +36,8 @@ import numpy as np
 from .errors import InputError, OutputError
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".dpx", ".jpg", ".jpeg")
+#: Written beside frames by write_frames: the data_range that was mapped to the files' full scale.
+FRAMES_SIDECAR = "codedvideo-frames.json"
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".gif")
 LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 COLOR_CHOICES = ("luma", "channels", "error")
@@ -625,7 +628,23 @@ def write_frames(
                 raise InputError(f"frames {directory}: unknown frame format {fmt!r}")
             _oiio_write(tmp / name, [arr], ofmt)
             names.append(directory / name)
+        # how stored values map back to frame units, for read_frames_scale (the image files alone
+        # do not say which data_range was mapped to their full scale)
+        full = {"png": 255.0, "exr": None}.get(fmt, 65535.0)
+        (tmp / FRAMES_SIDECAR).write_text(json.dumps(dict(format=fmt, data_range=data_range, full_scale=full)) + "\n")
     return names
+
+
+def read_frames_scale(directory: str | os.PathLike) -> float:
+    """Factor from a frame folder's stored values to frame units (1.0 without a sidecar or for EXR)."""
+    side = Path(directory) / FRAMES_SIDECAR
+    if not side.is_file():
+        return 1.0
+    try:
+        meta = json.loads(side.read_text())
+        return 1.0 if meta.get("full_scale") is None else float(meta["data_range"]) / float(meta["full_scale"])
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"frames {directory}: unreadable {FRAMES_SIDECAR} ({exc})") from exc
 
 
 def write_array(path: str | os.PathLike, array: np.ndarray) -> Path:

@@ -480,6 +480,8 @@ def read_volume(path: str | Path, *, color: str = "luma") -> np.ndarray:
         return arr.astype(np.float32)
     if suffix in VIDEO_SUFFIXES:
         return cio.read_video(path, color=color)
+    if path.is_dir():  # a frame folder written by write_frames reads back in frame units
+        return cio.read_stack(path, color=color) * np.float32(cio.read_frames_scale(path))
     return cio.read_stack(path, color=color)
 
 
