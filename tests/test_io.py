@@ -39,8 +39,8 @@ def test_stacks_multipage_folder_and_pattern(tmp_path, smooth):
 def test_video_round_trip(tmp_path, smooth, suffix, tol):
     path = cio.write_video(tmp_path / f"v{suffix}", smooth)
     back = cio.read_video(path)
-    assert back.shape[0] == 5
-    assert np.abs(back[:, :21, :31] - np.round(smooth)).mean() <= tol
+    assert back.shape == smooth.shape  # odd 21x31: the encoder's padding is cropped off on reading
+    assert np.abs(back - np.round(smooth)).mean() <= tol
 
 
 def test_bad_files_name_the_file(tmp_path):
@@ -185,8 +185,8 @@ def test_lossless_video_is_exact(tmp_path, smooth):
 def test_colour_lossy_video(tmp_path, smooth, suffix, tol):
     colour = np.stack([smooth, smooth[:, ::-1], 255 - smooth])
     back = cio.read_video(cio.write_video(tmp_path / f"c{suffix}", colour), color="channels")
-    assert back.shape[:2] == (3, 5)
-    assert np.abs(back[:, :, :21, :31] - colour).mean() <= tol
+    assert back.shape == colour.shape
+    assert np.abs(back - colour).mean() <= tol
 
 
 # ----------------------------------------------------------------------------- write_volume / read_volume
@@ -197,8 +197,6 @@ def test_volume_outputs_round_trip(tmp_path, smooth, name, tol):
 
     write_volume(smooth, tmp_path / name)
     back = read_volume(tmp_path / name)
-    if name.endswith(".mp4"):
-        back = back[:, :21, :31]  # H.264 pads odd sizes
     assert back.shape == smooth.shape and back.dtype == np.float32
     if name.endswith(".mp4"):
         assert np.abs(back - smooth).mean() <= tol

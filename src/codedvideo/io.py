@@ -36,6 +36,8 @@ import numpy as np
 from .errors import InputError, OutputError
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".dpx", ".jpg", ".jpeg")
+#: Prefix of the container comment in which write_video records the frame size (H x W).
+SIZE_TAG = "codedvideo size="
 #: Written beside frames by write_frames: the data_range that was mapped to the files' full scale.
 FRAMES_SIDECAR = "codedvideo-frames.json"
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".gif")
@@ -366,6 +368,7 @@ def read_video(
                 raise InputError(f"video {path}: has no video stream")
             stream = container.streams.video[0]
             expected = _expected_frames(container, stream)
+            size = _tagged_size(container)
             for i, frame in enumerate(container.decode(video=0)):
                 decoded = i + 1
                 if i < start:
@@ -374,6 +377,8 @@ def read_video(
                 if color == "error" and not grey:
                     raise InputError(f"video {path}: frames are in colour ({frame.format.name}); grey frames are required")
                 pixels = frame.to_ndarray() if grey else frame.to_ndarray(format="rgb24")
+                if size is not None:  # written by write_video: undo the encoder's padding
+                    pixels = pixels[: size[0], : size[1]]
                 frames.append(_to_gray(pixels, path, "channels" if color == "channels" else "luma"))
                 if max_frames is not None and len(frames) >= max_frames:
                     break
@@ -387,6 +392,18 @@ def read_video(
     if not frames:
         raise InputError(f"video {path}: no frames decoded (from frame {start})")
     return np.stack(frames, axis=1 if color == "channels" else 0).astype(np.float32)
+
+
+def _tagged_size(container) -> tuple[int, int] | None:
+    """(H, W) recorded by :func:`write_video` in the container's comment, or None."""
+    tag = str(container.metadata.get("comment", ""))
+    if tag.startswith(SIZE_TAG):
+        try:
+            h, w = (int(v) for v in tag[len(SIZE_TAG):].split("x"))
+            return h, w
+        except ValueError:
+            return None
+    return None
 
 
 def _expected_frames(container, stream) -> int | None:
@@ -439,7 +456,8 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
         stores the 8-bit frames exactly (grey, or RGB as bgr0); GIF is exact
         for grey and quantised to 3-3-2 bit RGB for colour.  H.264 in yuv420p
         needs even sizes: odd sizes are padded by repeating the last
-        row/column.
+        row/column, and the size is recorded in the container's comment so
+        that :func:`read_video` crops the padding off again.
     """
     import av
 
@@ -447,6 +465,7 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
     suffix = path.suffix.lower()
     data = _to_uint8(_frames_last(frames, path, "video"), data_range)
     colour = data.ndim == 4
+    height, width = data.shape[1], data.shape[2]
     if suffix == ".mp4":
         codec, pix_fmt, options = "libx264", "yuv420p", {"crf": "17", "preset": "medium"}
         pad = ((0, 0), (0, data.shape[1] % 2), (0, data.shape[2] % 2)) + (((0, 0),) if colour else ())
@@ -461,6 +480,8 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
     with atomic_output(path) as tmp:
         try:
             with av.open(str(tmp), mode="w") as container:
+                # the size before any padding, so read_video returns the frames as given
+                container.metadata["comment"] = f"{SIZE_TAG}{height}x{width}"
                 stream = container.add_stream(codec, rate=fps)
                 stream.width, stream.height = data.shape[2], data.shape[1]
                 stream.pix_fmt = pix_fmt
