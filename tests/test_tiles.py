@@ -148,3 +148,21 @@ def test_one_shutter_pattern_for_all_pixels_gives_the_static_estimate(capture, t
     assert info["method"] == "static"
     np.testing.assert_allclose(vol, static_estimate(coded, flutter), rtol=1e-6)
     assert 0 < flutter.sum(0).min() < video.shape[0]  # a real flutter sequence, not all open
+
+
+@pytest.mark.parametrize("stride", [2, 3, 7])
+def test_patch_stride_covers_every_pixel_and_chunking_does_not_matter(capture, stride, tmp_path):
+    """A stride solves fewer patches, counted from the image's corner, so tiles agree with the whole image."""
+    from codedvideo.reconstruct import STAT_NAMES
+
+    coded, mask, video = capture
+    D = dct_dictionary(4)
+    s = OmpSettings(max_atoms=6, tol_rms=0.5, stride=stride, static_atoms=0)
+    whole, st_whole = reconstruct_region(coded, mask, D, s)
+    full, st_full = reconstruct_region(coded, mask, D, OmpSettings(max_atoms=6, tol_rms=0.5, static_atoms=0))
+    assert np.isfinite(whole).all()  # every pixel covered
+    solved = lambda st: dict(zip(STAT_NAMES, st))["atoms_total"]
+    assert solved(st_whole) < solved(st_full) / (0.8 * stride**2 if stride < 7 else 10)
+    for tile in (9, 16):
+        vol, _ = reconstruct_volume(coded, mask, D, settings=s, tile=tile, cache=tmp_path / str(tile), progress=False)
+        np.testing.assert_allclose(vol, whole, rtol=1e-4, atol=1e-3)

@@ -89,6 +89,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--white-level", type=float, default=None,
                    help="saturation level of the coded image: pixels at or above it are treated as missing")
     r.add_argument("--trust-saturated", action="store_true", help="with --white-level: use saturated pixels anyway")
+    r.add_argument("--stride", type=int, default=PipelineConfig().reconstruct.stride,
+                   help="patch stride 1..7: 1 solves every overlapping patch (the paper), s about s*s times fewer")
     r.add_argument("--weighting", choices=("uniform", "fit"), default=PipelineConfig().reconstruct.weighting,
                    help="average of overlapping estimates: uniform (the paper) or weighted by each patch's misfit")
     r.add_argument("--static-atoms", type=int, default=PipelineConfig().reconstruct.static_atoms,
@@ -198,7 +200,7 @@ def _cmd_reconstruct(a) -> int:
     t_read = time.perf_counter() - t0
     tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
     settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms,
-                           weighting=a.weighting)
+                           stride=a.stride, weighting=a.weighting)
     coded_used, mask_used, saturated = coded, mask, 0
     if a.white_level is not None and not a.trust_saturated:  # saturated pixels are missing measurements
         from .pipeline import drop_saturated
@@ -310,7 +312,7 @@ def _cmd_reconstruct_multi(a) -> int:
     t_read = time.perf_counter() - t0
     tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
     settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms,
-                           weighting=a.weighting)
+                           stride=a.stride, weighting=a.weighting)
     volumes, entries = [], []
     for label, coded in zip(labels, codeds):
         coded_used, mask_used, saturated = coded, mask, 0

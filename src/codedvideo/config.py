@@ -7,7 +7,7 @@ error names the file and the key.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -95,6 +95,8 @@ class ReconstructConfig(_Strict):
     tol_rms: float | Literal["auto"] = "auto"
     #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
     static_atoms: int = Field(8, ge=0, le=49)
+    #: Patch stride: 1 solves every overlapping patch (the paper); s solves 1 in s**2 (faster).
+    stride: int = Field(1, ge=1, le=7)
     #: Average of overlapping estimates: "uniform" (the paper) or "fit" (weighted by misfit).
     weighting: Literal["uniform", "fit"] = "uniform"
     tile: int = Field(128, ge=8)
@@ -144,6 +146,7 @@ class ReportConfig(_Strict):
     speed_tol_rms: list[float] = [1.0, 2.0, 4.0, 8.0]
     speed_atoms: list[int] = [128, 256]
     speed_codes: list[Literal["hitomi", "hitomi-tiled"]] = ["hitomi", "hitomi-tiled"]
+    speed_strides: list[Annotated[int, Field(ge=1, le=7)]] = [1, 2, 3]
     #: The scene of the frame strips and the side-by-side video.
     video_scene: str = "default"
     fps: int = Field(4, ge=1)
@@ -160,7 +163,7 @@ class ReportConfig(_Strict):
                                  "training scenes are never used for evaluation")
         return v
 
-    @field_validator("table_bumps", "fig7_frames", "speed_max_atoms", "speed_atoms")
+    @field_validator("table_bumps", "fig7_frames", "speed_max_atoms", "speed_atoms", "speed_strides")
     @classmethod
     def _positive(cls, v: list[int]) -> list[int]:
         if any(x < 1 for x in v):

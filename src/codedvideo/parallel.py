@@ -63,7 +63,8 @@ def _tile_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings
         # one BLAS thread per task wherever it runs (local thread or remote worker):
         # each task is one core, and the same kernels give bit-identical results
         with _single_threaded_blas(True):
-            volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch)
+            volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch, origin=(hy0, hx0),
+                                               image_shape=store.group["coded"].shape)
     except Exception as exc:  # name the tile, keep the cause
         raise RuntimeError(f"tile {tile.index} (rows {y0}:{y1}, cols {x0}:{x1}): {exc}") from exc
     core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]

@@ -105,7 +105,18 @@ def coverage(shape: tuple[int, int], patch: int = PATCH) -> np.ndarray:
     return (axis_count(shape[0])[:, None] * axis_count(shape[1])[None, :]).astype(np.int32)
 
 
-def uncovered_pixels(open_any: np.ndarray, patch: int = PATCH) -> np.ndarray:
+def stride_rows(start: int, count: int, total: int, stride: int) -> np.ndarray:
+    """Which of the patch corners ``start .. start + count - 1`` (of ``total`` along an axis) are solved.
+
+    Every ``stride``-th corner of the whole image, counted from 0, and the last one, so that every
+    pixel stays covered for any stride up to the patch size.  Global indices make a tile choose
+    exactly the corners the whole image does.
+    """
+    g = np.arange(start, start + count)
+    return (g % stride == 0) | (g == total - 1)
+
+
+def uncovered_pixels(open_any: np.ndarray, patch: int = PATCH, stride: int = 1) -> np.ndarray:
     """Pixels that no patch with a measured pixel covers, shape (H, W) bool.
 
     A patch is measured when any of its pixels is ever open; the average of
@@ -120,4 +131,6 @@ def uncovered_pixels(open_any: np.ndarray, patch: int = PATCH) -> np.ndarray:
     measured = np.zeros((h, w), bool)  # at each patch corner: does the patch see a measurement?
     hp, wp = grid_shape((h, w), patch)
     measured[:hp, :wp] = box(open_any)[patch - 1 :, patch - 1 :] > 0
+    if stride > 1:
+        measured[:hp, :wp] &= stride_rows(0, hp, hp, stride)[:, None] & stride_rows(0, wp, wp, stride)[None, :]
     return box(measured) == 0

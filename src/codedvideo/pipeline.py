@@ -339,7 +339,7 @@ def reconstruct_volume(
     t0 = time.perf_counter()
     volume = store.volume()
     timings["assemble"] = time.perf_counter() - t0
-    holes = P.uncovered_pixels(mask.astype(bool).any(0), PATCH)
+    holes = P.uncovered_pixels(mask.astype(bool).any(0), PATCH, settings.stride)
     if not np.isfinite(volume[:, ~holes]).all():
         raise RuntimeError(f"working store {store.path}: volume has unwritten or non-finite pixels")
     if holes.any():  # no measured patch covers them: the nearest reconstructed pixel
@@ -519,7 +519,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True) -> dict:
         sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
         tol = auto_tolerance(sigma) if rc.tol_rms == "auto" else float(rc.tol_rms)
         settings = OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms,
-                               weighting=rc.weighting)
+                               stride=rc.stride, weighting=rc.weighting)
         coded, mask, saturated = capture["coded"], capture["mask"], 0
         if cfg.noise.white_level is not None:  # saturated pixels are missing measurements
             coded, mask, saturated = drop_saturated(coded, mask, cfg.noise.white_level)

@@ -43,6 +43,8 @@ class OmpSettings:
         Patches solved together (bounds memory: about ``batch * K * 8`` bytes).
     static_atoms : int
         Still-scene test: 2D DCT atoms allowed (0: off), see :func:`still_patches`.
+    stride : int
+        Patch stride (1 to the patch size): ``stride**2`` times fewer patches.
     weighting : {"uniform", "fit"}
         How the overlapping estimates of a pixel are averaged.
     """
@@ -51,6 +53,9 @@ class OmpSettings:
     tol_rms: float = 1.0
     batch: int = 4096
     static_atoms: int = 8
+    #: Solve every ``stride``-th patch along each axis (1: every overlapping patch, the paper);
+    #: at most the patch size, so that every pixel stays covered.
+    stride: int = 1
     #: "uniform": every overlapping estimate counts the same (the paper's average);
     #: "fit": each counts ``1 / (1 + e**2 / tol_rms**2)``, ``e`` the RMS misfit of its
     #: patch to the measurement, so estimates that explain their data poorly weigh less.
@@ -137,7 +142,8 @@ def still_patches(
 
 
 def reconstruct_region(
-    coded: np.ndarray, mask: np.ndarray, D: np.ndarray, settings: OmpSettings, *, patch: int = P.PATCH
+    coded: np.ndarray, mask: np.ndarray, D: np.ndarray, settings: OmpSettings, *, patch: int = P.PATCH,
+    origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct every pixel of a region from the patches inside it.
 
@@ -147,6 +153,8 @@ def reconstruct_region(
     mask : ndarray of shape (N, h, w)
     D : ndarray of shape (N * patch**2, K)
     settings : OmpSettings
+    origin, image_shape : the region's top-left corner in the image and the image's (H, W)
+        (default: the region is the image); a patch stride counts from the image's corner.
 
     Patches that a still scene explains (:func:`still_patches`: at most
     ``settings.static_atoms`` atoms of the 2D DCT, constant in time, reach the
@@ -183,6 +191,13 @@ def reconstruct_region(
     # a patch without any measured pixel has nothing to say: it is left out of the
     # average, and pixels no patch with a measurement covers are NaN (filled later)
     valid = n_open > 0
+    if settings.stride > 1:
+        if not 1 <= settings.stride <= patch:
+            raise ValueError(f"stride {settings.stride}: must be 1 to {patch} (the patch size)")
+        ih, iw = image_shape or (h, w)
+        rows_on = P.stride_rows(origin[0], hp, ih - patch + 1, settings.stride)
+        cols_on = P.stride_rows(origin[1], wp, iw - patch + 1, settings.stride)
+        valid &= (rows_on[:, None] & cols_on[None, :]).ravel()
     if settings.weighting not in ("uniform", "fit"):
         raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
     summed = np.zeros((n, h, w), np.float32)

@@ -17,9 +17,7 @@ training scene), through the pipeline's own stages
   same OMP;
 * error against run time: PSNR and SSIM against wall time for every method
   and for each speed setting of OMP (``max_atoms``, ``tol_rms``, dictionary
-  size, tiled against sliding code), with the Pareto front.  There is no
-  patch-stride setting yet (every overlapping patch is always solved), so it
-  is not part of the study;
+  size, patch stride, tiled against sliding code), with the Pareto front;
 * frame strips and a side-by-side video (truth | coded | reconstruction | error).
 
 Every experiment (one scene, code, noise level, method and setting) is cached
@@ -112,7 +110,7 @@ class Runner:
 
     def run(self, *, scene: str, frames: int, code: str, bump: int, sigma: float, method: str,
             max_atoms: int | None = None, tol_rms: float | None = None, atoms: int | None = None,
-            keep: bool = False, timed: bool = False) -> dict:
+            stride: int | None = None, keep: bool = False, timed: bool = False) -> dict:
         """One experiment: capture, reconstruct, evaluate (or its cached record).
 
         Parameters
@@ -145,7 +143,7 @@ class Runner:
             r = self.cfg.reconstruct
             omp = OmpSettings(max_atoms=max_atoms or r.max_atoms,
                               tol_rms=float(tol_rms) if tol_rms is not None else auto_tolerance(sigma),
-                              batch=r.batch, static_atoms=r.static_atoms)
+                              batch=r.batch, static_atoms=r.static_atoms, stride=stride or r.stride)
             settings.update(omp.__dict__, tile=r.tile, version=RECON_VERSION)
             if method == "omp":
                 D, meta = self.dictionary(frames, atoms)
@@ -228,10 +226,12 @@ def run_experiments(runner: Runner) -> dict:
     variants += [dict(label=f"tol_rms = {t:g}", tol_rms=t) for t in rc.speed_tol_rms if t != tol0]
     variants += [dict(label=f"{k} atoms", atoms=k) for k in rc.speed_atoms if k != k0]
     variants += [dict(label=f"code {c}", code=c) for c in rc.speed_codes if c != "hitomi"]
+    variants += [dict(label=f"patch stride {st}", stride=st) for st in rc.speed_strides if st != r.stride]
     for v in variants:
         for scene in rc.scenes:
             rec = runner.run(scene=scene, frames=n, code=v.get("code", "hitomi"), bump=L, sigma=0.0, method="omp",
-                             max_atoms=v.get("max_atoms"), tol_rms=v.get("tol_rms"), atoms=v.get("atoms"), timed=True)
+                             max_atoms=v.get("max_atoms"), tol_rms=v.get("tol_rms"), atoms=v.get("atoms"),
+                             stride=v.get("stride"), timed=True)
             out["speed"].append(dict(rec, label=f"OMP {v['label']}", in_mean=True))
     return out
 
