@@ -69,7 +69,7 @@ def capture(scene: str, frames: int, size, code: str, bump: int, seed: int = 0):
     return simulate_capture(video, code=code, bump=bump, sigma=0.0, seed=seed)
 
 
-def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128):
+def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128, stride=1):
     from codedvideo.config import PipelineConfig, auto_tolerance
     from codedvideo.metrics import evaluate
     from codedvideo.pipeline import reconstruct_volume
@@ -78,7 +78,7 @@ def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128
 
     rc = PipelineConfig().reconstruct
     s = OmpSettings(max_atoms=rc.max_atoms, tol_rms=auto_tolerance(0.0), batch=rc.batch,
-                    static_atoms=rc.static_atoms if static_atoms is None else static_atoms)
+                    static_atoms=rc.static_atoms if static_atoms is None else static_atoms, stride=stride)
     with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # fresh store: nothing reused
         t = time.perf_counter()
         vol, info = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s, tile=tile, cache=tmp,
@@ -146,6 +146,7 @@ def case_a(quick: bool) -> dict:
     out["gaptv"] = timed_gaptv(cap)
     tiled = capture("default", 8, (256, 256), "hitomi-tiled", 2)
     out["hitomi-tiled"] = timed_reconstruct(tiled, D, meta)
+    out["omp-stride2"] = timed_reconstruct(cap, D, meta, stride=2)
     out["gaptv-tiled"] = timed_gaptv(tiled)
     out["naive"] = naive_omp(cap, D, crop=24 if quick else 48)
     out["naive"]["extrapolated_full_seconds"] = out["naive"]["naive_seconds_per_patch"] * out["omp"]["patches"]
@@ -276,7 +277,8 @@ def table(results: dict) -> str:
             continue
         peak = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
         for key, label in (("omp", "omp sliding"), ("gaptv", "gap-tv sliding"), ("hitomi", "omp sliding"),
-                           ("hitomi-tiled", "omp tiled"), ("gaptv-tiled", "gap-tv tiled")):
+                           ("hitomi-tiled", "omp tiled"), ("gaptv-tiled", "gap-tv tiled"),
+                           ("omp-stride2", "omp sliding, stride 2")):
             if key in r:
                 v = r[key]
                 rows.append(fmt.format(f"{name} {r.get('size')} N={r.get('frames')} {label}", f"{v['seconds']:.2f}",
