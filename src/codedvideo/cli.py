@@ -169,6 +169,15 @@ def _cmd_simulate(a) -> int:
     return 0
 
 
+def _omp_settings(a):
+    """The sparse-coding settings that reconstruct's options give."""
+    from .reconstruct import OmpSettings
+
+    tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
+    return OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms,
+                       stride=a.stride, weighting=a.weighting)
+
+
 def _cmd_reconstruct(a) -> int:
     from .metrics import evaluate
     from .pipeline import (
@@ -176,7 +185,6 @@ def _cmd_reconstruct(a) -> int:
         trivial_estimate, write_volume,
     )
     from .baselines import reconstruct_method
-    from .reconstruct import OmpSettings
 
     if a.cacti or a.color == "channels":
         return _cmd_reconstruct_multi(a)
@@ -198,9 +206,7 @@ def _cmd_reconstruct(a) -> int:
     if truth is not None and truth.shape != mask.shape:
         raise InputError(f"truth {a.truth}: shape {truth.shape} != mask shape {mask.shape}")
     t_read = time.perf_counter() - t0
-    tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
-    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms,
-                           stride=a.stride, weighting=a.weighting)
+    settings = _omp_settings(a)
     coded_used, mask_used, saturated = coded, mask, 0
     if a.white_level is not None and not a.trust_saturated:  # saturated pixels are missing measurements
         from .pipeline import drop_saturated
@@ -267,7 +273,6 @@ def _cmd_reconstruct_multi(a) -> int:
         trivial_estimate, write_volume,
     )
     from .baselines import reconstruct_method
-    from .reconstruct import OmpSettings
 
     check_output(a.output)  # before any work: a known format in a writable place
     t_all = t0 = time.perf_counter()
@@ -310,9 +315,7 @@ def _cmd_reconstruct_multi(a) -> int:
         inputs = dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, color=a.color)
     D, meta = _method_dictionary(a, mask.shape[0])
     t_read = time.perf_counter() - t0
-    tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
-    settings = OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms,
-                           stride=a.stride, weighting=a.weighting)
+    settings = _omp_settings(a)
     volumes, entries = [], []
     for label, coded in zip(labels, codeds):
         coded_used, mask_used, saturated = coded, mask, 0
