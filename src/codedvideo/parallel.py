@@ -54,17 +54,41 @@ def plan_tiles(shape: tuple[int, int], tile: int, *, patch: int = 7) -> list[Til
     return tiles
 
 
+_WORKER_LIMITED = False
+
+
+def _one_blas_thread_in_worker() -> None:
+    """In a dask.distributed worker process, limit BLAS to one thread for the process's life.
+
+    Each task is one core, and the same single-threaded kernels give the same bits
+    everywhere.  Local runs are limited (and restored) around the whole graph by
+    :func:`run_graph`; a per-task context would race between concurrent tasks, since
+    the limit is process-wide.
+    """
+    global _WORKER_LIMITED
+    if _WORKER_LIMITED:
+        return
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return  # not inside a distributed worker
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
+    _WORKER_LIMITED = True
+
+
 def _tile_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings, patch: int) -> np.ndarray:
     store = WorkStore(store_path)
     hy0, hy1, hx0, hx1 = tile.halo
     y0, y1, x0, x1 = tile.core
     coded, mask = store.read_inputs(hy0, hy1, hx0, hx1)
+    _one_blas_thread_in_worker()
     try:
-        # one BLAS thread per task wherever it runs (local thread or remote worker):
-        # each task is one core, and the same kernels give bit-identical results
-        with _single_threaded_blas(True):
-            volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch, origin=(hy0, hx0),
-                                               image_shape=store.group["coded"].shape)
+        volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch, origin=(hy0, hx0),
+                                           image_shape=store.group["coded"].shape)
     except Exception as exc:  # name the tile, keep the cause
         raise RuntimeError(f"tile {tile.index} (rows {y0}:{y1}, cols {x0}:{x1}): {exc}") from exc
     core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]

@@ -8,6 +8,7 @@ place, and every pixel is divided by the exact number of patches covering it
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 
@@ -76,6 +77,14 @@ def static_dictionary(frames: int, patch: int = P.PATCH) -> np.ndarray:
     return (np.tile(C, (frames, 1)) / np.sqrt(frames)).astype(np.float32)
 
 
+@functools.lru_cache(maxsize=4)
+def _still_basis(patch: int) -> np.ndarray:
+    """:func:`static_dictionary` for one sub-frame, built once per patch size (read-only)."""
+    C = static_dictionary(1, patch)
+    C.setflags(write=False)
+    return C
+
+
 def still_patches(
     y: np.ndarray, S: np.ndarray, tol: np.ndarray, atoms: int, *, patch: int = P.PATCH
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -108,7 +117,7 @@ def still_patches(
     """
     n = S.shape[1]
     m = patch * patch
-    C = static_dictionary(1, patch)  # the orthonormal 2D DCT, (m, m), low frequencies first
+    C = _still_basis(patch)  # the orthonormal 2D DCT, (m, m), low frequencies first
     n_pix = S.sum(1, dtype=np.int32).astype(np.float32)  # (P, m)
     cand = np.flatnonzero(n_pix.min(1) > 0)
     ok = np.zeros(y.shape[0], bool)
