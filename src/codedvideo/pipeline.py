@@ -38,7 +38,7 @@ log = logging.getLogger("codedvideo")
 PATCH = 7
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v2"
+RECON_VERSION = "recon-v3"
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".gif")
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from . import patches as P
 from .omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, synthesize
+from .omp_kernel import TableOMP, pixel_patterns, table_fits
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 STAT_NAMES = (
@@ -196,6 +197,13 @@ def reconstruct_region(
     grouped = None if groups is None else masked_operator(S_all, D, groups=groups)
     if not isinstance(grouped, GroupedOperator):
         grouped = None
+    # any other code whose pixels take few shutter patterns (every single-bump code):
+    # the compiled OMP over the region's pixel-pattern table
+    table = pat_all = None
+    if grouped is None:
+        patterns, which = pixel_patterns(mask)
+        if table_fits(len(patterns), D, m):
+            table, pat_all = TableOMP(patterns, D, m), P.extract(which, patch)
     n_open = (S_all.any(1)).sum(1).astype(np.float32)
     # a patch without any measured pixel has nothing to say: it is left out of the
     # average, and pixels no patch with a measurement covers are NaN (filled later)
@@ -228,9 +236,12 @@ def reconstruct_region(
             n_static += int(ok.sum())
             rows = rows[~ok]
         if rows.size:
-            # periodic codes share few patch operators; any other code has its own per patch
-            op = MaskedOperator(S[rows], D) if grouped is None else grouped.subset(s + rows)
-            res = omp(y[rows], op, max_atoms=settings.max_atoms, tol=tol[rows])
+            if table is not None:
+                res = table.solve(y[rows], pat_all[sl][rows], max_atoms=settings.max_atoms, tol=tol[rows])
+            else:
+                # periodic codes share few patch operators; any other code has its own per patch
+                op = MaskedOperator(S[rows], D) if grouped is None else grouped.subset(s + rows)
+                res = omp(y[rows], op, max_atoms=settings.max_atoms, tol=tol[rows])
             est[rows] = synthesize(res, D)
             atoms += int(res.count.sum())
             hit += int((res.count >= settings.max_atoms).sum())

@@ -1,0 +1,110 @@
+"""The compiled pattern-table OMP against the textbook reference and the numpy path."""
+
+import numpy as np
+import pytest
+
+from codedvideo import patches as P
+from codedvideo.codes import make_code
+from codedvideo.omp import MaskedOperator, omp, omp_reference, synthesize
+from codedvideo.omp_kernel import TableOMP, pixel_patterns, table_fits
+from codedvideo.reconstruct import OmpSettings, reconstruct_region
+from conftest import random_dictionary
+
+
+def _explicit(S, D):
+    n, m = S.shape
+    return (S[:, :, None].astype(np.float64) * D.reshape(n, m, -1)).sum(0)
+
+
+def _problem(rng, code, n, K, shape, bump=2):
+    D = random_dictionary(rng, n * 49, K)
+    mask = make_code(code, shape, frames=n, bump=bump, rng=3)
+    patterns, which = pixel_patterns(mask)
+    return D, mask, patterns, P.extract(which), P.extract(mask)
+
+
+def test_pixel_patterns_rebuild_the_mask(rng):
+    mask = make_code("bernoulli", (20, 23), frames=6, rng=1)
+    patterns, which = pixel_patterns(mask)
+    np.testing.assert_array_equal(patterns[which].transpose(2, 0, 1), mask)
+    assert len(np.unique(patterns, axis=0)) == len(patterns)
+    hitomi, _ = pixel_patterns(make_code("hitomi", (40, 40), frames=8, bump=3))
+    assert len(hitomi) <= 8 - 3 + 1 and (hitomi.sum(1) == 3).all()  # one bump of L: N - L + 1 patterns
+
+
+@pytest.mark.parametrize("code", ["hitomi", "bernoulli", "rowwise"])
+def test_kernel_equals_textbook_omp_on_random_problems(rng, code):
+    """Noisy data, both stopping rules active: same atoms, same fit as lstsq-based OMP."""
+    n, K = 6, 150
+    D, _, patterns, pat, S = _problem(rng, code, n, K, (7 + 5, 7 + 11))
+    Y = rng.normal(size=(S.shape[0], 49)).astype(np.float32) * 30
+    tol = 0.5 * (Y.astype(np.float64) ** 2).sum(1)
+    res = TableOMP(patterns, D, 49).solve(Y, pat, max_atoms=6, tol=tol)
+    dense = res.dense(K)
+    for p in range(S.shape[0]):
+        A = _explicit(S[p], D)
+        ref = omp_reference(A, Y[p], max_atoms=6, tol=tol[p])
+        assert res.count[p] == np.count_nonzero(ref)
+        np.testing.assert_array_equal(np.flatnonzero(dense[p]), np.flatnonzero(ref))
+        np.testing.assert_allclose(A @ dense[p], A @ ref, atol=2e-3 * np.abs(Y[p]).max())
+        assert abs(res.residual[p] - ((A @ ref - Y[p]) ** 2).sum()) <= 1e-3 * (Y[p] ** 2).sum()
+
+
+def test_kernel_recovers_planted_codes_and_matches_numpy_path(rng):
+    n, K = 8, 200
+    D, _, patterns, pat, S = _problem(rng, "hitomi", n, K, (7 + 3, 7 + 12))
+    X = np.zeros((S.shape[0], K), np.float32)
+    for p in range(S.shape[0]):
+        X[p, rng.choice(K, 3, replace=False)] = rng.normal(size=3) + 2 * np.sign(rng.normal(size=3))
+    Y = np.stack([_explicit(S[p], D) @ X[p] for p in range(S.shape[0])]).astype(np.float32)
+    res = TableOMP(patterns, D, 49).solve(Y, pat, max_atoms=8, tol=1e-6)
+    np.testing.assert_allclose(res.dense(K), X, atol=1e-3)
+    ref = omp(Y, MaskedOperator(S, D), max_atoms=8, tol=1e-6)
+    np.testing.assert_array_equal(res.count, ref.count)
+    np.testing.assert_allclose(synthesize(res, D), synthesize(ref, D), atol=1e-3)
+
+
+def test_sparse_synthesis_equals_the_dense_product(rng):
+    D, _, patterns, pat, S = _problem(rng, "hitomi", 4, 90, (12, 12))
+    Y = rng.normal(size=(S.shape[0], 49)).astype(np.float32)
+    res = TableOMP(patterns, D, 49).solve(Y, pat, max_atoms=5, tol=0.0)
+    np.testing.assert_allclose(synthesize(res, D), res.dense(90) @ D.T, atol=1e-5)
+
+
+def test_kernel_edge_cases_stay_finite(rng):
+    n, K = 4, 60
+    D, _, patterns, pat, S = _problem(rng, "hitomi", n, K, (9, 9))
+    D[:, 1] = D[:, 0]  # duplicate atoms: a dependent column ends the patch
+    D[:, 2] = 0.0  # a zero atom is never chosen
+    Y = rng.normal(size=(S.shape[0], 49)).astype(np.float32)
+    Y[0] = 0.0  # nothing to explain: no atom
+    res = TableOMP(patterns, D, 49).solve(Y, pat, max_atoms=49, tol=0.0)
+    assert np.isfinite(res.coef).all() and np.isfinite(res.residual).all()
+    assert res.count[0] == 0 and (res.coef[0] == 0).all()
+    used = res.index[np.arange(res.index.shape[1])[None, :] < res.count[:, None]]
+    assert (used != 2).all()
+    assert (res.residual <= (Y.astype(np.float64) ** 2).sum(1) * (1 + 1e-5)).all()
+
+
+def test_table_size_limit_falls_back_for_many_patterns():
+    D = np.zeros((8 * 49, 512), np.float32)
+    assert table_fits(8 - 2 + 1, D, 49)
+    assert not table_fits(2**20, D, 49)
+
+
+@pytest.mark.parametrize("code", ["hitomi", "bernoulli"])
+def test_region_through_kernel_equals_numpy_operator(rng, code, monkeypatch):
+    """reconstruct_region gives the same volume whichever exact OMP path runs."""
+    from codedvideo import reconstruct
+
+    n, K = 6, 120
+    D = random_dictionary(rng, n * 49, K)
+    mask = make_code(code, (26, 31), frames=n, bump=2, rng=7)
+    video = rng.uniform(0, 255, size=(n, 26, 31)).astype(np.float32)
+    coded = (mask * video).sum(0)
+    s = OmpSettings(max_atoms=6, tol_rms=2.0, static_atoms=0, batch=256)
+    fast, stats_fast = reconstruct_region(coded, mask, D, s)
+    monkeypatch.setattr(reconstruct, "table_fits", lambda *a: False)
+    slow, stats_slow = reconstruct_region(coded, mask, D, s)
+    assert stats_fast[2] == stats_slow[2]  # the same number of atoms in all
+    np.testing.assert_allclose(fast, slow, atol=2e-2 * 255 / 100)
