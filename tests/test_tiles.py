@@ -106,7 +106,7 @@ def test_still_test_equals_omp_over_the_still_dictionary(code):
     mask = make_code(code, (h, w), frames=n, bump=2, rng=5)
     y, S = P.extract(simulate(video, mask)), P.extract(mask)
     tol = (S.any(1)).sum(1).astype(np.float32) * 1.5**2
-    ok, est = still_patches(y, S, tol, 8)
+    ok, est = still_patches(y, S.sum(1), tol, 8, frames=n)
     assert 0 < ok.sum() < ok.size  # the still half passes, the moving half does not
     # every accepted estimate explains its measurement within the tolerance
     resid = y[ok] - (S[ok] * est.reshape(-1, n, 49)).sum(1)

@@ -198,6 +198,85 @@ def _omp_kernel(y, pat, B, B2, floor, tol, kmax, dep_tol, select_bits, tiny, ind
             coef[p, t] = v / R[t, t]
 
 
+@njit(nogil=True, cache=True)
+def still_kernel(y, n_pix, C, tol, atoms, ok, frame):
+    """The still-scene test of :func:`codedvideo.reconstruct.still_patches`, one patch at a time.
+
+    ``frame[p]`` (zeros on entry) gets the still image of every passing patch
+    ``ok[p]``: the fewest of its largest 2D DCT coefficients (columns of ``C``,
+    ties to the lower frequency) whose weighted residual
+    ``||n * (y / n - s_k)||^2`` is within ``tol[p]``, at most ``atoms``.
+    """
+    P, m = y.shape
+    k_max = min(atoms, m)
+    s = np.empty(m, np.float64)
+    c = np.empty(m, np.float64)
+    mag = np.empty(m, np.float64)
+    top = np.empty(max(k_max, 1), np.int64)
+    approx = np.empty(m, np.float64)
+    for p in range(P):
+        ok[p] = False
+        yy = 0.0
+        ss = 0.0
+        nmin = n_pix[p, 0]
+        nmax = nmin
+        for i in range(m):
+            ni = n_pix[p, i]
+            nmin = min(nmin, ni)
+            nmax = max(nmax, ni)
+            yi = np.float64(y[p, i])
+            yy += yi * yi
+            s[i] = yi / ni if ni > 0 else 0.0
+            ss += s[i] * s[i]
+        if nmin <= 0:  # a pixel never open: left to the full dictionary
+            continue
+        if yy <= tol[p]:
+            ok[p] = True  # zero atoms suffice
+            continue
+        c[:] = 0.0
+        for i in range(m):
+            si = s[i]
+            for k in range(m):
+                c[k] += si * C[i, k]
+        # the k_max largest |c|, in order (insertion; ties keep the lower frequency first)
+        n_top = 0
+        for k in range(m):
+            v = abs(c[k])
+            if n_top == k_max and v <= mag[top[n_top - 1]]:
+                continue
+            j = min(n_top, k_max - 1)
+            while j > 0 and mag[top[j - 1]] < v:
+                top[j] = top[j - 1]
+                j -= 1
+            top[j] = k
+            mag[k] = v
+            n_top = min(n_top + 1, k_max)
+        used = -1
+        if nmin == nmax:  # one open count (every fixed-bump code): C orthonormal, residual closed-form
+            rest = ss
+            for j in range(n_top):
+                rest -= c[top[j]] * c[top[j]]
+                if nmin * nmin * rest <= tol[p]:
+                    used = j + 1
+                    break
+        else:  # measured exactly, one atom at a time
+            approx[:] = 0.0
+            for j in range(n_top):
+                e = 0.0
+                for i in range(m):
+                    approx[i] += c[top[j]] * C[i, top[j]]
+                    d = n_pix[p, i] * (s[i] - approx[i])
+                    e += d * d
+                if e <= tol[p]:
+                    used = j + 1
+                    break
+        if used > 0:
+            ok[p] = True
+            for j in range(used):
+                for i in range(m):
+                    frame[p, i] += c[top[j]] * C[i, top[j]]
+
+
 @njit(nogil=True, cache=True, fastmath={"contract"})
 def synthesize_into(index, coef, count, Dt, out):
     """``out[p] = sum_t coef[p, t] Dt[index[p, t]]`` over the ``count[p]`` selected atoms."""
@@ -264,4 +343,6 @@ def load_kernels() -> float:
     table = TableOMP(np.eye(2, dtype=np.float32), D, 4)
     res = table.solve(np.ones((1, 4), np.float32), np.zeros((1, 4), np.int32), max_atoms=2, tol=0.0)
     synthesize(res, D)
+    still_kernel(np.ones((1, 4), np.float32), np.ones((1, 4)), np.eye(4), np.zeros(1), 1, np.zeros(1, np.bool_),
+                 np.zeros((1, 4)))
     return time.perf_counter() - t

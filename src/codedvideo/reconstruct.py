@@ -16,7 +16,7 @@ import numpy as np
 
 from . import patches as P
 from .omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, synthesize
-from .omp_kernel import TableOMP, pixel_patterns, table_fits
+from .omp_kernel import TableOMP, pixel_patterns, still_kernel, table_fits
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 STAT_NAMES = (
@@ -80,14 +80,21 @@ def static_dictionary(frames: int, patch: int = P.PATCH) -> np.ndarray:
 
 @functools.lru_cache(maxsize=4)
 def _still_basis(patch: int) -> np.ndarray:
-    """:func:`static_dictionary` for one sub-frame, built once per patch size (read-only)."""
-    C = static_dictionary(1, patch)
+    """:func:`static_dictionary` for one sub-frame in float64, built once per patch size (read-only).
+
+    Made orthonormal to float64 precision (the nearest orthonormal matrix, which
+    keeps the order and signs of the columns): the still test's residuals are
+    computed by Parseval's identity, which a float32 basis would break by ~1e-7
+    of the patch energy.
+    """
+    u, _, vt = np.linalg.svd(static_dictionary(1, patch).astype(np.float64))
+    C = np.ascontiguousarray(u @ vt)
     C.setflags(write=False)
     return C
 
 
 def still_patches(
-    y: np.ndarray, S: np.ndarray, tol: np.ndarray, atoms: int, *, patch: int = P.PATCH
+    y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, atoms: int, *, frames: int, patch: int = P.PATCH
 ) -> tuple[np.ndarray, np.ndarray]:
     """The still-scene test: which patches a still, spatially sparse scene explains.
 
@@ -100,55 +107,33 @@ def still_patches(
     fixed-bump code) this is exactly OMP over :func:`static_dictionary` seen
     through the code, whose atoms are then orthogonal with equal norms; for
     other codes it is the same greedy choice with the residual measured
-    exactly.  No dictionary search is run.  Patches with a pixel that is never
-    open are left to the full dictionary.
+    exactly.  No dictionary search is run (compiled:
+    :func:`codedvideo.omp_kernel.still_kernel`, about 1 % of a patch's OMP).
+    Patches with a pixel that is never open are left to the full dictionary.
 
     Parameters
     ----------
     y : ndarray of shape (P, m)
-    S : ndarray of shape (P, N, m)
+    n_pix : ndarray of shape (P, m)
+        Open sub-frames of every pixel of every patch (``S.sum(1)``).
     tol : ndarray of shape (P,)
         Squared residual tolerance.
     atoms : int
+    frames : int
+        N, the sub-frames of the estimate.
 
     Returns
     -------
     ok : ndarray of shape (P,), bool
     estimate : ndarray of shape (ok.sum(), N * m), float32
     """
-    n = S.shape[1]
-    m = patch * patch
-    C = _still_basis(patch)  # the orthonormal 2D DCT, (m, m), low frequencies first
-    n_pix = S.sum(1, dtype=np.int32).astype(np.float32)  # (P, m)
-    cand = np.flatnonzero(n_pix.min(1) > 0)
-    ok = np.zeros(y.shape[0], bool)
-    if cand.size == 0:
-        return ok, np.zeros((0, n * m), np.float32)
-    w = n_pix[cand]
-    still = y[cand] / w
-    # einsum, not BLAS: BLAS picks kernels by the number of rows, which would make a
-    # patch's result depend on its batch (and so on the tile size)
-    c = np.einsum("pm,mk->pk", still, C)
-    k = min(atoms, m)
-    order = np.argsort(-np.abs(c), axis=1, kind="stable")[:, :k]
-    top = np.take_along_axis(c, order, 1)
-    tol_c = tol[cand]
-    approx = np.zeros_like(still)
-    used = np.full(cand.size, -1)
-    passed = np.einsum("pm,pm->p", y[cand], y[cand]) <= tol_c  # zero atoms suffice
-    used[passed] = 0
-    for j in range(k):  # greedy: add the next largest coefficient, measure the residual exactly
-        approx += top[:, j, None] * C.T[order[:, j]]
-        err = w * (still - approx)
-        fits = (~passed) & (np.einsum("pm,pm->p", err, err) <= tol_c)
-        used[fits] = j + 1
-        passed |= fits
-    top[np.arange(k)[None, :] >= used[:, None]] = 0.0
-    coef = np.zeros_like(c)
-    np.put_along_axis(coef, order, top, 1)
-    frame = np.einsum("pk,mk->pm", coef[passed], C)  # s_k of the passing patches
-    ok[cand[passed]] = True
-    return ok, np.tile(frame, (1, n)).astype(np.float32)
+    count = y.shape[0]
+    ok = np.zeros(count, np.bool_)
+    frame = np.zeros((count, patch * patch), np.float64)
+    still_kernel(np.ascontiguousarray(y, dtype=np.float32), np.ascontiguousarray(n_pix, dtype=np.float64),
+                 _still_basis(patch), np.ascontiguousarray(tol, dtype=np.float64),
+                 int(atoms), ok, frame)
+    return ok, np.tile(frame[ok].astype(np.float32), (1, frames))
 
 
 def reconstruct_region(
@@ -205,6 +190,7 @@ def reconstruct_region(
         if table_fits(len(patterns), D, m):
             table, pat_all = TableOMP(patterns, D, m), P.extract(which, patch)
     n_open = (S_all.any(1)).sum(1).astype(np.float32)
+    n_pix = P.extract(mask.sum(0, dtype=np.int32), patch) if settings.static_atoms > 0 else None
     # a patch without any measured pixel has nothing to say: it is left out of the
     # average, and pixels no patch with a measurement covers are NaN (filled later)
     valid = n_open > 0
@@ -231,7 +217,7 @@ def reconstruct_region(
         t0 = time.perf_counter()
         rows = np.flatnonzero(valid[sl])
         if settings.static_atoms > 0 and rows.size:
-            ok, still = still_patches(y[rows], S[rows], tol[rows], settings.static_atoms, patch=patch)
+            ok, still = still_patches(y[rows], n_pix[sl][rows], tol[rows], settings.static_atoms, frames=n, patch=patch)
             est[rows[ok]] = still
             n_static += int(ok.sum())
             rows = rows[~ok]
