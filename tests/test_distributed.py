@@ -52,19 +52,16 @@ def test_distributed_is_bit_identical_to_one_and_two_local_workers(cluster, tmp_
     _one_two_remote(cluster, tmp_path, OmpSettings(max_atoms=6, tol_rms=2.0, static_atoms=0))
 
 
-def test_distributed_with_the_still_test_agrees_to_the_last_bit_or_two(cluster, tmp_path):
-    """With the still-scene test on, a worker process may differ from local threads in the last bit of
-    a rare pixel (seen: 1 pixel in 8320, 2e-6; the same tile alone in another process is bit-identical,
-    so the cause lies in the worker's environment, not found yet).  Local 1 vs 2 workers stay bit-identical."""
+def test_distributed_with_the_still_test_is_bit_identical_too(cluster, tmp_path):
+    """With the still-scene test on (the default) worker processes agree bit for bit as well.
+
+    (Its former numpy version let a worker process differ in the last bit of a rare pixel: einsum's
+    vector path depends on array alignment; the compiled test computes every patch alone.)"""
+    _one_two_remote(cluster, tmp_path, OmpSettings(max_atoms=6, tol_rms=2.0))
     coded, mask, D = _scene()
-    s = OmpSettings(max_atoms=6, tol_rms=2.0)
-    one, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "1", progress=False, workers=1)
-    two, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "2", progress=False, workers=2)
-    remote, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "d", progress=False,
-                                   scheduler=cluster.scheduler_address)
-    np.testing.assert_array_equal(two, one)
-    np.testing.assert_allclose(remote, one, rtol=1e-6, atol=0)
-    assert (remote != one).mean() < 1e-3
+    _, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=6, tol_rms=2.0), tile=16,
+                                 cache=tmp_path / "s", progress=False, workers=1)
+    assert info["patches_static"] > 0  # the still test did take some patches
 
 
 @pytest.mark.slow
