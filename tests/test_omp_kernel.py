@@ -5,8 +5,8 @@ import pytest
 
 from codedvideo import patches as P
 from codedvideo.codes import make_code
-from codedvideo.omp import MaskedOperator, omp, omp_reference, synthesize
-from codedvideo.omp_kernel import TableOMP, pixel_patterns, table_fits
+from codedvideo.omp import MaskedOperator, omp, omp_reference, pixel_patterns, synthesize
+from codedvideo.omp_kernel import TableOMP, table_fits
 from codedvideo.reconstruct import OmpSettings, reconstruct_region
 from conftest import random_dictionary
 
@@ -108,3 +108,16 @@ def test_region_through_kernel_equals_numpy_operator(rng, code, monkeypatch):
     slow, stats_slow = reconstruct_region(coded, mask, D, s)
     assert stats_fast[2] == stats_slow[2]  # the same number of atoms in all
     np.testing.assert_allclose(fast, slow, atol=2e-2 * 255 / 100)
+
+
+def test_more_than_64_subframes_use_the_dense_path(rng):
+    """Patterns are 64-bit integers: beyond N = 64 the numpy operator (exact norms) takes over."""
+    n, K = 80, 60
+    D = random_dictionary(rng, n * 49, K)
+    mask = make_code("bernoulli", (12, 12), frames=n, rng=1)
+    S = P.extract(mask)
+    norms = MaskedOperator(S, D).norms(np.arange(S.shape[0]))
+    np.testing.assert_allclose(norms[3], np.linalg.norm(_explicit(S[3], D), axis=0), rtol=1e-4)
+    coded = (mask * rng.uniform(0, 255, (n, 12, 12))).sum(0).astype(np.float32)
+    vol, stats = reconstruct_region(coded, mask, D, OmpSettings(max_atoms=4, tol_rms=2.0))
+    assert np.isfinite(vol).all() and stats[2] > 0

@@ -121,6 +121,38 @@ class OmpResult:
         return out
 
 
+def pixel_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct per-pixel shutter patterns of a code.
+
+    Parameters
+    ----------
+    mask : ndarray of shape (N, ...), N <= 64
+        A code (N, h, w), or patch codes arranged (N, P, m).
+
+    Returns
+    -------
+    patterns : ndarray of shape (U, N), float32
+        The distinct patterns (0/1).
+    which : ndarray of shape mask.shape[1:], int32
+        Index of every pixel's pattern.
+    """
+    n = mask.shape[0]
+    if n > 64:
+        raise ValueError(f"{n} sub-frames: pattern tables need N <= 64")
+    weights = np.left_shift(np.uint64(1), np.arange(n, dtype=np.uint64))
+    codes = np.tensordot(weights, (np.asarray(mask) > 0).astype(np.uint64), axes=(0, 0))
+    uniq, which = np.unique(codes, return_inverse=True)
+    patterns = ((uniq[:, None] >> np.arange(n, dtype=np.uint64)) & np.uint64(1)).astype(np.float32)
+    return patterns, which.reshape(codes.shape).astype(np.int32)
+
+
+def pattern_table(patterns: np.ndarray, D: np.ndarray, patch_pixels: int) -> np.ndarray:
+    """``B[i, u, k] = sum_t patterns[u, t] D[t*m + i, k]``, shape (m, U, K), float32."""
+    n = patterns.shape[1]
+    D3 = np.asarray(D, dtype=np.float32).reshape(n, patch_pixels, -1)
+    return np.ascontiguousarray(np.einsum("un,nik->iuk", patterns, D3, optimize=True), dtype=np.float32)
+
+
 class PlainOperator:
     """``A_p = D`` for every patch (unmasked sparse coding, used by K-SVD).
 
@@ -201,16 +233,11 @@ class MaskedOperator:
         D3 = self.D.reshape(N, m, self.K)
         if P == 0:
             return np.zeros((0, self.K), np.float32)
-        # distinct per-pixel patterns, as integers (N <= 64)
-        bits = (self.S.transpose(0, 2, 1) > 0).astype(np.uint64)  # (P, m, N)
-        weights = np.left_shift(np.uint64(1), np.arange(N, dtype=np.uint64))
-        codes = (bits * weights).sum(-1, dtype=np.uint64)
-        uniq, inv = np.unique(codes, return_inverse=True)
-        inv = inv.reshape(P, m)
-        U = uniq.size
-        if m * U <= self.MAX_ONEHOT:
-            patterns = ((uniq[:, None] >> np.arange(N, dtype=np.uint64)) & np.uint64(1)).astype(np.float32)
-            B = np.einsum("un,nik->iuk", patterns, D3, optimize=True)  # (m, U, K)
+        if N <= 64:  # patterns as 64-bit integers
+            patterns, inv = pixel_patterns(self.S.transpose(1, 0, 2))  # (U, N), (P, m)
+        if N <= 64 and m * len(patterns) <= self.MAX_ONEHOT:
+            U = len(patterns)
+            B = pattern_table(patterns, self.D, m)  # (m, U, K)
             onehot = np.zeros((P, m * U), dtype=np.float32)
             onehot[np.arange(P)[:, None], np.arange(m)[None, :] * U + inv] = 1.0
             sq = onehot @ (B * B).reshape(m * U, self.K)

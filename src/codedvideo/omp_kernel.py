@@ -4,7 +4,8 @@ A pixel's shutter pattern (which of the N sub-frames it integrates) is one of a
 few: a single-bump code of bump length ``L`` has at most ``N - L + 1``.  Pixel
 ``i`` of a patch with pattern ``u`` sees row ``B[i, u] = sum_t pattern_u[t] D[t*m+i]``
 of the masked dictionary, so ``A_p`` is a gather from the table ``B``
-(``m x U x K``, under a megabyte for N = 8) and a correlation is::
+(``m x U x K``, under a megabyte for N = 8; :func:`codedvideo.omp.pattern_table`) and a
+correlation is::
 
     A_p^T r = sum_i r_i B[i, u_p(i)]      (m * K multiply-adds)
 
@@ -29,42 +30,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .omp import _TINY, DEPENDENCE_TOL, MIN_VISIBLE, SELECT_BITS, OmpResult
+from .omp import _TINY, DEPENDENCE_TOL, MIN_VISIBLE, SELECT_BITS, OmpResult, pattern_table
 
 #: Largest pattern table (bytes) this path builds; beyond it (codes with many
 #: distinct patterns, e.g. Bernoulli at large N) the dense operator is used.
 MAX_TABLE_BYTES = 64 << 20
-
-
-def pixel_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct per-pixel shutter patterns of a code.
-
-    Parameters
-    ----------
-    mask : ndarray of shape (N, h, w), N <= 64
-
-    Returns
-    -------
-    patterns : ndarray of shape (U, N), float32
-        The distinct patterns (0/1).
-    which : ndarray of shape (h, w), int32
-        Index of every pixel's pattern.
-    """
-    n = mask.shape[0]
-    if n > 64:
-        raise ValueError(f"{n} sub-frames: pattern tables need N <= 64")
-    weights = np.left_shift(np.uint64(1), np.arange(n, dtype=np.uint64))
-    codes = np.tensordot(weights, (np.asarray(mask) > 0).astype(np.uint64), axes=(0, 0))
-    uniq, which = np.unique(codes, return_inverse=True)
-    patterns = ((uniq[:, None] >> np.arange(n, dtype=np.uint64)) & np.uint64(1)).astype(np.float32)
-    return patterns, which.reshape(codes.shape).astype(np.int32)
-
-
-def pattern_table(patterns: np.ndarray, D: np.ndarray, patch_pixels: int) -> np.ndarray:
-    """``B[i, u, k] = sum_t patterns[u, t] D[t*m + i, k]``, shape (m, U, K), float32."""
-    n = patterns.shape[1]
-    D3 = np.asarray(D, dtype=np.float32).reshape(n, patch_pixels, -1)
-    return np.ascontiguousarray(np.einsum("un,nik->iuk", patterns, D3, optimize=True), dtype=np.float32)
 
 
 def table_fits(n_patterns: int, D: np.ndarray, patch_pixels: int) -> bool:

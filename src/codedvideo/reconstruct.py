@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import patches as P
-from .omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, synthesize
-from .omp_kernel import TableOMP, pixel_patterns, still_kernel, table_fits
+from .omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, pixel_patterns, synthesize
+from .omp_kernel import TableOMP, still_kernel, table_fits
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 STAT_NAMES = (
@@ -108,7 +108,7 @@ def still_patches(
     through the code, whose atoms are then orthogonal with equal norms; for
     other codes it is the same greedy choice with the residual measured
     exactly.  No dictionary search is run (compiled:
-    :func:`codedvideo.omp_kernel.still_kernel`, about 1 % of a patch's OMP).
+    :func:`codedvideo.omp_kernel.still_kernel`, a few per cent of a patch's OMP).
     Patches with a pixel that is never open are left to the full dictionary.
 
     Parameters
@@ -185,7 +185,7 @@ def reconstruct_region(
     # any other code whose pixels take few shutter patterns (every single-bump code):
     # the compiled OMP over the region's pixel-pattern table
     table = pat_all = None
-    if grouped is None:
+    if grouped is None and n <= 64:
         patterns, which = pixel_patterns(mask)
         if table_fits(len(patterns), D, m):
             table, pat_all = TableOMP(patterns, D, m), P.extract(which, patch)
