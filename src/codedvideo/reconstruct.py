@@ -189,8 +189,8 @@ def reconstruct_region(
         patterns, which = pixel_patterns(mask)
         if table_fits(len(patterns), D, m):
             table, pat_all = TableOMP(patterns, D, m), P.extract(which, patch)
-    n_open = (S_all.any(1)).sum(1).astype(np.float32)
-    n_pix = P.extract(mask.sum(0, dtype=np.int32), patch) if settings.static_atoms > 0 else None
+    n_pix = P.extract(mask.sum(0, dtype=np.int32), patch)  # open sub-frames of every patch pixel
+    n_open = (n_pix > 0).sum(1).astype(np.float32)
     # a patch without any measured pixel has nothing to say: it is left out of the
     # average, and pixels no patch with a measurement covers are NaN (filled later)
     valid = n_open > 0
