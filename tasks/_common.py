@@ -7,9 +7,13 @@ from codedvideo.config import load_config
 from codedvideo.errors import CodedVideoError
 
 
+def config_path(default: str = "pipeline.yaml") -> str:
+    """The config named on the command line (default: pipeline.yaml)."""
+    return sys.argv[1] if len(sys.argv) > 1 else default
+
+
 def config_from_argv(default: str = "pipeline.yaml"):
-    path = sys.argv[1] if len(sys.argv) > 1 else default
-    return load_config(path)
+    return load_config(config_path(default))
 
 
 def guarded(fn) -> int:

@@ -1,7 +1,7 @@
 """Stage: reconstruct the capture (trains and simulates first when their results are not cached)."""
 import sys
 
-from _common import config_from_argv, guarded
+from _common import config_from_argv, config_path, guarded
 
 from codedvideo.pipeline import run_pipeline
 
@@ -9,7 +9,7 @@ from codedvideo.pipeline import run_pipeline
 def main() -> None:
     cfg = config_from_argv()
     cfg = cfg.model_copy(update=dict(stages=["train", "simulate", "reconstruct", "evaluate"]))
-    report = run_pipeline(cfg)
+    report = run_pipeline(cfg, config_path=config_path())
     print(f"video: {report['outputs']['video']}\nmetrics: {report['metrics_path']}")
 
 

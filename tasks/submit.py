@@ -11,7 +11,7 @@ import sys
 
 from _common import guarded
 
-from codedvideo.config import load_config
+from codedvideo.config import ReconstructConfig, load_config, validated
 from codedvideo.pipeline import run_pipeline
 
 
@@ -19,8 +19,9 @@ def main() -> None:
     if len(sys.argv) < 3 or not sys.argv[2]:
         raise SystemExit("usage: tasks/submit.py pipeline.yaml SCHEDULER_ADDRESS")
     cfg = load_config(sys.argv[1])
-    cfg = cfg.model_copy(update=dict(reconstruct=cfg.reconstruct.model_copy(update=dict(scheduler=sys.argv[2]))))
-    report = run_pipeline(cfg)
+    reconstruct = validated(ReconstructConfig, dict(cfg.reconstruct.model_dump(), scheduler=sys.argv[2]),
+                            {"scheduler": "SCHEDULER_ADDRESS"})
+    report = run_pipeline(cfg.model_copy(update=dict(reconstruct=reconstruct)), config_path=sys.argv[1])
     print(f"video: {report['outputs']['video']}\nmetrics: {report['metrics_path']}")
 
 

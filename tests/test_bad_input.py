@@ -326,3 +326,9 @@ def test_write_failure_midway_leaves_the_old_output_and_no_temporary(files, tmp_
     monkeypatch.undo()
     np.testing.assert_array_equal(np.load(target), np.arange(3))
     assert sorted(p.name for p in target.parent.iterdir()) == ["r.npy"]
+
+
+def test_an_npz_archive_named_npy(files, tmp_path, capsys):
+    np.savez(tmp_path / "coded.npz", coded=np.load(files / "coded.npy"))
+    os.replace(tmp_path / "coded.npz", tmp_path / "coded.npy")
+    fails(capsys, reconstruct_args(files, tmp_path, coded=tmp_path / "coded.npy"), "coded.npy", ".npz", root=tmp_path)

@@ -292,6 +292,7 @@ def reconstruct_method(
     *,
     dictionary: np.ndarray | None = None,
     dictionary_key: str = "",
+    dictionary_name: str = "",
     settings=None,
     tile: int = 128,
     cache: str = "cache",
@@ -314,7 +315,12 @@ def reconstruct_method(
     coded : ndarray of shape (H, W)
     mask : ndarray of shape (N, H, W)
     dictionary : ndarray of shape (N * 49, K), optional
-        Required for ``omp``; ignored otherwise.
+        Required for ``omp``; ignored otherwise.  Atoms of any nonzero norm
+        give the same answer: it goes through
+        :func:`~codedvideo.dictionaries.prepare_dictionary` (unit norm, zero
+        atoms dropped with a warning, all-zero refused).
+    dictionary_name : str
+        Names the dictionary in those messages (e.g. its path).
     dictionary_key, settings, tile, cache, scheduler, workers, progress
         Passed to :func:`~codedvideo.pipeline.reconstruct_volume` (``settings``
         an :class:`~codedvideo.reconstruct.OmpSettings`; default settings when None).
@@ -336,12 +342,16 @@ def reconstruct_method(
         from .pipeline import reconstruct_volume
         from .reconstruct import OmpSettings
 
-        if method == "dct":
-            from .dictionaries import dct_dictionary
+        from .dictionaries import dct_dictionary, prepare_dictionary
 
+        if method == "dct":
             dictionary, dictionary_key = dct_dictionary(mask.shape[0]), ""
         elif dictionary is None:
             raise InputError("method omp: needs a dictionary (--dictionary DICT.zarr)")
+        # unit-norm atoms, zero atoms dropped (the same array when it already is)
+        prepared = prepare_dictionary(dictionary, dictionary_name or f"of method {method}")
+        if prepared is not dictionary:  # the caller's key names the given atoms: key the cache by the used ones
+            dictionary, dictionary_key = prepared, ""
         volume, info = reconstruct_volume(coded, mask, dictionary, settings=settings or OmpSettings(), tile=tile,
                                           cache=cache, scheduler=scheduler, workers=workers, progress=progress,
                                           dictionary_key=dictionary_key)

@@ -8,6 +8,7 @@ behind because every writer goes through a temporary name.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -20,14 +21,25 @@ import numpy as np
 from . import __version__
 from .baselines import METHODS
 from .codes import CODE_NAMES
-from .config import PipelineConfig, auto_tolerance, load_config
+from .config import (
+    CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig, ReconstructConfig, SceneConfig,
+    check_scheduler, load_config, omp_settings, validated,
+)
 from .errors import CodedVideoError, InputError
+from .outputs import Output, check_outputs, mark_written
 
 log = logging.getLogger("codedvideo")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's error form: one line, ``codedvideo: error: ...``, exit status 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"codedvideo: error: {self.prog.removeprefix('codedvideo').strip() or 'codedvideo'}: {message}\n")
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="codedvideo", description="Video from a single coded-exposure photograph (Hitomi et al. 2011).")
+    p = _Parser(prog="codedvideo", description="Video from a single coded-exposure photograph (Hitomi et al. 2011).")
     p.add_argument("--version", action="version", version=f"codedvideo {__version__}")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -45,6 +57,7 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--kind", choices=("learned", "dct"), default="learned")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--cache", default="cache")
+    t.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT that codedvideo did not write")
 
     s = sub.add_parser("simulate", help="simulate a coded capture of a video")
     s.add_argument("video", help="synth:NAME or a video / frame-sequence path")
@@ -66,6 +79,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--output", "-o", required=True, help="output folder")
     s.add_argument("--cacti-out", default=None, metavar="FILE.mat",
                    help="also write the capture as a CACTI benchmark .mat (orig, mask, meas; one measurement)")
+    s.add_argument("--overwrite", action="store_true", help="replace existing output files that codedvideo did not write")
 
     r = sub.add_parser("reconstruct", help="recover the video from a coded image and its mask")
     r.add_argument("--coded", default=None, help="coded image: .npy, .tif, .exr, .dpx or .png (H, W); required unless --cacti")
@@ -99,21 +113,37 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--batch", type=int, default=PipelineConfig().reconstruct.batch)
     r.add_argument("--scheduler", default=None, help="dask.distributed scheduler address (default: local, both cores)")
     r.add_argument("--workers", type=int, default=None, help="local worker threads")
-    r.add_argument("--data-range", type=float, default=255.0, help="peak value for PSNR and video scaling")
+    r.add_argument("--data-range", type=float, default=None,
+                   help="peak value of the frames, for PSNR and video scaling (default: found from the capture; "
+                        "see README, Data formats)")
     r.add_argument("--fps", type=int, default=30)
     r.add_argument("--cache", default="cache")
+    r.add_argument("--overwrite", action="store_true",
+                   help="replace an existing output file that codedvideo did not write (folders: never)")
 
     e = sub.add_parser("evaluate", help="per-frame and mean PSNR/SSIM as JSON")
     e.add_argument("--recon", required=True, help=".npy, .zarr, .mat, .tif, a video or frames")
     e.add_argument("--truth", required=True, help="as --recon; a .mat gives 'recon', else a CACTI file's 'orig'")
-    e.add_argument("--data-range", type=float, default=255.0)
+    e.add_argument("--data-range", type=float, default=None,
+                   help="peak value of the frames (default: from the truth's values: 1, 255, 4095 or 65535)")
     e.add_argument("--output", "-o", default=None, help="write the JSON here too")
+    e.add_argument("--overwrite", action="store_true", help="replace an existing --output that codedvideo did not write")
 
     u = sub.add_parser("run", help="run the stages a pipeline.yaml names")
     u.add_argument("config", help="pipeline.yaml")
+    u.add_argument("--overwrite", action="store_true",
+                   help="replace existing output files that codedvideo did not write (as output.overwrite: true)")
 
     rp = sub.add_parser("report", help="the paper's experiments and error against run time, as HTML + CSV")
     rp.add_argument("config", help="pipeline.yaml (its report: section)")
+
+    ca = sub.add_parser("cache", help="check or clean a cache folder (--cache, cache: in pipeline.yaml)")
+    casub = ca.add_subparsers(dest="cache_command", required=True, metavar="ACTION")
+    cv = casub.add_parser("verify", help="check every entry; exit 1 when one is broken")
+    cv.add_argument("cache", nargs="?", default="cache")
+    cc = casub.add_parser("clean", help="remove cache entries (only codedvideo's own; entries in use are left)")
+    cc.add_argument("cache", nargs="?", default="cache")
+    cc.add_argument("--broken", action="store_true", help="remove only broken, stale and leftover entries")
 
     c = sub.add_parser("codes", help="shutter codes")
     csub = c.add_subparsers(dest="codes_command", required=True, metavar="ACTION")
@@ -123,17 +153,14 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _cmd_train(a) -> int:
-    from .io import check_writable
     from .pipeline import train_dictionary
 
-    check_writable(a.output)  # before training
-    base = PipelineConfig()
-    cfg = base.model_copy(update=dict(
-        frames=a.frames, seed=a.seed, cache=a.cache,
-        dictionary=base.dictionary.model_copy(update=dict(
-            kind=a.kind, atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
-            max_speed=a.max_speed, training=list(a.videos) or ["synth:train"])),
-    ))
+    dictionary = validated(DictionaryConfig, dict(
+        kind=a.kind, atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
+        max_speed=a.max_speed, training=list(a.videos) or ["synth:train"]), {"training": "VIDEO"})
+    cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary))
+    check_outputs([Output(Path(a.output), "folder", "dictionary")],  # before training
+                  dict(video=list(a.videos), cache=a.cache), overwrite=a.overwrite)
     path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet)
     print(json.dumps(dict(dictionary=str(path), atoms=meta["atoms"], frames=meta["frames"], method=meta.get("method"),
                           final_rmse=meta.get("final_rmse"), reused=meta["reused"], seconds=round(meta["seconds"], 2))))
@@ -141,100 +168,211 @@ def _cmd_train(a) -> int:
 
 
 def _cmd_simulate(a) -> int:
-    from .io import check_writable
-    from .pipeline import load_video, simulate_capture, write_capture
+    from .pipeline import CAPTURE_FILES, load_video, sensor_model, simulate_capture, write_capture
 
-    check_writable(Path(a.output) / "coded.npy")  # before any work
-    if a.cacti_out:
-        check_writable(a.cacti_out)
-    size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
-    video = load_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start)
     code = a.code or ("file" if a.code_file else "hitomi")
     if a.code_file and code != "file":
         raise InputError(f"--code-file {a.code_file}: only used with --code file (got --code {code})")
-    sensor = None
-    if a.shot_noise or a.bits is not None or a.white_level is not None:
-        from .physics import SensorModel
-
-        sensor = SensorModel(shot_noise=a.shot_noise, full_well=a.full_well, gain=a.gain, bits=a.bits,
-                             white_level=a.white_level)
-    cap = simulate_capture(video, code=code, bump=a.bump, sigma=a.noise_sigma, seed=a.seed, p=a.p,
-                           code_path=a.code_file, sensor=sensor)
+    validated(PipelineConfig, dict(frames=a.frames, seed=a.seed), {"frames": "--frames"})
+    code_cfg = validated(CodeConfig, dict(name=code, bump=a.bump, p=a.p, path=a.code_file), {"path": "--code-file"})
+    noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, shot_noise=a.shot_noise, full_well=a.full_well, gain=a.gain,
+                                        bits=a.bits, white_level=a.white_level), {"sigma": "--noise-sigma"})
+    size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
+    if size is not None:
+        validated(SceneConfig, dict(size=size, start=a.start))
+    else:
+        validated(SceneConfig, dict(start=a.start))
+    out = Path(a.output)
+    outputs = [Output(out, "place", "output folder")] + [Output(out / f, "file") for f in CAPTURE_FILES]
+    if a.cacti_out:
+        outputs.append(Output(Path(a.cacti_out), "file", "--cacti-out"))
+    check_outputs(outputs, dict(video=a.video, code_file=a.code_file), overwrite=a.overwrite)  # before any work
+    video = load_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start)
+    cap = simulate_capture(video, code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed, p=code_cfg.p,
+                           code_path=code_cfg.path, sensor=sensor_model(noise))
     paths = write_capture(cap, a.output)
     if a.cacti_out:
         from .cacti import write_cacti
 
         paths["cacti"] = write_cacti(a.cacti_out, mask=cap["mask"], meas=cap["coded"][None], orig=cap["truth"])
+    for path in paths.values():
+        mark_written(path)
     print(json.dumps({k: str(v) for k, v in paths.items()}))
     return 0
 
 
-def _omp_settings(a):
-    """The sparse-coding settings that reconstruct's options give."""
-    from .reconstruct import OmpSettings
+#: reconstruct's options named after the config fields they set (where the names differ).
+_RECONSTRUCT_OPTIONS = {"sigma": "--noise-sigma", "data_range": "--data-range"}
 
-    tol = a.tol_rms if a.tol_rms is not None else auto_tolerance(a.noise_sigma)
-    return OmpSettings(max_atoms=a.max_atoms, tol_rms=tol, batch=a.batch, static_atoms=a.static_atoms,
-                       stride=a.stride, weighting=a.weighting)
+
+def _reconstruct_options(a):
+    """Validate reconstruct's options and its outputs before any work.
+
+    Returns ``(rc, noise, out)``: the ``reconstruct:`` model, the noise
+    model (sigma, white level) and the output model (fps, data range).
+    """
+    from .io import check_writable
+    from .pipeline import metrics_path, output_kind
+
+    if not a.cacti and not (a.coded and a.mask):
+        raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
+    if a.measurement is not None and not a.cacti:
+        raise InputError("reconstruct: --measurement applies to --cacti only")
+    if a.cacti and (a.coded or a.mask or a.truth):
+        raise InputError(f"reconstruct --cacti {a.cacti}: takes coded images, mask and truth from the file "
+                         "(drop --coded, --mask and --truth)")
+    if a.cacti and a.color != "luma":
+        raise InputError(f"reconstruct --cacti {a.cacti}: CACTI files are grey; --color channels does not apply")
+    rc = validated(ReconstructConfig, dict(
+        max_atoms=a.max_atoms, tol_rms="auto" if a.tol_rms is None else a.tol_rms, static_atoms=a.static_atoms,
+        stride=a.stride, weighting=a.weighting, tile=a.tile, batch=a.batch, scheduler=a.scheduler, workers=a.workers))
+    noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, white_level=a.white_level), _RECONSTRUCT_OPTIONS)
+    out = validated(OutputConfig, dict(fps=a.fps, data_range=a.data_range), _RECONSTRUCT_OPTIONS)
+    output = Path(a.output)
+    check_outputs([Output(output, output_kind(output)), Output(metrics_path(output), "file", "metrics")],
+                  dict(coded=a.coded, mask=a.mask, truth=a.truth, dictionary=a.dictionary, cacti=a.cacti, cache=a.cache),
+                  overwrite=a.overwrite)
+    check_writable(Path(a.cache) / "entry", what="cache")
+    check_scheduler(rc.scheduler)
+    return rc, noise, out
+
+
+@dataclasses.dataclass
+class _Captures:
+    """What reconstruct reads: coded images sharing one mask, in the capture's units.
+
+    ``kind`` is ``"single"`` (one coded image), ``"measurements"`` (a CACTI
+    file's, concatenated time-first) or ``"channels"`` (a colour image's,
+    stacked first).
+    """
+
+    codeds: list
+    mask: np.ndarray
+    truths: list | None
+    labels: list
+    kind: str
+    inputs: dict
+    dtype: object
+    source: str
+
+
+def _read_captures(a) -> _Captures:
+    from .io import stored_dtype
+    from .physics import check_pair
+    from .pipeline import check_size, read_coded, read_mask, read_volume
+
+    if a.cacti:
+        from .cacti import read_cacti
+
+        data = read_cacti(a.cacti)
+        if a.measurement is not None and not 1 <= a.measurement <= data.measurements:
+            raise InputError(f"--measurement {a.measurement}: {a.cacti} holds measurements 1..{data.measurements}")
+        chosen = range(data.measurements) if a.measurement is None else [a.measurement - 1]
+        return _Captures(
+            codeds=[data.meas[q] for q in chosen], mask=data.mask,
+            truths=None if data.orig is None else [data.truth(q) for q in chosen],
+            labels=[dict(measurement=q + 1) for q in chosen], kind="measurements",
+            inputs=dict(cacti=a.cacti, dictionary=a.dictionary, measurements=[q + 1 for q in chosen]),
+            dtype=None, source=f"CACTI file {a.cacti}")
+    color = a.color == "channels"
+    coded = read_coded(a.coded, color="channels" if color else "luma")
+    check_size(coded.shape, a.coded)
+    mask = read_mask(a.mask)
+    check_pair(coded.shape[-2:] if color else coded.shape, mask.shape, where=f"mask {a.mask}")
+    codeds = list(coded) if color else [coded]
+    truths = None
+    if a.truth:
+        truth = read_volume(a.truth, color="channels" if color else "luma")
+        want = (len(codeds), *mask.shape) if color else mask.shape
+        truth = truth[None] if color and truth.ndim == 3 else truth
+        if truth.shape != want:
+            raise InputError(f"truth {a.truth}: shape {truth.shape} != {'(channels, N, H, W) ' if color else 'mask shape '}"
+                             f"{want}")
+        truths = list(truth) if color else [truth]
+    return _Captures(
+        codeds=codeds, mask=mask, truths=truths, labels=[dict(channel=c) for c in range(len(codeds))] if color else [{}],
+        kind="channels" if color else "single",
+        inputs=dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, color=a.color),
+        dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
 
 
 def _cmd_reconstruct(a) -> int:
+    """Coded images sharing one mask -> their video: one coded image, a CACTI file's measurements
+    (concatenated time-first, (Q*N, H, W)) or a colour image's channels (stacked first, (C, N, H, W)).
+    One metrics JSON; with several coded images an entry per image and the totals."""
     from .metrics import evaluate
-    from .pipeline import (
-        _check_dictionary, _write_json, check_output, check_size, metrics_path, read_coded, read_mask, read_volume,
-        trivial_estimate, write_volume,
-    )
-    from .baselines import reconstruct_method
+    from .pipeline import _write_json, metrics_path, reconstruct_capture, trivial_estimate, write_volume
+    from .units import infer_data_range, static_peak, tolerance_warning
 
-    if a.cacti or a.color == "channels":
-        return _cmd_reconstruct_multi(a)
-    if not (a.coded and a.mask):
-        raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
-    if a.measurement is not None:
-        raise InputError("reconstruct: --measurement applies to --cacti only")
-    check_output(a.output)  # before any work: a known format in a writable place
-    t_all = time.perf_counter()
-    t0 = time.perf_counter()
-    coded = read_coded(a.coded)
-    check_size(coded.shape, a.coded)
-    mask = read_mask(a.mask)
-    from .physics import check_pair
-
-    check_pair(coded.shape, mask.shape, where=f"mask {a.mask}")
-    D, meta = _method_dictionary(a, mask.shape[0])
-    truth = read_volume(a.truth) if a.truth else None
-    if truth is not None and truth.shape != mask.shape:
-        raise InputError(f"truth {a.truth}: shape {truth.shape} != mask shape {mask.shape}")
+    rc, noise, out = _reconstruct_options(a)  # before any work
+    t_all = t0 = time.perf_counter()
+    job = _read_captures(a)
+    D, meta = _method_dictionary(a, job.mask.shape[0])
     t_read = time.perf_counter() - t0
-    settings = _omp_settings(a)
-    coded_used, mask_used, saturated = coded, mask, 0
-    if a.white_level is not None and not a.trust_saturated:  # saturated pixels are missing measurements
-        from .pipeline import drop_saturated
-
-        coded_used, mask_used, saturated = drop_saturated(coded, mask, a.white_level)
-        _check_not_all_saturated(mask_used, saturated, a.coded, a.white_level)
-    volume, info = reconstruct_method(a.method, coded_used, mask_used, dictionary=D, settings=settings, tile=a.tile,
-                                      cache=a.cache, scheduler=a.scheduler, workers=a.workers, progress=not a.quiet,
-                                      dictionary_key=meta.get("sha256", ""))
-    info["saturated_pixels"] = saturated
+    units = infer_data_range(max(static_peak(c, job.mask) for c in job.codeds), dtype=job.dtype, given=out.data_range)
+    settings = omp_settings(rc, noise.sigma, scale=units.scale)
+    if a.method in ("omp", "dct"):
+        message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
+        if message:
+            log.warning("%s (data range %g from %s)", message, units.value, units.source)
+    white = None if a.trust_saturated else noise.white_level
+    volumes, entries = [], []
+    for label, coded in zip(job.labels, job.codeds):
+        volume, info = reconstruct_capture(
+            a.method, coded, job.mask, data_range=units, settings=settings, dictionary=D,
+            dictionary_key=meta.get("sha256", ""), dictionary_name=str(a.dictionary or ""), white_level=white,
+            where=job.source, tile=rc.tile, cache=a.cache, scheduler=rc.scheduler, workers=rc.workers,
+            progress=not a.quiet)
+        volumes.append(volume)
+        entries.append(dict(label, reconstruction=info))
+    volume = {"single": lambda v: v[0], "measurements": np.concatenate, "channels": np.stack}[job.kind](volumes)
     t0 = time.perf_counter()
-    write_volume(volume, a.output, data_range=a.data_range, fps=a.fps)
-    info["seconds"] = dict(read=t_read, **info["seconds"], write=time.perf_counter() - t0)
+    write_volume(volume, a.output, data_range=units.value, fps=out.fps)
+    mark_written(a.output)
+    t_write = time.perf_counter() - t0
     metrics = dict(
-        output=str(a.output), inputs=dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth),
-        settings=dict(settings.__dict__, method=a.method, tile=a.tile, scheduler=a.scheduler, workers=a.workers,
-                      dictionary_atoms=info.get("dictionary_atoms")),
-        reconstruction=info,
+        output=str(a.output), inputs=job.inputs,
+        settings=dict(settings.__dict__, tol_rms=settings.tol_rms / units.scale, method=a.method, tile=rc.tile,
+                      scheduler=rc.scheduler, workers=rc.workers, dictionary_atoms=entries[0]["reconstruction"].get(
+                          "dictionary_atoms")),
+        data_range=units.as_dict(),
     )
-    if truth is not None:
-        metrics["quality"] = evaluate(volume, truth, data_range=a.data_range)
-        metrics["trivial"] = evaluate(trivial_estimate(coded, mask), truth, data_range=a.data_range)
-    info["seconds"]["total"] = time.perf_counter() - t_all
+    quality = None
+    if job.truths is not None:
+        for entry, vol, coded, truth in zip(entries, volumes, job.codeds, job.truths):
+            entry["quality"] = evaluate(vol, truth, data_range=units.value)
+            entry["trivial"] = evaluate(trivial_estimate(coded, job.mask), truth, data_range=units.value)
+        # every coded image has N frames: the mean over all frames is the mean of their means
+        quality = evaluate(np.concatenate(volumes), np.concatenate(job.truths), data_range=units.value)
+        trivial = evaluate(np.concatenate([trivial_estimate(c, job.mask) for c in job.codeds]),
+                           np.concatenate(job.truths), data_range=units.value)
+    if job.kind == "single":
+        info = entries[0]["reconstruction"]
+        info["seconds"] = dict(read=t_read, **info["seconds"], write=t_write, total=time.perf_counter() - t_all)
+        metrics["reconstruction"] = info
+        patches_per_second, seconds = info["patches_per_second"], info["seconds"]["total"]
+    else:
+        patches = sum(e["reconstruction"]["patches"] for e in entries)
+        t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
+        seconds = time.perf_counter() - t_all
+        patches_per_second = patches / max(t_rec, 1e-9)
+        metrics["layout"] = "(Q*N, H, W)" if job.kind == "measurements" else "(C, N, H, W)"
+        metrics["reconstruction"] = dict(patches=patches, patches_per_second=patches_per_second,
+                                         seconds=dict(read=t_read, reconstruct=t_rec, write=t_write, total=seconds))
+        metrics[job.kind] = entries
+    summary = dict(output=str(a.output))
+    if quality is not None:
+        metrics["quality"], metrics["trivial"] = quality, trivial
+        summary.update(psnr=round(quality["psnr"], 2), ssim=round(quality["ssim"], 4))
+        if job.kind != "single":
+            per = {f"psnr_per_{job.kind[:-1]}": [e["quality"]["psnr"] for e in entries],
+                   f"ssim_per_{job.kind[:-1]}": [e["quality"]["ssim"] for e in entries]}
+            quality.update(per)
+            summary.update({k: [round(v, 2 if k.startswith("psnr") else 4) for v in vals] for k, vals in per.items()})
     mpath = _write_json(metrics_path(a.output), metrics)
-    summary = dict(output=str(a.output), metrics=str(mpath), seconds=round(info["seconds"]["total"], 2),
-                   patches_per_second=round(info["patches_per_second"]))
-    if truth is not None:
-        summary.update(psnr=round(metrics["quality"]["psnr"], 2), ssim=round(metrics["quality"]["ssim"], 4))
+    mark_written(mpath)
+    summary.update(metrics=str(mpath), seconds=round(seconds, 2), patches_per_second=round(patches_per_second),
+                   data_range=units.value)
     print(json.dumps(summary))
     return 0
 
@@ -253,130 +391,21 @@ def _method_dictionary(a, frames: int):
     return D, meta
 
 
-def _check_not_all_saturated(mask_used: np.ndarray, saturated: int, coded_path, white_level) -> None:
-    if saturated and not mask_used.any():
-        raise InputError(f"coded image {coded_path}: every measured pixel is at or above --white-level {white_level}; "
-                         "nothing is left to reconstruct (--trust-saturated uses them anyway)")
-
-
-def _cmd_reconstruct_multi(a) -> int:
-    """Several coded images sharing one mask: a CACTI file's measurements, or the channels of a colour image.
-
-    Output: measurements' volumes concatenated time-first (Q*N, H, W), or
-    channels stacked first (C, N, H, W); one metrics JSON with an entry per
-    measurement (channel) and the mean over all of them.
-    """
-    from .metrics import evaluate
-    from .physics import check_pair
-    from .pipeline import (
-        _check_dictionary, _write_json, check_output, check_size, metrics_path, read_coded, read_mask, read_volume,
-        trivial_estimate, write_volume,
-    )
-    from .baselines import reconstruct_method
-
-    check_output(a.output)  # before any work: a known format in a writable place
-    t_all = t0 = time.perf_counter()
-    if a.cacti:
-        from .cacti import read_cacti
-
-        if a.coded or a.mask or a.truth:
-            raise InputError(f"reconstruct --cacti {a.cacti}: takes coded images, mask and truth from the file "
-                             "(drop --coded, --mask and --truth)")
-        if a.color != "luma":
-            raise InputError(f"reconstruct --cacti {a.cacti}: CACTI files are grey; --color channels does not apply")
-        data = read_cacti(a.cacti)
-        mask, kind = data.mask, "measurements"
-        if a.measurement is not None and not 1 <= a.measurement <= data.measurements:
-            raise InputError(f"--measurement {a.measurement}: {a.cacti} holds measurements 1..{data.measurements}")
-        chosen = range(data.measurements) if a.measurement is None else [a.measurement - 1]
-        labels = [dict(measurement=q + 1) for q in chosen]
-        codeds = [data.meas[q] for q in chosen]
-        truths = None if data.orig is None else [data.truth(q) for q in chosen]
-        inputs = dict(cacti=a.cacti, dictionary=a.dictionary, measurements=[q + 1 for q in chosen])
-    else:
-        if not (a.coded and a.mask):
-            raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
-        if a.measurement is not None:
-            raise InputError("reconstruct: --measurement applies to --cacti only")
-        coded = read_coded(a.coded, color="channels")
-        check_size(coded.shape, a.coded)
-        mask, kind = read_mask(a.mask), "channels"
-        check_pair(coded.shape[1:], mask.shape, where=f"mask {a.mask}")
-        codeds = list(coded)
-        labels = [dict(channel=c) for c in range(len(codeds))]
-        truths = None
-        if a.truth:
-            truth = read_volume(a.truth, color="channels")
-            truth = truth[None] if truth.ndim == 3 else truth
-            if truth.shape != (len(codeds), *mask.shape):
-                raise InputError(f"truth {a.truth}: shape {truth.shape} != (channels, N, H, W) "
-                                 f"{(len(codeds), *mask.shape)}")
-            truths = list(truth)
-        inputs = dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, color=a.color)
-    D, meta = _method_dictionary(a, mask.shape[0])
-    t_read = time.perf_counter() - t0
-    settings = _omp_settings(a)
-    volumes, entries = [], []
-    for label, coded in zip(labels, codeds):
-        coded_used, mask_used, saturated = coded, mask, 0
-        if getattr(a, "white_level", None) is not None and not a.trust_saturated:
-            from .pipeline import drop_saturated
-
-            coded_used, mask_used, saturated = drop_saturated(coded, mask, a.white_level)
-            _check_not_all_saturated(mask_used, saturated, a.cacti or a.coded, a.white_level)
-        volume, info = reconstruct_method(a.method, coded_used, mask_used, dictionary=D, settings=settings,
-                                          tile=a.tile, cache=a.cache, scheduler=a.scheduler, workers=a.workers,
-                                          progress=not a.quiet, dictionary_key=meta.get("sha256", ""))
-        info["saturated_pixels"] = saturated
-        volumes.append(volume)
-        entries.append(dict(label, reconstruction=info))
-    volume = np.concatenate(volumes) if kind == "measurements" else np.stack(volumes)
-    t0 = time.perf_counter()
-    write_volume(volume, a.output, data_range=a.data_range, fps=a.fps)
-    t_write = time.perf_counter() - t0
-    patches = sum(e["reconstruction"]["patches"] for e in entries)
-    t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
-    metrics = dict(
-        output=str(a.output), inputs=inputs, layout="(Q*N, H, W)" if kind == "measurements" else "(C, N, H, W)",
-        settings=dict(settings.__dict__, method=a.method, tile=a.tile, scheduler=a.scheduler, workers=a.workers,
-                      dictionary_atoms=info.get("dictionary_atoms")),
-        reconstruction=dict(patches=patches, patches_per_second=patches / max(t_rec, 1e-9),
-                            seconds=dict(read=t_read, reconstruct=t_rec, write=t_write)),
-    )
-    summary = dict(output=str(a.output))
-    if truths is not None:
-        for entry, vol, coded, truth in zip(entries, volumes, codeds, truths):
-            entry["quality"] = evaluate(vol, truth, data_range=a.data_range)
-            entry["trivial"] = evaluate(trivial_estimate(coded, mask), truth, data_range=a.data_range)
-        # every measurement (channel) has N frames: the mean over all frames is the mean of their means
-        metrics["quality"] = evaluate(np.concatenate(volumes), np.concatenate(truths), data_range=a.data_range)
-        metrics["trivial"] = evaluate(np.concatenate([trivial_estimate(c, mask) for c in codeds]),
-                                      np.concatenate(truths), data_range=a.data_range)
-        per = {f"psnr_per_{kind[:-1]}": [e["quality"]["psnr"] for e in entries],
-               f"ssim_per_{kind[:-1]}": [e["quality"]["ssim"] for e in entries]}
-        metrics["quality"].update(per)
-        summary.update(psnr=round(metrics["quality"]["psnr"], 2), ssim=round(metrics["quality"]["ssim"], 4),
-                       **{k: [round(v, 2 if k.startswith("psnr") else 4) for v in vals] for k, vals in per.items()})
-    metrics[kind] = entries
-    metrics["reconstruction"]["seconds"]["total"] = time.perf_counter() - t_all
-    mpath = _write_json(metrics_path(a.output), metrics)
-    summary.update(metrics=str(mpath), seconds=round(metrics["reconstruction"]["seconds"]["total"], 2),
-                   patches_per_second=round(metrics["reconstruction"]["patches_per_second"]))
-    print(json.dumps(summary))
-    return 0
-
-
 def _cmd_evaluate(a) -> int:
-    from .metrics import evaluate
-    from .io import check_writable
+    from .metrics import evaluate, json_safe
     from .pipeline import _write_json, read_volume
+    from .units import infer_data_range
 
+    out = validated(OutputConfig, dict(data_range=a.data_range))
     if a.output:
-        check_writable(a.output)
-    result = evaluate(read_volume(a.recon), read_volume(a.truth), data_range=a.data_range)
+        check_outputs([Output(Path(a.output), "file")], dict(recon=a.recon, truth=a.truth), overwrite=a.overwrite)
+    recon, truth = read_volume(a.recon), read_volume(a.truth)
+    units = infer_data_range(float(truth.max(initial=0.0)), given=out.data_range, what="the truth")
+    result = json_safe(dict(evaluate(recon, truth, data_range=units.value),
+                            data_range_source=units.source))
     if a.output:
-        _write_json(Path(a.output), result)
-    print(json.dumps(result))
+        mark_written(_write_json(Path(a.output), result))
+    print(json.dumps(result, allow_nan=False))
     return 0
 
 
@@ -384,7 +413,9 @@ def _cmd_run(a) -> int:
     from .pipeline import run_pipeline
 
     cfg = load_config(a.config)
-    report = run_pipeline(cfg, progress=not a.quiet)
+    if a.overwrite:
+        cfg = cfg.model_copy(update=dict(output=cfg.output.model_copy(update=dict(overwrite=True))))
+    report = run_pipeline(cfg, progress=not a.quiet, config_path=a.config)
     lines = [f"metrics: {report['metrics_path']}"]
     if "outputs" in report:
         lines.insert(0, f"video: {report['outputs']['video']}")
@@ -409,6 +440,21 @@ def _cmd_report(a) -> int:
     return 0
 
 
+def _cmd_cache(a) -> int:
+    from .cache import clean_cache, verify_cache
+
+    if a.cache_command == "verify":
+        records = verify_cache(a.cache)
+        for r in records:
+            print(json.dumps(dict(r, entry=str(r["entry"]))))
+        broken = [r for r in records if r["status"] == "broken"]
+        print(f"cache {a.cache}: {len(records)} entries, {len(broken)} broken", file=sys.stderr)
+        return 1 if broken else 0
+    removed = clean_cache(a.cache, broken_only=a.broken)
+    print(json.dumps(dict(cache=str(a.cache), removed=[str(p) for p in removed])))
+    return 0
+
+
 def _cmd_codes(a) -> int:
     from .codes import check_code
     from .pipeline import read_mask
@@ -418,11 +464,14 @@ def _cmd_codes(a) -> int:
 
 
 COMMANDS = dict(train=_cmd_train, simulate=_cmd_simulate, reconstruct=_cmd_reconstruct, evaluate=_cmd_evaluate,
-                run=_cmd_run, report=_cmd_report, codes=_cmd_codes)
+                run=_cmd_run, report=_cmd_report, codes=_cmd_codes, cache=_cmd_cache)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a bad option (one line already printed)
+        return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(level=logging.WARNING, format="codedvideo: %(message)s")
     warnings.simplefilter("default")
     try:

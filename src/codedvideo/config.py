@@ -6,6 +6,7 @@ error names the file and the key.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -18,16 +19,27 @@ from .physics import SensorModel
 STAGES = ("train", "simulate", "reconstruct", "evaluate")
 
 
+def _pair(v):
+    """A list of two values (from Python or YAML) as the tuple a (H, W) field holds; strict types still apply."""
+    return tuple(v) if isinstance(v, list) else v
+
+
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # strict: no coercion ("8" or true for an int is an error); no inf or NaN for any number
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
 
 class SceneConfig(_Strict):
     #: ``synth:NAME`` for a generated scene, or a path to a video / frame sequence.
     video: str = "synth:default"
-    size: tuple[int, int] = (256, 256)
+    size: tuple[Annotated[int, Field(ge=7, le=65536)], Annotated[int, Field(ge=7, le=65536)]] = (256, 256)
     #: First frame taken from a video file.
     start: int = Field(0, ge=0)
+
+    @field_validator("size", mode="before")
+    @classmethod
+    def _list_as_tuple(cls, v):
+        return _pair(v)
 
 
 #: The names of :data:`codedvideo.codes.CODE_NAMES` (a test keeps them equal).
@@ -39,7 +51,7 @@ CodeName = Literal[
 class CodeConfig(_Strict):
     #: A code of :func:`codedvideo.codes.make_code`; ``file`` reads ``path``.
     name: CodeName = "hitomi"
-    bump: int = Field(2, ge=1)
+    bump: int = Field(2, ge=1, le=64)
     p: float = Field(0.5, gt=0, le=1)
     #: The mask file (.npy (N, H, W) or multi-page TIFF) of code ``file``.
     path: str | None = None
@@ -76,13 +88,13 @@ class NoiseConfig(_Strict):
 
 class DictionaryConfig(_Strict):
     kind: Literal["learned", "dct"] = "learned"
-    atoms: int = Field(512, ge=1)
-    samples: int = Field(80000, ge=100)
-    iterations: int = Field(20, ge=0)
-    sparsity: int = Field(6, ge=1)
+    atoms: int = Field(512, ge=1, le=16384)
+    samples: int = Field(80000, ge=100, le=10_000_000)
+    iterations: int = Field(20, ge=0, le=1000)
+    sparsity: int = Field(6, ge=1, le=49)
     #: ``synth:train`` (synthetic motion of the training photographs) or video paths.
     training: list[str] = ["synth:train"]
-    clips: int = Field(144, ge=1)
+    clips: int = Field(144, ge=1, le=100_000)
     #: Fastest synthetic training motion, pixels per sub-frame (speeds are log-uniform from 0.2).
     max_speed: float = Field(4.0, gt=0.2, le=16.0)
     #: An existing dictionary to use instead of training one.
@@ -92,24 +104,49 @@ class DictionaryConfig(_Strict):
 class ReconstructConfig(_Strict):
     max_atoms: int = Field(8, ge=1, le=49)
     #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
-    tol_rms: float | Literal["auto"] = "auto"
+    tol_rms: Annotated[float, Field(ge=0)] | Literal["auto"] = "auto"
     #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
     static_atoms: int = Field(8, ge=0, le=49)
     #: Patch stride: 1 solves every overlapping patch (the paper); s solves 1 in s**2 (faster).
     stride: int = Field(1, ge=1, le=7)
     #: Average of overlapping estimates: "uniform" (the paper) or "fit" (weighted by misfit).
     weighting: Literal["uniform", "fit"] = "uniform"
-    tile: int = Field(128, ge=8)
-    batch: int = Field(4096, ge=1)
+    #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
+    tile: int = Field(128, ge=8, le=4096)
+    batch: int = Field(4096, ge=1, le=1 << 20)
+    #: A dask.distributed address (``tcp://host:port``, ``tls://...``), or "threads" / "sync".
     scheduler: str | None = None
-    workers: int | None = Field(None, ge=1)
+    workers: int | None = Field(None, ge=1, le=1024)
+
+    @field_validator("scheduler")
+    @classmethod
+    def _address(cls, v: str | None) -> str | None:
+        if v is None or v in ("threads", "sync"):
+            return v
+        scheme, sep, rest = v.partition("://")
+        host, _, port = (rest if sep else v).rpartition(":")
+        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise ValueError(f"scheduler {v!r}: expected an address such as tcp://host:8786 (or threads, sync)")
+        return v
 
 
 class OutputConfig(_Strict):
     dir: str = "out/run"
     video: str = "recon.mp4"
     frames: Literal["tiff16", "exr", "none"] = "tiff16"
-    fps: int = Field(30, ge=1)
+    fps: int = Field(30, ge=1, le=1000)
+    #: Peak value of the frames: PSNR and the full scale of videos and 16-bit frames
+    #: (null: found from the capture, see codedvideo.units).
+    data_range: float | None = Field(None, gt=0)
+    #: Replace existing output files that codedvideo did not write (folders never).
+    overwrite: bool = False
+
+    @field_validator("video")
+    @classmethod
+    def _video_name(cls, v: str) -> str:
+        if Path(v).name != v or Path(v).suffix.lower() not in (".mp4", ".mkv", ".avi", ".mov", ".gif"):
+            raise ValueError(f"video {v!r}: a file name in output.dir ending in .mp4, .mkv, .avi, .mov or .gif")
+        return v
 
 
 class ReportDictionaryConfig(_Strict):
@@ -177,6 +214,11 @@ class ReportConfig(_Strict):
             raise ValueError(f"every value must be finite and >= 0, got {v}")
         return v
 
+    @field_validator("size", mode="before")
+    @classmethod
+    def _list_as_tuple(cls, v):
+        return _pair(v)
+
     @field_validator("size")
     @classmethod
     def _patch_size(cls, v: tuple[int, int]) -> tuple[int, int]:
@@ -196,7 +238,7 @@ class ReportConfig(_Strict):
 
 
 class PipelineConfig(_Strict):
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**63 - 1)
     frames: int = Field(8, ge=1, le=64)
     cache: str = "cache"
     stages: list[Literal["train", "simulate", "reconstruct", "evaluate"]] = list(STAGES)
@@ -214,8 +256,22 @@ class PipelineConfig(_Strict):
         return [s for s in STAGES if s in v]
 
 
+def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
+    """The sparse-coding settings (:class:`codedvideo.reconstruct.OmpSettings`) of a ``reconstruct:`` section.
+
+    ``sigma`` is the noise standard deviation that ``tol_rms: auto`` follows,
+    in the capture's units; ``scale`` takes the capture's units to working
+    units (:mod:`codedvideo.units`), in which the settings are returned.
+    """
+    from .reconstruct import OmpSettings
+
+    tol = auto_tolerance(sigma * scale) if rc.tol_rms == "auto" else float(rc.tol_rms) * scale
+    return OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms,
+                       stride=rc.stride, weighting=rc.weighting)
+
+
 def auto_tolerance(sigma: float) -> float:
-    """Default RMS residual tolerance of Eq. 3 for read noise ``sigma``.
+    """Default RMS residual tolerance of Eq. 3 for read noise ``sigma``, both in working units (data range 255).
 
     Without noise a floor of 2 grey levels stops OMP on patches that are
     already explained: on the default scenes it costs under 0.02 dB against
@@ -224,22 +280,103 @@ def auto_tolerance(sigma: float) -> float:
     return float(max(sigma, 2.0))
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML loader that refuses a key given twice in one mapping (YAML would keep the last silently)."""
+
+
+def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False):
+    seen = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
+        seen.add(key)
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+
+
+def _first_error(exc: ValidationError) -> tuple[str, dict]:
+    errors = exc.errors()
+    # a union such as `float | "auto"` reports one error per branch: the literal's is the least useful
+    err = next((e for e in errors if e["type"] != "literal_error"), errors[0])
+    if len(errors) > 1 and all(e["loc"][:1] == err["loc"][:1] for e in errors):
+        errors = [err]
+    msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return msg + more, err
+
+
 def load_config(path: str | Path) -> PipelineConfig:
-    """Read and validate pipeline.yaml; raise :class:`ConfigError` naming the key."""
+    """Read and validate pipeline.yaml; raise :class:`ConfigError` naming the key.
+
+    Strict: the file must be UTF-8 YAML holding a non-empty mapping, no key
+    may appear twice, and values are not coerced (``frames: "8"`` or
+    ``frames: true`` are errors, as are inf and NaN).
+    """
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"config {path}: no such file")
+    if not path.is_file():
+        raise ConfigError(f"config {path}: not a file (give the path of a pipeline.yaml)")
     try:
-        raw = yaml.safe_load(path.read_text()) or {}
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"config {path}: not UTF-8 text (byte {exc.start})") from exc
+    except OSError as exc:
+        raise ConfigError(f"config {path}: cannot read it ({exc.strerror or exc})") from exc
+    try:
+        raw = yaml.load(text, Loader=_UniqueKeyLoader)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"config {path}: not valid YAML ({str(exc).splitlines()[0]})") from exc
+        mark = getattr(exc, "problem_mark", None)
+        problem = getattr(exc, "problem", None) or " ".join(str(exc).split())
+        where = f", line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"config {path}: not valid YAML ({problem}{where})") from exc
+    if raw is None:
+        raise ConfigError(f"config {path}: empty; give at least the stages to run (see the README's pipeline.yaml)")
     if not isinstance(raw, dict):
         raise ConfigError(f"config {path}: expected a mapping at the top level")
     try:
-        return PipelineConfig.model_validate(raw)
+        # JSON mode: YAML lists are valid tuples, and strict types still apply
+        return PipelineConfig.model_validate_json(json.dumps(raw, default=str))
     except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"]) or "(top level)"
-        msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
-        more = f" (and {len(exc.errors()) - 1} more)" if len(exc.errors()) > 1 else ""
-        raise ConfigError(f"config {path}: {where}: {msg}{more}") from exc
+        msg, err = _first_error(exc)
+        # the location without pydantic's names of union branches ("constrained-float", ...)
+        where = ".".join(str(p) for p in err["loc"] if isinstance(p, int) or str(p).isidentifier()) or "(top level)"
+        value = "" if err["type"] == "extra_forbidden" else f" = {err.get('input')!r}"
+        raise ConfigError(f"config {path}: {where}{value}: {msg}") from exc
+
+
+def validated(model: type[BaseModel], values: dict, options: dict[str, str] | None = None):
+    """Build ``model`` from command-line values, with the same rules as pipeline.yaml.
+
+    ``options`` maps field names to option names (default ``--field-name``);
+    an invalid value raises :class:`ConfigError` naming the option, the value
+    and the rule it breaks.
+    """
+    try:
+        return model.model_validate(values)
+    except ValidationError as exc:
+        msg, err = _first_error(exc)
+        field = str(err["loc"][0]) if err["loc"] else ""
+        option = (options or {}).get(field, "--" + field.replace("_", "-"))
+        raise ConfigError(f"option {option} {values.get(field)!r}: {msg}") from exc
+
+
+def check_scheduler(address: str | None, timeout: float = 5.0) -> None:
+    """Fail fast, with one line, when a dask.distributed scheduler address cannot be reached."""
+    if not address or address in ("threads", "sync"):
+        return
+    import socket
+
+    scheme, sep, rest = address.partition("://")
+    if sep and scheme not in ("tcp", "tls"):
+        return  # other transports (ucx, inproc) are left to dask.distributed
+    host, _, port = (rest if sep else address).rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"scheduler {address}: cannot connect within {timeout:g} s "
+                          f"({getattr(exc, 'strerror', None) or exc}); is the scheduler running?") from exc

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 
 import numpy as np
 from scipy.fft import dct
@@ -17,6 +18,80 @@ from .errors import InputError
 from .ksvd import ksvd
 
 PATCH = 7
+
+#: Atoms are rescaled to unit norm when some nonzero atom's norm differs from 1
+#: by more than this; a dictionary within it (every learned or DCT dictionary,
+#: float32 roundoff is ~1e-7) is used bit for bit as given.
+UNIT_NORM_TOL = 1e-4
+
+
+def _column_norms(D: np.ndarray) -> np.ndarray:
+    """Euclidean norms of the columns in float64, without overflow or underflow for any finite entries."""
+    A = np.abs(np.asarray(D, dtype=np.float64))
+    with np.errstate(invalid="ignore", over="ignore"):
+        peak = A.max(axis=0, initial=0.0)  # NaN where a column holds NaN, Inf where it holds Inf
+        scale = np.where((peak > 0) & np.isfinite(peak), peak, 1.0)
+        return scale * np.sqrt(((A / scale) ** 2).sum(axis=0))  # NaN or Inf stays non-finite
+
+
+def prepare_dictionary(D: np.ndarray, where: str) -> np.ndarray:
+    """The dictionary as the reconstruction uses it: float32, nonzero atoms of unit norm.
+
+    Reconstruction is invariant to the scale of each atom (OMP selects by
+    normalised correlation and ``D alpha`` does not change when an atom and its
+    coefficient trade a factor), but its numerics are not: float32 squares of
+    atoms near 1e30 overflow, and atoms near 1e-12 fall under the zero-column
+    floors.  So atoms are made unit-norm here, once, before any tile is solved.
+
+    * Column norms are computed in float64 (scaled by each column's largest
+      entry, so no finite atom overflows or underflows).
+    * Atoms that are all zero, or whose norm is not finite (NaN or Inf entries),
+      are dropped with a warning that says how many.
+    * Every atom is divided by its norm only when some norm differs from 1 by
+      more than :data:`UNIT_NORM_TOL`; otherwise the kept atoms are returned bit
+      for bit (a float32 dictionary with nothing to drop: the array itself), so
+      unit-norm dictionaries give the same results and cache keys.
+
+    Parameters
+    ----------
+    D : ndarray of shape (features, K)
+    where : str
+        Names the dictionary in messages (a path, or how it was given).
+
+    Returns
+    -------
+    ndarray of shape (features, K'), float32, K' <= K the nonzero finite atoms.
+
+    Raises
+    ------
+    InputError
+        When ``D`` is not a 2D array, has no atoms, or every atom is zero or not finite.
+    """
+    D = np.asarray(D)
+    if D.ndim != 2:
+        raise InputError(f"dictionary {where}: expected a 2D array (features, atoms), got shape {D.shape}")
+    if D.shape[1] == 0 or D.shape[0] == 0:
+        raise InputError(f"dictionary {where}: has no atoms (shape {D.shape})")
+    if not np.issubdtype(D.dtype, np.number) or np.iscomplexobj(D):
+        raise InputError(f"dictionary {where}: atoms must be real numbers, got dtype {D.dtype}")
+    norms = _column_norms(D)
+    finite = np.isfinite(norms)
+    zero = finite & (norms == 0)
+    keep = finite & ~zero
+    n_zero, n_bad, k = int(zero.sum()), int((~finite).sum()), D.shape[1]
+    if not keep.any():
+        if n_bad == 0:
+            raise InputError(f"dictionary {where}: every atom is zero ({k} atoms); it cannot represent any patch")
+        raise InputError(f"dictionary {where}: every atom is zero or not finite ({n_zero} zero, {n_bad} with NaN or Inf)")
+    if n_zero or n_bad:
+        what = " and ".join(part for part in (f"{n_zero} all-zero" if n_zero else "",
+                                               f"{n_bad} non-finite (NaN or Inf)" if n_bad else "") if part)
+        warnings.warn(f"dictionary {where}: dropped {what} of its {k} atoms; reconstructing with the other "
+                      f"{int(keep.sum())}", UserWarning, stacklevel=2)
+        D, norms = D[:, keep], norms[keep]
+    if np.abs(norms - 1.0).max() > UNIT_NORM_TOL:
+        return np.ascontiguousarray(D.astype(np.float64) / norms[None, :], dtype=np.float32)
+    return D if D.dtype == np.float32 else D.astype(np.float32)
 
 
 def _dct_1d(n: int, atoms: int) -> np.ndarray:

@@ -94,37 +94,40 @@ def atomic_output(path: str | os.PathLike):
 
 def _rename_into_place(tmp: Path, path: Path) -> None:
     """Rename a finished temporary file or folder onto ``path`` (replacing what is there)."""
+    # a file never replaces a folder, nor a folder a file (codedvideo.outputs refuses both before
+    # any work; this keeps the rule for every writer)
+    if path.is_dir() != tmp.is_dir() and (path.exists() or path.is_symlink()):
+        have = "a folder" if path.is_dir() else "a file"
+        raise OutputError(f"{path}: exists and is {have}; codedvideo does not replace it with "
+                          f"{'a folder' if tmp.is_dir() else 'a file'}")
     try:
-        if tmp.is_dir():
-            if path.exists():
-                old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
-                os.replace(path, old)
-                os.replace(tmp, path)
-                shutil.rmtree(old, ignore_errors=True) if old.is_dir() else old.unlink(missing_ok=True)
-            else:
-                os.replace(tmp, path)
-        else:
-            if path.is_dir():
-                shutil.rmtree(path)
+        if tmp.is_dir() and path.exists():  # the old folder stays whole until the new one is in place
+            old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
+            os.replace(path, old)
             os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)  # atomic for a file
     except OSError as exc:
         raise OutputError(f"{path}: cannot rename the finished output into place ({exc.strerror or exc})") from exc
 
 
-def check_writable(path: str | os.PathLike) -> Path:
+def check_writable(path: str | os.PathLike, *, what: str = "") -> Path:
     """Raise :class:`OutputError` unless ``path`` could be written (checked before any work is done).
 
     The nearest existing folder above ``path`` must be a writable folder
     (missing folders are created by the writer).  Nothing is created here.
+    ``what`` names the path in the message (default: the path itself).
     """
     path = Path(path)
+    name = f"{what} {path.parent}" if what else str(path)
     parent = path.absolute().parent
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
-        raise OutputError(f"{path}: cannot create it, {parent} is a file, not a folder")
+        raise OutputError(f"{name}: cannot create it, {parent} is a file, not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputError(f"{path}: folder {parent} is not writable")
+        raise OutputError(f"{name}: folder {parent} is not writable")
     return path
 
 
@@ -231,9 +234,49 @@ def _read_npy(path: Path) -> np.ndarray:
         arr = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise InputError(f"array {path}: not a readable .npy file ({exc})") from exc
+    if not isinstance(arr, np.ndarray):  # np.load opens .npz archives whatever their name
+        arr.close()
+        raise InputError(f"array {path}: is a .npz archive, not a .npy array (save it with numpy.save)")
     if arr.dtype.kind not in "biuf":
         raise InputError(f"array {path}: unsupported dtype {arr.dtype}")
     return arr
+
+
+_OIIO_DTYPES = {"uint8": "uint8", "int8": "int8", "uint16": "uint16", "int16": "int16", "uint32": "uint32",
+                "int32": "int32", "half": "float16", "float": "float32", "double": "float64"}
+
+
+def stored_dtype(path: str | os.PathLike) -> np.dtype:
+    """The numpy type the file stores its values in (readers return float32; the data range needs this).
+
+    .npy: its header; images: OpenImageIO's pixel format; videos: uint8;
+    a folder or printf pattern of frames: its first file's.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        try:
+            return np.load(path, mmap_mode="r", allow_pickle=False).dtype  # the header only
+        except (OSError, ValueError, AttributeError) as exc:
+            raise InputError(f"array {path}: not a readable .npy file ({exc})") from exc
+    if suffix in VIDEO_SUFFIXES:
+        return np.dtype(np.uint8)
+    if path.is_dir() or (is_pattern(str(path)) and not path.exists()):
+        files = (_pattern_frames(str(path)) if not path.is_dir() else
+                 sorted((f for f in path.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")),
+                        key=_natural_key))
+        if not files:
+            raise InputError(f"frames {path}: the folder holds no image files")
+        return stored_dtype(files[0])
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise InputError(f"image {path}: cannot read ({_one_line(oiio.geterror() or 'unknown format or corrupt file')})")
+    try:
+        return np.dtype(_OIIO_DTYPES.get(str(inp.spec().format), "float32"))
+    finally:
+        inp.close()
 
 
 def read_image(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:

@@ -6,6 +6,8 @@ peak (``data_range``, 255 for 8-bit grey levels) and then averaged over frames.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
@@ -50,3 +52,33 @@ def evaluate(recon: np.ndarray, truth: np.ndarray, *, data_range: float = 255.0)
         ssim_per_frame=ssim,
         data_range=float(data_range),
     )
+
+
+def json_safe(obj):
+    """A copy of ``obj`` that strict JSON can hold: non-finite floats become None.
+
+    ``json.dumps`` writes ``Infinity`` and ``NaN`` by default, which strict
+    parsers (``JSON.parse``, ``jq``) reject: the PSNR of identical frames is
+    infinite, the SSIM of frames too small for its window NaN.  Python and
+    numpy floats (scalars and arrays, also inside dicts, lists and tuples)
+    that are NaN or infinite are replaced by None; numpy integers, booleans
+    and arrays become plain Python values (arrays as nested lists), tuples
+    become lists; dict keys, strings and everything else are kept as they are.
+
+    >>> json_safe({"psnr": float("inf"), "per_frame": [1.5, np.float32("nan")]})
+    {'psnr': None, 'per_frame': [1.5, None]}
+    """
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        value = float(obj)
+        return value if math.isfinite(value) else None
+    return obj

@@ -73,12 +73,14 @@ MIN_VISIBLE = 0.05
 def _safe_inverse(norms: np.ndarray, atom_norms: np.ndarray | None = None) -> np.ndarray:
     """1 / norm for usable columns, 0 for the others, which are never chosen.
 
-    A column is unusable when it is (numerically) zero or, given the norms of
-    the atoms themselves (broadcast against ``norms``), when it keeps less than
+    A column is unusable when it is (numerically) zero, below :data:`_TINY`
+    times the largest of ``norms`` (relative, so that a dictionary scaled by any
+    factor selects the same columns), or, given the norms of the atoms
+    themselves (broadcast against ``norms``), when it keeps less than
     :data:`MIN_VISIBLE` of its atom's norm.
     """
     norms = np.asarray(norms, dtype=np.float32)
-    good = norms > _TINY * max(float(norms.max(initial=0.0)), 1.0)
+    good = norms > _TINY * float(norms.max(initial=0.0))
     if atom_norms is not None:
         good &= norms > MIN_VISIBLE * np.asarray(atom_norms, dtype=np.float32)
     return np.where(good, 1.0 / np.where(good, norms, 1.0), 0.0).astype(np.float32)
@@ -147,10 +149,25 @@ def pixel_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pattern_table(patterns: np.ndarray, D: np.ndarray, patch_pixels: int) -> np.ndarray:
-    """``B[i, u, k] = sum_t patterns[u, t] D[t*m + i, k]``, shape (m, U, K), float32."""
+    """``B[i, u, k] = sum_t patterns[u, t] D[t*m + i, k]``, shape (m, U, K), float32.
+
+    Summed in sub-frame order, one element at a time (no BLAS): an entry depends
+    only on its own pattern, not on which other patterns a region holds or on
+    the BLAS threads, so tiles of any size get the same table rows.
+    """
     n = patterns.shape[1]
     D3 = np.asarray(D, dtype=np.float32).reshape(n, patch_pixels, -1)
-    return np.ascontiguousarray(np.einsum("un,nik->iuk", patterns, D3, optimize=True), dtype=np.float32)
+    pat = np.asarray(patterns, dtype=np.float32)
+    B = np.zeros((patch_pixels, pat.shape[0], D3.shape[2]), np.float32)
+    for t in range(n):
+        on = np.flatnonzero(pat[:, t])
+        if on.size == 0:
+            continue
+        if (pat[on, t] == 1).all():
+            B[:, on, :] += D3[t][:, None, :]
+        else:
+            B[:, on, :] += pat[on, t][None, :, None] * D3[t][:, None, :]
+    return B
 
 
 class PlainOperator:
@@ -384,18 +401,21 @@ def periodic_groups(mask: np.ndarray, patch: int) -> np.ndarray | None:
     return None
 
 
-def masked_operator(S: np.ndarray, D: np.ndarray, *, groups: np.ndarray | None = None, max_groups: int = 64):
+def masked_operator(S: np.ndarray, D: np.ndarray, *, groups: np.ndarray | None = None, max_groups: int = 64,
+                    min_share: int = 4):
     """The cheaper exact operator for a batch: grouped when few distinct codes exist.
 
     ``groups`` (one id per patch, patches with equal ids have equal codes), when
-    known, saves the comparison of all patch codes.
+    known, saves the comparison of all patch codes.  Grouped needs at most
+    ``max_groups`` codes and at least ``min_share`` patches per code on average
+    (0: whenever the codes are few, whatever the batch size).
     """
     if groups is not None:
         _, first, inv = np.unique(groups, return_index=True, return_inverse=True)
         found = (first, inv.ravel())
     else:
         found = patch_code_groups(S)
-    if len(found[0]) <= max_groups and S.shape[0] >= 4 * len(found[0]):
+    if len(found[0]) <= max_groups and S.shape[0] >= min_share * len(found[0]):
         return GroupedOperator(S, D, found)
     return MaskedOperator(S, D)
 
@@ -459,7 +479,7 @@ def omp(
         h += h2
         qn = np.sqrt(np.einsum("pm,pm->p", q, q))
         an = np.sqrt(np.einsum("pm,pm->p", a, a))
-        ok = (qn > dependence_tol * np.maximum(an, _TINY)) & (best > 0)
+        ok = (qn > dependence_tol * an) & (best > 0)  # relative: any atom scale
         q /= np.where(ok, qn, 1.0)[:, None]
         c = np.einsum("pm,pm->p", q, r)
         r_new = r - c[:, None] * q
@@ -520,7 +540,7 @@ def omp_reference(A: np.ndarray, y: np.ndarray, *, max_atoms: int, tol: float = 
     A = np.asarray(A, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     norms = np.linalg.norm(A, axis=0)
-    usable = norms > _TINY * max(norms.max(initial=0.0), 1.0)
+    usable = norms > _TINY * norms.max(initial=0.0)
     sel: list[int] = []
     coef = np.zeros(0)
     r = y.copy()

@@ -101,7 +101,7 @@ def _omp_kernel(y, pat, B, B2, floor, tol, kmax, dep_tol, select_bits, tiny, ind
             row = B2[i, pat[p, i]]
             for k in range(K):
                 c[k] += row[k]
-        big = 1.0
+        big = 0.0  # the zero-column floor is relative to the patch's largest column: any atom scale
         for k in range(K):
             inv[k] = np.sqrt(max(c[k], np.float32(0.0)))
             big = max(big, inv[k])
@@ -139,7 +139,7 @@ def _omp_kernel(y, pat, B, B2, floor, tol, kmax, dep_tol, select_bits, tiny, ind
             for i in range(m):
                 qn += q[i] * q[i]
             qn = np.sqrt(qn)
-            if not (qn > dep_tol * max(np.sqrt(an), tiny) and best > 0):
+            if not (qn > dep_tol * np.sqrt(an) and best > 0):
                 dependent[p] = True
                 break
             proj = 0.0

@@ -16,7 +16,10 @@ write the same chunk, and a rerun skips the tiles whose statistics exist.
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
+import time
+import uuid
 from dataclasses import dataclass
 
 import dask
@@ -24,6 +27,11 @@ import numpy as np
 
 from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region
 from .store import WorkStore
+
+log = logging.getLogger("codedvideo")
+
+#: Rounds of computing the tiles that fail their check before giving up.
+MAX_ATTEMPTS = 3
 
 
 @dataclass(frozen=True)
@@ -97,10 +105,16 @@ def _tile_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings
 
 
 def build_graph(store_path: str, tiles: list[Tile], D: np.ndarray, settings: OmpSettings, *, patch: int = 7):
-    """One delayed task per tile, sharing a single dictionary node."""
+    """One delayed task per tile, sharing a single dictionary node.
+
+    Task names are unique to this graph: a distributed scheduler shared by
+    several runs (or by two rounds of one run) never takes one run's tile for
+    another's.
+    """
     d_node = dask.delayed(D, pure=True, name="dictionary-" + dask.base.tokenize(D))
     task = dask.delayed(_tile_task, pure=False)
-    return [task(store_path, t, d_node, settings, patch, dask_key_name=f"tile-{t.index}") for t in tiles]
+    run = uuid.uuid4().hex[:12]
+    return [task(store_path, t, d_node, settings, patch, dask_key_name=f"tile-{run}-{t.index}") for t in tiles]
 
 
 @contextlib.contextmanager
@@ -168,19 +182,51 @@ def reconstruct_tiles(
     scheduler: str | None = None,
     workers: int | None = None,
     progress: bool = True,
-) -> dict:
-    """Reconstruct every tile of a working store that is not done yet.
+) -> tuple[np.ndarray, dict]:
+    """Reconstruct every tile of a working store that is not done yet, and assemble the volume.
 
-    Returns a summary: tiles done now and reused, and the summed statistics.
+    Every tile that claims to be done is read back and checked against its
+    digest; those that pass are reused, the others (never finished, damaged,
+    truncated, deleted, copied over) are computed, then read back and checked
+    in turn -- up to :data:`MAX_ATTEMPTS` rounds.  The volume is assembled
+    from verified reads only.  The caller holds the entry's lock.
+
+    Returns
+    -------
+    volume : ndarray (N, H, W) float32
+    summary : dict
+        Tiles computed now, reused and found damaged, the summed statistics
+        and ``seconds_verify``, the time spent reading tiles back and checking them.
     """
     shape = tuple(store.group["coded"].shape)
     tiles = plan_tiles(shape, tile, patch=patch)
-    done = store.done_tiles()
-    todo = [t for t in tiles if not done[t.index]]
-    run_graph(build_graph(str(store.path), todo, D, settings, patch=patch), scheduler=scheduler, workers=workers, progress=progress)
-    stats = store.stats()
-    if not np.isfinite(stats).all():
-        missing = np.flatnonzero(~np.isfinite(stats).all(1)).tolist()
-        raise RuntimeError(f"working store {store.path}: tiles {missing} did not finish")
+    t0 = time.perf_counter()
+    ok, damaged, volume, read_stats = store.read_verified(tiles)
+    seconds_verify = time.perf_counter() - t0
+    stats = np.where(ok[:, None], read_stats, np.nan)
+    if damaged.any():
+        log.warning("cache entry %s: tiles %s failed their checksum (damaged); computing them again",
+                    store.path, np.flatnonzero(damaged).tolist())
+    computed: set[int] = set()
+    for attempt in range(MAX_ATTEMPTS):
+        todo = [t for t in tiles if not ok[t.index]]
+        if not todo:
+            break
+        if attempt:
+            log.warning("cache entry %s: tiles %s did not read back as written; computing them again",
+                        store.path, [t.index for t in todo])
+        run_graph(build_graph(str(store.path), todo, D, settings, patch=patch), scheduler=scheduler, workers=workers,
+                  progress=progress)
+        computed.update(t.index for t in todo)
+        t0 = time.perf_counter()
+        ok_now, _, _, read_stats = store.read_verified(todo, volume)
+        seconds_verify += time.perf_counter() - t0
+        stats[ok_now] = read_stats[ok_now]
+        ok |= ok_now
+    if not ok.all():
+        missing = np.flatnonzero(~ok).tolist()
+        raise RuntimeError(f"working store {store.path}: tiles {missing} did not finish or do not read back as "
+                           f"written after {MAX_ATTEMPTS} attempts")
     totals = dict(zip(STAT_NAMES, stats.sum(0).tolist()))
-    return dict(tiles=len(tiles), tiles_computed=len(todo), tiles_reused=len(tiles) - len(todo), **totals)
+    return volume, dict(tiles=len(tiles), tiles_computed=len(computed), tiles_reused=len(tiles) - len(computed),
+                        tiles_damaged=int(damaged.sum()), seconds_verify=seconds_verify, **totals)

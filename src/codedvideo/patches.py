@@ -77,6 +77,13 @@ def fold_rows(patches: np.ndarray, out: np.ndarray, row: int, patch: int = PATCH
         Accumulator.
     row : int
         First grid row of the band.
+
+    Every pixel receives its patches in one fixed order, by patch corner row
+    (top first), then by corner column (right first), whatever the band: bands
+    are folded top to bottom and, within a band, the lower offsets ``dy`` (the
+    later corner rows) come last.  Float32 sums then do not depend on how the
+    patch rows are cut into bands (batch size, tile size, image origin), so
+    tiled and whole-image results agree bit for bit.
     """
     n, h, w = out.shape
     wp = w - patch + 1
@@ -84,7 +91,7 @@ def fold_rows(patches: np.ndarray, out: np.ndarray, row: int, patch: int = PATCH
     if k * wp != patches.shape[0] or row + k > h - patch + 1:
         raise ValueError(f"fold_rows: {patches.shape[0]} patches are not whole rows of a {h}x{w} grid from row {row}")
     pt = patches.reshape(k, wp, n, patch, patch)
-    for dy in range(patch):
+    for dy in range(patch - 1, -1, -1):  # corner rows in increasing order: see above
         for dx in range(patch):
             out[:, row + dy : row + dy + k, dx : dx + wp] += np.moveaxis(pt[:, :, :, dy, dx], 2, 0)
 

@@ -25,20 +25,20 @@ from . import io as cio
 from . import patches as P
 from . import manifest, physics, synth
 from .codes import make_code
-from .config import PipelineConfig, auto_tolerance
+from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
 from .errors import InputError
 from .metrics import evaluate
 from .parallel import plan_tiles, reconstruct_tiles
 from .reconstruct import STAT_NAMES, OmpSettings
-from .store import WorkStore, load_array, load_dictionary, save_array, save_dictionary
+from .store import WorkStore, entry_lock, load_array, load_dictionary, save_array, save_dictionary
 
 log = logging.getLogger("codedvideo")
 
 PATCH = 7
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v3"
+RECON_VERSION = "recon-v4"  # v4: per-tile digests in the working store
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".gif")
 
 
@@ -56,8 +56,10 @@ def content_key(*parts) -> str:
 
 
 def _write_json(path: Path, payload: dict) -> Path:
-    with cio.atomic_output(path) as tmp:
-        Path(tmp).write_text(json.dumps(payload, indent=2, default=_json_default) + "\n")
+    from .metrics import json_safe
+
+    with cio.atomic_output(path) as tmp:  # strict JSON: an infinite PSNR is null
+        Path(tmp).write_text(json.dumps(json_safe(payload), indent=2, default=_json_default, allow_nan=False) + "\n")
     return path
 
 
@@ -133,44 +135,63 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
     key = content_key("dictionary-v1", settings)
     cached = Path(cfg.cache) / f"dict-{key}.zarr"
     t0 = time.perf_counter()
-    cached_ok = False
-    if cached.exists():
-        try:
-            load_dictionary(cached)
-            cached_ok = True
-            log.info("dictionary: reusing %s", cached)
-        except InputError as exc:
-            log.warning("dictionary cache %s is unreadable (%s); training again", cached, exc)
+    # One trainer at a time per entry: a second process with the same settings waits, then reuses
+    # the dictionary the first one saved (whole, renamed into place, checked by its sha256 on load).
+    found = _cached_dictionary(cached, key)  # a finished entry needs no lock: it appeared by a rename
+    videos = None
+    if found is None and dc.kind != "dct":  # read (and so check) the training videos before touching the cache
+        videos = training_videos(dc.training, frames=cfg.frames, clips=dc.clips, seed=cfg.seed, max_speed=dc.max_speed)
+    if found is None:
+        with entry_lock(cached):
+            found = _cached_dictionary(cached, key, warn=True)  # another run may have saved it meanwhile
+            if found is None:
+                if dc.kind == "dct":
+                    D = dct_dictionary(cfg.frames)
+                    meta = dict(patch=PATCH, frames=cfg.frames, method="dct3d", seed=cfg.seed, iterations=0)
+                else:
+                    bar = _progress_bar(dc.iterations, "K-SVD") if progress else None
+                    D, meta = learn_dictionary(
+                        videos,
+                        frames=cfg.frames,
+                        atoms=dc.atoms,
+                        samples=dc.samples,
+                        iterations=dc.iterations,
+                        sparsity=dc.sparsity,
+                        seed=cfg.seed,
+                        progress=(lambda it, rmse: (bar.update(1), bar.set_postfix(rmse=f"{rmse:.2f}"))) if bar else None,
+                    )
+                    if bar:
+                        bar.close()
+                    meta["training_set"] = list(dc.training)
+                    meta["clips"] = dc.clips
+                meta["settings_key"] = key
+                save_dictionary(cached, D, meta)
+                D, meta = load_dictionary(cached)  # read back and checked against its sha256, under the lock
+                cached_ok = False
+    if found is not None:
+        (D, meta), cached_ok = found, True
+        log.info("dictionary: reusing %s", cached)
     result = cached
-    if not cached_ok:
-        if dc.kind == "dct":
-            D = dct_dictionary(cfg.frames)
-            meta = dict(patch=PATCH, frames=cfg.frames, method="dct3d", seed=cfg.seed, iterations=0)
-        else:
-            videos = training_videos(dc.training, frames=cfg.frames, clips=dc.clips, seed=cfg.seed, max_speed=dc.max_speed)
-            bar = _progress_bar(dc.iterations, "K-SVD") if progress else None
-            D, meta = learn_dictionary(
-                videos,
-                frames=cfg.frames,
-                atoms=dc.atoms,
-                samples=dc.samples,
-                iterations=dc.iterations,
-                sparsity=dc.sparsity,
-                seed=cfg.seed,
-                progress=(lambda it, rmse: (bar.update(1), bar.set_postfix(rmse=f"{rmse:.2f}"))) if bar else None,
-            )
-            if bar:
-                bar.close()
-            meta["training_set"] = list(dc.training)
-            meta["clips"] = dc.clips
-        meta["settings_key"] = key
-        result = save_dictionary(cached, D, meta)
     if output is not None and Path(output) != result:
-        D, meta = load_dictionary(result)
         save_dictionary(output, D, {k: v for k, v in meta.items() if k not in ("atoms", "sha256", "kind", "format_version")})
         result = Path(output)
-    _, meta = load_dictionary(result)
+        _, meta = load_dictionary(result)
     return result, dict(meta, reused=cached_ok, seconds=time.perf_counter() - t0)
+
+
+def _cached_dictionary(cached: Path, key: str, *, warn: bool = False) -> tuple[np.ndarray, dict] | None:
+    """The dictionary cache entry ``cached`` when it is intact and made for settings ``key``; else None."""
+    if not cached.exists():
+        return None
+    try:
+        D, meta = load_dictionary(cached)  # checked against its sha256
+        if meta.get("settings_key") != key:  # e.g. another entry copied over this one
+            raise InputError(f"dictionary {cached}: made for settings {meta.get('settings_key')!r}, not {key}")
+    except InputError as exc:
+        if warn:
+            log.warning("dictionary cache %s is unreadable (%s); training again", cached, exc)
+        return None
+    return D, meta
 
 
 def _check_dictionary(meta: dict, frames: int, path) -> None:
@@ -249,8 +270,12 @@ def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> t
     return coded, mask_used, count
 
 
+#: The files :func:`write_capture` writes into its folder.
+CAPTURE_FILES = ("coded.npy", "mask.npy", "truth.npy", "coded.tif")
+
+
 def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[str, Path]:
-    """Write coded.npy, mask.npy, truth.npy and coded.tif into ``outdir``."""
+    """Write coded.npy, mask.npy, truth.npy and coded.tif (:data:`CAPTURE_FILES`) into ``outdir``."""
     outdir = Path(outdir)
     paths = {}
     for name in ("coded", "mask", "truth"):
@@ -306,6 +331,13 @@ def reconstruct_volume(
     the statistics), computed directly without tiles.  Patches that stopped
     early because their next atom was numerically dependent on the chosen
     ones are counted (``dependent_stops``) and reported by a warning.
+
+    The working store is the cache entry ``cache/recon-KEY.zarr``, shared by
+    every run with the same inputs and settings: runs on one entry take its
+    lock in turn (a second run waits, then reuses the finished tiles); an
+    entry whose metadata or inputs are damaged is rebuilt, and a tile that
+    fails its checksum when read back is computed again, never returned
+    (``tiles_damaged`` in the statistics).
     """
     physics.check_pair(coded.shape, mask.shape)
     n, h, w = mask.shape
@@ -324,21 +356,25 @@ def reconstruct_volume(
     t0 = time.perf_counter()
     tiles = plan_tiles((h, w), tile, patch=PATCH)
     key = content_key(RECON_VERSION, coded, mask, dictionary_key or content_key(D), settings.__dict__, tile)
-    store = WorkStore.create(
-        Path(cache) / f"recon-{key}.zarr", coded, mask, tile=tile, n_stats=len(STAT_NAMES), n_tiles=len(tiles),
-        attrs=dict(key=key, settings=settings.__dict__, tile=tile),
-    )
-    timings["store_inputs"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    summary = reconstruct_tiles(store, D, settings, tile=tile, patch=PATCH, scheduler=scheduler, workers=workers, progress=progress)
-    timings["reconstruct"] = time.perf_counter() - t0
+    entry = Path(cache) / f"recon-{key}.zarr"
+    # One run at a time per entry (processes, threads, clients of one dask cluster): a second run
+    # waits here, then reuses the tiles the first one finished.  Every tile is checked against its
+    # digest as it is read back; a damaged entry is rebuilt, a damaged tile computed again.
+    with entry_lock(entry):
+        store = WorkStore.create(
+            entry, coded, mask, tile=tile, n_stats=len(STAT_NAMES), n_tiles=len(tiles),
+            attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION),
+        )
+        timings["store_inputs"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        volume, summary = reconstruct_tiles(store, D, settings, tile=tile, patch=PATCH, scheduler=scheduler,
+                                            workers=workers, progress=progress)
+    timings["assemble"] = summary.pop("seconds_verify")  # reading every tile back and checking its digest
+    timings["reconstruct"] = time.perf_counter() - t0 - timings["assemble"]
     if summary.get("dependent_stops"):
         warnings.warn(f"{int(summary['dependent_stops'])} of {int(summary['patches'])} patches stopped early: their "
                       "next atom was numerically dependent on the chosen ones (near-duplicate or degenerate "
                       "dictionary atoms)", stacklevel=2)
-    t0 = time.perf_counter()
-    volume = store.volume()
-    timings["assemble"] = time.perf_counter() - t0
     holes = P.uncovered_pixels(mask.astype(bool).any(0), PATCH, settings.stride)
     if not np.isfinite(volume[:, ~holes]).all():
         raise RuntimeError(f"working store {store.path}: volume has unwritten or non-finite pixels")
@@ -358,6 +394,54 @@ def reconstruct_volume(
         seconds=timings,
         method="sparse",
     )
+    return volume, info
+
+
+def reconstruct_capture(
+    method: str,
+    coded: np.ndarray,
+    mask: np.ndarray,
+    *,
+    data_range,
+    settings: OmpSettings,
+    dictionary: np.ndarray | None = None,
+    dictionary_key: str = "",
+    dictionary_name: str = "",
+    white_level: float | None = None,
+    where: str = "coded image",
+    tile: int = 128,
+    cache: str | Path = "cache",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> tuple[np.ndarray, dict]:
+    """One capture in its own units -> its video in the same units, by any method.
+
+    The capture is scaled to working units (:class:`codedvideo.units.DataRange`,
+    ``settings`` already in them), reconstructed and scaled back, so the same
+    capture in other units gives the same video times the scale.  Pixels at
+    or above ``white_level`` (capture units; None: trust every pixel) are
+    missing measurements.
+    """
+    from .baselines import reconstruct_method
+
+    coded_used, mask_used, saturated = coded, mask, 0
+    if white_level is not None:
+        coded_used, mask_used, saturated = drop_saturated(coded, mask, white_level)
+        if saturated and not mask_used.any():
+            raise InputError(f"{where}: every measured pixel is at or above --white-level {white_level}; "
+                             "nothing is left to reconstruct (--trust-saturated uses them anyway)")
+    scale = np.float32(data_range.scale)
+    if scale != 1:
+        coded_used = np.asarray(coded_used, np.float32) * scale
+    volume, info = reconstruct_method(method, coded_used, mask_used, dictionary=dictionary, settings=settings,
+                                      tile=tile, cache=cache, scheduler=scheduler, workers=workers, progress=progress,
+                                      dictionary_key=dictionary_key, dictionary_name=dictionary_name)
+    if scale != 1:
+        volume = volume / scale
+        if info.get("measurement_residual_rms") is not None:
+            info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(scale)
+    info["saturated_pixels"] = saturated
     return volume, info
 
 
@@ -397,7 +481,8 @@ def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 
     if suffix == ".npy":
         cio.write_array(output, volume.astype(np.float32))
     elif suffix == ".zarr":
-        save_array(output, volume.astype(np.float32), chunks=volume.shape[:-2] + (256, 256))
+        save_array(output, volume.astype(np.float32), chunks=volume.shape[:-2] + (256, 256),
+                   attrs=dict(kind="codedvideo-volume"))
     elif suffix == ".mat":
         from .cacti import write_mat_volume
 
@@ -418,20 +503,15 @@ def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 
 OUTPUT_SUFFIXES = (".npy", ".zarr", ".mat", ".tif", ".tiff", ".mp4", ".mkv", ".avi", ".gif", "", ".d")
 
 
-def check_output(output: str | Path) -> Path:
-    """Fail before any work is done when :func:`write_volume` could not write ``output``.
-
-    Raises :class:`InputError` for a suffix no writer handles and
-    :class:`~codedvideo.errors.OutputError` when the place cannot be written
-    (a read-only folder, a path under a file).  Creates nothing.
-    """
-    output = Path(output)
-    if output.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise InputError(f"output {output}: unknown format {output.suffix!r} "
+def output_kind(output: str | Path) -> str:
+    """``"file"`` or ``"folder"``: what :func:`write_volume` writes at ``output`` (an unknown suffix is an error)."""
+    if Path(output).name in ("", ".", ".."):
+        raise InputError(f"output {output}: names no file or folder of its own; give a new name such as out.npy")
+    suffix = Path(output).suffix.lower()
+    if suffix not in OUTPUT_SUFFIXES:
+        raise InputError(f"output {output}: unknown format {suffix!r} "
                          "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .avi, .gif or a folder)")
-    cio.check_writable(output)
-    cio.check_writable(metrics_path(output))
-    return output
+    return "folder" if suffix in (".zarr", "", ".d") else "file"
 
 
 def check_size(shape: tuple, path, patch: int = PATCH) -> None:
@@ -490,10 +570,29 @@ def trivial_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return physics.static_estimate(coded, mask)
 
 
-def run_pipeline(cfg: PipelineConfig, *, progress: bool = True) -> dict:
-    """Run the stages the config names; return the metrics written."""
+def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str | Path | None = None) -> dict:
+    """Run the stages the config names; return the metrics written.
+
+    Every output is checked before any work (:func:`codedvideo.outputs.check_outputs`):
+    none may touch the config file, the scene, the code file, the dictionary,
+    the training videos or the cache.
+    """
+    from .config import omp_settings
+    from .outputs import Output, check_outputs, mark_written
+
     out = Path(cfg.output.dir)
-    cio.check_writable(out / cfg.output.video)  # before any work
+    outputs = [Output(out, "place", "output.dir"), Output(out / cfg.output.video, "file", "output.video"),
+               Output(out / "recon.npy", "file"), Output(metrics_path(out / cfg.output.video), "file", "metrics"),
+               Output(out / "capture", "place", "capture folder")]
+    outputs += [Output(out / "capture" / name, "file") for name in CAPTURE_FILES]
+    if cfg.output.frames != "none":
+        outputs.append(Output(out / "frames", "folder", "frames folder"))
+    check_outputs(outputs, dict(config=config_path, scene=cfg.scene.video, code=cfg.code.path,
+                                dictionary=cfg.dictionary.path, training=list(cfg.dictionary.training), cache=cfg.cache),
+                  overwrite=cfg.output.overwrite)  # before any work
+    from .config import check_scheduler
+
+    check_scheduler(cfg.reconstruct.scheduler)
     report: dict = dict(config=cfg.model_dump(mode="json"), seconds={})
     dict_path = None
     if "train" in cfg.stages or "reconstruct" in cfg.stages:
@@ -503,48 +602,55 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True) -> dict:
         report["dictionary"] = dict(path=str(dict_path), reused=dmeta["reused"], atoms=dmeta["atoms"],
                                     method=dmeta.get("method"), final_rmse=dmeta.get("final_rmse"))
     capture = None
+    written: list[Path] = []
     if "simulate" in cfg.stages or "reconstruct" in cfg.stages:
         t0 = time.perf_counter()
         video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
         capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed,
                                    p=cfg.code.p, code_path=cfg.code.path, sensor=sensor_model(cfg.noise))
-        report["capture"] = {k: str(v) for k, v in write_capture(capture, out / "capture").items()}
+        capture_paths = write_capture(capture, out / "capture")
+        written += capture_paths.values()
+        report["capture"] = {k: str(v) for k, v in capture_paths.items()}
         report["seconds"]["simulate"] = time.perf_counter() - t0
     if "reconstruct" in cfg.stages:
         D, dmeta = load_dictionary(dict_path)
         _check_dictionary(dmeta, cfg.frames, dict_path)
+        from .units import infer_data_range, static_peak
+
         rc = cfg.reconstruct
         sensor = sensor_model(cfg.noise)
         # with shot noise / quantisation: the RMS noise at the mean coded level
         sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
-        tol = auto_tolerance(sigma) if rc.tol_rms == "auto" else float(rc.tol_rms)
-        settings = OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms,
-                               stride=rc.stride, weighting=rc.weighting)
-        coded, mask, saturated = capture["coded"], capture["mask"], 0
-        if cfg.noise.white_level is not None:  # saturated pixels are missing measurements
-            coded, mask, saturated = drop_saturated(coded, mask, cfg.noise.white_level)
+        units = infer_data_range(static_peak(capture["coded"], capture["mask"]), given=cfg.output.data_range)
+        report["data_range"] = units.as_dict()
         t0 = time.perf_counter()
-        volume, info = reconstruct_volume(
-            coded, mask, D, settings=settings, tile=rc.tile, cache=cfg.cache,
-            scheduler=rc.scheduler, workers=rc.workers, progress=progress, dictionary_key=dmeta["sha256"],
-        )
+        # saturated pixels (noise.white_level) are missing measurements
+        volume, info = reconstruct_capture(
+            "omp", capture["coded"], capture["mask"], data_range=units, settings=omp_settings(rc, sigma, scale=units.scale),
+            dictionary=D, dictionary_key=dmeta["sha256"], dictionary_name=str(dict_path),
+            white_level=cfg.noise.white_level, where="simulated capture", tile=rc.tile, cache=cfg.cache,
+            scheduler=rc.scheduler, workers=rc.workers, progress=progress)
         report["seconds"]["reconstruct"] = time.perf_counter() - t0
-        report["reconstruction"] = dict(info, saturated_pixels=saturated)
+        report["reconstruction"] = info
         t0 = time.perf_counter()
-        video_path = write_volume(volume, out / cfg.output.video, fps=cfg.output.fps)
+        video_path = write_volume(volume, out / cfg.output.video, fps=cfg.output.fps, data_range=units.value)
+        written.append(video_path)
         report["outputs"] = dict(video=str(video_path))
         if cfg.output.frames != "none":
             report["outputs"]["frames"] = str(out / "frames")
-            cio.write_frames(out / "frames", volume, fmt=cfg.output.frames)
-        cio.write_array(out / "recon.npy", volume)
+            cio.write_frames(out / "frames", volume, fmt=cfg.output.frames, data_range=units.value)
+        written.append(cio.write_array(out / "recon.npy", volume))
         report["outputs"]["volume"] = str(out / "recon.npy")
         report["seconds"]["write"] = time.perf_counter() - t0
         if "evaluate" in cfg.stages:
             t0 = time.perf_counter()
-            report["quality"] = evaluate(volume, capture["truth"])
-            report["trivial"] = evaluate(trivial_estimate(capture["coded"], capture["mask"]), capture["truth"])
+            report["quality"] = evaluate(volume, capture["truth"], data_range=units.value)
+            report["trivial"] = evaluate(trivial_estimate(capture["coded"], capture["mask"]), capture["truth"],
+                                         data_range=units.value)
             report["seconds"]["evaluate"] = time.perf_counter() - t0
     report["seconds"]["total"] = sum(report["seconds"].values())
-    _write_json(metrics_path(out / cfg.output.video), report)
+    written.append(_write_json(metrics_path(out / cfg.output.video), report))
+    for path in written:
+        mark_written(path)
     report["metrics_path"] = str(metrics_path(out / cfg.output.video))
     return report

@@ -178,8 +178,9 @@ def reconstruct_region(
     S_all = P.extract(mask.astype(np.uint8), patch)  # (Pn, N, m)
     hp, wp = P.grid_shape((h, w), patch)
     groups = periodic_groups(mask, patch)
-    # periodic codes: the few distinct patch operators are built once for the region
-    grouped = None if groups is None else masked_operator(S_all, D, groups=groups)
+    # periodic codes: the few distinct patch operators are built once for the region, however
+    # few its patches, so that small edge tiles solve them with the same arithmetic as large ones
+    grouped = None if groups is None else masked_operator(S_all, D, groups=groups, min_share=0)
     if not isinstance(grouped, GroupedOperator):
         grouped = None
     # any other code whose pixels take few shutter patterns (every single-bump code):

@@ -1,0 +1,242 @@
+"""Check and clean a codedvideo cache folder (``--cache``, ``cache:`` in pipeline.yaml).
+
+A cache holds entries of three kinds, each recognised by its name and its
+contents; nothing else in the folder is ever reported or removed:
+
+* ``dict-KEY.zarr`` -- a trained dictionary (checked: readable, its atoms
+  match their recorded sha256, made for the settings ``KEY`` names);
+* ``recon-KEY.zarr`` -- the working store of a reconstruction (checked: the
+  current layout, its inputs match their recorded digest, every finished
+  tile matches its blake2b digest);
+* ``report/KEY.json`` (and ``report/KEY.npy``) -- an experiment record of
+  ``codedvideo report`` (checked: the JSON parses, the array loads).
+
+Besides, ``.NAME.tmp-*`` temporaries that killed runs left behind, and
+``dict-KEY.lock`` / ``recon-KEY.lock`` lock files.  Each entry is examined
+and removed only while holding its lock (:func:`codedvideo.store.entry_lock`);
+an entry a running codedvideo holds is reported ``busy`` and left alone.
+
+Statuses: ``ok``; ``partial`` (a reconstruction with tiles still to compute:
+a rerun resumes it); ``broken`` (damaged: a rerun rebuilds or recomputes it);
+``stale`` (written by another version of codedvideo: never reused);
+``leftover`` (a temporary of a killed run); ``busy``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["verify_cache", "clean_cache", "REMOVED_WHEN_BROKEN"]
+
+_ENTRY = re.compile(r"^(dict|recon)-([0-9a-f]{16})\.zarr$")
+_TEMP = re.compile(r"^\.((dict|recon)-[0-9a-f]{16}\.zarr)\.tmp-\d+-[0-9a-f]{8}$")
+_LOCK = re.compile(r"^((dict|recon)-[0-9a-f]{16})\.lock$")
+_REPORT = re.compile(r"^([0-9a-f]{16})\.(json|npy)$")
+#: What a store of each kind may hold at its top level (a damaged one is still recognised by these).
+_MEMBERS = {"dict": {"zarr.json", "atoms"}, "recon": {"zarr.json", "coded", "mask", "volume", "stats", "digest"}}
+_KINDS = {"dict": "dictionary", "recon": "reconstruction"}
+#: Statuses that ``clean_cache(root, broken_only=True)`` removes.
+REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
+
+
+def verify_cache(root: str | os.PathLike) -> list[dict]:
+    """Check every entry of a cache folder.
+
+    Returns
+    -------
+    list of dict
+        One per entry: ``entry`` (its path), ``kind`` (``dictionary``,
+        ``reconstruction``, ``report`` or ``temporary``), ``status`` (see the
+        module docstring) and ``detail`` (what was found, in words).
+    """
+    return _scan(Path(root), remove=None)
+
+
+def clean_cache(root: str | os.PathLike, *, broken_only: bool) -> list[Path]:
+    """Remove cache entries: all of them, or (``broken_only``) those that are broken, stale or leftovers.
+
+    Each entry is re-checked and removed while its lock is held, so an entry
+    in use by a running codedvideo is never removed, and a run waiting for
+    an entry being removed then builds it afresh.  Only codedvideo cache
+    entries (see the module docstring) are ever removed; other files and
+    folders in ``root`` are left as they are.
+
+    Returns the removed paths.
+    """
+    statuses = REMOVED_WHEN_BROKEN if broken_only else ("ok", "partial") + REMOVED_WHEN_BROKEN
+    removed: list[Path] = []
+    _scan(Path(root), remove=(statuses, removed, not broken_only))
+    return removed
+
+
+# ----------------------------------------------------------------------------- scanning
+def _scan(root: Path, remove) -> list[dict]:
+    from .store import entry_lock
+
+    if not root.is_dir():
+        raise InputError(f"cache {root}: no such folder")
+    names: dict[str, dict] = {}  # "recon-KEY" -> {"entry": Path | None, "temps": [...], "lock": Path | None}
+    for child in sorted(root.iterdir()):
+        for pattern, slot in ((_ENTRY, "entry"), (_TEMP, "temps"), (_LOCK, "lock")):
+            m = pattern.match(child.name)
+            if not m:
+                continue
+            stem = m.group(1).removesuffix(".zarr") if slot != "entry" else f"{m.group(1)}-{m.group(2)}"
+            rec = names.setdefault(stem, dict(entry=None, temps=[], lock=None))
+            if slot == "temps":
+                rec["temps"].append(child)
+            else:
+                rec[slot] = child
+    records: list[dict] = []
+    for stem, found in names.items():
+        prefix = stem.split("-", 1)[0]
+        entry = root / f"{stem}.zarr"
+        if found["entry"] is not None and not _looks_like_entry(entry, prefix):
+            found["entry"] = None  # a user's folder or file that happens to have the name: never touched
+        if found["entry"] is None and not found["temps"] and (remove is None or found["lock"] is None):
+            continue  # a bare lock file (removed by clean_cache below), or nothing of ours
+        with entry_lock(entry, blocking=False) as held:
+            if not held:
+                if found["entry"] is not None:
+                    records.append(_record(entry, _KINDS[prefix], "busy",
+                                           "in use by a running codedvideo; not checked"))
+                continue
+            if found["entry"] is not None:
+                status, detail = (_check_dictionary if prefix == "dict" else _check_reconstruction)(entry)
+                records.append(_record(entry, _KINDS[prefix], status, detail))
+                if remove is not None and status in remove[0]:
+                    _remove_entry(entry, remove[1])
+            for tmp in found["temps"]:
+                records.append(_record(tmp, "temporary", "leftover",
+                                       f"left by a run that was stopped while writing {entry.name}"))
+                if remove is not None and "leftover" in remove[0]:
+                    _remove_entry(tmp, remove[1], lock=False)
+            if remove is not None and found["lock"] is not None and not os.path.lexists(entry):
+                from .store import lock_path
+
+                Path(lock_path(entry)).unlink(missing_ok=True)  # no entry left to lock
+    records += _scan_report(root / "report", remove)
+    return records
+
+
+def _record(entry: Path, kind: str, status: str, detail: str) -> dict:
+    return dict(entry=str(entry), kind=kind, status=status, detail=detail)
+
+
+def _looks_like_entry(path: Path, prefix: str) -> bool:
+    """A folder written by codedvideo: its kind says so, or (damaged metadata) it holds only the members of one."""
+    if path.is_symlink() or not path.is_dir():
+        return False
+    try:
+        attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
+        if attrs.get("kind") == {"dict": "codedvideo-dictionary", "recon": "codedvideo-reconstruction"}[prefix]:
+            return True
+    except (OSError, ValueError, AttributeError):
+        pass
+    members = {p.name for p in path.iterdir()}
+    return bool(members) and members <= _MEMBERS[prefix]
+
+
+def _remove_entry(path: Path, removed: list, *, lock: bool = True) -> None:
+    from .store import _discard, remove_locked_entry
+
+    if lock:
+        remove_locked_entry(path)  # we hold its lock
+    else:
+        _discard(path)
+    removed.append(path)
+
+
+# ----------------------------------------------------------------------------- checks
+def _check_dictionary(path: Path) -> tuple[str, str]:
+    from .store import load_dictionary
+
+    try:
+        D, meta = load_dictionary(path)
+    except InputError as exc:
+        return "broken", str(exc)
+    key = _ENTRY.match(path.name).group(2)
+    if meta.get("settings_key") != key:
+        return "broken", f"made for settings {meta.get('settings_key')!r}, its name says {key}"
+    return "ok", f"{D.shape[1]} atoms, checksum matches"
+
+
+def _check_reconstruction(path: Path) -> tuple[str, str]:
+    from .pipeline import RECON_VERSION
+    from .store import WORKSTORE_FORMAT, WORKSTORE_KIND, WorkStore, inputs_digest, workstore_problem
+
+    try:
+        store = WorkStore(path, mode="r")
+        attrs = dict(store.group.attrs)
+    except Exception as exc:  # zarr raises its own types for damaged metadata
+        return "broken", f"unreadable ({type(exc).__name__}: {exc})"
+    if attrs.get("kind") == WORKSTORE_KIND and (attrs.get("format_version") != WORKSTORE_FORMAT
+                                               or attrs.get("version") != RECON_VERSION):
+        return "stale", (f"written by another codedvideo (layout {attrs.get('format_version')!r}, "
+                         f"{attrs.get('version') or 'recon-v3 or older'}); never reused")
+    problem = workstore_problem(store.group)
+    if problem:
+        return "broken", problem
+    if attrs.get("key") != _ENTRY.match(path.name).group(2):
+        return "broken", f"holds the entry {attrs.get('key')!r}, its name says {_ENTRY.match(path.name).group(2)}"
+    try:
+        coded = np.asarray(store.group["coded"][...])
+        mask = np.asarray(store.group["mask"][...])
+    except Exception as exc:
+        return "broken", f"inputs unreadable ({type(exc).__name__}: {exc})"
+    if inputs_digest(coded, mask) != attrs.get("inputs_digest"):
+        return "broken", "inputs do not match their recorded digest"
+    try:
+        ok, damaged, _, _ = store.read_verified(store.tiles())
+    except Exception as exc:
+        return "broken", f"tiles unreadable ({type(exc).__name__}: {exc})"
+    n = len(ok)
+    if damaged.any():
+        bad = np.flatnonzero(damaged).tolist()
+        return "broken", f"tiles {bad[:20]}{' ...' if len(bad) > 20 else ''} of {n} fail their checksum"
+    if not ok.all():
+        return "partial", f"{int(ok.sum())} of {n} tiles done and verified; a rerun computes the rest"
+    return "ok", f"{n} tiles, every one matches its checksum"
+
+
+def _scan_report(folder: Path, remove) -> list[dict]:
+    """``report/KEY.json`` records (and their ``KEY.npy`` volumes); written atomically, so no lock."""
+    if not folder.is_dir():
+        return []
+    keys: dict[str, dict] = {}
+    for child in sorted(folder.iterdir()):
+        m = _REPORT.match(child.name)
+        if m and child.is_file() and not child.is_symlink():
+            keys.setdefault(m.group(1), {})[m.group(2)] = child
+    records = []
+    for key, files in keys.items():
+        status, detail = "ok", "record parses"
+        if "json" in files:
+            try:
+                record = json.loads(files["json"].read_text())
+                if not isinstance(record, dict):
+                    raise ValueError("not a JSON object")
+            except (OSError, ValueError) as exc:
+                status, detail = "broken", f"record does not parse ({exc})"
+        else:
+            status, detail = "broken", "volume without its record"
+        if status == "ok" and "npy" in files:
+            try:
+                np.load(files["npy"], mmap_mode="r", allow_pickle=False)
+                detail = "record parses, volume loads"
+            except (OSError, ValueError) as exc:
+                status, detail = "broken", f"volume does not load ({exc})"
+        main = files.get("json", files.get("npy"))
+        records.append(_record(main, "report", status, detail))
+        if remove is not None and status in remove[0]:
+            for path in files.values():
+                path.unlink(missing_ok=True)
+                remove[1].append(path)
+    return records

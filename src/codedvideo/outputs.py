@@ -1,0 +1,188 @@
+"""Where results go: an output never touches what the user owns.
+
+Every command names its outputs and its inputs before any work is done, and
+:func:`check_outputs` refuses, with one line naming both:
+
+- an output that is, contains or lies inside one of the run's inputs (the
+  coded image, mask, truth, dictionary, CACTI file, training videos, the cache);
+- an existing output that is not a regular file or folder (a device node, a
+  FIFO, a socket, a symbolic link), or is read-only;
+- an existing output of the other kind (a file where a folder is written, or
+  the reverse);
+- an existing folder that codedvideo did not write.  Folders are recognised by
+  their own marker: a frame folder's ``codedvideo-frames.json``, a Zarr store
+  whose attributes name a codedvideo kind;
+- an existing file that codedvideo did not write, unless ``overwrite`` is
+  given.  A file codedvideo wrote has a hidden record beside it
+  (``.NAME.codedvideo``: size, modification time and inode at writing), so a
+  rerun replaces its own unchanged results and nothing else.
+
+Writers replace an output by renaming a finished temporary onto it
+(:func:`codedvideo.io.atomic_output`), so the old output stays whole until the
+new one is complete.  Call :func:`mark_written` after writing a file output.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+from dataclasses import dataclass
+from pathlib import Path
+
+from .errors import OutputError
+
+#: Suffix of the hidden record written beside every file output.
+OWNED_SUFFIX = ".codedvideo"
+#: Marker files inside folders that codedvideo writes as a whole.
+FOLDER_MARKERS = ("codedvideo-frames.json",)
+
+
+@dataclass(frozen=True)
+class Output:
+    """One output of a run.
+
+    kind
+        ``"file"`` (replaced as a whole), ``"folder"`` (a folder replaced as a
+        whole: frames, Zarr) or ``"place"`` (a folder that outputs are written
+        into; it is created when missing and never replaced).
+    """
+
+    path: Path
+    kind: str = "file"
+    label: str = "output"
+
+
+def _real(path: Path) -> Path:
+    """Absolute path with symbolic links of its folders resolved (the last part is kept as named)."""
+    path = Path(path).absolute()
+    return Path(os.path.realpath(path.parent)) / path.name
+
+
+def _inside(child: Path, parent: Path) -> bool:
+    return child != parent and child.is_relative_to(parent)
+
+
+def record_path(path: str | os.PathLike) -> Path:
+    """The hidden record beside a file output."""
+    path = Path(path)
+    return path.with_name(f".{path.name}{OWNED_SUFFIX}")
+
+
+def _fingerprint(st: os.stat_result) -> dict:
+    return dict(size=st.st_size, mtime_ns=st.st_mtime_ns, inode=st.st_ino)
+
+
+def mark_written(path: str | os.PathLike) -> None:
+    """Record that codedvideo wrote the file ``path`` as it is now (see the module docstring)."""
+    from .io import atomic_output
+
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except OSError:
+        return
+    if not stat.S_ISREG(st.st_mode):
+        return
+    with atomic_output(record_path(path)) as tmp:
+        Path(tmp).write_text(json.dumps(dict(_fingerprint(st), name=path.name)) + "\n")
+
+
+def written_by_codedvideo(path: str | os.PathLike) -> bool:
+    """True when ``path`` is a file or folder that codedvideo wrote (and, for a file, nobody changed since)."""
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return False
+    if stat.S_ISDIR(st.st_mode):
+        if any((path / m).is_file() for m in FOLDER_MARKERS):
+            return True
+        meta = path / "zarr.json"
+        try:
+            attrs = json.loads(meta.read_text()).get("attributes", {})
+        except (OSError, ValueError, AttributeError):
+            return False
+        return isinstance(attrs, dict) and str(attrs.get("kind", "")).startswith("codedvideo")
+    if not stat.S_ISREG(st.st_mode):
+        return False
+    try:
+        recorded = json.loads(record_path(path).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(recorded, dict) and all(recorded.get(k) == v for k, v in _fingerprint(st).items())
+
+
+def _kind_of(st: os.stat_result) -> str | None:
+    if stat.S_ISLNK(st.st_mode):
+        return "a symbolic link"
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode):
+        return "a device"
+    if stat.S_ISFIFO(st.st_mode):
+        return "a FIFO"
+    if stat.S_ISSOCK(st.st_mode):
+        return "a socket"
+    return None
+
+
+def check_outputs(outputs: list[Output], inputs: dict[str, object], *, overwrite: bool = False) -> None:
+    """Refuse, before any work, outputs that would touch what the user owns (module docstring).
+
+    Parameters
+    ----------
+    outputs : the run's outputs
+    inputs : label -> path (or a list of paths, or None) of everything the run reads
+    overwrite : replace existing files that codedvideo did not write
+
+    Raises :class:`OutputError` naming the output, the problem and, for a
+    clash, the input.  Creates nothing.
+    """
+    from .io import check_writable
+
+    ins: list[tuple[str, Path]] = []
+    for label, value in inputs.items():
+        for p in value if isinstance(value, (list, tuple)) else [value]:
+            if p and not str(p).startswith(("synth:", "footage:", "manifest:", "skimage:")):
+                ins.append((label, _real(Path(str(p)))))
+    for out in outputs:
+        real = _real(out.path)
+        for label, inp in ins:
+            if real == inp:
+                raise OutputError(f"{out.label} {out.path}: is the input {label} {inp}; choose another output")
+            if out.kind != "place" and _inside(inp, real):
+                raise OutputError(f"{out.label} {out.path}: contains the input {label} {inp}; choose another output")
+            if _inside(real, inp):
+                raise OutputError(f"{out.label} {out.path}: lies inside the input {label} {inp}; choose another output")
+        try:
+            st = os.lstat(out.path)
+        except FileNotFoundError:
+            check_writable(out.path)
+            continue
+        except OSError as exc:
+            raise OutputError(f"{out.label} {out.path}: cannot inspect it ({exc.strerror or exc})") from exc
+        odd = _kind_of(st)
+        if odd:
+            raise OutputError(f"{out.label} {out.path}: exists and is {odd}, not a regular file or folder; "
+                              "codedvideo will not replace it")
+        is_dir = stat.S_ISDIR(st.st_mode)
+        if out.kind == "place":
+            if not is_dir:
+                raise OutputError(f"{out.label} {out.path}: exists and is a file; a folder is needed here")
+            check_writable(out.path / "x")
+            continue
+        if is_dir != (out.kind == "folder"):
+            have, want = ("a folder", "a file") if is_dir else ("a file", "a folder")
+            raise OutputError(f"{out.label} {out.path}: exists and is {have}, but codedvideo writes {want} there; "
+                              "choose another output")
+        if not st.st_mode & 0o222:
+            raise OutputError(f"{out.label} {out.path}: exists and is read-only; codedvideo will not replace it")
+        if written_by_codedvideo(out.path):
+            check_writable(out.path)
+            continue
+        if is_dir:
+            raise OutputError(f"{out.label} {out.path}: is an existing folder that codedvideo did not write; "
+                              "it is never replaced (choose another output)")
+        if not overwrite:
+            raise OutputError(f"{out.label} {out.path}: exists and was not written by codedvideo; "
+                              "give --overwrite to replace it")
+        check_writable(out.path)

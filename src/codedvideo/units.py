@@ -1,0 +1,100 @@
+"""Units of a capture: its data range, found once and reported, and the scale codedvideo works in.
+
+A capture may come as [0, 1] floats, 0..255 (uint8 or float), 12-bit 0..4095,
+uint16 0..65535 or any float scale.  The data range (the peak value of a
+frame) is, in order of precedence:
+
+1. ``--data-range`` (``output.data_range``) when given;
+2. 255 for 8-bit integer files;
+3. from the values: the peak ``p`` of ``coded / open count`` (the static
+   estimate, which no frame can exceed without noise) rounded up to the first
+   of 1 (floats only), 255, 4095 and 65535 that holds it (with 5 % room
+   for noise), else to the next ``2**b - 1``.
+
+Reconstruction then runs in *working units*, the capture scaled so that its
+data range is 255 (8-bit captures are not rescaled at all), and the result is
+scaled back.  Every setting in grey levels (``--noise-sigma``, ``--tol-rms``,
+``--white-level``) is given in the capture's own units and scaled with it, so
+the same capture in any units gives the same video, multiplied by the scale.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: The data range working units map to (the units every default was tuned in).
+WORKING_RANGE = 255.0
+#: Data ranges the values are rounded up to, with the room left for noise.
+COMMON_RANGES = (1.0, 255.0, 4095.0, 65535.0)
+NOISE_ROOM = 1.05
+
+
+@dataclass(frozen=True)
+class DataRange:
+    """A capture's data range and how it was found (recorded in the metrics JSON)."""
+
+    value: float
+    source: str
+    #: Peak of coded / open count, in the capture's units.
+    peak: float
+
+    @property
+    def scale(self) -> float:
+        """Factor from the capture's units to working units."""
+        return 1.0 if self.value == WORKING_RANGE else WORKING_RANGE / self.value
+
+    def as_dict(self) -> dict:
+        return dict(value=self.value, source=self.source, peak=self.peak, working_scale=self.scale)
+
+
+def static_peak(coded: np.ndarray, mask: np.ndarray) -> float:
+    """Largest ``coded / open count`` over the pixels that are ever open (0 when none is)."""
+    counts = np.asarray(mask, np.float32).sum(-3)
+    coded = np.asarray(coded, np.float32)
+    if counts.shape != coded.shape[-2:]:
+        counts = np.broadcast_to(counts, coded.shape)
+    open_ = counts > 0
+    if not open_.any():
+        return 0.0
+    ratio = np.where(open_, coded / np.where(open_, counts, 1), 0)
+    return float(np.max(ratio))
+
+
+def infer_data_range(peak: float, *, dtype=None, given: float | None = None, what: str = "coded / open count") -> DataRange:
+    """The data range of a capture whose frames peak at ``peak`` (:func:`static_peak`; module docstring)."""
+    peak = float(peak)
+    if given is not None:
+        return DataRange(float(given), "given (--data-range)", peak)
+    kind = np.dtype(dtype) if dtype is not None else None
+    if kind is not None and kind.kind in "iu" and kind.itemsize == 1:
+        return DataRange(255.0, f"dtype {kind.name}", peak)
+    integer = kind is not None and kind.kind in "iub"
+    for value in COMMON_RANGES:
+        if integer and value == 1.0:
+            continue
+        if peak <= value * NOISE_ROOM:
+            return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
+    value = float(2 ** math.ceil(math.log2(peak + 1)) - 1)
+    return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
+
+
+def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str | None:
+    """A one-line warning when the residual tolerance is met before the first atom on most patches.
+
+    ``coded`` and ``tol_rms`` in the same (working) units.  OMP's residual
+    starts as the patch's coded values, so a patch whose coded RMS is within
+    the tolerance gets no atom at all: an almost empty video.
+    """
+    from scipy import ndimage
+
+    if tol_rms <= 0:
+        return None
+    rms = np.sqrt(np.maximum(ndimage.uniform_filter(np.asarray(coded, np.float64) ** 2, size=patch, mode="nearest"), 0))
+    share = float(np.mean(rms <= tol_rms))
+    if share <= 0.5:
+        return None
+    return (f"the residual tolerance (--tol-rms / --noise-sigma) is met before the first atom on {share:.0%} of "
+            "the patches: the result will be nearly flat; check the data range (--data-range) and the tolerance")

@@ -1,0 +1,32 @@
+"""`codedvideo cache verify | clean` on a real cache: a damaged entry is reported (exit 1) and removed, others kept."""
+import json
+
+import numpy as np
+
+from codedvideo.cli import main
+from test_bad_input import files, reconstruct_args  # noqa: F401  (files is a fixture)
+
+
+def test_verify_reports_a_damaged_entry_and_clean_removes_only_it(files, tmp_path, capsys):
+    cache = tmp_path / "cache"
+    assert main(["-q", *map(str, reconstruct_args(files, tmp_path))]) == 0
+    (cache / "notes.txt").write_text("not codedvideo's")
+    capsys.readouterr()
+    assert main(["cache", "verify", str(cache)]) == 0
+    records = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert records and {r["status"] for r in records} == {"ok"}
+    store = next(cache.glob("recon-*.zarr"))
+    chunk = next(p for p in (store / "volume").rglob("*") if p.is_file() and p.name != "zarr.json")
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte
+    chunk.write_bytes(bytes(data))
+    assert main(["cache", "verify", str(cache)]) == 1
+    statuses = {json.loads(line)["entry"]: json.loads(line)["status"] for line in capsys.readouterr().out.splitlines()}
+    assert statuses[str(store)] == "broken"
+    assert main(["cache", "clean", "--broken", str(cache)]) == 0
+    assert json.loads(capsys.readouterr().out)["removed"] == [str(store)]
+    assert not store.exists() and (cache / "notes.txt").read_text() == "not codedvideo's"
+    # the next run rebuilds the entry and gives the same answer as before
+    first = np.load(tmp_path / "out" / "r.npy")
+    assert main(["-q", *map(str, reconstruct_args(files, tmp_path))]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "out" / "r.npy"), first)

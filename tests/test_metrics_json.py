@@ -1,0 +1,70 @@
+"""Strict JSON: metrics never print Infinity or NaN (json_safe turns them into null)."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from codedvideo.metrics import evaluate, json_safe
+
+
+def test_psnr_of_identical_volumes_is_strict_json():
+    v = np.full((3, 16, 16), 100.0, np.float32)
+    metrics = evaluate(v, v)
+    assert math.isinf(metrics["psnr"])  # the metric itself stays +inf
+    with pytest.raises(ValueError):
+        json.dumps(metrics, allow_nan=False)
+    text = json.dumps(json_safe(metrics), allow_nan=False)
+    back = json.loads(text)
+    assert back["psnr"] is None and back["psnr_per_frame"] == [None, None, None]
+    assert back["ssim"] == metrics["ssim"] and back["data_range"] == 255.0
+    assert "Infinity" not in text and "NaN" not in text
+
+
+def test_nested_python_and_numpy_values():
+    x = {
+        "a": float("inf"),
+        "b": float("-inf"),
+        "c": float("nan"),
+        "d": [1.5, np.float32("nan"), np.float64(2.25), np.float16("inf"), {"e": (np.float32(0.5), float("nan"))}],
+        "f": np.array([[1.0, np.nan], [np.inf, -3.0]], np.float32),
+        "g": np.int64(7),
+        "h": np.bool_(True),
+        "i": "text",
+        "j": None,
+        "k": 3,
+        "l": True,
+        "m": np.float64(-0.0),
+        "n": np.array(4.5),
+        "o": np.arange(3, dtype=np.int32),
+    }
+    out = json_safe(x)
+    assert json.loads(json.dumps(out, allow_nan=False)) == out  # strict, and round-trips exactly
+    assert out["a"] is None and out["b"] is None and out["c"] is None
+    assert out["d"] == [1.5, None, 2.25, None, {"e": [0.5, None]}]
+    assert out["f"] == [[1.0, None], [None, -3.0]]
+    assert out["g"] == 7 and type(out["g"]) is int
+    assert out["h"] is True and out["l"] is True and out["k"] == 3 and type(out["k"]) is int
+    assert out["i"] == "text" and out["j"] is None
+    assert out["m"] == 0.0 and out["n"] == 4.5 and out["o"] == [0, 1, 2]
+
+
+def test_finite_values_are_preserved_exactly_and_the_input_is_not_changed():
+    rng = np.random.default_rng(0)
+    vals = rng.normal(size=50) * 10.0 ** rng.integers(-300, 300, 50)
+    vals32 = (rng.normal(size=50) * 10.0 ** rng.integers(-30, 30, 50)).astype(np.float32)
+    x = {"v": [float(v) for v in vals], "w": vals32, "nested": {"inf": float("inf")}}
+    out = json_safe(x)
+    assert out["v"] == [float(v) for v in vals]  # bit for bit
+    assert out["w"] == [float(v) for v in vals32]
+    assert json.loads(json.dumps(out, allow_nan=False))["v"] == out["v"]
+    assert x["nested"]["inf"] == float("inf") and isinstance(x["w"], np.ndarray)  # a copy, the input untouched
+    assert out is not x and out["nested"] is not x["nested"]
+    json.dumps(out, allow_nan=False)
+
+
+def test_evaluate_of_a_real_reconstruction_is_unchanged():
+    rng = np.random.default_rng(1)
+    truth = (rng.random((2, 12, 12)) * 255).astype(np.float32)
+    metrics = evaluate(truth + rng.normal(0, 3, truth.shape).astype(np.float32), truth)
+    assert json_safe(metrics) == metrics
