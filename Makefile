@@ -6,10 +6,10 @@ CLI    := $(BIN)/codedvideo
 STAMP  := $(VENV)/.installed
 CONFIG ?= pipeline.yaml
 
-.PHONY: help setup run test bench report train simulate reconstruct submit clean
+.PHONY: help setup run test bench report train train-config simulate reconstruct submit clean
 
 help:  ## list the targets
-	@grep -E '^[a-z]+:.*## ' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
+	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -31,7 +31,10 @@ bench: $(STAMP)  ## time reconstruction against GAP-TV and a matrix multiply
 report: $(STAMP)  ## the paper's experiments and error against run time: out/report/report.html (+ .csv)
 	$(CLI) report $(CONFIG)
 
-train: $(STAMP)  ## train the dictionary pipeline.yaml describes
+train: $(STAMP)  ## regenerate the shipped dictionaries (src/codedvideo/data) and their data_manifest rows
+	$(BIN)/python tasks/train.py --shipped
+
+train-config: $(STAMP)  ## train (or reuse) the dictionary pipeline.yaml describes
 	$(BIN)/python tasks/train.py $(CONFIG)
 
 simulate: $(STAMP)  ## simulate the coded capture pipeline.yaml describes

@@ -1,14 +1,32 @@
-"""Stage: train (or reuse) the dictionary that pipeline.yaml describes."""
+"""Stage: train (or reuse) the dictionary that pipeline.yaml describes, or regenerate the shipped ones.
+
+    python tasks/train.py [pipeline.yaml]     # the dictionary: section (reused when shipped or cached)
+    python tasks/train.py --shipped [N ...]   # `make train`: retrain codedvideo/data/dict-N*.zarr with the
+                                              # defaults and rewrite data_manifest with their checksums
+"""
 import sys
 
 from _common import config_from_argv, guarded
 
+from codedvideo import manifest, shipped
+from codedvideo.config import PipelineConfig
 from codedvideo.pipeline import train_dictionary
 
 
+def _shipped(frames: list[int]) -> None:
+    for n in frames:
+        path, meta = train_dictionary(PipelineConfig(frames=n), output=shipped.path_for(n), retrain=True)
+        print(f"dictionary N = {n}: {path} (final RMSE {meta.get('final_rmse'):.4f}, {meta['seconds']:.0f} s)")
+    print(f"manifest: {manifest.write_manifest()}")
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["--shipped"]:
+        _shipped([int(n) for n in sys.argv[2:]] or shipped.available())
+        return
     path, meta = train_dictionary(config_from_argv())
-    print(f"dictionary: {path} ({meta['atoms']} atoms, {'reused' if meta['reused'] else 'trained'} in {meta['seconds']:.1f} s)")
+    state = "shipped" if meta.get("shipped") else "reused" if meta["reused"] else "trained"
+    print(f"dictionary: {path} ({meta['atoms']} atoms, {state} in {meta['seconds']:.1f} s)")
 
 
 if __name__ == "__main__":

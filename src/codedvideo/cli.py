@@ -58,6 +58,8 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--cache", default="cache")
     t.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT that codedvideo did not write")
+    t.add_argument("--retrain", action="store_true",
+                   help="train even when a shipped dictionary was made with these settings (make train)")
 
     s = sub.add_parser("simulate", help="simulate a coded capture of a video")
     s.add_argument("video", help="synth:NAME or a video / frame-sequence path")
@@ -90,7 +92,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="with --cacti: reconstruct only measurement Q (1-based)")
     r.add_argument("--color", choices=("luma", "channels"), default="luma",
                    help="colour coded image: its luma (default), or each channel with the same mask (colour output)")
-    r.add_argument("--dictionary", default=None, help="dictionary store (.zarr); needed by --method omp only")
+    r.add_argument("--dictionary", default=None,
+                   help="dictionary store (.zarr) for --method omp (default: the one shipped for the mask's N)")
     r.add_argument("--method", choices=METHODS, default="omp",
                    help="omp: learned dictionary (default); dct: 3D DCT dictionary, same OMP; "
                         "thinout, interp, gaptv: baselines (see README)")
@@ -161,7 +164,7 @@ def _cmd_train(a) -> int:
     cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary))
     check_outputs([Output(Path(a.output), "folder", "dictionary")],  # before training
                   dict(video=list(a.videos), cache=a.cache), overwrite=a.overwrite)
-    path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet)
+    path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet, retrain=a.retrain)
     print(json.dumps(dict(dictionary=str(path), atoms=meta["atoms"], frames=meta["frames"], method=meta.get("method"),
                           final_rmse=meta.get("final_rmse"), reused=meta["reused"], seconds=round(meta["seconds"], 2))))
     return 0
@@ -211,6 +214,7 @@ def _reconstruct_options(a):
     Returns ``(rc, noise, out)``: the ``reconstruct:`` model, the noise
     model (sigma, white level) and the output model (fps, data range).
     """
+    from . import shipped
     from .io import check_writable
     from .pipeline import metrics_path, output_kind
 
@@ -230,7 +234,8 @@ def _reconstruct_options(a):
     out = validated(OutputConfig, dict(fps=a.fps, data_range=a.data_range), _RECONSTRUCT_OPTIONS)
     output = Path(a.output)
     check_outputs([Output(output, output_kind(output)), Output(metrics_path(output), "file", "metrics")],
-                  dict(coded=a.coded, mask=a.mask, truth=a.truth, dictionary=a.dictionary, cacti=a.cacti, cache=a.cache),
+                  dict(coded=a.coded, mask=a.mask, truth=a.truth, dictionary=a.dictionary, cacti=a.cacti, cache=a.cache,
+                       shipped_dictionaries=shipped.DATA),
                   overwrite=a.overwrite)
     check_writable(Path(a.cache) / "entry", what="cache")
     check_scheduler(rc.scheduler)
@@ -308,6 +313,8 @@ def _cmd_reconstruct(a) -> int:
     t_all = t0 = time.perf_counter()
     job = _read_captures(a)
     D, meta = _method_dictionary(a, job.mask.shape[0])
+    if a.dictionary:
+        job.inputs["dictionary"] = str(a.dictionary)
     t_read = time.perf_counter() - t0
     units = infer_data_range(max(static_peak(c, job.mask) for c in job.codeds), dtype=job.dtype, given=out.data_range)
     settings = omp_settings(rc, noise.sigma, scale=units.scale)
@@ -382,10 +389,16 @@ def _method_dictionary(a, frames: int):
     from .pipeline import _check_dictionary
     from .store import load_dictionary
 
+    from . import shipped
+
     if a.method != "omp":
         return None, {}
-    if not a.dictionary:
-        raise InputError("reconstruct --method omp: give --dictionary DICT.zarr (or --method dct, thinout, interp, gaptv)")
+    if not a.dictionary:  # the shipped dictionary for this N
+        a.dictionary = shipped.verified(frames)
+        if a.dictionary is None:
+            have = ", ".join(map(str, shipped.available())) or "none"
+            raise InputError(f"reconstruct: no dictionary is shipped for N = {frames} (shipped: N = {have}); train one "
+                             f"with `{shipped.train_command(frames)}` and give --dictionary dict-N{frames}.zarr")
     D, meta = load_dictionary(a.dictionary)
     _check_dictionary(meta, frames, a.dictionary)
     return D, meta

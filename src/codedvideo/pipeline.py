@@ -124,17 +124,35 @@ def resolve_data(spec: str) -> str:
 
 
 # ----------------------------------------------------------------------------- train
-def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, progress: bool = True) -> tuple[Path, dict]:
-    """Train (or reuse from the cache) the dictionary the config describes."""
+def dictionary_key(cfg: PipelineConfig) -> str:
+    """The key of the training settings of ``cfg`` (cache entries and shipped dictionaries carry it)."""
+    settings = dict(cfg.dictionary.model_dump(exclude={"path"}), frames=cfg.frames, seed=cfg.seed, patch=PATCH)
+    return content_key("dictionary-v1", settings)
+
+
+def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, progress: bool = True,
+                     retrain: bool = False) -> tuple[Path, dict]:
+    """Train the dictionary the config describes, or reuse it: shipped (:mod:`codedvideo.shipped`) or cached.
+
+    ``retrain`` trains even when a shipped dictionary has these settings (`make train`).
+    """
+    from . import shipped
+
     dc = cfg.dictionary
     if dc.path:
         D, meta = load_dictionary(dc.path)
         _check_dictionary(meta, cfg.frames, dc.path)
         return Path(dc.path), dict(meta, reused=True, seconds=0.0)
-    settings = dict(dc.model_dump(exclude={"path"}), frames=cfg.frames, seed=cfg.seed, patch=PATCH)
-    key = content_key("dictionary-v1", settings)
-    cached = Path(cfg.cache) / f"dict-{key}.zarr"
+    key = dictionary_key(cfg)
     t0 = time.perf_counter()
+    ship = None if retrain else shipped.matching(cfg.frames, key)
+    if ship is not None:
+        D, meta = load_dictionary(ship)
+        if output is not None:
+            save_dictionary(output, D, {k: v for k, v in meta.items() if k not in ("atoms", "sha256", "kind", "format_version")})
+            ship = Path(output)
+        return ship, dict(meta, reused=True, shipped=True, seconds=time.perf_counter() - t0)
+    cached = Path(cfg.cache) / f"dict-{key}.zarr"
     # One trainer at a time per entry: a second process with the same settings waits, then reuses
     # the dictionary the first one saved (whole, renamed into place, checked by its sha256 on load).
     found = _cached_dictionary(cached, key)  # a finished entry needs no lock: it appeared by a rename
