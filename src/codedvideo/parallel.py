@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import sys
 import time
 import uuid
 from dataclasses import dataclass
@@ -75,6 +76,8 @@ def _one_blas_thread_in_worker() -> None:
     """
     global _WORKER_LIMITED
     if _WORKER_LIMITED:
+        return
+    if "distributed" not in sys.modules:  # a local run never imports it (0.5 s of start-up)
         return
     try:
         from distributed import get_worker
