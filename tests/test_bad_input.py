@@ -90,7 +90,7 @@ def test_nan_or_inf_in_the_coded_image(files, tmp_path, capsys, name, bad):
 def test_mask_and_image_shapes_disagree(files, tmp_path, capsys, kind):
     mask = np.load(files / "mask.npy")
     bad = dict(transposed=mask.transpose(0, 2, 1), **{"channels-last": np.moveaxis(mask, 0, -1)},
-               **{"other-size": mask[:, :-1]}, **{"2d": mask[0]}, **{"4d": mask[None]})[kind]
+               **{"other-size": mask[:, :-1]}, **{"2d": mask[0]}, **{"4d": np.stack([mask, mask])})[kind]  # 4d: two masks, one image
     np.save(files / "bad_mask.npy", bad)
     fails(capsys, reconstruct_args(files, tmp_path, mask=files / "bad_mask.npy"), "bad_mask.npy", root=tmp_path)
 

@@ -8,6 +8,7 @@ behind because every writer goes through a temporary name.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import logging
@@ -25,7 +26,7 @@ from .config import (
     CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig, ReconstructConfig, SceneConfig,
     check_scheduler, load_config, omp_settings, validated,
 )
-from .errors import CodedVideoError, InputError
+from .errors import CodedVideoError, ConfigError, InputError
 from .outputs import Output, check_outputs, mark_written
 
 log = logging.getLogger("codedvideo")
@@ -78,6 +79,11 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None, help="centre crop (synth: size)")
     s.add_argument("--start", type=int, default=0, help="first frame of a video file")
+    s.add_argument("--captures", default="1", metavar="T",
+                   help="T consecutive coded images of N sub-frames each (a coded camera's stream), or 'all' that "
+                        "a video file holds; coded.npy is then (T, H, W) and truth.npy (T*N, H, W)")
+    s.add_argument("--new-code-per-capture", action="store_true",
+                   help="a new shutter code for every capture (mask.npy (T, N, H, W)); default: the code repeats")
     s.add_argument("--output", "-o", required=True, help="output folder")
     s.add_argument("--cacti-out", default=None, metavar="FILE.mat",
                    help="also write the capture as a CACTI benchmark .mat (orig, mask, meas; one measurement)")
@@ -185,19 +191,40 @@ def _cmd_simulate(a) -> int:
         validated(SceneConfig, dict(size=size, start=a.start))
     else:
         validated(SceneConfig, dict(start=a.start))
+    captures = a.captures
+    if captures != "all":
+        try:
+            captures = int(captures)
+        except ValueError:
+            raise ConfigError(f"option --captures {a.captures!r}: a whole number of captures, or all") from None
+        if not 1 <= captures <= 100_000:
+            raise ConfigError(f"option --captures {captures}: Input should be between 1 and 100000")
+    elif a.video.startswith(("synth:", "footage:")):
+        raise ConfigError(f"option --captures all: only for a video file (give a number for {a.video})")
+    if a.cacti_out and a.new_code_per_capture:
+        raise ConfigError("option --cacti-out: a CACTI file has one mask; it does not go with --new-code-per-capture")
     out = Path(a.output)
     outputs = [Output(out, "place", "output folder")] + [Output(out / f, "file") for f in CAPTURE_FILES]
     if a.cacti_out:
         outputs.append(Output(Path(a.cacti_out), "file", "--cacti-out"))
     check_outputs(outputs, dict(video=a.video, code_file=a.code_file), overwrite=a.overwrite)  # before any work
-    video = load_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start)
+    if captures == "all":  # as many whole captures as the video holds from --start
+        from .io import read_video
+        from .pipeline import resolve_data
+
+        captures = read_video(resolve_data(a.video), start=a.start).shape[0] // a.frames
+        if captures < 1:
+            raise InputError(f"video {a.video}: fewer than N = {a.frames} frames from frame {a.start}")
+    video = load_video(a.video, frames=a.frames * captures, size=size, seed=a.seed, start=a.start)
     cap = simulate_capture(video, code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed, p=code_cfg.p,
-                           code_path=code_cfg.path, sensor=sensor_model(noise))
+                           code_path=code_cfg.path, sensor=sensor_model(noise), captures=captures,
+                           new_code_per_capture=a.new_code_per_capture)
     paths = write_capture(cap, a.output)
     if a.cacti_out:
         from .cacti import write_cacti
 
-        paths["cacti"] = write_cacti(a.cacti_out, mask=cap["mask"], meas=cap["coded"][None], orig=cap["truth"])
+        meas = cap["coded"] if cap["coded"].ndim == 3 else cap["coded"][None]
+        paths["cacti"] = write_cacti(a.cacti_out, mask=cap["mask"], meas=meas, orig=cap["truth"])
     for path in paths.values():
         mark_written(path)
     print(json.dumps({k: str(v) for k, v in paths.items()}))
@@ -244,27 +271,38 @@ def _reconstruct_options(a):
 
 @dataclasses.dataclass
 class _Captures:
-    """What reconstruct reads: coded images sharing one mask, in the capture's units.
+    """What reconstruct reads: coded images, in the capture's units, and their masks.
 
-    ``kind`` is ``"single"`` (one coded image), ``"measurements"`` (a CACTI
-    file's, concatenated time-first) or ``"channels"`` (a colour image's,
-    stacked first).
+    ``kind`` is ``"single"`` (one coded image), ``"captures"`` (a stack of coded
+    images: a coded camera's stream), ``"measurements"`` (a CACTI file's), whose
+    videos are concatenated time-first, or ``"channels"`` (a colour image's,
+    stacked first).  ``masks`` holds one mask shared by all, or one per coded
+    image; ``truth(i)`` gives the i-th image's truth (None without a truth).
     """
 
-    codeds: list
-    mask: np.ndarray
-    truths: list | None
+    codeds: object
+    masks: list
+    truths: object
     labels: list
     kind: str
     inputs: dict
     dtype: object
     source: str
 
+    def mask(self, i: int) -> np.ndarray:
+        return self.masks[i % len(self.masks)]
+
+    def truth(self, i: int):
+        if self.truths is None:
+            return None
+        n = self.mask(i).shape[0]
+        return self.truths[i] if self.kind == "channels" else self.truths[i * n : (i + 1) * n]
+
 
 def _read_captures(a) -> _Captures:
     from .io import stored_dtype
     from .physics import check_pair
-    from .pipeline import check_size, read_coded, read_mask, read_volume
+    from .pipeline import check_size, read_coded, read_coded_stack, read_masks, read_volume
 
     if a.cacti:
         from .cacti import read_cacti
@@ -273,70 +311,94 @@ def _read_captures(a) -> _Captures:
         if a.measurement is not None and not 1 <= a.measurement <= data.measurements:
             raise InputError(f"--measurement {a.measurement}: {a.cacti} holds measurements 1..{data.measurements}")
         chosen = range(data.measurements) if a.measurement is None else [a.measurement - 1]
+        truths = None if data.orig is None else np.concatenate([data.truth(q) for q in chosen])
         return _Captures(
-            codeds=[data.meas[q] for q in chosen], mask=data.mask,
-            truths=None if data.orig is None else [data.truth(q) for q in chosen],
+            codeds=[data.meas[q] for q in chosen], masks=[data.mask], truths=truths,
             labels=[dict(measurement=q + 1) for q in chosen], kind="measurements",
             inputs=dict(cacti=a.cacti, dictionary=a.dictionary, measurements=[q + 1 for q in chosen]),
             dtype=None, source=f"CACTI file {a.cacti}")
     color = a.color == "channels"
-    coded = read_coded(a.coded, color="channels" if color else "luma")
+    coded = read_coded(a.coded, color="channels") if color else read_coded_stack(a.coded)
     check_size(coded.shape, a.coded)
-    mask = read_mask(a.mask)
-    check_pair(coded.shape[-2:] if color else coded.shape, mask.shape, where=f"mask {a.mask}")
-    codeds = list(coded) if color else [coded]
+    mask = read_masks(a.mask)
+    masks = list(mask) if mask.ndim == 4 else [mask]
+    if len(masks) > 1 and (color or len(masks) != coded.shape[0]):
+        raise InputError(f"mask {a.mask}: {len(masks)} masks (T, N, H, W) for {coded.shape[0]} coded images")
+    for m in masks:
+        check_pair(coded.shape[-2:], m.shape, where=f"mask {a.mask}")
+    kind = "channels" if color else "single" if coded.shape[0] == 1 else "captures"
+    n = masks[0].shape[0]
     truths = None
     if a.truth:
         truth = read_volume(a.truth, color="channels" if color else "luma")
-        want = (len(codeds), *mask.shape) if color else mask.shape
         truth = truth[None] if color and truth.ndim == 3 else truth
+        want = (coded.shape[0], n, *coded.shape[-2:]) if color else (coded.shape[0] * n, *coded.shape[-2:])
         if truth.shape != want:
-            raise InputError(f"truth {a.truth}: shape {truth.shape} != {'(channels, N, H, W) ' if color else 'mask shape '}"
-                             f"{want}")
-        truths = list(truth) if color else [truth]
+            what = "(channels, N, H, W)" if color else "(T*N, H, W) for T coded images of N sub-frames"
+            raise InputError(f"truth {a.truth}: shape {truth.shape} != {what} {want}")
+        truths = truth
+    labels = ([dict(channel=c) for c in range(coded.shape[0])] if color else
+              [{}] if kind == "single" else [dict(capture=t + 1) for t in range(coded.shape[0])])
     return _Captures(
-        codeds=codeds, mask=mask, truths=truths, labels=[dict(channel=c) for c in range(len(codeds))] if color else [{}],
-        kind="channels" if color else "single",
+        codeds=coded, masks=masks, truths=truths, labels=labels, kind=kind,
         inputs=dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, color=a.color),
         dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
 
 
 def _cmd_reconstruct(a) -> int:
-    """Coded images sharing one mask -> their video: one coded image, a CACTI file's measurements
-    (concatenated time-first, (Q*N, H, W)) or a colour image's channels (stacked first, (C, N, H, W)).
-    One metrics JSON; with several coded images an entry per image and the totals."""
+    """Coded images -> their video: one coded image, a stack of them (a coded camera's stream, (T, H, W)),
+    a CACTI file's measurements (concatenated time-first, (T*N, H, W)) or a colour image's channels
+    (stacked first, (C, N, H, W)).  Each result is written as soon as it is done (streamed for .npy);
+    one metrics JSON with an entry per coded image and the totals."""
     from .metrics import evaluate
-    from .pipeline import _write_json, metrics_path, reconstruct_capture, trivial_estimate, write_volume
+    from .pipeline import _write_json, metrics_path, reconstruct_capture, trivial_estimate, volume_writer
     from .units import infer_data_range, static_peak, tolerance_warning
 
     rc, noise, out = _reconstruct_options(a)  # before any work
     t_all = t0 = time.perf_counter()
     job = _read_captures(a)
-    D, meta = _method_dictionary(a, job.mask.shape[0])
+    count, n = len(job.labels), job.masks[0].shape[0]
+    D, meta = _method_dictionary(a, n)
     if a.dictionary:
         job.inputs["dictionary"] = str(a.dictionary)
     t_read = time.perf_counter() - t0
-    units = infer_data_range(max(static_peak(c, job.mask) for c in job.codeds), dtype=job.dtype, given=out.data_range)
+    units = infer_data_range(max(static_peak(job.codeds[i], job.mask(i)) for i in range(count)), dtype=job.dtype,
+                             given=out.data_range)
     settings = omp_settings(rc, noise.sigma, scale=units.scale)
     if a.method in ("omp", "dct"):
         message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
         if message:
             log.warning("%s (data range %g from %s)", message, units.value, units.source)
     white = None if a.trust_saturated else noise.white_level
-    volumes, entries = [], []
-    for label, coded in zip(job.labels, job.codeds):
-        volume, info = reconstruct_capture(
-            a.method, coded, job.mask, data_range=units, settings=settings, dictionary=D,
-            dictionary_key=meta.get("sha256", ""), dictionary_name=str(a.dictionary or ""), white_level=white,
-            where=job.source, tile=rc.tile, cache=a.cache, scheduler=rc.scheduler, workers=rc.workers,
-            progress=not a.quiet)
-        volumes.append(volume)
-        entries.append(dict(label, reconstruction=info))
-    volume = {"single": lambda v: v[0], "measurements": np.concatenate, "channels": np.stack}[job.kind](volumes)
-    t0 = time.perf_counter()
-    write_volume(volume, a.output, data_range=units.value, fps=out.fps)
+    h, w = job.codeds[0].shape[-2:]
+    shape = (count, n, h, w) if job.kind == "channels" else (count * n, h, w)
+    entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
+    with contextlib.ExitStack() as stack:
+        put = None  # the output is opened once the first result exists: a failure before leaves nothing
+        for i, label in enumerate(job.labels):
+            volume, info = reconstruct_capture(
+                a.method, job.codeds[i], job.mask(i), data_range=units, settings=settings, dictionary=D,
+                dictionary_key=meta.get("sha256", ""), dictionary_name=str(a.dictionary or ""), white_level=white,
+                where=job.source, tile=rc.tile, cache=a.cache, scheduler=rc.scheduler, workers=rc.workers,
+                progress=not a.quiet)
+            entry = dict(label, reconstruction=info)
+            truth = job.truth(i)
+            if truth is not None:
+                entry["quality"] = evaluate(volume, truth, data_range=units.value)
+                entry["trivial"] = evaluate(trivial_estimate(job.codeds[i], job.mask(i)), truth, data_range=units.value)
+                for key in ("psnr", "ssim"):
+                    per_frame[key] += entry["quality"][f"{key}_per_frame"]
+                    trivial_frames[key] += entry["trivial"][f"{key}_per_frame"]
+            t1 = time.perf_counter()
+            if put is None:
+                put = stack.enter_context(volume_writer(a.output, shape, data_range=units.value, fps=out.fps))
+            put(i if job.kind == "channels" else slice(i * n, (i + 1) * n), volume)
+            t_write += time.perf_counter() - t1
+            entries.append(entry)
+            del volume
+        t1 = time.perf_counter()
+    t_write += time.perf_counter() - t1
     mark_written(a.output)
-    t_write = time.perf_counter() - t0
     metrics = dict(
         output=str(a.output), inputs=job.inputs,
         settings=dict(settings.__dict__, tol_rms=settings.tol_rms / units.scale, method=a.method, tile=rc.tile,
@@ -344,15 +406,7 @@ def _cmd_reconstruct(a) -> int:
                           "dictionary_atoms")),
         data_range=units.as_dict(),
     )
-    quality = None
-    if job.truths is not None:
-        for entry, vol, coded, truth in zip(entries, volumes, job.codeds, job.truths):
-            entry["quality"] = evaluate(vol, truth, data_range=units.value)
-            entry["trivial"] = evaluate(trivial_estimate(coded, job.mask), truth, data_range=units.value)
-        # every coded image has N frames: the mean over all frames is the mean of their means
-        quality = evaluate(np.concatenate(volumes), np.concatenate(job.truths), data_range=units.value)
-        trivial = evaluate(np.concatenate([trivial_estimate(c, job.mask) for c in job.codeds]),
-                           np.concatenate(job.truths), data_range=units.value)
+    summary = dict(output=str(a.output))
     if job.kind == "single":
         info = entries[0]["reconstruction"]
         info["seconds"] = dict(read=t_read, **info["seconds"], write=t_write, total=time.perf_counter() - t_all)
@@ -363,25 +417,40 @@ def _cmd_reconstruct(a) -> int:
         t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
         seconds = time.perf_counter() - t_all
         patches_per_second = patches / max(t_rec, 1e-9)
-        metrics["layout"] = "(Q*N, H, W)" if job.kind == "measurements" else "(C, N, H, W)"
+        metrics["layout"] = "(C, N, H, W)" if job.kind == "channels" else "(T*N, H, W)"
         metrics["reconstruction"] = dict(patches=patches, patches_per_second=patches_per_second,
                                          seconds=dict(read=t_read, reconstruct=t_rec, write=t_write, total=seconds))
         metrics[job.kind] = entries
-    summary = dict(output=str(a.output))
-    if quality is not None:
-        metrics["quality"], metrics["trivial"] = quality, trivial
+    if per_frame["psnr"]:
+        # the mean over all frames (every coded image has N frames: the mean of their means)
+        quality = dict(psnr=float(np.mean(per_frame["psnr"])), ssim=float(np.mean(per_frame["ssim"])),
+                       psnr_per_frame=per_frame["psnr"], ssim_per_frame=per_frame["ssim"], data_range=units.value)
+        metrics["trivial"] = dict(psnr=float(np.mean(trivial_frames["psnr"])), ssim=float(np.mean(trivial_frames["ssim"])),
+                                  psnr_per_frame=trivial_frames["psnr"], ssim_per_frame=trivial_frames["ssim"],
+                                  data_range=units.value)
         summary.update(psnr=round(quality["psnr"], 2), ssim=round(quality["ssim"], 4))
         if job.kind != "single":
-            per = {f"psnr_per_{job.kind[:-1]}": [e["quality"]["psnr"] for e in entries],
-                   f"ssim_per_{job.kind[:-1]}": [e["quality"]["ssim"] for e in entries]}
+            name = job.kind[:-1]
+            per = {f"psnr_per_{name}": [e["quality"]["psnr"] for e in entries],
+                   f"ssim_per_{name}": [e["quality"]["ssim"] for e in entries]}
             quality.update(per)
             summary.update({k: [round(v, 2 if k.startswith("psnr") else 4) for v in vals] for k, vals in per.items()})
+            if job.kind in ("captures", "measurements") and count > 1:
+                quality["boundaries"] = _boundary_steps(entries, per_frame["psnr"], n)
+        metrics["quality"] = quality
     mpath = _write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
     summary.update(metrics=str(mpath), seconds=round(seconds, 2), patches_per_second=round(patches_per_second),
                    data_range=units.value)
     print(json.dumps(summary))
     return 0
+
+
+def _boundary_steps(entries: list, psnr_per_frame: list, n: int) -> dict:
+    """PSNR of the last frame of each capture and of the first frame of the next (flicker at boundaries)."""
+    pairs = [dict(last=psnr_per_frame[(i + 1) * n - 1], first_next=psnr_per_frame[(i + 1) * n])
+             for i in range(len(entries) - 1)]
+    return dict(pairs=pairs)
 
 
 def _method_dictionary(a, frames: int):

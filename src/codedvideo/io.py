@@ -75,6 +75,7 @@ def atomic_output(path: str | os.PathLike):
         raise OutputError(f"{path}: cannot create folder {path.parent} ({exc.strerror or exc})") from exc
     if not os.access(path.parent, os.W_OK):
         raise OutputError(f"{path}: folder {path.parent} is not writable")
+    _remove_dead_temporaries(path)
     tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}{path.suffix}")
     try:
         try:
@@ -90,6 +91,27 @@ def atomic_output(path: str | os.PathLike):
         else:
             tmp.unlink(missing_ok=True)
         raise
+
+
+def _remove_dead_temporaries(path: Path) -> None:
+    """Remove temporaries of ``path`` that a killed process left (its pid, in the name, no longer runs)."""
+    pattern = re.compile(rf"^\.{re.escape(path.stem)}\.tmp-(\d+)-[0-9a-f]{{8}}{re.escape(path.suffix)}$")
+    try:
+        siblings = list(path.parent.iterdir())
+    except OSError:
+        return
+    for sib in siblings:
+        m = pattern.match(sib.name)
+        if not m or int(m.group(1)) == os.getpid():
+            continue
+        try:
+            os.kill(int(m.group(1)), 0)
+            continue  # still running: its own temporary
+        except ProcessLookupError:
+            pass
+        except OSError:
+            continue
+        shutil.rmtree(sib, ignore_errors=True) if sib.is_dir() else sib.unlink(missing_ok=True)
 
 
 def _rename_into_place(tmp: Path, path: Path) -> None:

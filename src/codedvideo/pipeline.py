@@ -10,6 +10,7 @@ when the truth is known (no-reference statistics otherwise).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -236,12 +237,15 @@ def simulate_capture(
     p: float = 0.5,
     code_path: str | Path | None = None,
     sensor: physics.SensorModel | None = None,
+    captures: int = 1,
+    new_code_per_capture: bool = False,
 ) -> dict[str, np.ndarray]:
-    """Coded capture of a video: mask, coded image (noisy) and the truth.
+    """Coded capture(s) of a video: mask, coded image(s) (noisy) and the truth.
 
     Parameters
     ----------
-    video : ndarray of shape (N, H, W)
+    video : ndarray of shape (T * N, H, W)
+        ``captures`` consecutive captures of N sub-frames each.
     code, bump, p, code_path
         The code (:func:`codedvideo.codes.make_code`; ``code_path`` for ``file``).
     sigma : float
@@ -251,21 +255,34 @@ def simulate_capture(
     sensor : SensorModel, optional
         Shot noise, quantisation and clipping; its ``read_sigma`` is replaced
         by ``sigma``.  None: read noise only.
+    captures : int
+        T, the number of coded images (a coded camera's stream).
+    new_code_per_capture : bool
+        A new code for every capture instead of the same code repeated (as a
+        real sensor repeats its code).
 
     Returns
     -------
-    dict with ``coded`` (H, W) float32, ``mask`` (N, H, W) uint8, ``truth`` (N, H, W) float32
+    dict with ``coded`` (H, W) float32 for one capture, else (T, H, W); ``mask``
+    (N, H, W) uint8, or (T, N, H, W) with a new code per capture; ``truth``
+    (T * N, H, W) float32
     """
-    n = video.shape[0]
+    if captures < 1 or video.shape[0] % captures:
+        raise InputError(f"video of {video.shape[0]} frames: not {captures} captures of equal length")
+    n = video.shape[0] // captures
     ss = np.random.SeedSequence(seed)
     code_rng, noise_rng = (np.random.default_rng(s) for s in ss.spawn(2))
-    mask = make_code(code, video.shape[1:], frames=n, bump=bump, p=p, rng=code_rng, path=code_path)
-    if sensor is None:
-        coded = physics.simulate(video, mask, sigma=sigma, rng=noise_rng)
-    else:
+    masks = [make_code(code, video.shape[1:], frames=n, bump=bump, p=p, rng=code_rng, path=code_path)
+             for _ in range(captures if new_code_per_capture else 1)]
+    if sensor is not None:
         sensor = dataclasses.replace(sensor, read_sigma=sigma)
-        coded = physics.simulate(video, mask, rng=noise_rng, sensor=sensor)
-    return dict(coded=coded, mask=mask, truth=np.asarray(video, np.float32))
+    coded = []
+    for t in range(captures):  # one noise stream, drawn capture after capture
+        clip, mask = video[t * n : (t + 1) * n], masks[t % len(masks)]
+        coded.append(physics.simulate(clip, mask, sigma=sigma, rng=noise_rng) if sensor is None
+                     else physics.simulate(clip, mask, rng=noise_rng, sensor=sensor))
+    return dict(coded=coded[0] if captures == 1 else np.stack(coded),
+                mask=masks[0] if len(masks) == 1 else np.stack(masks), truth=np.asarray(video, np.float32))
 
 
 def sensor_model(noise) -> physics.SensorModel | None:
@@ -300,7 +317,10 @@ def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[st
         paths[name] = outdir / f"{name}.npy"
         cio.write_array(paths[name], capture[name])
     paths["coded_tif"] = outdir / "coded.tif"
-    cio.write_image(paths["coded_tif"], capture["coded"])
+    if capture["coded"].ndim == 3:  # several captures: one page each
+        cio.write_stack(paths["coded_tif"], capture["coded"], dtype=np.float32)
+    else:
+        cio.write_image(paths["coded_tif"], capture["coded"])
     return paths
 
 
@@ -313,8 +333,39 @@ def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
     return coded
 
 
+def read_coded_stack(path: str | Path) -> np.ndarray:
+    """Coded images (T, H, W) float32: a .npy (H, W) or (T, H, W), a (multi-page) image, a folder or
+    printf pattern of images, or a lossless video (one coded image per video frame)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        arr = cio.read_array(path)
+        if arr.ndim not in (2, 3):
+            raise InputError(f"coded image {path}: expected shape (H, W) or (T, H, W), got {arr.shape}")
+        coded = arr.astype(np.float32).reshape((-1, *arr.shape[-2:]))
+    elif suffix in VIDEO_SUFFIXES:
+        coded = cio.read_video(path)
+    else:
+        coded = cio.read_stack(path)
+    if not np.isfinite(coded).all():
+        raise InputError(f"coded image {path}: contains NaN or Inf")
+    return coded
+
+
+def read_masks(path: str | Path) -> np.ndarray:
+    """A mask (N, H, W), or one mask per capture (T, N, H, W) from a .npy (see :func:`read_mask`)."""
+    if Path(path).suffix.lower() == ".npy":
+        arr = cio.read_array(path)
+        if arr.ndim == 4:
+            return np.stack([_checked_mask(m, path) for m in arr])
+    return read_mask(path)
+
+
 def read_mask(path: str | Path) -> np.ndarray:
-    mask = cio.read_stack(path)
+    return _checked_mask(cio.read_stack(path), path)
+
+
+def _checked_mask(mask: np.ndarray, path) -> np.ndarray:
     if not np.isin(mask, (0, 1)).all():
         bad = np.unique(mask[~np.isin(mask, (0, 1))])[:3].tolist()
         raise InputError(f"mask {path}: not binary (values other than 0 and 1, e.g. {bad})")
@@ -477,6 +528,37 @@ def _static_volume(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dic
         work_store=None, seconds=dict(store_inputs=0.0, reconstruct=seconds, assemble=0.0), method="static",
     )
     return volume, info
+
+
+@contextlib.contextmanager
+def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0, fps: int = 30):
+    """Write a volume part by part, as its parts are reconstructed: yields ``put(index, part)``.
+
+    ``.npy`` outputs are streamed: a memory-mapped temporary file receives
+    each part (``volume[index] = part``) and is renamed onto ``output`` when
+    the block ends without an error, so memory does not grow with the number
+    of captures.  Other formats gather the parts and go through
+    :func:`write_volume` at the end.
+    """
+    output = Path(output)
+    if output.suffix.lower() == ".npy":
+        with cio.atomic_output(output) as tmp:
+            mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=tuple(shape))
+
+            def put(index, part):
+                mm[index] = part
+                mm.flush()
+
+            yield put
+            del mm
+        return
+    volume = np.empty(tuple(shape), np.float32)
+
+    def gather(index, part):
+        volume[index] = part
+
+    yield gather
+    write_volume(volume, output, data_range=data_range, fps=fps)
 
 
 def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 255.0, fps: int = 30) -> Path:

@@ -1,0 +1,107 @@
+"""Coded video: a stream of captures through simulate and reconstruct as one job, streamed to its output."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from codedvideo.cli import main
+
+N, H, W, T = 4, 40, 44, 3
+CLI = [sys.executable, "-m", "codedvideo.cli", "-q"]
+
+
+def _run(capsys, *args):
+    capsys.readouterr()
+    rc = main(["-q", *map(str, args)])
+    assert rc == 0, capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    d = tmp_path_factory.mktemp("seq")
+    assert main(["-q", "simulate", "synth:default", "--frames", str(N), "--size", str(H), str(W), "--captures", str(T),
+                 "--output", str(d / "cap")]) == 0
+    assert main(["-q", "simulate", "synth:default", "--frames", str(N), "--size", str(H), str(W), "--captures", str(T),
+                 "--new-code-per-capture", "--output", str(d / "cap2")]) == 0
+    return d
+
+
+def test_simulate_writes_a_stream_of_captures(sequence):
+    cap = sequence / "cap"
+    assert np.load(cap / "coded.npy").shape == (T, H, W)
+    assert np.load(cap / "mask.npy").shape == (N, H, W)
+    assert np.load(cap / "truth.npy").shape == (T * N, H, W)
+    masks = np.load(sequence / "cap2" / "mask.npy")
+    assert masks.shape == (T, N, H, W) and not (masks[0] == masks[1]).all()
+    # the first capture is the single capture of the same seed
+    from codedvideo.pipeline import load_video, simulate_capture
+
+    one = simulate_capture(load_video("synth:default", frames=N, size=(H, W)), code="hitomi", bump=2, sigma=0, seed=0)
+    np.testing.assert_array_equal(np.load(cap / "coded.npy")[0], one["coded"])
+
+
+@pytest.mark.parametrize("which", ["cap", "cap2"])
+def test_a_sequence_equals_its_captures_reconstructed_one_by_one(sequence, tmp_path, capsys, which):
+    cap = sequence / which
+    coded, masks = np.load(cap / "coded.npy"), np.load(cap / "mask.npy")
+    common = ["--method", "dct", "--cache", tmp_path / "cache"]
+    _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--truth",
+         cap / "truth.npy", "--output", tmp_path / "all.npy", *common)
+    whole = np.load(tmp_path / "all.npy")
+    assert whole.shape == (T * N, H, W)
+    for t in range(T):
+        np.save(tmp_path / "c.npy", coded[t])
+        np.save(tmp_path / "m.npy", masks[t] if masks.ndim == 4 else masks)
+        _run(capsys, "reconstruct", "--coded", tmp_path / "c.npy", "--mask", tmp_path / "m.npy", "--output",
+             tmp_path / f"one{t}.npy", *common)
+        np.testing.assert_array_equal(whole[t * N : (t + 1) * N], np.load(tmp_path / f"one{t}.npy"))
+    metrics = json.loads((tmp_path / "all.metrics.json").read_text())
+    assert [e["capture"] for e in metrics["captures"]] == [1, 2, 3]
+    assert len(metrics["quality"]["psnr_per_frame"]) == T * N and len(metrics["quality"]["psnr_per_capture"]) == T
+    assert len(metrics["quality"]["boundaries"]["pairs"]) == T - 1
+
+
+def test_streamed_output_equals_the_output_written_at_once(sequence, tmp_path, capsys):
+    cap = sequence / "cap"
+    for out in ("s.npy", "s.tif"):  # .npy is streamed capture by capture, .tif written at the end
+        _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--method", "dct",
+             "--cache", tmp_path / "cache", "--output", tmp_path / out)
+    from codedvideo.pipeline import read_volume
+
+    np.testing.assert_array_equal(np.load(tmp_path / "s.npy"), read_volume(tmp_path / "s.tif"))
+
+
+def test_mask_per_capture_must_match_the_number_of_captures(sequence, tmp_path, capsys):
+    masks = np.load(sequence / "cap2" / "mask.npy")
+    np.save(tmp_path / "m.npy", masks[:2])
+    capsys.readouterr()
+    assert main(["-q", "reconstruct", "--coded", str(sequence / "cap" / "coded.npy"), "--mask", str(tmp_path / "m.npy"),
+                 "--method", "dct", "--output", str(tmp_path / "r.npy"), "--cache", str(tmp_path / "c")]) == 2
+    assert "2 masks" in capsys.readouterr().err and not (tmp_path / "r.npy").exists()
+
+
+@pytest.mark.slow
+def test_sigkill_mid_sequence_then_rerun_equals_a_clean_run(tmp_path):
+    cap = tmp_path / "cap"
+    subprocess.run([*CLI, "simulate", "synth:default", "--frames", "8", "--size", "160", "160", "--captures", "4",
+                    "--output", str(cap)], check=True)
+    args = ["reconstruct", "--coded", str(cap / "coded.npy"), "--mask", str(cap / "mask.npy"), "--tile", "32",
+            "--output", str(tmp_path / "out" / "r.npy")]
+    proc = subprocess.Popen([*CLI, *args, "--cache", str(tmp_path / "cache")])
+    deadline = time.time() + 120
+    while time.time() < deadline and len(list((tmp_path / "cache").glob("recon-*.zarr"))) < 2:
+        time.sleep(0.05)  # killed while the second capture is being reconstructed
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (tmp_path / "out" / "r.npy").exists()
+    subprocess.run([*CLI, *args, "--cache", str(tmp_path / "cache")], check=True)
+    subprocess.run([*CLI, *args[:-1], str(tmp_path / "clean.npy"), "--cache", str(tmp_path / "cache2")], check=True)
+    np.testing.assert_array_equal(np.load(tmp_path / "out" / "r.npy"), np.load(tmp_path / "clean.npy"))
+    metrics = json.loads((tmp_path / "out" / "r.metrics.json").read_text())
+    assert metrics["captures"][0]["reconstruction"]["tiles_reused"] == 25  # the first capture was done
+    assert sorted(p.name for p in (tmp_path / "out").iterdir() if ".tmp-" in p.name) == []
