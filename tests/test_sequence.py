@@ -105,3 +105,37 @@ def test_sigkill_mid_sequence_then_rerun_equals_a_clean_run(tmp_path):
     metrics = json.loads((tmp_path / "out" / "r.metrics.json").read_text())
     assert metrics["captures"][0]["reconstruction"]["tiles_reused"] == 25  # the first capture was done
     assert sorted(p.name for p in (tmp_path / "out").iterdir() if ".tmp-" in p.name) == []
+
+
+@pytest.mark.parametrize("new_code", [False, True])
+def test_the_still_path_is_exact_for_a_still_scene(tmp_path, capsys, new_code):
+    """Nothing moves (a tripod on a still scene): every frame is coded / open count, exactly, with no sparse coding."""
+    from codedvideo.pipeline import simulate_capture
+    from codedvideo.synth import make_scene
+
+    still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * N, axis=0)
+    cap = simulate_capture(still, code="hitomi", bump=2, sigma=0, seed=1, captures=T, new_code_per_capture=new_code)
+    for name in ("coded", "mask", "truth"):
+        np.save(tmp_path / f"{name}.npy", cap[name])
+    _run(capsys, "reconstruct", "--coded", tmp_path / "coded.npy", "--mask", tmp_path / "mask.npy", "--output",
+         tmp_path / "r.npy", "--cache", tmp_path / "cache", "--method", "dct")
+    np.testing.assert_allclose(np.load(tmp_path / "r.npy"), still, atol=1e-3)
+    metrics = json.loads((tmp_path / "r.metrics.json").read_text())
+    assert all(e["reconstruction"]["still_pixels"] == H * W for e in metrics["captures"])
+    assert all(e["reconstruction"]["patches"] == 0 for e in metrics["captures"])
+
+
+def test_a_partly_still_sequence_leaves_the_still_part_out_and_gains(tmp_path, capsys):
+    """70 % of the frame still: those pixels skip the dictionary search and are better than sparse coding them."""
+    cap = tmp_path / "cap"
+    _run(capsys, "simulate", "synth:default-static70", "--frames", N, "--size", 64, 96, "--captures", T, "--output", cap)
+    psnr, still = {}, {}
+    for flag in ([], ["--independent-captures"]):
+        out = tmp_path / f"r{len(flag)}.npy"
+        _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--truth",
+             cap / "truth.npy", "--method", "dct", "--output", out, "--cache", tmp_path / "cache", *flag)
+        metrics = json.loads(out.with_name(out.stem + ".metrics.json").read_text())
+        psnr[len(flag)] = metrics["quality"]["psnr"]
+        still[len(flag)] = sum(e["reconstruction"]["still_pixels"] for e in metrics["captures"])
+    assert still[1] == 0 and still[0] > 0.4 * T * 64 * 96
+    assert psnr[0] > psnr[1]

@@ -21,6 +21,7 @@ import numpy as np
 
 from . import __version__
 from .baselines import METHODS
+from .bayer import PATTERNS as BAYER_PATTERNS
 from .codes import CODE_NAMES
 from .config import (
     CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig, ReconstructConfig, SceneConfig,
@@ -76,6 +77,9 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--gain", type=float, default=PipelineConfig().noise.gain, help="electrons per grey level")
     s.add_argument("--bits", type=int, default=None, help="quantise the coded image to this bit depth")
     s.add_argument("--white-level", type=float, default=None, help="clip the coded image at this grey level (saturation)")
+    s.add_argument("--bayer", type=str.upper, choices=BAYER_PATTERNS, default=None, metavar="PATTERN",
+                   help="film the video's colours through a Bayer filter (RGGB, BGGR, GRBG, GBRG): coded.npy is the "
+                        "single-channel mosaic, truth.npy the colour video (3, N, H, W)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None, help="centre crop (synth: size)")
     s.add_argument("--start", type=int, default=0, help="first frame of a video file")
@@ -98,6 +102,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="with --cacti: reconstruct only measurement Q (1-based)")
     r.add_argument("--color", choices=("luma", "channels"), default="luma",
                    help="colour coded image: its luma (default), or each channel with the same mask (colour output)")
+    r.add_argument("--bayer", type=str.upper, choices=BAYER_PATTERNS, default=None, metavar="PATTERN",
+                   help="the coded image is a Bayer mosaic (RGGB, BGGR, GRBG, GBRG): write the colour video (3, N, H, W)")
     r.add_argument("--dictionary", default=None,
                    help="dictionary store (.zarr) for --method omp (default: the one shipped for the mask's N)")
     r.add_argument("--method", choices=METHODS, default="omp",
@@ -129,6 +135,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--cache", default="cache")
     r.add_argument("--overwrite", action="store_true",
                    help="replace an existing output file that codedvideo did not write (folders: never)")
+    r.add_argument("--independent-captures", action="store_true",
+                   help="a stack of coded images: reconstruct each on its own (default: regions still from one "
+                        "capture to the next take coded / open count, without sparse coding)")
 
     e = sub.add_parser("evaluate", help="per-frame and mean PSNR/SSIM as JSON")
     e.add_argument("--recon", required=True, help=".npy, .zarr, .mat, .tif, a video or frames")
@@ -203,6 +212,14 @@ def _cmd_simulate(a) -> int:
         raise ConfigError(f"option --captures all: only for a video file (give a number for {a.video})")
     if a.cacti_out and a.new_code_per_capture:
         raise ConfigError("option --cacti-out: a CACTI file has one mask; it does not go with --new-code-per-capture")
+    if a.bayer:
+        from .bayer import check_even
+
+        if a.cacti_out or captures != 1:
+            raise ConfigError(f"option --bayer {a.bayer}: makes one capture with a colour truth; "
+                              f"{'--cacti-out (CACTI files are grey)' if a.cacti_out else '--captures'} does not apply")
+        if size is not None:
+            check_even(size, f"option --size {size[0]} {size[1]}")
     out = Path(a.output)
     outputs = [Output(out, "place", "output folder")] + [Output(out / f, "file") for f in CAPTURE_FILES]
     if a.cacti_out:
@@ -215,10 +232,18 @@ def _cmd_simulate(a) -> int:
         captures = read_video(resolve_data(a.video), start=a.start).shape[0] // a.frames
         if captures < 1:
             raise InputError(f"video {a.video}: fewer than N = {a.frames} frames from frame {a.start}")
-    video = load_video(a.video, frames=a.frames * captures, size=size, seed=a.seed, start=a.start)
-    cap = simulate_capture(video, code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed, p=code_cfg.p,
-                           code_path=code_cfg.path, sensor=sensor_model(noise), captures=captures,
-                           new_code_per_capture=a.new_code_per_capture)
+    if a.bayer:  # the colour video through the filter: coded.npy the mosaic, truth.npy (3, N, H, W)
+        from .bayer import load_color_video, simulate_bayer
+
+        cap = simulate_bayer(load_color_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start),
+                             a.bayer, where=f"video {a.video}", code=code_cfg.name, bump=code_cfg.bump,
+                             sigma=noise.sigma, seed=a.seed, p=code_cfg.p, code_path=code_cfg.path,
+                             sensor=sensor_model(noise))
+    else:
+        video = load_video(a.video, frames=a.frames * captures, size=size, seed=a.seed, start=a.start)
+        cap = simulate_capture(video, code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed,
+                               p=code_cfg.p, code_path=code_cfg.path, sensor=sensor_model(noise), captures=captures,
+                               new_code_per_capture=a.new_code_per_capture)
     paths = write_capture(cap, a.output)
     if a.cacti_out:
         from .cacti import write_cacti
@@ -254,6 +279,9 @@ def _reconstruct_options(a):
                          "(drop --coded, --mask and --truth)")
     if a.cacti and a.color != "luma":
         raise InputError(f"reconstruct --cacti {a.cacti}: CACTI files are grey; --color channels does not apply")
+    if a.bayer and (a.cacti or a.color != "luma"):
+        raise InputError(f"reconstruct --bayer {a.bayer}: reads one single-channel mosaic (--coded); "
+                         f"{'--cacti' if a.cacti else '--color channels'} does not apply")
     rc = validated(ReconstructConfig, dict(
         max_atoms=a.max_atoms, tol_rms="auto" if a.tol_rms is None else a.tol_rms, static_atoms=a.static_atoms,
         stride=a.stride, weighting=a.weighting, tile=a.tile, batch=a.batch, scheduler=a.scheduler, workers=a.workers))
@@ -296,6 +324,8 @@ class _Captures:
         if self.truths is None:
             return None
         n = self.mask(i).shape[0]
+        if self.kind == "bayer":  # one mosaic, its colour truth (3, N, H, W)
+            return self.truths
         return self.truths[i] if self.kind == "channels" else self.truths[i * n : (i + 1) * n]
 
 
@@ -317,6 +347,23 @@ def _read_captures(a) -> _Captures:
             labels=[dict(measurement=q + 1) for q in chosen], kind="measurements",
             inputs=dict(cacti=a.cacti, dictionary=a.dictionary, measurements=[q + 1 for q in chosen]),
             dtype=None, source=f"CACTI file {a.cacti}")
+    if a.bayer:  # one single-channel mosaic, whole 2x2 cells; a colour truth (3, N, H, W)
+        from .bayer import check_even
+
+        coded = read_coded(a.coded, color="error")
+        check_size(coded.shape, a.coded)
+        check_even(coded.shape, f"coded image {a.coded}")
+        mask = read_masks(a.mask)
+        check_pair(coded.shape, mask.shape, where=f"mask {a.mask}")
+        truths = None
+        if a.truth:
+            truths = read_volume(a.truth, color="channels")
+            if truths.shape != (3, *mask.shape):
+                raise InputError(f"truth {a.truth}: shape {truths.shape} != (3, N, H, W) {(3, *mask.shape)} "
+                                 f"(the colour video, under --bayer)")
+        return _Captures(codeds=coded[None], masks=[mask], truths=truths, labels=[{}], kind="bayer",
+                         inputs=dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, bayer=a.bayer),
+                         dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
     color = a.color == "channels"
     coded = read_coded(a.coded, color="channels") if color else read_coded_stack(a.coded)
     check_size(coded.shape, a.coded)
@@ -371,28 +418,42 @@ def _cmd_reconstruct(a) -> int:
             log.warning("%s (data range %g from %s)", message, units.value, units.source)
     white = None if a.trust_saturated else noise.white_level
     h, w = job.codeds[0].shape[-2:]
-    shape = (count, n, h, w) if job.kind == "channels" else (count * n, h, w)
+    shape = (count, n, h, w) if job.kind == "channels" else (3, n, h, w) if job.kind == "bayer" else (count * n, h, w)
+    recon, trivial_of = reconstruct_capture, trivial_estimate
+    if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
+        from .bayer import reconstruct_bayer, static_estimate
+
+        recon = lambda *args, **kw: reconstruct_bayer(*args, pattern=a.bayer, **kw)  # noqa: E731
+        trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
+    temporal = job.kind == "captures" and count > 1 and not a.independent_captures
     with contextlib.ExitStack() as stack:
         put = None  # the output is opened once the first result exists: a failure before leaves nothing
         for i, label in enumerate(job.labels):
-            volume, info = reconstruct_capture(
+            still = None
+            if temporal:  # what did not change since the capture before or until the one after
+                from .sequence import still_pixels
+
+                still = still_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale)
+            volume, info = recon(
                 a.method, job.codeds[i], job.mask(i), data_range=units, settings=settings, dictionary=D,
                 dictionary_key=meta.get("sha256", ""), dictionary_name=str(a.dictionary or ""), white_level=white,
-                where=job.source, tile=rc.tile, cache=a.cache, scheduler=rc.scheduler, workers=rc.workers,
-                progress=not a.quiet)
+                still=still, where=job.source, tile=rc.tile, cache=a.cache, scheduler=rc.scheduler,
+                workers=rc.workers, progress=not a.quiet)
             entry = dict(label, reconstruction=info)
             truth = job.truth(i)
             if truth is not None:
-                entry["quality"] = evaluate(volume, truth, data_range=units.value)
-                entry["trivial"] = evaluate(trivial_estimate(job.codeds[i], job.mask(i)), truth, data_range=units.value)
+                entry["quality"] = evaluate(volume.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=units.value)
+                entry["trivial"] = evaluate(trivial_of(job.codeds[i], job.mask(i)).reshape(-1, h, w),
+                                            truth.reshape(-1, h, w), data_range=units.value)
                 for key in ("psnr", "ssim"):
                     per_frame[key] += entry["quality"][f"{key}_per_frame"]
                     trivial_frames[key] += entry["trivial"][f"{key}_per_frame"]
             t1 = time.perf_counter()
             if put is None:
                 put = stack.enter_context(volume_writer(a.output, shape, data_range=units.value, fps=out.fps))
-            put(i if job.kind == "channels" else slice(i * n, (i + 1) * n), volume)
+            put(i if job.kind == "channels" else slice(None) if job.kind == "bayer" else slice(i * n, (i + 1) * n),
+                volume)
             t_write += time.perf_counter() - t1
             entries.append(entry)
             del volume
@@ -407,11 +468,14 @@ def _cmd_reconstruct(a) -> int:
         data_range=units.as_dict(),
     )
     summary = dict(output=str(a.output))
-    if job.kind == "single":
+    if job.kind in ("single", "bayer"):
         info = entries[0]["reconstruction"]
         info["seconds"] = dict(read=t_read, **info["seconds"], write=t_write, total=time.perf_counter() - t_all)
         metrics["reconstruction"] = info
         patches_per_second, seconds = info["patches_per_second"], info["seconds"]["total"]
+        if job.kind == "bayer":
+            metrics.update(layout="(C, N, H, W)", bayer=dict(info.get("bayer", {}), pattern=a.bayer))
+            metrics["settings"]["bayer"] = a.bayer
     else:
         patches = sum(e["reconstruction"]["patches"] for e in entries)
         t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
@@ -429,7 +493,11 @@ def _cmd_reconstruct(a) -> int:
                                   psnr_per_frame=trivial_frames["psnr"], ssim_per_frame=trivial_frames["ssim"],
                                   data_range=units.value)
         summary.update(psnr=round(quality["psnr"], 2), ssim=round(quality["ssim"], 4))
-        if job.kind != "single":
+        if job.kind == "bayer":  # frames are channel-major: R's N, G's N, B's N
+            for key in ("psnr", "ssim"):
+                quality[f"{key}_per_channel"] = [float(np.mean(per_frame[key][c * n : (c + 1) * n])) for c in range(3)]
+            summary.update(trivial_psnr=round(metrics["trivial"]["psnr"], 2))
+        elif job.kind != "single":
             name = job.kind[:-1]
             per = {f"psnr_per_{name}": [e["quality"]["psnr"] for e in entries],
                    f"ssim_per_{name}": [e["quality"]["ssim"] for e in entries]}
@@ -481,7 +549,10 @@ def _cmd_evaluate(a) -> int:
     out = validated(OutputConfig, dict(data_range=a.data_range))
     if a.output:
         check_outputs([Output(Path(a.output), "file")], dict(recon=a.recon, truth=a.truth), overwrite=a.overwrite)
-    recon, truth = read_volume(a.recon), read_volume(a.truth)
+    truth = read_volume(a.truth)
+    recon = read_volume(a.recon, color="channels" if truth.ndim == 4 else "luma")
+    if truth.ndim == 4 and recon.shape == truth.shape:  # colour (C, N, H, W): every channel's frames
+        recon, truth = recon.reshape(-1, *recon.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])
     units = infer_data_range(float(truth.max(initial=0.0)), given=out.data_range, what="the truth")
     result = json_safe(dict(evaluate(recon, truth, data_range=units.value),
                             data_range_source=units.source))

@@ -477,6 +477,7 @@ def reconstruct_capture(
     dictionary_key: str = "",
     dictionary_name: str = "",
     white_level: float | None = None,
+    still: np.ndarray | None = None,
     where: str = "coded image",
     tile: int = 128,
     cache: str | Path = "cache",
@@ -490,7 +491,9 @@ def reconstruct_capture(
     ``settings`` already in them), reconstructed and scaled back, so the same
     capture in other units gives the same video times the scale.  Pixels at
     or above ``white_level`` (capture units; None: trust every pixel) are
-    missing measurements.
+    missing measurements.  Pixels of ``still`` (:func:`codedvideo.sequence.still_pixels`)
+    take ``coded / open count`` in every sub-frame, and the patches over them
+    are left out of the sparse coding.
     """
     from .baselines import reconstruct_method
 
@@ -503,15 +506,40 @@ def reconstruct_capture(
     scale = np.float32(data_range.scale)
     if scale != 1:
         coded_used = np.asarray(coded_used, np.float32) * scale
-    volume, info = reconstruct_method(method, coded_used, mask_used, dictionary=dictionary, settings=settings,
-                                      tile=tile, cache=cache, scheduler=scheduler, workers=workers, progress=progress,
-                                      dictionary_key=dictionary_key, dictionary_name=dictionary_name)
+    n_still = 0
+    if still is not None:
+        still = still & np.asarray(mask_used).any(0)
+        n_still = int(still.sum())
+    if n_still == still_total(mask_used) and n_still:  # nothing moves: no sparse coding at all
+        volume, info = _static_volume(coded_used, mask_used)
+    else:
+        if n_still:  # the still pixels' patches: left out (no measurement, so no patch estimate)
+            mask_used = np.where(still[None], 0, mask_used).astype(mask_used.dtype)
+            coded_used = np.where(still, 0, coded_used).astype(np.float32)
+        with warnings.catch_warnings():
+            if n_still:
+                warnings.filterwarnings("ignore", message=".*pixels are never open.*")
+            volume, info = reconstruct_method(method, coded_used, mask_used, dictionary=dictionary, settings=settings,
+                                              tile=tile, cache=cache, scheduler=scheduler, workers=workers,
+                                              progress=progress, dictionary_key=dictionary_key,
+                                              dictionary_name=dictionary_name)
+    if n_still:
+        from .sequence import normalised
+
+        q = normalised(coded, mask)[0] * scale
+        volume[:, still] = q[still]
+    info["still_pixels"] = n_still
     if scale != 1:
         volume = volume / scale
         if info.get("measurement_residual_rms") is not None:
             info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(scale)
     info["saturated_pixels"] = saturated
     return volume, info
+
+
+def still_total(mask: np.ndarray) -> int:
+    """Pixels that are open at least once."""
+    return int(np.asarray(mask).any(0).sum())
 
 
 def _static_volume(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dict]:
