@@ -352,7 +352,7 @@ def reconstruct_bayer(method: str, coded: np.ndarray, mask: np.ndarray, *, patte
     import time
     import warnings
 
-    from .pipeline import drop_saturated, reconstruct_capture
+    from .pipeline import reconstruct_capture
 
     pattern = check_pattern(pattern)
     coded = np.asarray(coded, np.float32)
@@ -362,8 +362,9 @@ def reconstruct_bayer(method: str, coded: np.ndarray, mask: np.ndarray, *, patte
     t0 = time.perf_counter()
     measured = np.ones(coded.shape, bool) if white_level is None else coded < np.float32(white_level)
     if (mask == mask[:, :1, :1]).all():  # one shutter pattern everywhere: no temporal information
-        if white_level is not None:
-            drop_saturated(coded, mask, white_level)  # the same error when nothing is left
+        if not measured.any():
+            raise InputError(f"{options.get('where', 'coded image')}: every pixel is at or above --white-level "
+                             f"{white_level}; nothing is left to reconstruct (--trust-saturated uses them anyway)")
         volume = static_estimate(coded, mask, pattern, measured)
         info = dict(method="static", patches=0, patches_per_second=0.0,
                     seconds=dict(reconstruct=time.perf_counter() - t0), saturated_pixels=int((~measured).sum()))

@@ -427,6 +427,9 @@ def _cmd_reconstruct(a) -> int:
         trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     temporal = job.kind == "captures" and count > 1 and not a.independent_captures
+    from .sequence import StepErrors
+
+    steps = StepErrors()
     with contextlib.ExitStack() as stack:
         put = None  # the output is opened once the first result exists: a failure before leaves nothing
         for i, label in enumerate(job.labels):
@@ -449,6 +452,8 @@ def _cmd_reconstruct(a) -> int:
                 for key in ("psnr", "ssim"):
                     per_frame[key] += entry["quality"][f"{key}_per_frame"]
                     trivial_frames[key] += entry["trivial"][f"{key}_per_frame"]
+                if job.kind in ("captures", "measurements"):
+                    steps.add(volume, truth)
             t1 = time.perf_counter()
             if put is None:
                 put = stack.enter_context(volume_writer(a.output, shape, data_range=units.value, fps=out.fps))
@@ -504,7 +509,7 @@ def _cmd_reconstruct(a) -> int:
             quality.update(per)
             summary.update({k: [round(v, 2 if k.startswith("psnr") else 4) for v in vals] for k, vals in per.items()})
             if job.kind in ("captures", "measurements") and count > 1:
-                quality["boundaries"] = _boundary_steps(entries, per_frame["psnr"], n)
+                quality["boundaries"] = dict(_boundary_steps(entries, per_frame["psnr"], n), **steps.summary())
         metrics["quality"] = quality
     mpath = _write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
@@ -549,8 +554,9 @@ def _cmd_evaluate(a) -> int:
     out = validated(OutputConfig, dict(data_range=a.data_range))
     if a.output:
         check_outputs([Output(Path(a.output), "file")], dict(recon=a.recon, truth=a.truth), overwrite=a.overwrite)
-    truth = read_volume(a.truth)
-    recon = read_volume(a.recon, color="channels" if truth.ndim == 4 else "luma")
+    recon, truth = read_volume(a.recon), read_volume(a.truth)
+    if truth.ndim == 4 and recon.ndim == 3:  # a colour truth: a video's or frame folder's channels
+        recon = read_volume(a.recon, color="channels")
     if truth.ndim == 4 and recon.shape == truth.shape:  # colour (C, N, H, W): every channel's frames
         recon, truth = recon.reshape(-1, *recon.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])
     units = infer_data_range(float(truth.max(initial=0.0)), given=out.data_range, what="the truth")

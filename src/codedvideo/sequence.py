@@ -58,3 +58,34 @@ def still_pixels(codeds, masks, i: int, *, sigma: float, patch: int = 7, scale: 
         agree |= (k > 0) & (kj > 0) & (np.abs(q - qj) <= tol)
     # every patch containing the pixel lies inside the still region (patches lie inside the image)
     return ndimage.minimum_filter(agree.view(np.uint8), size=2 * patch - 1, mode="nearest").astype(bool)
+
+
+class StepErrors:
+    """Error of the frame-to-frame step, inside captures and across their boundaries (flicker every N frames).
+
+    ``add(volume, truth)`` capture after capture; the step error of frames
+    ``t, t+1`` is the RMS of ``(x[t+1] - x[t]) - (g[t+1] - g[t])``.
+    """
+
+    def __init__(self):
+        self.inside: list[float] = []
+        self.boundary: list[float] = []
+        self._last = None
+
+    @staticmethod
+    def _rms(a: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(np.square(a, dtype=np.float64))))
+
+    def add(self, volume: np.ndarray, truth: np.ndarray) -> None:
+        v, g = np.asarray(volume, np.float64), np.asarray(truth, np.float64)
+        self.inside += [self._rms((v[t + 1] - v[t]) - (g[t + 1] - g[t])) for t in range(len(v) - 1)]
+        if self._last is not None:
+            self.boundary.append(self._rms((v[0] - self._last[0]) - (g[0] - self._last[1])))
+        self._last = (v[-1], g[-1])
+
+    def summary(self) -> dict:
+        inside = float(np.mean(self.inside)) if self.inside else None
+        boundary = float(np.mean(self.boundary)) if self.boundary else None
+        ratio = boundary / inside if inside and boundary is not None else None
+        return dict(step_rms_inside=inside, step_rms_boundary=boundary, boundary_to_inside=ratio,
+                    step_rms_per_boundary=self.boundary)
