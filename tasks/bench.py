@@ -8,6 +8,8 @@ Cases (issue "Fast reconstruction"):
   static   the default scene fully moving against 70 % still, still-scene test on/off
   bayer    the colour default scene through an RGGB filter (N = 8, L = 2): PSNR of the colour
            result and of the demosaicked static estimate, and the time
+  sequence 10 captures (256x256, N = 8) 70 % still, all still and all moving, as one job and
+           capture by capture (whole CLI processes); peak memory at T = 1, 10, 100
 
 Every case runs in its own process so that its peak resident memory is its
 own; each also times a fixed-size SGEMM so figures can be read as ratios
@@ -302,7 +304,71 @@ def case_bayer(quick: bool) -> dict:
                 static=dict(psnr=static["psnr"], ssim=static["ssim"]))
 
 
-CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer)
+def _cli(*args, cwd) -> tuple[float, float]:
+    """Run the codedvideo CLI as a user would; its wall time (whole process) and peak resident MB."""
+    cmd = ["/usr/bin/time", "-f", "%M", sys.executable, "-m", "codedvideo.cli", "-q", *map(str, args)]
+    t = time.perf_counter()
+    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd)
+    seconds = time.perf_counter() - t
+    if proc.returncode != 0:
+        raise RuntimeError(proc.stderr.strip().splitlines()[-1])
+    return seconds, float(proc.stderr.strip().splitlines()[-1]) / 1024.0
+
+
+def _psnr(recon: np.ndarray, truth: np.ndarray, cols=slice(None)) -> float:
+    from codedvideo.metrics import evaluate
+
+    return evaluate(recon[..., cols], truth[..., cols])["psnr"]
+
+
+def case_sequence(quick: bool) -> dict:
+    """Issue 15: coded video. 10 captures (256x256, N = 8) of a 70 %-still scene, a still scene and a fully
+    moving one, each reconstructed as one job and capture by capture (--independent-captures), every
+    figure the whole CLI process; peak memory at T = 1, 10 and 100."""
+    import tempfile
+
+    from codedvideo.pipeline import simulate_capture
+    from codedvideo.synth import make_scene
+
+    size, t_count = ((64, 64), 4) if quick else ((256, 256), 10)
+    out = dict(case="sequence", size=list(size), frames=8, captures=t_count, sgemm_gflops=sgemm_gflops())
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
+        tmp = Path(tmp)
+        scenes = {"static70": make_scene("default-static70", frames=8 * t_count, size=size),
+                  "still": np.repeat(make_scene("default", frames=1, size=size), 8 * t_count, axis=0),
+                  "moving": make_scene("default", frames=8 * t_count, size=size)}
+        for name, video in scenes.items():
+            cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=t_count)
+            for key in ("coded", "mask", "truth"):
+                np.save(tmp / f"{name}-{key}.npy", cap[key])
+            row = {}
+            for mode, flag in (("sequence", []), ("independent", ["--independent-captures"])):
+                result = tmp / f"{name}-{mode}.npy"
+                seconds, peak = _cli("reconstruct", "--coded", tmp / f"{name}-coded.npy", "--mask", tmp / f"{name}-mask.npy",
+                                     "--output", result, "--cache", tmp / f"cache-{name}-{mode}", *flag, cwd=ROOT)
+                recon = np.load(result)
+                row[mode] = dict(seconds=seconds, peak_rss_mb=peak, psnr=_psnr(recon, video))
+                if name == "static70":  # the moving part: the right 30 % of the frame
+                    row[mode]["psnr_moving"] = _psnr(recon, video, slice(int(round(0.7 * size[1])), None))
+            row["time_ratio"] = row["sequence"]["seconds"] / row["independent"]["seconds"]
+            out[name] = row
+        out["moving_vs_still70_time"] = out["static70"]["sequence"]["seconds"] / out["moving"]["sequence"]["seconds"]
+        out["still_vs_moving_time"] = out["still"]["sequence"]["seconds"] / out["moving"]["sequence"]["seconds"]
+        memory = {}
+        for t in ((1, 4) if quick else (1, 10, 100)):
+            video = make_scene("default", frames=8 * t, size=size)
+            cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=t)
+            np.save(tmp / "m-coded.npy", cap["coded"])
+            np.save(tmp / "m-mask.npy", cap["mask"])
+            seconds, peak = _cli("reconstruct", "--coded", tmp / "m-coded.npy", "--mask", tmp / "m-mask.npy", "--output",
+                                 tmp / f"m{t}.npy", "--cache", tmp / f"cache-m{t}", cwd=ROOT)
+            memory[str(t)] = dict(seconds=seconds, peak_rss_mb=peak)
+        out["memory"] = memory
+    return out
+
+
+CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
+             sequence=case_sequence)
 
 
 def run_child(name: str, quick: bool) -> dict:
@@ -338,6 +404,18 @@ def table(results: dict) -> str:
             if "kernel_load_seconds" in r:
                 rows.append(f"  compiled OMP kernel: loaded once per process in {r['kernel_load_seconds']:.2f} s, "
                             "before the timings above")
+        if name == "sequence":
+            for scene in ("static70", "still", "moving"):
+                q, i = r[scene]["sequence"], r[scene]["independent"]
+                moving = (f", moving part {q['psnr_moving']:.2f} vs {i['psnr_moving']:.2f} dB"
+                          if "psnr_moving" in q else "")
+                rows.append(f"  {r['captures']} captures {scene}: one job {q['seconds']:.1f} s {q['psnr']:.2f} dB, "
+                            f"capture by capture {i['seconds']:.1f} s {i['psnr']:.2f} dB{moving}")
+            rows.append(f"  70 %-still / moving: {100 * r['moving_vs_still70_time']:.0f} % of the time; still / moving: "
+                        f"{100 * r['still_vs_moving_time']:.0f} %; moving, one job / capture by capture: "
+                        f"{100 * r['moving']['time_ratio']:.0f} %")
+            rows.append("  peak RSS by T: " + ", ".join(f"T = {t}: {m['peak_rss_mb']:.0f} MB ({m['seconds']:.1f} s)"
+                                                       for t, m in r["memory"].items()))
         if name == "bayer":
             rows.append(f"  bayer {r['pattern']}: colour result {r['omp']['psnr']:.2f} dB, demosaicked static estimate "
                         f"{r['static']['psnr']:.2f} dB")
@@ -357,7 +435,7 @@ def table(results: dict) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", default="a,static,b,b1,c,quality,bayer")
+    ap.add_argument("--cases", default="a,static,b,b1,c,quality,bayer,sequence")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
