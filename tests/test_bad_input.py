@@ -95,18 +95,19 @@ def test_mask_and_image_shapes_disagree(files, tmp_path, capsys, kind):
     fails(capsys, reconstruct_args(files, tmp_path, mask=files / "bad_mask.npy"), "bad_mask.npy", root=tmp_path)
 
 
-@pytest.mark.parametrize("scale,what", [(255, "[255"), (0.5, "0.5"), (-1, "-1")])
+@pytest.mark.parametrize("scale,what", [(255, "[255"), (1.5, "1.5"), (-1, "-1")])  # 0.5: a calibrated mask
 def test_non_binary_mask(files, tmp_path, capsys, scale, what):
     mask = np.load(files / "mask.npy").astype(np.float32) * scale
     np.save(files / "grey.npy", mask)
-    err = fails(capsys, reconstruct_args(files, tmp_path, mask=files / "grey.npy"), "grey.npy", "not binary",
+    err = fails(capsys, reconstruct_args(files, tmp_path, mask=files / "grey.npy"), "grey.npy", "outside [0, 1]",
                 root=tmp_path)
     assert what in err  # names an offending value
 
 
 def test_non_binary_mask_as_a_tiff_of_0_and_255(files, tmp_path, capsys):
     cio.write_multipage_tiff(files / "m255.tif", np.load(files / "mask.npy") * 255)
-    fails(capsys, reconstruct_args(files, tmp_path, mask=files / "m255.tif"), "m255.tif", "not binary", root=tmp_path)
+    fails(capsys, reconstruct_args(files, tmp_path, mask=files / "m255.tif"), "m255.tif", "outside [0, 1]",
+          root=tmp_path)
 
 
 def test_mask_never_open_anywhere(files, tmp_path, capsys):

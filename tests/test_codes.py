@@ -221,7 +221,7 @@ def test_file_code_npy_and_tiff(tmp_path):
     with pytest.raises(InputError, match=r"m\.tif.*\(20, 24\).*\(20, 20\)"):
         make_code("file", (20, 20), frames=8, path=tmp_path / "m.tif")
     np.save(tmp_path / "bad.npy", mask * 3)
-    with pytest.raises(InputError, match=r"bad\.npy.*not binary"):
+    with pytest.raises(InputError, match=r"bad\.npy.*outside \[0, 1\]"):
         load_code_file(tmp_path / "bad.npy")
     with pytest.raises(InputError, match=r"missing\.npy"):
         load_code_file(tmp_path / "missing.npy")

@@ -77,6 +77,8 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--gain", type=float, default=PipelineConfig().noise.gain, help="electrons per grey level")
     s.add_argument("--bits", type=int, default=None, help="quantise the coded image to this bit depth")
     s.add_argument("--white-level", type=float, default=None, help="clip the coded image at this grey level (saturation)")
+    s.add_argument("--black-level", type=float, default=0.0,
+                   help="raw output: add this offset once per read-out (then clipping and quantisation)")
     s.add_argument("--bayer", type=str.upper, choices=BAYER_PATTERNS, default=None, metavar="PATTERN",
                    help="film the video's colours through a Bayer filter (RGGB, BGGR, GRBG, GBRG): coded.npy is the "
                         "single-channel mosaic, truth.npy the colour video (3, N, H, W)")
@@ -118,6 +120,14 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--white-level", type=float, default=None,
                    help="saturation level of the coded image: pixels at or above it are treated as missing")
     r.add_argument("--trust-saturated", action="store_true", help="with --white-level: use saturated pixels anyway")
+    r.add_argument("--black-level", type=float, default=0.0,
+                   help="raw frames: the offset of every read-out, subtracted first (coded units)")
+    r.add_argument("--bits", type=int, default=None,
+                   help="raw frames: ADC bit depth; values at 2**bits - 1 are saturated (missing), above it an error")
+    r.add_argument("--bad-pixels", default=None, metavar="FILE",
+                   help="defective pixels, missing measurements: text rows 'y x', or .npy (K, 2) or an (H, W) map")
+    r.add_argument("--detect-bad-pixels", action="store_true",
+                   help="find hot or dead pixels as outliers against their neighbourhood (across all captures)")
     r.add_argument("--stride", type=int, default=PipelineConfig().reconstruct.stride,
                    help="patch stride 1..7: 1 solves every overlapping patch (the paper), s about s*s times fewer")
     r.add_argument("--weighting", choices=("uniform", "fit"), default=PipelineConfig().reconstruct.weighting,
@@ -194,7 +204,8 @@ def _cmd_simulate(a) -> int:
     validated(PipelineConfig, dict(frames=a.frames, seed=a.seed), {"frames": "--frames"})
     code_cfg = validated(CodeConfig, dict(name=code, bump=a.bump, p=a.p, path=a.code_file), {"path": "--code-file"})
     noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, shot_noise=a.shot_noise, full_well=a.full_well, gain=a.gain,
-                                        bits=a.bits, white_level=a.white_level), {"sigma": "--noise-sigma"})
+                                        bits=a.bits, white_level=a.white_level, black_level=a.black_level),
+                      {"sigma": "--noise-sigma"})
     size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
     if size is not None:
         validated(SceneConfig, dict(size=size, start=a.start))
@@ -285,12 +296,13 @@ def _reconstruct_options(a):
     rc = validated(ReconstructConfig, dict(
         max_atoms=a.max_atoms, tol_rms="auto" if a.tol_rms is None else a.tol_rms, static_atoms=a.static_atoms,
         stride=a.stride, weighting=a.weighting, tile=a.tile, batch=a.batch, scheduler=a.scheduler, workers=a.workers))
-    noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, white_level=a.white_level), _RECONSTRUCT_OPTIONS)
+    noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, white_level=a.white_level, bits=a.bits,
+                                        black_level=a.black_level), _RECONSTRUCT_OPTIONS)
     out = validated(OutputConfig, dict(fps=a.fps, data_range=a.data_range), _RECONSTRUCT_OPTIONS)
     output = Path(a.output)
     check_outputs([Output(output, output_kind(output)), Output(metrics_path(output), "file", "metrics")],
                   dict(coded=a.coded, mask=a.mask, truth=a.truth, dictionary=a.dictionary, cacti=a.cacti, cache=a.cache,
-                       shipped_dictionaries=shipped.DATA),
+                       bad_pixels=a.bad_pixels, shipped_dictionaries=shipped.DATA),
                   overwrite=a.overwrite)
     check_writable(Path(a.cache) / "entry", what="cache")
     check_scheduler(rc.scheduler)
@@ -405,6 +417,7 @@ def _cmd_reconstruct(a) -> int:
     t_all = t0 = time.perf_counter()
     job = _read_captures(a)
     count, n = len(job.labels), job.masks[0].shape[0]
+    raw = _correct_raw(a, job, noise)  # black level, bit depth, bad pixels: before the data range is found
     D, meta = _method_dictionary(a, n)
     if a.dictionary:
         job.inputs["dictionary"] = str(a.dictionary)
@@ -416,7 +429,7 @@ def _cmd_reconstruct(a) -> int:
         message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
         if message:
             log.warning("%s (data range %g from %s)", message, units.value, units.source)
-    white = None if a.trust_saturated else noise.white_level
+    white = None if a.trust_saturated or raw else noise.white_level
     h, w = job.codeds[0].shape[-2:]
     shape = (count, n, h, w) if job.kind == "channels" else (3, n, h, w) if job.kind == "bayer" else (count * n, h, w)
     recon, trivial_of = reconstruct_capture, trivial_estimate
@@ -444,6 +457,8 @@ def _cmd_reconstruct(a) -> int:
                 still=still, where=job.source, tile=rc.tile, cache=a.cache, scheduler=rc.scheduler,
                 workers=rc.workers, progress=not a.quiet)
             entry = dict(label, reconstruction=info)
+            if raw:
+                entry["raw"] = raw[i]
             truth = job.truth(i)
             if truth is not None:
                 entry["quality"] = evaluate(volume.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=units.value)
@@ -517,6 +532,29 @@ def _cmd_reconstruct(a) -> int:
                    data_range=units.value)
     print(json.dumps(summary))
     return 0
+
+
+def _correct_raw(a, job: _Captures, noise) -> list | None:
+    """Raw frames to the sum convention (``codedvideo.sensor``): the black level subtracted, pixels at the
+    bit depth's white level (or --white-level) and defective pixels (--bad-pixels, --detect-bad-pixels) made
+    missing measurements.  Changes ``job`` in place; returns each image's counts (None: no raw option)."""
+    if not (noise.black_level or noise.bits is not None or a.bad_pixels or a.detect_bad_pixels):
+        return None
+    from .sensor import correct_raw, detect_bad_pixels, drop_pixels, read_bad_pixels
+
+    count = len(job.labels)
+    shape = tuple(job.codeds[0].shape[-2:])
+    listed = read_bad_pixels(a.bad_pixels, shape) if a.bad_pixels else None
+    fixed = [correct_raw(job.codeds[i], job.mask(i), black_level=noise.black_level, bits=noise.bits,
+                         white_level=noise.white_level, bad_pixels=listed, trust_saturated=a.trust_saturated,
+                         where=job.source) for i in range(count)]
+    codeds, masks, counts = [f.coded for f in fixed], [f.mask for f in fixed], [f.counts() for f in fixed]
+    if a.detect_bad_pixels:  # outliers against their neighbourhood, voted across every image
+        found = detect_bad_pixels(np.stack(codeds), np.stack(masks))
+        for i in range(count):
+            codeds[i], masks[i], counts[i]["detected_bad_pixels"] = drop_pixels(codeds[i], masks[i], found)
+    job.codeds, job.masks = codeds, masks
+    return counts
 
 
 def _boundary_steps(entries: list, psnr_per_frame: list, n: int) -> dict:

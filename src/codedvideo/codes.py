@@ -420,7 +420,9 @@ class CodeReport:
     frames : int
         N.
     binary : bool
-        Every value is 0 or 1.
+        Every value is 0 or 1.  False for a calibrated mask (fractional
+        weights, e.g. a DMD pattern measured through the optics); the other
+        constraints then count every non-zero weight as open.
     single_bump : bool
         Every pixel is open for at most one contiguous run of sub-frames.
     fixed_bump : bool
@@ -435,9 +437,15 @@ class CodeReport:
     never_open_pixels : int
         Pixels closed in every sub-frame (no measurement).
     open_fraction : float
-        Mean of the mask.
+        Share of (sub-frame, pixel) entries that are open (non-zero): the mean
+        of a binary mask.
     patch : int
         The window size M used for the coverage test.
+    mean_weight : float
+        Mean of the values (equal to ``open_fraction`` for a binary mask).
+    weight_min, weight_max : float
+        Smallest non-zero and largest value (1 and 1 for a binary mask that
+        opens anywhere; 0 and 0 for one that never opens).
     """
 
     frames: int
@@ -450,6 +458,9 @@ class CodeReport:
     open_fraction: float
     uncovered_windows: int = 0
     patch: int = PATCH
+    mean_weight: float = 0.0
+    weight_min: float = 0.0
+    weight_max: float = 0.0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -461,7 +472,7 @@ def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
     Parameters
     ----------
     mask : ndarray of shape (N, H, W)
-        Any numeric values; non-zero counts as open.
+        Any numeric values (a binary code or calibrated weights); non-zero counts as open.
     patch : int
         Window size M of the coverage constraint.
 
@@ -473,6 +484,7 @@ def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
     if mask.ndim != 3:
         raise InputError(f"mask: expected shape (N, H, W), got {mask.shape}")
     binary = bool(np.isin(mask, (0, 1)).all())
+    nonzero = mask[mask != 0]
     m = (mask != 0).astype(np.int8)
     counts = m.sum(0)
     # a single contiguous bump <=> at most one rising edge (0 -> 1) along time
@@ -496,4 +508,7 @@ def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
         open_fraction=float(m.mean()),
         uncovered_windows=uncovered,
         patch=patch,
+        mean_weight=float(np.mean(mask, dtype=np.float64)) if mask.size else 0.0,
+        weight_min=float(nonzero.min()) if nonzero.size else 0.0,
+        weight_max=float(mask.max()) if mask.size else 0.0,
     )

@@ -84,6 +84,8 @@ class NoiseConfig(_Strict):
     #: Clip the coded image at this grey level; reconstruction then treats
     #: pixels at or above it as missing (null: no saturation).
     white_level: float | None = Field(None, gt=0)
+    #: Raw black level: an offset added once per read-out (before clipping and quantising).
+    black_level: float = Field(0.0, ge=0)
 
 
 class DictionaryConfig(_Strict):

@@ -123,22 +123,37 @@ class OmpResult:
         return out
 
 
+def is_binary(mask: np.ndarray) -> bool:
+    """Whether every value of a mask is 0 or 1 (a shutter code rather than calibrated weights)."""
+    a = np.asarray(mask)
+    if a.dtype == np.bool_:
+        return True
+    return bool(((a == 0) | (a == 1)).all())
+
+
 def pixel_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distinct per-pixel shutter patterns of a code.
 
     Parameters
     ----------
-    mask : ndarray of shape (N, ...), N <= 64
-        A code (N, h, w), or patch codes arranged (N, P, m).
+    mask : ndarray of shape (N, ...)
+        A code (N, h, w), or patch codes arranged (N, P, m).  Binary codes need
+        N <= 64 (patterns packed in 64-bit integers); a calibrated mask (values
+        other than 0 and 1) gives its distinct weight vectors, any N.
 
     Returns
     -------
     patterns : ndarray of shape (U, N), float32
-        The distinct patterns (0/1).
+        The distinct patterns (0/1 for a binary code, the weights otherwise).
     which : ndarray of shape mask.shape[1:], int32
         Index of every pixel's pattern.
     """
     n = mask.shape[0]
+    if not is_binary(mask):
+        # a new array (never a view of the mask); + 0.0 turns -0.0 into 0.0: one pattern per value
+        rows = np.ascontiguousarray(np.moveaxis(np.asarray(mask, np.float32), 0, -1).reshape(-1, n)) + np.float32(0.0)
+        patterns, which = np.unique(rows, axis=0, return_inverse=True)
+        return np.ascontiguousarray(patterns, np.float32), which.reshape(mask.shape[1:]).astype(np.int32)
     if n > 64:
         raise ValueError(f"{n} sub-frames: pattern tables need N <= 64")
     weights = np.left_shift(np.uint64(1), np.arange(n, dtype=np.uint64))
@@ -221,10 +236,14 @@ class MaskedOperator:
     many distinct patterns (e.g. Bernoulli with large N) fall back to one small
     product per pixel position.
 
+    A calibrated mask (fractional weights in [0, 1], :func:`is_binary` false)
+    is the same exact operator with ``S_p`` holding the weights; its column
+    norms are then computed per pixel position.
+
     Parameters
     ----------
     S : ndarray of shape (P, N, m)
-        Shutter code of every patch (binary).
+        Shutter code of every patch: binary, or the weights of a calibrated mask.
     D : ndarray of shape (N*m, K)
         Dictionary, rows ordered ``(t, i)``.
     """
@@ -250,9 +269,10 @@ class MaskedOperator:
         D3 = self.D.reshape(N, m, self.K)
         if P == 0:
             return np.zeros((0, self.K), np.float32)
-        if N <= 64:  # patterns as 64-bit integers
+        binary = is_binary(self.S)  # calibrated (fractional) masks: pixels rarely share a pattern
+        if N <= 64 and binary:  # patterns as 64-bit integers
             patterns, inv = pixel_patterns(self.S.transpose(1, 0, 2))  # (U, N), (P, m)
-        if N <= 64 and m * len(patterns) <= self.MAX_ONEHOT:
+        if N <= 64 and binary and m * len(patterns) <= self.MAX_ONEHOT:
             U = len(patterns)
             B = pattern_table(patterns, self.D, m)  # (m, U, K)
             onehot = np.zeros((P, m * U), dtype=np.float32)
@@ -367,7 +387,14 @@ class _GroupedView:
 
 
 def patch_code_groups(S: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distinct patch codes: (index of each code's first patch, group of every patch)."""
+    """Distinct patch codes: (index of each code's first patch, group of every patch).
+
+    Binary codes are compared packed; calibrated (fractional) masks by their float32 weights.
+    """
+    if not is_binary(S):
+        flat = np.ascontiguousarray(np.asarray(S, np.float32).reshape(S.shape[0], -1)) + np.float32(0.0)
+        _, first, inv = np.unique(flat, axis=0, return_index=True, return_inverse=True)
+        return first, inv.ravel()
     packed = np.packbits(S.reshape(S.shape[0], -1) > 0, axis=1)
     _, first, inv = np.unique(packed, axis=0, return_index=True, return_inverse=True)
     return first, inv.ravel()

@@ -169,6 +169,58 @@ def _omp_kernel(y, pat, B, B2, floor, tol, kmax, dep_tol, select_bits, tiny, ind
 
 
 @njit(nogil=True, cache=True)
+def _omp_weights_kernel(y, S, D3, floor, tol, kmax, dep_tol, select_bits, tiny, index, coef, count, res2, dependent):
+    """:func:`_omp_kernel` for patches whose pixels each have their own weights (a calibrated mask).
+
+    Every patch gets its own one-pattern table ``B[i, 0] = sum_t S[p, t, i] D[t, i]``,
+    built in cache (``N m K`` multiply-adds, about one dense correlation), then the
+    table kernel itself solves it, every rule unchanged: later correlations cost
+    ``m K``.  The rows are summed exactly as :func:`codedvideo.omp.pattern_table`
+    sums them (sub-frame order, each product rounded before it is added: this
+    function is compiled without contraction), and the table kernel is called on
+    contiguous arrays of the types :class:`TableOMP` passes, so a patch gets the
+    same bits here as through a shared pattern table: the choice between the two
+    (which depends on how many patterns a region holds) never changes a result.
+    """
+    P, N, m = S.shape
+    K = D3.shape[2]
+    B = np.zeros((m, 1, K), np.float32)
+    B2 = np.zeros((m, 1, K), np.float32)
+    pat = np.zeros((1, m), np.int32)
+    y1 = np.empty((1, m), np.float32)
+    tol1 = np.empty(1, np.float64)
+    index1 = np.zeros((1, index.shape[1]), np.int32)
+    coef1 = np.zeros((1, coef.shape[1]), np.float32)
+    count1 = np.zeros(1, np.int32)
+    res1 = np.zeros(1, np.float32)
+    dep1 = np.zeros(1, np.bool_)
+    for p in range(P):
+        for i in range(m):
+            row = B[i, 0]
+            row[:] = 0.0
+            for t in range(N):
+                w = S[p, t, i]
+                if w != 0.0:
+                    d = D3[t, i]
+                    for k in range(K):
+                        row[k] += w * d[k]
+            row2 = B2[i, 0]
+            for k in range(K):
+                row2[k] = row[k] * row[k]
+        for i in range(m):
+            y1[0, i] = y[p, i]
+        tol1[0] = tol[p]
+        index1[:] = 0
+        coef1[:] = 0.0
+        _omp_kernel(y1, pat, B, B2, floor, tol1, kmax, dep_tol, select_bits, tiny, index1, coef1, count1, res1, dep1)
+        index[p, :] = index1[0]
+        coef[p, :] = coef1[0]
+        count[p] = count1[0]
+        res2[p] = res1[0]
+        dependent[p] = dep1[0]
+
+
+@njit(nogil=True, cache=True)
 def still_kernel(y, n_pix, C, tol, atoms, ok, frame):
     """The still-scene test of :func:`codedvideo.reconstruct.still_patches`, one patch at a time.
 
@@ -259,6 +311,12 @@ def synthesize_into(index, coef, count, Dt, out):
                 out[p, e] += a * row[e]
 
 
+def _visibility_floor(D: np.ndarray) -> np.ndarray:
+    """Per atom, the smallest coded-column norm that may be selected (``MIN_VISIBLE`` of the atom's norm)."""
+    atom_norms = np.sqrt((D.astype(np.float64) ** 2).sum(0)).astype(np.float32)
+    return (MIN_VISIBLE * atom_norms).astype(np.float32)
+
+
 class TableOMP:
     """OMP over the patches of one region through its pixel-pattern table.
 
@@ -275,8 +333,7 @@ class TableOMP:
         D = np.asarray(D, dtype=np.float32)
         self.B = pattern_table(patterns, D, patch_pixels)
         self.B2 = self.B * self.B
-        atom_norms = np.sqrt((D.astype(np.float64) ** 2).sum(0)).astype(np.float32)
-        self.floor = (MIN_VISIBLE * atom_norms).astype(np.float32)
+        self.floor = _visibility_floor(D)
 
     def solve(self, y: np.ndarray, pat: np.ndarray, *, max_atoms: int, tol) -> OmpResult:
         """OMP of patches ``y`` (P, m) whose pixels have patterns ``pat`` (P, m)."""
@@ -295,6 +352,48 @@ class TableOMP:
         return OmpResult(index=index, coef=coef, count=count, residual=res2, dependent=dependent)
 
 
+
+class WeightsOMP:
+    """OMP of patches whose pixels take any weights (a calibrated, fractional mask), compiled.
+
+    The same problem and rules as :class:`TableOMP`, with a table of one
+    pattern per patch built inside the kernel (:func:`_omp_weights_kernel`):
+    about half the multiply-adds of the dense numpy operator, whose column
+    norms and ``D^T (Phi_p^T r)`` correlations are recomputed through the zeros
+    and fractions of every patch.  Every patch is solved alone, so its answer
+    never depends on its batch, tile or worker.
+
+    Parameters
+    ----------
+    D : ndarray of shape (N*m, K)
+    patch_pixels : int
+        ``m`` (49 for 7x7 patches).
+    """
+
+    def __init__(self, D: np.ndarray, patch_pixels: int):
+        D = np.asarray(D, dtype=np.float32)
+        self.m = patch_pixels
+        self.n = D.shape[0] // patch_pixels
+        self.D3 = np.ascontiguousarray(D.reshape(self.n, patch_pixels, D.shape[1]))
+        self.floor = _visibility_floor(D)
+
+    def solve(self, y: np.ndarray, S: np.ndarray, *, max_atoms: int, tol) -> OmpResult:
+        """OMP of patches ``y`` (P, m) whose pixels have weights ``S`` (P, N, m)."""
+        y = np.ascontiguousarray(y, dtype=np.float32)
+        S = np.ascontiguousarray(S, dtype=np.float32)
+        P, m = y.shape
+        if S.shape != (P, self.n, m):
+            raise ValueError(f"weights of shape {S.shape}, expected {(P, self.n, m)}")
+        kmax = int(min(max_atoms, m))
+        tol = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, dtype=np.float64), (P,)))
+        index = np.zeros((P, kmax), np.int32)
+        coef = np.zeros((P, kmax), np.float32)
+        count = np.zeros(P, np.int32)
+        res2 = np.zeros(P, np.float32)
+        dependent = np.zeros(P, np.bool_)
+        _omp_weights_kernel(y, S, self.D3, self.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef,
+                            count, res2, dependent)
+        return OmpResult(index=index, coef=coef, count=count, residual=res2, dependent=dependent)
 
 
 def load_kernels() -> float:

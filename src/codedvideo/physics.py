@@ -5,19 +5,29 @@ Sum convention (Hitomi et al. 2011, Eq. 1), used everywhere in codedvideo::
     I(y, x) = sum_t S(t, y, x) * E(t, y, x)
 
 A pixel open for ``k`` sub-frames records the *sum* of ``k`` frame values, in the
-units of the frames (no division by the bump length).  The measurement of a
-simulated camera is ``sensor(noise(S E))`` (:func:`measure`, described by a
-:class:`SensorModel`), every part optional:
+units of the frames (no division by the bump length).  ``S`` is a binary code,
+or a *calibrated* mask: the response of every pixel in every sub-frame as the
+sensor measures it (a DMD or LCoS pattern imaged through the optics gives
+fractional, slightly misregistered weights in [0, 1]; :func:`blur_shift_mask`
+makes one from a binary code).  Every function here takes either as the exact
+forward model; a pixel is measured when its weights sum to more than 0.
+
+The measurement of a simulated camera is ``sensor(noise(S E))`` (:func:`measure`,
+described by a :class:`SensorModel`), every part optional:
 
 1. photon shot noise: the clean coded image ``S E`` (grey levels) times the
    ``gain`` (electrons per grey level) is the mean of a Poisson electron count,
    which saturates at the ``full_well`` capacity; divided by the gain again it
    is back in grey levels;
 2. Gaussian read noise of standard deviation ``read_sigma`` grey levels;
-3. the sensor's output: clipping at the ``white_level`` (saturation) and
-   quantisation to ``bits`` bits.  With both, the ADC maps ``[0, white_level]``
-   onto ``2**bits`` levels; with ``bits`` alone one level is one grey level
-   (``[0, 2**bits - 1]``).  The result stays in grey levels (float32).
+3. the sensor's output: the ``black_level`` offset added once per read-out
+   (so that read noise around a dark signal is not clipped), then clipping at
+   the ``white_level`` (saturation) and quantisation to ``bits`` bits.  With
+   both, the ADC maps ``[0, white_level]`` onto ``2**bits`` levels; with
+   ``bits`` alone one level is one grey level (``[0, 2**bits - 1]``).  The
+   result stays in grey levels (float32); with a black level it is a *raw*
+   value, ``sum of frames + black_level``, which
+   :func:`codedvideo.sensor.correct_raw` turns back into the sum convention.
 
 Noise streams are independent and seeded: read noise is drawn from the given
 generator (so plain read noise is exactly what :func:`add_read_noise` draws),
@@ -53,7 +63,8 @@ def forward(video: np.ndarray, mask: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     video : ndarray of shape (N, H, W)
-    mask : ndarray of shape (N, H, W), binary
+    mask : ndarray of shape (N, H, W)
+        Binary, or calibrated weights in [0, 1] (used in float32).
 
     Returns
     -------
@@ -101,6 +112,10 @@ class SensorModel:
         Quantise the output to this many bits (None: no quantisation).
     white_level : float or None
         Saturation: outputs are clipped at this grey level (None: no clipping).
+    black_level : float
+        Offset added to every read-out before clipping and quantisation, grey
+        levels (0: none).  The output is then raw, ``S E + noise + black_level``;
+        ``white_level`` and ``2**bits - 1`` are raw levels (black included).
     """
 
     shot_noise: bool = False
@@ -109,6 +124,7 @@ class SensorModel:
     read_sigma: float = 0.0
     bits: int | None = None
     white_level: float | None = None
+    black_level: float = 0.0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.full_well) and self.full_well > 0):
@@ -121,6 +137,10 @@ class SensorModel:
             raise InputError(f"sensor: bits must be an integer in 1..32, got {self.bits}")
         if self.white_level is not None and not (math.isfinite(self.white_level) and self.white_level > 0):
             raise InputError(f"sensor: white_level must be finite and > 0, got {self.white_level}")
+        if not (math.isfinite(self.black_level) and self.black_level >= 0):
+            raise InputError(f"sensor: black_level must be finite and >= 0, got {self.black_level}")
+        if self.full_scale is not None and self.black_level >= self.full_scale:
+            raise InputError(f"sensor: black_level {self.black_level} must be below the white level {self.full_scale}")
 
     @property
     def full_scale(self) -> float | None:
@@ -218,6 +238,8 @@ def measure(
         (shot_rng,) = gen.spawn(1)
         out = add_shot_noise(out, gain=model.gain, full_well=model.full_well, rng=shot_rng)
     out = add_read_noise(out, model.read_sigma, gen)
+    if model.black_level:  # once per read-out, before the ADC clips and rounds
+        out = (out + np.float32(model.black_level)).astype(np.float32)
     if model.bits is not None:
         out = quantise(out, bits=model.bits, full_scale=model.full_scale)
     elif model.white_level is not None:
@@ -288,10 +310,62 @@ def saturated_as_missing(
 def static_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """The trivial estimate: every sub-frame = coded / open count of its pixel.
 
-    Pixels that are never open get 0 here; reconstruction fills them from
+    For a calibrated mask the open count is the sum of the pixel's weights
+    (a still scene records ``frame * sum_t mask[t]``).  Pixels that are never
+    open (weights summing to 0) get 0 here; reconstruction fills them from
     their neighbours.  Shape (N, H, W) float32.
     """
     check_pair(np.shape(coded), np.shape(mask))
     n_open = np.asarray(mask, dtype=np.float32).sum(0)
     frame = np.divide(coded, n_open, out=np.zeros(np.shape(coded), np.float32), where=n_open > 0)
     return np.broadcast_to(frame, np.shape(mask)).astype(np.float32)
+
+
+def blur_shift_mask(
+    mask: np.ndarray,
+    shift: tuple[float, float] = (0.5, 0.5),
+    sigma: float = 0.5,
+    *,
+    mode: str = "nearest",
+) -> np.ndarray:
+    """A calibrated mask: a code as a sensor sees it through optics, misregistered and blurred.
+
+    Every sub-frame's pattern (a DMD or LCoS pattern of the sensor's pitch) is
+    moved by ``shift`` pixels (rows, columns) and blurred by a Gaussian point
+    spread of standard deviation ``sigma`` pixels.  The shift interpolates
+    linearly, which for a shift below one pixel is exactly the area of the
+    sensor pixel that each displaced code pixel covers; weights stay in [0, 1].
+
+    Parameters
+    ----------
+    mask : ndarray of shape (N, H, W)
+        The nominal code (binary or already fractional).
+    shift : (float, float)
+        Displacement of the pattern on the sensor, pixels (rows, columns).
+    sigma : float
+        Gaussian blur, pixels (0: none).
+    mode : str
+        How the pattern continues beyond the image border (:mod:`scipy.ndimage` modes).
+
+    Returns
+    -------
+    measured : ndarray of shape (N, H, W), float32, values in [0, 1]
+    """
+    from scipy import ndimage
+
+    m = np.asarray(mask, dtype=np.float64)
+    if m.ndim != 3:
+        raise InputError(f"blur_shift_mask: expected a mask (N, H, W), got shape {m.shape}")
+    if not (math.isfinite(sigma) and sigma >= 0):
+        raise InputError(f"blur_shift_mask: sigma must be finite and >= 0, got {sigma}")
+    shift = tuple(float(v) for v in shift)
+    if len(shift) != 2 or not all(math.isfinite(v) for v in shift):
+        raise InputError(f"blur_shift_mask: shift must be two finite numbers (rows, columns), got {shift}")
+    out = np.empty(m.shape, np.float64)
+    for t in range(m.shape[0]):
+        frame = ndimage.shift(m[t], shift, order=1, mode=mode, prefilter=False)
+        if sigma > 0:
+            frame = ndimage.gaussian_filter(frame, sigma, mode=mode)
+        out[t] = frame
+    out[np.abs(out) < 1e-7] = 0.0  # interpolation roundoff is not a response
+    return np.clip(out, 0.0, 1.0).astype(np.float32)

@@ -287,10 +287,11 @@ def simulate_capture(
 
 def sensor_model(noise) -> physics.SensorModel | None:
     """The :class:`~codedvideo.physics.SensorModel` of a ``NoiseConfig`` (None: read noise only)."""
-    if not noise.shot_noise and noise.bits is None and noise.white_level is None:
+    if not noise.shot_noise and noise.bits is None and noise.white_level is None and not noise.black_level:
         return None
     return physics.SensorModel(shot_noise=noise.shot_noise, full_well=noise.full_well, gain=noise.gain,
-                               read_sigma=noise.sigma, bits=noise.bits, white_level=noise.white_level)
+                               read_sigma=noise.sigma, bits=noise.bits, white_level=noise.white_level,
+                               black_level=noise.black_level)
 
 
 def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> tuple[np.ndarray, np.ndarray, int]:
@@ -366,12 +367,20 @@ def read_mask(path: str | Path) -> np.ndarray:
 
 
 def _checked_mask(mask: np.ndarray, path) -> np.ndarray:
-    if not np.isin(mask, (0, 1)).all():
-        bad = np.unique(mask[~np.isin(mask, (0, 1))])[:3].tolist()
-        raise InputError(f"mask {path}: not binary (values other than 0 and 1, e.g. {bad})")
+    """A binary code (uint8), or a calibrated mask: each pixel's measured response per sub-frame in [0, 1] (float32)."""
+    from .omp import is_binary
+
+    mask = np.asarray(mask)
+    if not np.isfinite(mask).all():
+        raise InputError(f"mask {path}: contains NaN or Inf")
+    outside = (mask < 0) | (mask > 1)
+    if outside.any():
+        bad = np.unique(mask[outside])[:3].tolist()
+        raise InputError(f"mask {path}: values outside [0, 1] (e.g. {bad}); a mask is 0/1, or a calibrated "
+                         "response per sub-frame in [0, 1]")
     if not mask.any():
         raise InputError(f"mask {path}: no pixel is ever open (all zeros); there is nothing to reconstruct")
-    return mask.astype(np.uint8)
+    return mask.astype(np.uint8) if is_binary(mask) else mask.astype(np.float32)
 
 
 def reconstruct_volume(

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import patches as P
-from .omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, pixel_patterns, synthesize
-from .omp_kernel import TableOMP, still_kernel, table_fits
+from .omp import (GroupedOperator, MaskedOperator, is_binary, masked_operator, omp, periodic_groups, pixel_patterns,
+                  synthesize)
+from .omp_kernel import MAX_TABLE_BYTES, TableOMP, WeightsOMP, still_kernel, table_fits
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 STAT_NAMES = (
@@ -115,7 +116,9 @@ def still_patches(
     ----------
     y : ndarray of shape (P, m)
     n_pix : ndarray of shape (P, m)
-        Open sub-frames of every pixel of every patch (``S.sum(1)``).
+        Open sub-frames of every pixel of every patch (``S.sum(1)``); for a
+        calibrated mask the sum of the pixel's weights (a still scene records
+        ``y_i = n_i s_i`` all the same).
     tol : ndarray of shape (P,)
         Squared residual tolerance.
     atoms : int
@@ -136,9 +139,22 @@ def still_patches(
     return ok, np.tile(frame[ok].astype(np.float32), (1, frames))
 
 
+def _few_patterns(mask: np.ndarray, D: np.ndarray, m: int) -> bool:
+    """Whether a calibrated mask might have few enough distinct pixel patterns for a pattern table.
+
+    A random projection of every pixel's weights counts at most as many
+    values as there are patterns (equal patterns project equally), so more
+    values than a table holds settles it in about a millisecond, without
+    sorting the patterns themselves (a blurred code: every pixel its own).
+    """
+    limit = MAX_TABLE_BYTES // (m * D.shape[1] * 4)  # the most patterns that table_fits accepts
+    probe = np.random.default_rng(0).random(mask.shape[0])
+    return np.unique(np.tensordot(probe, mask, axes=(0, 0))).size <= limit
+
+
 def reconstruct_region(
     coded: np.ndarray, mask: np.ndarray, D: np.ndarray, settings: OmpSettings, *, patch: int = P.PATCH,
-    origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None,
+    origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None, operator: str = "auto",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct every pixel of a region from the patches inside it.
 
@@ -146,10 +162,26 @@ def reconstruct_region(
     ----------
     coded : ndarray of shape (h, w)
     mask : ndarray of shape (N, h, w)
+        A binary code, or a calibrated mask: each pixel's measured response in
+        every sub-frame, weights in [0, 1] (the exact forward model
+        ``coded = sum_t mask[t] * frame[t]``).  A pixel is measured when its
+        weights sum to more than 0.
     D : ndarray of shape (N * patch**2, K)
     settings : OmpSettings
     origin, image_shape : the region's top-left corner in the image and the image's (H, W)
         (default: the region is the image); a patch stride counts from the image's corner.
+    operator : {"auto", "dense", "patch"}
+        "auto": periodic codes use the grouped operator; codes whose distinct
+        per-pixel patterns fit a pattern table (every binary single-bump code;
+        a calibrated mask with few distinct weight vectors) the compiled table
+        kernel; a calibrated mask with more patterns (a blurred, misregistered
+        code: every pixel its own weights) the compiled kernel with a table per
+        patch (:class:`codedvideo.omp_kernel.WeightsOMP`); binary codes with too
+        many patterns the dense numpy operator ``D^T (Phi_p^T r)``.  "patch":
+        the per-patch compiled kernel for every patch (bit for bit the table
+        kernel's answers, so the choice between the two never shows);
+        "dense": the dense numpy operator for every patch (the same answers
+        within float roundoff).  Both for tests and timings.
 
     Patches that a still scene explains (:func:`still_patches`: at most
     ``settings.static_atoms`` atoms of the 2D DCT, constant in time, reach the
@@ -172,12 +204,19 @@ def reconstruct_region(
     if h < patch or w < patch:
         raise ValueError(f"region {h}x{w} is smaller than one {patch}x{patch} patch")
     m = patch * patch
+    if operator not in ("auto", "dense", "patch"):
+        raise ValueError(f"operator {operator!r}: choose auto, dense or patch")
     coded = np.asarray(coded, dtype=np.float32)
+    binary = is_binary(mask)
+    if not binary:  # a calibrated mask: the weights themselves, in float32 as everywhere else
+        mask = np.asarray(mask, dtype=np.float32)
+        if not np.isfinite(mask).all() or (mask < 0).any():
+            raise ValueError("mask weights must be finite and >= 0")
     open_any = mask.any(0)
     y_all = P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch)  # (Pn, m)
-    S_all = P.extract(mask.astype(np.uint8), patch)  # (Pn, N, m)
+    S_all = P.extract(mask.astype(np.uint8) if binary else mask, patch)  # (Pn, N, m)
     hp, wp = P.grid_shape((h, w), patch)
-    groups = periodic_groups(mask, patch)
+    groups = None if operator != "auto" else periodic_groups(mask, patch)
     # periodic codes: the few distinct patch operators are built once for the region, however
     # few its patches, so that small edge tiles solve them with the same arithmetic as large ones
     grouped = None if groups is None else masked_operator(S_all, D, groups=groups, min_share=0)
@@ -185,12 +224,16 @@ def reconstruct_region(
         grouped = None
     # any other code whose pixels take few shutter patterns (every single-bump code):
     # the compiled OMP over the region's pixel-pattern table
-    table = pat_all = None
-    if grouped is None and n <= 64:
+    table = pat_all = weights = None
+    if grouped is None and operator == "auto" and (n <= 64 or not binary) and (binary or _few_patterns(mask, D, m)):
         patterns, which = pixel_patterns(mask)
         if table_fits(len(patterns), D, m):
             table, pat_all = TableOMP(patterns, D, m), P.extract(which, patch)
-    n_pix = P.extract(mask.sum(0, dtype=np.int32), patch)  # open sub-frames of every patch pixel
+    # calibrated masks beyond a table: the compiled kernel with one table per patch
+    if grouped is None and table is None and (operator == "patch" or (operator == "auto" and not binary)):
+        weights = WeightsOMP(D, m)
+    # open sub-frames of every patch pixel (a calibrated mask: the sum of its weights)
+    n_pix = P.extract(mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64), patch)
     n_open = (n_pix > 0).sum(1).astype(np.float32)
     # a patch without any measured pixel has nothing to say: it is left out of the
     # average, and pixels no patch with a measurement covers are NaN (filled later)
@@ -225,6 +268,8 @@ def reconstruct_region(
         if rows.size:
             if table is not None:
                 res = table.solve(y[rows], pat_all[sl][rows], max_atoms=settings.max_atoms, tol=tol[rows])
+            elif weights is not None:
+                res = weights.solve(y[rows], S[rows], max_atoms=settings.max_atoms, tol=tol[rows])
             else:
                 # periodic codes share few patch operators; any other code has its own per patch
                 op = MaskedOperator(S[rows], D) if grouped is None else grouped.subset(s + rows)

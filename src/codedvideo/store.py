@@ -266,10 +266,17 @@ def tile_digest(key: str, index: int, core: tuple[int, int, int, int], volume: n
     return np.frombuffer(h.digest(), dtype=np.uint8)
 
 
+def mask_dtype(mask: np.ndarray) -> np.dtype:
+    """How a working store holds a mask: uint8 for a binary code, float32 for calibrated weights."""
+    from .omp import is_binary
+
+    return np.dtype("uint8") if is_binary(mask) else np.dtype("<f4")
+
+
 def inputs_digest(coded: np.ndarray, mask: np.ndarray) -> str:
-    """blake2b of the inputs as a working store holds them (float32 coded image, uint8 mask)."""
+    """blake2b of the inputs as a working store holds them (float32 coded image, mask as :func:`mask_dtype`)."""
     h = hashlib.blake2b(digest_size=DIGEST_SIZE, person=b"codedvideo-in")
-    for a in (np.ascontiguousarray(coded, dtype="<f4"), np.ascontiguousarray(mask, dtype=np.uint8)):
+    for a in (np.ascontiguousarray(coded, dtype="<f4"), np.ascontiguousarray(mask, dtype=mask_dtype(mask))):
         h.update(str(a.shape).encode())
         h.update(a.data)
     return h.hexdigest()
@@ -284,11 +291,12 @@ class _TileRef:
         self.index, self.core = index, core
 
 
-def workstore_layout(n: int, h: int, w: int, *, tile: int, n_stats: int, n_tiles: int) -> dict:
-    """name -> (shape, chunks, dtype, fill value) of the arrays of a working store."""
+def workstore_layout(n: int, h: int, w: int, *, tile: int, n_stats: int, n_tiles: int,
+                     mask: np.dtype = np.dtype("uint8")) -> dict:
+    """name -> (shape, chunks, dtype, fill value) of the arrays of a working store (``mask``: its dtype)."""
     return dict(
         coded=((h, w), (tile, tile), np.dtype("float32"), 0.0),
-        mask=((n, h, w), (n, tile, tile), np.dtype("uint8"), 0),
+        mask=((n, h, w), (n, tile, tile), np.dtype(mask), 0),
         volume=((n, h, w), (n, tile, tile), np.dtype("float32"), np.nan),
         stats=((n_tiles, n_stats), (1, n_stats), np.dtype("float64"), np.nan),
         digest=((n_tiles, DIGEST_SIZE), (1, DIGEST_SIZE), np.dtype("uint8"), 0),
@@ -320,8 +328,10 @@ def workstore_problem(group, *, key: str | None = None) -> str | None:
         return "its inputs were never completed"
     try:
         n, h, w = group["mask"].shape
+        stored = group["mask"].dtype
         layout = workstore_layout(n, h, w, tile=int(attrs["tile"]), n_stats=group["stats"].shape[1],
-                                  n_tiles=int(attrs["n_tiles"]))
+                                  n_tiles=int(attrs["n_tiles"]),
+                                  mask=stored if stored == np.dtype("<f4") else np.dtype("uint8"))
     except Exception as exc:
         return f"unreadable layout ({type(exc).__name__}: {exc})"
     for name, (shape, chunks, dtype, _) in layout.items():
@@ -375,7 +385,7 @@ class WorkStore:
         """
         path = Path(path)
         coded = np.asarray(coded, dtype=np.float32)
-        mask = np.asarray(mask, dtype=np.uint8)
+        mask = np.asarray(mask, dtype=mask_dtype(mask))
         if os.path.lexists(path):
             problem = cls._problem(path, coded, mask, key=attrs.get("key"), tile=tile, n_stats=n_stats, n_tiles=n_tiles)
             if problem is None:
@@ -387,7 +397,7 @@ class WorkStore:
             path.parent.mkdir(parents=True, exist_ok=True)
             remove_temporaries(path)  # left by killed runs (we hold the lock)
             group = zarr.open_group(str(tmp), mode="w")
-            layout = workstore_layout(n, h, w, tile=tile, n_stats=n_stats, n_tiles=n_tiles)
+            layout = workstore_layout(n, h, w, tile=tile, n_stats=n_stats, n_tiles=n_tiles, mask=mask.dtype)
             for name, (shape, chunks, dtype, fill) in layout.items():
                 arr = group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill)
                 if name in ("coded", "mask"):
