@@ -123,4 +123,4 @@ def test_cli_reconstruct_method_without_dictionary(tmp_path, scene):
     # omp without --dictionary: the dictionary shipped for the mask's N (tests/test_shipped.py), else an error
     proc = subprocess.run([*cli, "--output", str(tmp_path / "omp.npy")], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert json.loads((tmp_path / "omp.metrics.json").read_text())["inputs"]["dictionary"].endswith("dict-N8.zarr")
+    assert json.loads((tmp_path / "omp.metrics.json").read_text())["inputs"]["dictionary"].endswith("dict-N8.zip")

@@ -36,9 +36,9 @@ def test_a_damaged_shipped_dictionary_is_refused(tmp_path, monkeypatch):
 
     copy = tmp_path / "data"
     shutil.copytree(shipped.DATA, copy)
-    chunk = copy / "dict-N8.zarr" / "atoms" / "c" / "0" / "0"
+    chunk = copy / "dict-N8.zip"
     data = bytearray(chunk.read_bytes())
-    data[100] ^= 0xFF
+    data[len(data) // 2] ^= 0xFF
     chunk.write_bytes(bytes(data))
     monkeypatch.setattr(shipped, "DATA", copy)
     with pytest.raises(InputError, match="dict-N8"):
@@ -57,7 +57,7 @@ def test_reconstruct_without_dictionary_uses_the_shipped_one_or_names_the_train_
             "--output", str(tmp_path / "r.npy"), "--cache", str(tmp_path / "cache")]
     assert main(args) == 0
     metrics = json.loads((tmp_path / "r.metrics.json").read_text())
-    assert metrics["inputs"]["dictionary"].endswith("dict-N8.zarr")
+    assert metrics["inputs"]["dictionary"].endswith("dict-N8.zip")
     args = [a.replace("coded8", "coded5").replace("mask8", "mask5") for a in args]
     assert main(args) == 2
     err = capsys.readouterr().err

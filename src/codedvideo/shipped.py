@@ -3,7 +3,7 @@
 Each is the dictionary `codedvideo train --frames N` makes with its defaults
 (K-SVD, 512 atoms, 80000 samples, 20 iterations, sparsity 6, 144 clips of
 synthetic motion of the training photographs, seed 0), stored as a Zarr
-dictionary store in ``codedvideo/data/dict-N{N}.zarr`` and listed in
+dictionary store zipped into one file, ``codedvideo/data/dict-N{N}.zip``, and listed in
 ``data_manifest`` (id ``dict-n{N}``) with the sha256 of its atoms and the
 command that made it.  `make train` regenerates them.
 
@@ -24,7 +24,7 @@ DATA = Path(__file__).resolve().parent / "data"
 
 
 def path_for(frames: int) -> Path:
-    return DATA / f"dict-N{frames}.zarr"
+    return DATA / f"dict-N{frames}.zip"
 
 
 def manifest_id(frames: int) -> str:
@@ -34,7 +34,7 @@ def manifest_id(frames: int) -> str:
 def available() -> list[int]:
     """The N of every shipped dictionary (those listed in data_manifest whose store is present)."""
     ids = {e.id for e in manifest.load_manifest()}
-    return sorted(int(p.name[6:-5]) for p in DATA.glob("dict-N*.zarr") if manifest_id(int(p.name[6:-5])) in ids)
+    return sorted(int(p.name[6:-4]) for p in DATA.glob("dict-N*.zip") if manifest_id(int(p.name[6:-4])) in ids)
 
 
 def train_command(frames: int) -> str:
@@ -44,10 +44,12 @@ def train_command(frames: int) -> str:
 
 def settings_key(frames: int) -> str | None:
     """The training settings key recorded in the shipped store (None when there is none)."""
-    meta = path_for(frames) / "zarr.json"
+    import zipfile
+
     try:
-        return json.loads(meta.read_text())["attributes"].get("settings_key")
-    except (OSError, ValueError, KeyError):
+        with zipfile.ZipFile(path_for(frames)) as z:
+            return json.loads(z.read("zarr.json"))["attributes"].get("settings_key")
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
         return None
 
 

@@ -209,15 +209,20 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
         sha256=hashlib.sha256(D.tobytes()).hexdigest(),
     )
     tmp = _tmp_sibling(path)
+    zipped = path.suffix.lower() == ".zip"  # one file (the shipped dictionaries): a zipped Zarr store
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        group = zarr.open_group(str(tmp), mode="w")
+        store = zarr.storage.ZipStore(tmp, mode="w") if zipped else str(tmp)
+        group = zarr.open_group(store, mode="w", attributes=json.loads(json.dumps(attrs)))
         arr = group.create_array("atoms", shape=D.shape, chunks=D.shape, dtype="float32")
         arr[:] = D
-        group.attrs.update(json.loads(json.dumps(attrs)))
-        _replace_dir(tmp, path)
+        if zipped:
+            store.close()
+            os.replace(tmp, path)
+        else:
+            _replace_dir(tmp, path)
     except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink(missing_ok=True)
         raise OutputError(f"dictionary {path}: cannot write ({exc.strerror or exc})") from exc
     return path
 
@@ -234,9 +239,12 @@ def load_dictionary(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     if not path.exists():
         raise InputError(f"dictionary {path}: no such file or directory")
     try:
-        group = zarr.open_group(str(path), mode="r")
+        store = zarr.storage.ZipStore(path, mode="r") if path.suffix.lower() == ".zip" else str(path)
+        group = zarr.open_group(store, mode="r")
         meta = dict(group.attrs)
         D = np.asarray(group["atoms"][:], dtype=np.float32)
+        if not isinstance(store, str):
+            store.close()
     except (KeyError, ValueError, OSError, TypeError) as exc:
         raise InputError(f"dictionary {path}: not a readable codedvideo dictionary ({exc})") from exc
     except Exception as exc:  # zarr raises its own types for corrupt metadata
