@@ -206,8 +206,7 @@ def load_color_video(spec: str, *, frames: int, size: tuple[int, int] | None, se
     channels.  Grey sources (the other ``synth:`` scenes, grey files) are
     recorded as R = G = B.  Files are centre-cropped to ``size``.
     """
-    from . import io as cio
-    from .pipeline import load_video, resolve_data
+    from .pipeline import load_video, read_clip
 
     if spec.startswith("synth:"):
         name = spec.split(":", 1)[1]
@@ -216,18 +215,8 @@ def load_color_video(spec: str, *, frames: int, size: tuple[int, int] | None, se
         return np.repeat(load_video(spec, frames=frames, size=size, seed=seed)[None], 3, axis=0)
     if spec.startswith("footage:"):
         return color_footage(spec.split(":", 1)[1], frames=frames, size=size)
-    video = cio.read_video(resolve_data(spec), max_frames=frames, start=start, color="channels")
-    if video.shape[0] == 1:
-        video = np.repeat(video, 3, axis=0)
-    if video.shape[1] < frames:
-        raise InputError(f"video {spec}: has {video.shape[1]} frames from frame {start}, need {frames}")
-    if size is not None:
-        h, w = size
-        if video.shape[2] < h or video.shape[3] < w:
-            raise InputError(f"video {spec}: frames {video.shape[2:]} smaller than the requested size {tuple(size)}")
-        y0, x0 = (video.shape[2] - h) // 2, (video.shape[3] - w) // 2
-        video = video[:, :, y0 : y0 + h, x0 : x0 + w]
-    return np.ascontiguousarray(video[:, :frames], dtype=np.float32)
+    video = read_clip(spec, frames=frames, size=size, start=start, color="channels")
+    return np.repeat(video, 3, axis=0) if video.shape[0] == 1 else video
 
 
 def simulate_bayer(video: np.ndarray, pattern: str, *, where: str = "video", **capture) -> dict[str, np.ndarray]:

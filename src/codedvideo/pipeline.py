@@ -91,17 +91,22 @@ def load_video(spec: str, *, frames: int, size: tuple[int, int] | None, seed: in
         from .footage import footage_scene
 
         return footage_scene(spec.split(":", 1)[1], frames=frames, size=size)
-    video = cio.read_video(resolve_data(spec), max_frames=frames, start=start)
-    if video.shape[0] < frames:
-        raise InputError(f"video {spec}: has {video.shape[0]} frames from frame {start}, need {frames}")
+    return read_clip(spec, frames=frames, size=size, start=start)
+
+
+def read_clip(spec: str, *, frames: int, size: tuple[int, int] | None, start: int = 0, color: str = "luma") -> np.ndarray:
+    """``frames`` frames of a video / frame-sequence file from ``start``, centre-cropped to ``size``:
+    (frames, H, W), or (C, frames, H, W) with ``color="channels"``, float32."""
+    video = cio.read_video(resolve_data(spec), max_frames=frames, start=start, color=color)
+    if video.shape[-3] < frames:
+        raise InputError(f"video {spec}: has {video.shape[-3]} frames from frame {start}, need {frames}")
     if size is not None:
         h, w = size
-        if video.shape[1] < h or video.shape[2] < w:
-            raise InputError(f"video {spec}: frames {video.shape[1:]} smaller than the requested size {tuple(size)}")
-        y0 = (video.shape[1] - h) // 2
-        x0 = (video.shape[2] - w) // 2
-        video = video[:, y0 : y0 + h, x0 : x0 + w]
-    return np.ascontiguousarray(video[:frames], dtype=np.float32)
+        if video.shape[-2] < h or video.shape[-1] < w:
+            raise InputError(f"video {spec}: frames {video.shape[-2:]} smaller than the requested size {tuple(size)}")
+        y0, x0 = (video.shape[-2] - h) // 2, (video.shape[-1] - w) // 2
+        video = video[..., y0 : y0 + h, x0 : x0 + w]
+    return np.ascontiguousarray(video[..., :frames, :, :], dtype=np.float32)
 
 
 def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max_speed: float = synth.MAX_SPEED) -> list[np.ndarray]:
