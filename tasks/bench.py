@@ -8,6 +8,7 @@ Cases (issue "Fast reconstruction"):
   static   the default scene fully moving against 70 % still, still-scene test on/off
   bayer    the colour default scene through an RGGB filter (N = 8, L = 2): PSNR of the colour
            result and of the demosaicked static estimate, and the time
+  units    the default scene in 8-bit floats, [0, 1] floats and 12-bit uint16: PSNR and seconds
   startup  a 256x256 N = 8 reconstruct as a whole process against its in-process time
   calibrated  a code misregistered by half a pixel: nominal binary mask against the measured float mask
   sequence 10 captures (256x256, N = 8) 70 % still, all still and all moving, as one job and
@@ -393,6 +394,31 @@ def case_startup(quick: bool) -> dict:
                 ratio=wall / work, sgemm_gflops=sgemm_gflops())
 
 
+def case_units(quick: bool) -> dict:
+    """Issue 14: the default scene (N = 8, L = 2) held as a user may hold it: 8-bit floats, [0, 1] floats
+    (img_as_float), 12-bit integers (uint16); PSNR and whole-process seconds of `reconstruct` for each."""
+    import tempfile
+
+    size = (96, 96) if quick else (256, 256)
+    cap = capture("default", 8, size, "hitomi", 2)
+    out = dict(case="units", size=list(size), frames=8, sgemm_gflops=sgemm_gflops())
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
+        tmp = Path(tmp)
+        for name, scale, dtype in (("8-bit float", 1.0, np.float32), ("[0, 1] float", 1 / 255, np.float32),
+                                   ("12-bit uint16", 4095 / 255 / 2, np.uint16)):
+            coded = cap["coded"] * scale
+            coded = np.rint(coded).astype(dtype) if dtype == np.uint16 else coded.astype(dtype)
+            np.save(tmp / "coded.npy", coded)
+            np.save(tmp / "mask.npy", cap["mask"])
+            np.save(tmp / "truth.npy", (cap["truth"] * scale).astype(np.float32))
+            result = tmp / f"r-{len(out)}.npy"
+            seconds, _ = _cli("reconstruct", "--coded", tmp / "coded.npy", "--mask", tmp / "mask.npy", "--truth",
+                              tmp / "truth.npy", "--output", result, "--cache", tmp / f"cache-{len(out)}", cwd=ROOT)
+            metrics = json.loads(result.with_name(result.stem + ".metrics.json").read_text())
+            out[name] = dict(seconds=seconds, psnr=metrics["quality"]["psnr"], data_range=metrics["data_range"]["value"])
+    return out
+
+
 def case_calibrated(quick: bool) -> dict:
     """Issue 14: a binary code whose optical response is misregistered by half a pixel (and blurred),
     reconstructed with the nominal binary mask and with the measured (float) mask."""
@@ -413,7 +439,7 @@ def case_calibrated(quick: bool) -> dict:
 
 
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
-             sequence=case_sequence, calibrated=case_calibrated, startup=case_startup)
+             sequence=case_sequence, calibrated=case_calibrated, startup=case_startup, units=case_units)
 
 
 def run_child(name: str, quick: bool) -> dict:
@@ -449,6 +475,9 @@ def table(results: dict) -> str:
             if "kernel_load_seconds" in r:
                 rows.append(f"  compiled OMP kernel: loaded once per process in {r['kernel_load_seconds']:.2f} s, "
                             "before the timings above")
+        if name == "units":
+            rows.append("  units: " + ", ".join(f"{k} {v['psnr']:.2f} dB (range {v['data_range']:g}) {v['seconds']:.1f} s"
+                                                for k, v in r.items() if isinstance(v, dict)))
         if name == "startup":
             rows.append(f"  start-up: reconstruct {r['size']} as a whole process {r['process_seconds']:.2f} s, in-process "
                         f"{r['in_process_seconds']:.2f} s: {r['ratio']:.2f}x (target 1.5x)")
@@ -489,7 +518,7 @@ def table(results: dict) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", default="a,static,b,b1,c,quality,bayer,sequence,calibrated,startup")
+    ap.add_argument("--cases", default="a,static,b,b1,c,quality,bayer,sequence,calibrated,startup,units")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
