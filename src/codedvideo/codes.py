@@ -72,8 +72,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
+from .patches import PATCH
 
-PATCH = 7
 
 #: Names accepted by :func:`make_code`.
 CODE_NAMES = (

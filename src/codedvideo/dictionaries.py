@@ -15,9 +15,9 @@ import numpy as np
 from scipy.fft import dct
 
 from .errors import InputError
+from .patches import PATCH
 from .ksvd import ksvd
 
-PATCH = 7
 
 #: Atoms are rescaled to unit norm when some nonzero atom's norm differs from 1
 #: by more than this; a dictionary within it (every learned or DCT dictionary,

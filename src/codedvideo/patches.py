@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Side of the square patches of the method (7x7 in the paper): the one home of this constant.
 PATCH = 7
 
 

@@ -24,6 +24,7 @@ from scipy import ndimage
 
 from . import io as cio
 from . import patches as P
+from .patches import PATCH
 from . import manifest, physics, synth
 from .codes import make_code
 from .config import PipelineConfig
@@ -36,11 +37,10 @@ from .store import WorkStore, entry_lock, load_array, load_dictionary, save_arra
 
 log = logging.getLogger("codedvideo")
 
-PATCH = 7
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
 RECON_VERSION = "recon-v4"  # v4: per-tile digests in the working store
-VIDEO_SUFFIXES = (".mp4", ".mkv", ".avi", ".mov", ".gif")
+VIDEO_SUFFIXES = cio.VIDEO_SUFFIXES
 
 
 # ----------------------------------------------------------------------------- hashing
