@@ -446,6 +446,12 @@ def _cmd_reconstruct(a) -> int:
     steps = StepErrors()
     with contextlib.ExitStack() as stack:
         put = None  # the output is opened once the first result exists: a failure before leaves nothing
+        # several coded images: one progress bar for the whole job (with its ETA), none per image
+        bar = None
+        if count > 1 and not a.quiet:
+            from tqdm.auto import tqdm
+
+            bar = stack.enter_context(tqdm(total=count, desc="reconstruct", unit=job.kind[:-1]))
         for i, label in enumerate(job.labels):
             still = None
             if temporal:  # what did not change since the capture before or until the one after
@@ -456,7 +462,7 @@ def _cmd_reconstruct(a) -> int:
                 a.method, job.codeds[i], job.mask(i), data_range=units, settings=settings, dictionary=D,
                 dictionary_key=meta.get("sha256", ""), dictionary_name=str(a.dictionary or ""), white_level=white,
                 still=still, where=job.source, tile=rc.tile, cache=a.cache, scheduler=rc.scheduler,
-                workers=rc.workers, progress=not a.quiet)
+                workers=rc.workers, progress=not a.quiet and bar is None)
             entry = dict(label, reconstruction=info)
             if raw:
                 entry["raw"] = raw[i]
@@ -478,6 +484,8 @@ def _cmd_reconstruct(a) -> int:
             t_write += time.perf_counter() - t1
             entries.append(entry)
             del volume
+            if bar is not None:
+                bar.update(1)
         t1 = time.perf_counter()
     t_write += time.perf_counter() - t1
     mark_written(a.output)

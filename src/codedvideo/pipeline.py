@@ -576,23 +576,28 @@ def _static_volume(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dic
 def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0, fps: int = 30):
     """Write a volume part by part, as its parts are reconstructed: yields ``put(index, part)``.
 
-    ``.npy`` outputs are streamed: a memory-mapped temporary file receives
-    each part (``volume[index] = part``) and is renamed onto ``output`` when
-    the block ends without an error, so memory does not grow with the number
-    of captures.  Other formats gather the parts and go through
-    :func:`write_volume` at the end.
+    Parts come in order (``volume[index] = part``, the indices consecutive
+    along the first axis).  ``.npy`` outputs are streamed: the header, then
+    each part appended to a temporary file, renamed onto ``output`` when the
+    block ends complete, so memory does not grow with the number of captures
+    (a memory map would: the pages written stay in the process's resident
+    set).  Other formats gather the parts and go through :func:`write_volume`
+    at the end.
     """
     output = Path(output)
     if output.suffix.lower() == ".npy":
+        total = int(np.prod(shape)) * 4
         with cio.atomic_output(output) as tmp:
-            mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=tuple(shape))
+            with open(tmp, "wb") as fh:
+                np.lib.format.write_array_header_2_0(fh, dict(descr="<f4", fortran_order=False, shape=tuple(shape)))
+                start = fh.tell()
 
-            def put(index, part):
-                mm[index] = part
-                mm.flush()
+                def put(index, part):
+                    fh.write(np.ascontiguousarray(part, dtype="<f4").tobytes())
 
-            yield put
-            del mm
+                yield put
+                if fh.tell() - start != total:
+                    raise RuntimeError(f"output {output}: {fh.tell() - start} of {total} bytes written")
         return
     volume = np.empty(tuple(shape), np.float32)
 
