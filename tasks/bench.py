@@ -64,7 +64,7 @@ def dictionary_for(frames: int):
     """The default dictionary for N = 8; for larger N (speed cases only) a shorter K-SVD run
     (20k samples, 10 iterations) with the same number of atoms, so training stays in minutes."""
     from codedvideo.config import PipelineConfig
-    from codedvideo.pipeline import train_dictionary
+    from codedvideo.stages import train_dictionary
     from codedvideo.store import load_dictionary
 
     cfg = PipelineConfig(frames=frames, cache=str(ROOT / "cache"))
@@ -76,7 +76,8 @@ def dictionary_for(frames: int):
 
 
 def capture(scene: str, frames: int, size, code: str, bump: int, seed: int = 0):
-    from codedvideo.pipeline import load_video, simulate_capture
+    from codedvideo.scenes import load_video
+    from codedvideo.stages import simulate_capture
 
     video = load_video(f"synth:{scene}", frames=frames, size=size, seed=seed)
     return simulate_capture(video, code=code, bump=bump, sigma=0.0, seed=seed)
@@ -86,7 +87,7 @@ def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128
     """Reconstruct ``repeats`` times (each into a fresh store); seconds: the median, seconds_first: the first."""
     from codedvideo.config import PipelineConfig, auto_tolerance
     from codedvideo.metrics import evaluate
-    from codedvideo.pipeline import reconstruct_volume
+    from codedvideo.stages import reconstruct_volume
     from codedvideo.reconstruct import OmpSettings
     import tempfile
 
@@ -230,7 +231,8 @@ def case_quality(quick: bool) -> dict:
     from codedvideo.config import PipelineConfig, auto_tolerance
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.metrics import evaluate
-    from codedvideo.pipeline import load_video, reconstruct_volume, simulate_capture
+    from codedvideo.scenes import load_video
+    from codedvideo.stages import reconstruct_volume, simulate_capture
     from codedvideo.reconstruct import OmpSettings
 
     D, meta = dictionary_for(8)
@@ -330,7 +332,7 @@ def case_sequence(quick: bool) -> dict:
     figure the whole CLI process; peak memory at T = 1, 10 and 100."""
     import tempfile
 
-    from codedvideo.pipeline import simulate_capture
+    from codedvideo.stages import simulate_capture
     from codedvideo.synth import make_scene
 
     size, t_count = ((64, 64), 4) if quick else ((256, 256), 10)
@@ -375,7 +377,7 @@ def case_startup(quick: bool) -> dict:
     (the metrics' total: reading, reconstructing, writing), median of 3, each into a fresh cache."""
     import tempfile
 
-    from codedvideo.pipeline import write_capture
+    from codedvideo.volumes import write_capture
 
     size = (96, 96) if quick else (256, 256)
     cap = capture("default", 8, size, "hitomi", 2)

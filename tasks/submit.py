@@ -12,7 +12,7 @@ import sys
 from _common import guarded
 
 from codedvideo.config import ReconstructConfig, load_config, validated
-from codedvideo.pipeline import run_pipeline
+from codedvideo.stages import run_pipeline
 
 
 def main() -> None:

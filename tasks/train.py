@@ -10,7 +10,7 @@ from _common import config_from_argv, guarded
 
 from codedvideo import manifest, shipped
 from codedvideo.config import PipelineConfig
-from codedvideo.pipeline import train_dictionary
+from codedvideo.stages import train_dictionary
 
 
 def _shipped(frames: list[int]) -> None:

@@ -17,7 +17,7 @@ from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.errors import InputError
 from codedvideo.physics import simulate
-from codedvideo.pipeline import read_volume, write_volume
+from codedvideo.volumes import read_volume, write_volume
 from codedvideo.store import load_dictionary, save_dictionary
 from codedvideo.synth import make_scene
 

@@ -11,7 +11,8 @@ from codedvideo.codes import make_code
 from codedvideo.errors import InputError
 from codedvideo.metrics import evaluate
 from codedvideo.physics import forward, static_estimate
-from codedvideo.pipeline import load_video, simulate_capture
+from codedvideo.scenes import load_video
+from codedvideo.stages import simulate_capture
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ import zarr
 from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.physics import simulate
-from codedvideo.pipeline import reconstruct_volume
+from codedvideo.stages import reconstruct_volume
 from codedvideo.reconstruct import OmpSettings
 from codedvideo.synth import make_scene
 
@@ -38,7 +38,7 @@ for i in range(reps):
     try:
         if job == "train":
             from codedvideo.config import PipelineConfig
-            from codedvideo.pipeline import train_dictionary
+            from codedvideo.stages import train_dictionary
             from codedvideo.store import load_dictionary
             cfg = PipelineConfig.model_validate(dict(frames=4, cache=str(root / f"cache-{i}"), dictionary=dict(
                 kind="learned", atoms=60, samples=1500, iterations=2, sparsity=3, clips=3)))
@@ -46,7 +46,7 @@ for i in range(reps):
             np.save(root / f"{tag}-{i}.npy", load_dictionary(path)[0])
             row = dict(ok=True, computed=not meta["reused"])
         else:
-            from codedvideo.pipeline import reconstruct_volume
+            from codedvideo.stages import reconstruct_volume
             from codedvideo.reconstruct import OmpSettings
             d = np.load(root / "scene.npz")
             vol, info = reconstruct_volume(d["coded"], d["mask"], d["D"], settings=OmpSettings(**json.loads(sys.argv[5])),
@@ -220,7 +220,7 @@ def test_a_damaged_zarr_json_or_input_array_rebuilds_the_entry(scene, reference,
 def test_a_dictionary_entry_copied_over_another_is_trained_again(tmp_path):
     """A dictionary cache entry replaced by another (intact, checksum and all) is not taken for this one."""
     from codedvideo.config import PipelineConfig
-    from codedvideo.pipeline import train_dictionary
+    from codedvideo.stages import train_dictionary
     from codedvideo.store import load_dictionary
 
     cfgs = [PipelineConfig.model_validate(dict(frames=n, cache=str(tmp_path), dictionary=dict(kind="dct")))
@@ -237,7 +237,7 @@ def test_a_dictionary_entry_copied_over_another_is_trained_again(tmp_path):
 def test_verify_reports_a_damaged_entry_and_clean_removes_only_that_one(scene, reference, tmp_path):
     from codedvideo.cache import clean_cache, verify_cache
     from codedvideo.config import PipelineConfig
-    from codedvideo.pipeline import train_dictionary
+    from codedvideo.stages import train_dictionary
 
     coded, mask, D = scene
     cache = tmp_path / "cache"

@@ -18,7 +18,7 @@ from codedvideo.errors import InputError
 from codedvideo.metrics import evaluate
 from codedvideo.omp import MaskedOperator, omp
 from codedvideo.physics import simulate, static_estimate
-from codedvideo.pipeline import reconstruct_volume
+from codedvideo.stages import reconstruct_volume
 from codedvideo.reconstruct import OmpSettings
 from codedvideo.synth import make_scene
 

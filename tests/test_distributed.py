@@ -5,7 +5,7 @@ import pytest
 from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.physics import simulate
-from codedvideo.pipeline import reconstruct_volume
+from codedvideo.stages import reconstruct_volume
 from codedvideo.reconstruct import OmpSettings
 from codedvideo.synth import make_scene
 

@@ -5,7 +5,7 @@ import pytest
 from codedvideo import manifest
 from codedvideo.errors import InputError
 from codedvideo.footage import SCENES, footage_scene
-from codedvideo.pipeline import load_video
+from codedvideo.scenes import load_video
 
 
 def test_package_clips_are_listed_as_test_data_and_verify():

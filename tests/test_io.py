@@ -193,7 +193,7 @@ def test_colour_lossy_video(tmp_path, smooth, suffix, tol):
 @pytest.mark.parametrize("name,tol", [("v.npy", 0), ("v.zarr", 0), ("v.mat", 0), ("v.tif", 0), ("v.mkv", 0.5),
                                       ("frames", 255 / 65535), ("v.mp4", 3.0), ("v.gif", 0.5)])
 def test_volume_outputs_round_trip(tmp_path, smooth, name, tol):
-    from codedvideo.pipeline import read_volume, write_volume
+    from codedvideo.volumes import read_volume, write_volume
 
     write_volume(smooth, tmp_path / name)
     back = read_volume(tmp_path / name)
@@ -205,7 +205,7 @@ def test_volume_outputs_round_trip(tmp_path, smooth, name, tol):
 
 
 def test_colour_volume_outputs(tmp_path, smooth):
-    from codedvideo.pipeline import read_volume, write_volume
+    from codedvideo.volumes import read_volume, write_volume
 
     colour = np.stack([smooth, smooth[:, ::-1], 255 - smooth])
     for name in ("c.npy", "c.zarr", "c.mat"):
@@ -220,7 +220,7 @@ def test_colour_volume_outputs(tmp_path, smooth):
 @pytest.mark.parametrize("name", ["i.png", "i.tif", "i.exr", "i.dpx", "s.tif", "v.npy", "v.mat", "v.mp4", "v.mkv", "v.gif"])
 @pytest.mark.parametrize("frac", [0.02, 0.5, 0.7])  # (a stream cut within its last frame can pass)
 def test_truncated_files_give_one_line_errors(tmp_path, smooth, name, frac):
-    from codedvideo.pipeline import read_volume, write_volume
+    from codedvideo.volumes import read_volume, write_volume
 
     if name.startswith("i."):
         cio.write_image(tmp_path / name, smooth[0], dtype=np.uint16 if name.endswith(".dpx") else None)
@@ -237,7 +237,7 @@ def test_truncated_files_give_one_line_errors(tmp_path, smooth, name, frac):
 
 
 def test_corrupt_zarr_and_garbage_files(tmp_path, smooth):
-    from codedvideo.pipeline import read_volume, write_volume
+    from codedvideo.volumes import read_volume, write_volume
 
     write_volume(smooth, tmp_path / "v.zarr")
     meta = next(p for p in (tmp_path / "v.zarr").rglob("zarr.json"))
@@ -292,7 +292,7 @@ def test_cli_reconstruct_colour_channels(tmp_path, smooth, capsys):
 def test_frame_folders_read_back_in_frame_units(tmp_path, fmt, tol):
     """evaluate on a folder of frames compares like with like: stored full scale maps back to data_range."""
     from codedvideo.io import write_frames
-    from codedvideo.pipeline import read_volume
+    from codedvideo.volumes import read_volume
 
     vol = np.random.default_rng(0).uniform(0, 255, (3, 9, 11)).astype(np.float32)
     write_frames(tmp_path / "f", vol, fmt=fmt)

@@ -39,7 +39,7 @@ def test_plain_read_noise_is_bit_identical_to_before(scene):
 
 def test_default_capture_is_bit_identical_to_before():
     from codedvideo.config import NoiseConfig
-    from codedvideo.pipeline import sensor_model, simulate_capture
+    from codedvideo.stages import sensor_model, simulate_capture
 
     video = np.random.default_rng(0).uniform(0, 255, (8, 16, 16)).astype(np.float32)
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=2.0, seed=5)
@@ -237,7 +237,7 @@ def test_cli_reconstruct_treats_saturated_pixels_as_missing(tmp_path, capsys):
 
 def test_pipeline_white_level_and_shot_noise(tmp_path):
     from codedvideo.config import PipelineConfig
-    from codedvideo.pipeline import run_pipeline
+    from codedvideo.stages import run_pipeline
 
     cfg = PipelineConfig.model_validate(dict(
         frames=4, cache=str(tmp_path / "c"), stages=["simulate", "reconstruct"],

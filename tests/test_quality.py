@@ -7,7 +7,8 @@ import pytest
 from codedvideo.config import PipelineConfig
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.metrics import evaluate
-from codedvideo.pipeline import load_video, reconstruct_volume, simulate_capture, train_dictionary, trivial_estimate
+from codedvideo.scenes import load_video
+from codedvideo.stages import reconstruct_volume, simulate_capture, train_dictionary, trivial_estimate
 from codedvideo.reconstruct import OmpSettings
 from codedvideo.store import load_dictionary
 

@@ -15,7 +15,8 @@ from codedvideo import io as cio
 from codedvideo.codes import CODE_NAMES, make_code
 from codedvideo.dictionaries import dct_dictionary, learn_dictionary
 from codedvideo.physics import simulate
-from codedvideo.pipeline import reconstruct_volume, simulate_capture, write_capture, write_volume
+from codedvideo.stages import reconstruct_volume, simulate_capture
+from codedvideo.volumes import write_capture, write_volume
 from codedvideo.reconstruct import OmpSettings
 from codedvideo.store import WorkStore, save_dictionary
 from codedvideo.synth import make_scene
@@ -34,14 +35,14 @@ WRITERS = ["v.npy", "v.zarr", "v.mat", "v.tif", "v.mkv", "v.gif", "v.mp4", "fram
 
 
 def _write(name, target, frames):
-    from codedvideo.pipeline import _write_json
+    from codedvideo.volumes import write_json
 
     if name == "capture":
         write_capture(dict(coded=frames[0], mask=(frames > 128).astype(np.uint8), truth=frames), target)
     elif name == "dict.zarr":
         save_dictionary(target, dct_dictionary(1), dict(patch=7, frames=1))
     elif name == "m.json":
-        _write_json(target, dict(a=1))
+        write_json(target, dict(a=1))
     else:
         write_volume(frames, target)
 

@@ -13,7 +13,7 @@ from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.errors import InputError
 from codedvideo.metrics import evaluate
-from codedvideo.pipeline import reconstruct_volume
+from codedvideo.stages import reconstruct_volume
 from codedvideo.reconstruct import OmpSettings
 from codedvideo.synth import make_scene
 

@@ -39,7 +39,8 @@ def test_simulate_writes_a_stream_of_captures(sequence):
     masks = np.load(sequence / "cap2" / "mask.npy")
     assert masks.shape == (T, N, H, W) and not (masks[0] == masks[1]).all()
     # the first capture is the single capture of the same seed
-    from codedvideo.pipeline import load_video, simulate_capture
+    from codedvideo.scenes import load_video
+    from codedvideo.stages import simulate_capture
 
     one = simulate_capture(load_video("synth:default", frames=N, size=(H, W)), code="hitomi", bump=2, sigma=0, seed=0)
     np.testing.assert_array_equal(np.load(cap / "coded.npy")[0], one["coded"])
@@ -71,7 +72,7 @@ def test_streamed_output_equals_the_output_written_at_once(sequence, tmp_path, c
     for out in ("s.npy", "s.tif"):  # .npy is streamed capture by capture, .tif written at the end
         _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--method", "dct",
              "--cache", tmp_path / "cache", "--output", tmp_path / out)
-    from codedvideo.pipeline import read_volume
+    from codedvideo.volumes import read_volume
 
     np.testing.assert_array_equal(np.load(tmp_path / "s.npy"), read_volume(tmp_path / "s.tif"))
 
@@ -110,7 +111,7 @@ def test_sigkill_mid_sequence_then_rerun_equals_a_clean_run(tmp_path):
 @pytest.mark.parametrize("new_code", [False, True])
 def test_the_still_path_is_exact_for_a_still_scene(tmp_path, capsys, new_code):
     """Nothing moves (a tripod on a still scene): every frame is coded / open count, exactly, with no sparse coding."""
-    from codedvideo.pipeline import simulate_capture
+    from codedvideo.stages import simulate_capture
     from codedvideo.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * N, axis=0)

@@ -8,7 +8,8 @@ from codedvideo import manifest, shipped
 from codedvideo.cli import main
 from codedvideo.config import PipelineConfig
 from codedvideo.errors import InputError
-from codedvideo.pipeline import dictionary_key, simulate_capture, train_dictionary
+from codedvideo.cache import dictionary_key
+from codedvideo.stages import simulate_capture, train_dictionary
 from codedvideo.store import load_dictionary
 from conftest import REGENERATE_TEST
 
@@ -71,7 +72,8 @@ def test_shipped_dictionary_regenerates_from_its_listed_settings(regenerated_dic
     assert REGENERATE_TEST == "test_shipped_dictionary_regenerates_from_its_listed_settings"
     from codedvideo.config import omp_settings
     from codedvideo.metrics import evaluate
-    from codedvideo.pipeline import load_video, reconstruct_volume
+    from codedvideo.scenes import load_video
+    from codedvideo.stages import reconstruct_volume
 
     cfg = PipelineConfig()
     video = load_video(cfg.scene.video, frames=8, size=cfg.scene.size, seed=0)

@@ -19,7 +19,8 @@ from codedvideo.ksvd import DUPLICATE_COS, ksvd
 from codedvideo.metrics import evaluate
 from codedvideo.omp import MaskedOperator, omp, synthesize
 from codedvideo.physics import forward, simulate, static_estimate
-from codedvideo.pipeline import read_coded, read_mask, reconstruct_volume
+from codedvideo.volumes import read_coded, read_mask
+from codedvideo.stages import reconstruct_volume
 from codedvideo.reconstruct import STAT_NAMES, OmpSettings, reconstruct_region
 from codedvideo.synth import make_scene
 

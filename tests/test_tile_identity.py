@@ -15,7 +15,7 @@ from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.omp import pattern_table, pixel_patterns
 from codedvideo.physics import simulate
-from codedvideo.pipeline import reconstruct_volume
+from codedvideo.stages import reconstruct_volume
 from codedvideo.reconstruct import OmpSettings, reconstruct_region
 from codedvideo.synth import make_scene
 

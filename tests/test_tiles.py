@@ -6,7 +6,7 @@ from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.parallel import plan_tiles
 from codedvideo.physics import simulate
-from codedvideo.pipeline import reconstruct_volume
+from codedvideo.stages import reconstruct_volume
 from codedvideo.reconstruct import OmpSettings, reconstruct_region
 
 

@@ -4,7 +4,7 @@ Every baseline takes the coded image ``(H, W)`` and its code ``(N, H, W)`` in
 the sum convention of :mod:`codedvideo.physics` and returns a video
 ``(N, H, W)`` float32; :data:`METHODS` lists the names ``codedvideo
 reconstruct --method`` accepts (``omp`` and ``dct`` are the per-patch OMP of
-:func:`codedvideo.pipeline.reconstruct_volume` with a learned or a 3D DCT
+:func:`codedvideo.stages.reconstruct_volume` with a learned or a 3D DCT
 dictionary; the others are here).
 
 * :func:`thinout` -- the draft-mode (thin-out) movie: each sub-frame keeps the
@@ -302,7 +302,7 @@ def reconstruct_method(
 ) -> tuple[np.ndarray, dict]:
     """Reconstruct with any method of :data:`METHODS` on the same forward model.
 
-    ``omp`` runs :func:`codedvideo.pipeline.reconstruct_volume` with
+    ``omp`` runs :func:`codedvideo.stages.reconstruct_volume` with
     ``dictionary``; ``dct`` runs it with the complete 3D DCT
     (:func:`codedvideo.dictionaries.dct_dictionary`); ``thinout``,
     ``interp`` and ``gaptv`` run the functions of this module with their
@@ -322,7 +322,7 @@ def reconstruct_method(
     dictionary_name : str
         Names the dictionary in those messages (e.g. its path).
     dictionary_key, settings, tile, cache, scheduler, workers, progress
-        Passed to :func:`~codedvideo.pipeline.reconstruct_volume` (``settings``
+        Passed to :func:`~codedvideo.stages.reconstruct_volume` (``settings``
         an :class:`~codedvideo.reconstruct.OmpSettings`; default settings when None).
 
     Returns
@@ -339,7 +339,7 @@ def reconstruct_method(
     if method not in METHODS:
         raise InputError(f"method {method!r}: unknown; choose one of {', '.join(METHODS)}")
     if method in ("omp", "dct"):
-        from .pipeline import reconstruct_volume
+        from .stages import reconstruct_volume
         from .reconstruct import OmpSettings
 
         from .dictionaries import dct_dictionary, prepare_dictionary

@@ -206,7 +206,7 @@ def load_color_video(spec: str, *, frames: int, size: tuple[int, int] | None, se
     channels.  Grey sources (the other ``synth:`` scenes, grey files) are
     recorded as R = G = B.  Files are centre-cropped to ``size``.
     """
-    from .pipeline import load_video, read_clip
+    from .scenes import load_video, read_clip
 
     if spec.startswith("synth:"):
         name = spec.split(":", 1)[1]
@@ -224,11 +224,11 @@ def simulate_bayer(video: np.ndarray, pattern: str, *, where: str = "video", **c
 
     ``video`` (3, N, H, W) is filtered (:func:`mosaic`: one channel per
     pixel), then coded and measured exactly as a grey video
-    (:func:`codedvideo.pipeline.simulate_capture` with ``capture``'s keywords:
+    (:func:`codedvideo.stages.simulate_capture` with ``capture``'s keywords:
     code, bump, sigma, seed, sensor, ...).  Returns ``coded`` (H, W) mosaic,
     ``mask`` (N, H, W) and ``truth`` (3, N, H, W), the colour video.
     """
-    from .pipeline import simulate_capture
+    from .stages import simulate_capture
 
     pattern = check_pattern(pattern)
     video = np.asarray(video, np.float32)
@@ -320,7 +320,7 @@ def reconstruct_bayer(method: str, coded: np.ndarray, mask: np.ndarray, *, patte
     ``(3 N, H, W)`` stack, each pixel measuring its own channel under its
     code (:func:`color_mask`), over the grey dictionary lifted to colour
     (:func:`color_dictionary`), through
-    :func:`codedvideo.pipeline.reconstruct_capture` (units, saturation,
+    :func:`codedvideo.stages.reconstruct_capture` (units, saturation,
     tiles and cache as for grey).  Then a static correction: each channel's
     measurement residual / open count, interpolated from its own pixels, is
     added to every sub-frame (+0.05 to 0.2 dB measured).  ``thinout``,
@@ -341,7 +341,7 @@ def reconstruct_bayer(method: str, coded: np.ndarray, mask: np.ndarray, *, patte
     import time
     import warnings
 
-    from .pipeline import reconstruct_capture
+    from .stages import reconstruct_capture
 
     pattern = check_pattern(pattern)
     coded = np.asarray(coded, np.float32)

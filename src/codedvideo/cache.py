@@ -24,16 +24,22 @@ a rerun resumes it); ``broken`` (damaged: a rerun rebuilds or recomputes it);
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError
+from .patches import PATCH
 
-__all__ = ["verify_cache", "clean_cache", "REMOVED_WHEN_BROKEN"]
+if TYPE_CHECKING:
+    from .config import PipelineConfig
+
+__all__ = ["verify_cache", "clean_cache", "REMOVED_WHEN_BROKEN", "RECON_VERSION", "content_key", "dictionary_key"]
 
 _ENTRY = re.compile(r"^(dict|recon)-([0-9a-f]{16})\.zarr$")
 _TEMP = re.compile(r"^\.((dict|recon)-[0-9a-f]{16}\.zarr)\.tmp-\d+-[0-9a-f]{8}$")
@@ -44,6 +50,30 @@ _MEMBERS = {"dict": {"zarr.json", "atoms"}, "recon": {"zarr.json", "coded", "mas
 _KINDS = {"dict": "dictionary", "recon": "reconstruction"}
 #: Statuses that ``clean_cache(root, broken_only=True)`` removes.
 REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
+
+
+# ----------------------------------------------------------------------------- keys
+#: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
+#: its output, so that tiles computed by an older version are never reused.
+RECON_VERSION = "recon-v4"  # v4: per-tile digests in the working store
+
+
+def content_key(*parts) -> str:
+    """A short sha256 over settings (JSON-able) and arrays."""
+    h = hashlib.sha256()
+    for part in parts:
+        if isinstance(part, np.ndarray):
+            h.update(str((part.shape, part.dtype.str)).encode())
+            h.update(np.ascontiguousarray(part).tobytes())
+        else:
+            h.update(json.dumps(part, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:16]
+
+
+def dictionary_key(cfg: PipelineConfig) -> str:
+    """The key of the training settings of ``cfg`` (cache entries and shipped dictionaries carry it)."""
+    settings = dict(cfg.dictionary.model_dump(exclude={"path"}), frames=cfg.frames, seed=cfg.seed, patch=PATCH)
+    return content_key("dictionary-v1", settings)
 
 
 def verify_cache(root: str | os.PathLike) -> list[dict]:
@@ -169,7 +199,6 @@ def _check_dictionary(path: Path) -> tuple[str, str]:
 
 
 def _check_reconstruction(path: Path) -> tuple[str, str]:
-    from .pipeline import RECON_VERSION
     from .store import WORKSTORE_FORMAT, WORKSTORE_KIND, WorkStore, inputs_digest, workstore_problem
 
     try:

@@ -181,7 +181,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _cmd_train(a) -> int:
-    from .pipeline import train_dictionary
+    from .stages import train_dictionary
 
     dictionary = validated(DictionaryConfig, dict(
         kind=a.kind, atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
@@ -197,7 +197,9 @@ def _cmd_train(a) -> int:
 
 
 def _cmd_simulate(a) -> int:
-    from .pipeline import CAPTURE_FILES, load_video, sensor_model, simulate_capture, write_capture
+    from .volumes import CAPTURE_FILES, write_capture
+    from .scenes import load_video
+    from .stages import sensor_model, simulate_capture
 
     code = a.code or ("file" if a.code_file else "hitomi")
     if a.code_file and code != "file":
@@ -239,7 +241,7 @@ def _cmd_simulate(a) -> int:
     check_outputs(outputs, dict(video=a.video, code_file=a.code_file), overwrite=a.overwrite)  # before any work
     if captures == "all":  # as many whole captures as the video holds from --start
         from .io import read_video
-        from .pipeline import resolve_data
+        from .scenes import resolve_data
 
         captures = read_video(resolve_data(a.video), start=a.start).shape[0] // a.frames
         if captures < 1:
@@ -280,7 +282,7 @@ def _reconstruct_options(a):
     """
     from . import shipped
     from .io import check_writable
-    from .pipeline import metrics_path, output_kind
+    from .volumes import metrics_path, output_kind
 
     if not a.cacti and not (a.coded and a.mask):
         raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
@@ -345,7 +347,7 @@ class _Captures:
 def _read_captures(a) -> _Captures:
     from .io import stored_dtype
     from .physics import check_pair
-    from .pipeline import check_size, read_coded, read_coded_stack, read_masks, read_volume
+    from .volumes import check_size, read_coded, read_coded_stack, read_masks, read_volume
 
     if a.cacti:
         from .cacti import read_cacti
@@ -411,7 +413,8 @@ def _cmd_reconstruct(a) -> int:
     (stacked first, (C, N, H, W)).  Each result is written as soon as it is done (streamed for .npy);
     one metrics JSON with an entry per coded image and the totals."""
     from .metrics import evaluate
-    from .pipeline import _write_json, metrics_path, reconstruct_capture, trivial_estimate, volume_writer
+    from .volumes import write_json, metrics_path, volume_writer
+    from .stages import reconstruct_capture, trivial_estimate
     from .units import infer_data_range, static_peak, tolerance_warning
 
     rc, noise, out = _reconstruct_options(a)  # before any work
@@ -535,7 +538,7 @@ def _cmd_reconstruct(a) -> int:
             if job.kind in ("captures", "measurements") and count > 1:
                 quality["boundaries"] = dict(_boundary_steps(entries, per_frame["psnr"], n), **steps.summary())
         metrics["quality"] = quality
-    mpath = _write_json(metrics_path(a.output), metrics)
+    mpath = write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
     summary.update(metrics=str(mpath), seconds=round(seconds, 2), patches_per_second=round(patches_per_second),
                    data_range=units.value)
@@ -575,7 +578,7 @@ def _boundary_steps(entries: list, psnr_per_frame: list, n: int) -> dict:
 
 def _method_dictionary(a, frames: int):
     """``(D, meta)`` of ``--dictionary`` for ``--method omp``; ``(None, {})`` for the other methods."""
-    from .pipeline import _check_dictionary
+    from .stages import check_dictionary
     from .store import load_dictionary
 
     from . import shipped
@@ -589,13 +592,13 @@ def _method_dictionary(a, frames: int):
             raise InputError(f"reconstruct: no dictionary is shipped for N = {frames} (shipped: N = {have}); train one "
                              f"with `{shipped.train_command(frames)}` and give --dictionary dict-N{frames}.zarr")
     D, meta = load_dictionary(a.dictionary)
-    _check_dictionary(meta, frames, a.dictionary)
+    check_dictionary(meta, frames, a.dictionary)
     return D, meta
 
 
 def _cmd_evaluate(a) -> int:
     from .metrics import evaluate, json_safe
-    from .pipeline import _write_json, read_volume
+    from .volumes import write_json, read_volume
     from .units import infer_data_range
 
     out = validated(OutputConfig, dict(data_range=a.data_range))
@@ -610,13 +613,13 @@ def _cmd_evaluate(a) -> int:
     result = json_safe(dict(evaluate(recon, truth, data_range=units.value),
                             data_range_source=units.source))
     if a.output:
-        mark_written(_write_json(Path(a.output), result))
+        mark_written(write_json(Path(a.output), result))
     print(json.dumps(result, allow_nan=False))
     return 0
 
 
 def _cmd_run(a) -> int:
-    from .pipeline import run_pipeline
+    from .stages import run_pipeline
 
     cfg = load_config(a.config)
     if a.overwrite:
@@ -663,7 +666,7 @@ def _cmd_cache(a) -> int:
 
 def _cmd_codes(a) -> int:
     from .codes import check_code
-    from .pipeline import read_mask
+    from .volumes import read_mask
 
     print(json.dumps(check_code(read_mask(a.mask)).as_dict()))
     return 0

@@ -306,7 +306,7 @@ def load_code_file(
         Naming the file when it is missing, unreadable, not binary, or its
         N or (H, W) differ from the ones asked for.
     """
-    from .pipeline import read_mask  # lazy: pipeline imports this module
+    from .volumes import read_mask
 
     mask = read_mask(path)
     if frames is not None and mask.shape[0] != frames:

@@ -2,10 +2,10 @@
 
 Runs, on synthetic *test* scenes only (:mod:`codedvideo.synth`; never a
 training scene), through the pipeline's own stages
-(:func:`~codedvideo.pipeline.load_video`,
-:func:`~codedvideo.pipeline.simulate_capture`,
-:func:`~codedvideo.pipeline.train_dictionary`,
-:func:`~codedvideo.pipeline.reconstruct_volume` via
+(:func:`~codedvideo.scenes.load_video`,
+:func:`~codedvideo.stages.simulate_capture`,
+:func:`~codedvideo.stages.train_dictionary`,
+:func:`~codedvideo.stages.reconstruct_volume` via
 :func:`~codedvideo.baselines.reconstruct_method`):
 
 * Table 1 of Hitomi et al. (2011): PSNR against bump length L and read noise
@@ -46,7 +46,10 @@ from . import baselines
 from . import io as cio
 from .config import PipelineConfig, auto_tolerance
 from .metrics import evaluate
-from .pipeline import RECON_VERSION, _write_json, content_key, load_video, simulate_capture, train_dictionary
+from .cache import RECON_VERSION, content_key
+from .volumes import write_json
+from .scenes import load_video
+from .stages import simulate_capture, train_dictionary
 from .reconstruct import OmpSettings
 from .store import load_dictionary
 
@@ -186,7 +189,7 @@ class Runner:
         record.pop("defaults", None)
         if keep:
             cio.write_array(vol_path, volume.astype(np.float32))
-        _write_json(path, record)
+        write_json(path, record)
         self.computed += 1
         return record
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from . import io as cio
-from .pipeline import simulate_capture
+from .stages import simulate_capture
 
 CSV_FIELDS = ("experiment", "label", "scene", "frames", "code", "bump", "sigma", "method", "max_atoms", "tol_rms",
               "dictionary_atoms", "psnr", "ssim", "seconds", "atoms_mean", "key")

@@ -1,19 +1,16 @@
-"""The application layer: stages that read files, cache results and report metrics.
+"""The stages of a run: train, simulate and reconstruct, each a function of its settings, and :func:`run_pipeline`.
 
-Stages (train, simulate, reconstruct, evaluate) are functions of their settings
-and inputs; each result is cached under a key that hashes both, so a rerun
-reuses a dictionary, a simulated capture or finished reconstruction tiles
-instead of recomputing them.  Every reconstruction writes a metrics JSON beside
-its output: seconds per stage, patches per second, atoms used, and PSNR/SSIM
-when the truth is known (no-reference statistics otherwise).
+The command line, ``codedvideo run`` and the ``tasks/`` scripts call these
+functions.  Each result is cached under a key that hashes its settings and
+inputs (:mod:`codedvideo.cache`), so a rerun reuses a dictionary or finished
+reconstruction tiles instead of recomputing them.  Every reconstruction
+writes a metrics JSON beside its output: seconds per stage, patches per
+second, atoms used, and PSNR/SSIM when the truth is known.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import hashlib
-import json
 import logging
 import time
 import warnings
@@ -24,116 +21,21 @@ from scipy import ndimage
 
 from . import io as cio
 from . import patches as P
-from .patches import PATCH
-from . import manifest, physics, synth
+from . import physics
+from .cache import RECON_VERSION, content_key, dictionary_key
 from .codes import make_code
 from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
 from .errors import InputError
 from .metrics import evaluate
 from .parallel import plan_tiles, reconstruct_tiles
+from .patches import PATCH
 from .reconstruct import STAT_NAMES, OmpSettings
-from .store import WorkStore, entry_lock, load_array, load_dictionary, save_array, save_dictionary
+from .scenes import load_video, training_videos
+from .store import WorkStore, entry_lock, load_dictionary, save_dictionary
+from .volumes import CAPTURE_FILES, metrics_path, write_capture, write_json, write_volume
 
 log = logging.getLogger("codedvideo")
-
-#: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
-#: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v4"  # v4: per-tile digests in the working store
-VIDEO_SUFFIXES = cio.VIDEO_SUFFIXES
-
-
-# ----------------------------------------------------------------------------- hashing
-def content_key(*parts) -> str:
-    """A short sha256 over settings (JSON-able) and arrays."""
-    h = hashlib.sha256()
-    for part in parts:
-        if isinstance(part, np.ndarray):
-            h.update(str((part.shape, part.dtype.str)).encode())
-            h.update(np.ascontiguousarray(part).tobytes())
-        else:
-            h.update(json.dumps(part, sort_keys=True, default=str).encode())
-    return h.hexdigest()[:16]
-
-
-def _write_json(path: Path, payload: dict) -> Path:
-    from .metrics import json_safe
-
-    with cio.atomic_output(path) as tmp:  # strict JSON: an infinite PSNR is null
-        Path(tmp).write_text(json.dumps(json_safe(payload), indent=2, default=_json_default, allow_nan=False) + "\n")
-    return path
-
-
-def _json_default(o):
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-# ----------------------------------------------------------------------------- inputs
-def load_video(spec: str, *, frames: int, size: tuple[int, int] | None, seed: int = 0, start: int = 0) -> np.ndarray:
-    """A scene as (frames, H, W) float32: ``synth:NAME``, ``footage:NAME`` (held-out real clips,
-    :mod:`codedvideo.footage`) or a video / frame-sequence path.
-
-    Files are centre-cropped to ``size`` when they are larger.
-    """
-    if spec.startswith("synth:"):
-        name = spec.split(":", 1)[1]
-        manifest.verify_ids(manifest.SCENE_PHOTOS.get(name, synth.TEST_PHOTOS))
-        return synth.make_scene(name, frames=frames, size=tuple(size or (256, 256)), seed=seed)
-    if spec.startswith("footage:"):
-        from .footage import footage_scene
-
-        return footage_scene(spec.split(":", 1)[1], frames=frames, size=size)
-    return read_clip(spec, frames=frames, size=size, start=start)
-
-
-def read_clip(spec: str, *, frames: int, size: tuple[int, int] | None, start: int = 0, color: str = "luma") -> np.ndarray:
-    """``frames`` frames of a video / frame-sequence file from ``start``, centre-cropped to ``size``:
-    (frames, H, W), or (C, frames, H, W) with ``color="channels"``, float32."""
-    video = cio.read_video(resolve_data(spec), max_frames=frames, start=start, color=color)
-    if video.shape[-3] < frames:
-        raise InputError(f"video {spec}: has {video.shape[-3]} frames from frame {start}, need {frames}")
-    if size is not None:
-        h, w = size
-        if video.shape[-2] < h or video.shape[-1] < w:
-            raise InputError(f"video {spec}: frames {video.shape[-2:]} smaller than the requested size {tuple(size)}")
-        y0, x0 = (video.shape[-2] - h) // 2, (video.shape[-1] - w) // 2
-        video = video[..., y0 : y0 + h, x0 : x0 + w]
-    return np.ascontiguousarray(video[..., :frames, :, :], dtype=np.float32)
-
-
-def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max_speed: float = synth.MAX_SPEED) -> list[np.ndarray]:
-    """Training clips: ``synth:train`` (generated) and/or user video paths."""
-    videos: list[np.ndarray] = []
-    for spec in specs:
-        if spec == "synth:train":
-            manifest.verify_ids(synth.TRAIN_PHOTOS)
-            videos.extend(synth.training_videos(frames=frames, count=clips, seed=seed, max_speed=max_speed))
-        else:
-            videos.append(cio.read_video(resolve_data(spec), max_frames=max(frames * 16, 64)))
-    return videos
-
-
-def resolve_data(spec: str) -> str:
-    """``manifest:ID`` -> the verified file of that data_manifest entry; a path stays a path."""
-    if spec.startswith("manifest:"):
-        entry = manifest.lookup(spec.split(":", 1)[1])
-        return str(manifest.verify(entry))
-    return spec
-
-
-# ----------------------------------------------------------------------------- train
-def dictionary_key(cfg: PipelineConfig) -> str:
-    """The key of the training settings of ``cfg`` (cache entries and shipped dictionaries carry it)."""
-    settings = dict(cfg.dictionary.model_dump(exclude={"path"}), frames=cfg.frames, seed=cfg.seed, patch=PATCH)
-    return content_key("dictionary-v1", settings)
 
 
 def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, progress: bool = True,
@@ -147,7 +49,7 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
     dc = cfg.dictionary
     if dc.path:
         D, meta = load_dictionary(dc.path)
-        _check_dictionary(meta, cfg.frames, dc.path)
+        check_dictionary(meta, cfg.frames, dc.path)
         return Path(dc.path), dict(meta, reused=True, seconds=0.0)
     key = dictionary_key(cfg)
     t0 = time.perf_counter()
@@ -218,7 +120,7 @@ def _cached_dictionary(cached: Path, key: str, *, warn: bool = False) -> tuple[n
     return D, meta
 
 
-def _check_dictionary(meta: dict, frames: int, path) -> None:
+def check_dictionary(meta: dict, frames: int, path) -> None:
     if meta.get("patch") != PATCH:
         raise InputError(f"dictionary {path}: patch size {meta.get('patch')} != {PATCH}")
     if meta.get("frames") != frames:
@@ -231,7 +133,6 @@ def _progress_bar(total: int, desc: str):
     return tqdm(total=total, desc=desc, unit="it", leave=False)
 
 
-# ----------------------------------------------------------------------------- simulate
 def simulate_capture(
     video: np.ndarray,
     *,
@@ -309,83 +210,6 @@ def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> t
     if count:
         coded = np.where(coded >= np.float32(white_level), np.float32(0), coded).astype(np.float32)
     return coded, mask_used, count
-
-
-#: The files :func:`write_capture` writes into its folder.
-CAPTURE_FILES = ("coded.npy", "mask.npy", "truth.npy", "coded.tif")
-
-
-def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[str, Path]:
-    """Write coded.npy, mask.npy, truth.npy and coded.tif (:data:`CAPTURE_FILES`) into ``outdir``."""
-    outdir = Path(outdir)
-    paths = {}
-    for name in ("coded", "mask", "truth"):
-        paths[name] = outdir / f"{name}.npy"
-        cio.write_array(paths[name], capture[name])
-    paths["coded_tif"] = outdir / "coded.tif"
-    if capture["coded"].ndim == 3:  # several captures: one page each
-        cio.write_stack(paths["coded_tif"], capture["coded"], dtype=np.float32)
-    else:
-        cio.write_image(paths["coded_tif"], capture["coded"])
-    return paths
-
-
-# ----------------------------------------------------------------------------- reconstruct
-def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
-    """A coded image (H, W) float32, or (C, H, W) with ``color="channels"`` (see :mod:`codedvideo.io`)."""
-    coded = cio.read_image(path, color=color)
-    if not np.isfinite(coded).all():
-        raise InputError(f"coded image {path}: contains NaN or Inf")
-    return coded
-
-
-def read_coded_stack(path: str | Path) -> np.ndarray:
-    """Coded images (T, H, W) float32: a .npy (H, W) or (T, H, W), a (multi-page) image, a folder or
-    printf pattern of images, or a lossless video (one coded image per video frame)."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".npy":
-        arr = cio.read_array(path)
-        if arr.ndim not in (2, 3):
-            raise InputError(f"coded image {path}: expected shape (H, W) or (T, H, W), got {arr.shape}")
-        coded = arr.astype(np.float32).reshape((-1, *arr.shape[-2:]))
-    elif suffix in VIDEO_SUFFIXES:
-        coded = cio.read_video(path)
-    else:
-        coded = cio.read_stack(path)
-    if not np.isfinite(coded).all():
-        raise InputError(f"coded image {path}: contains NaN or Inf")
-    return coded
-
-
-def read_masks(path: str | Path) -> np.ndarray:
-    """A mask (N, H, W), or one mask per capture (T, N, H, W) from a .npy (see :func:`read_mask`)."""
-    if Path(path).suffix.lower() == ".npy":
-        arr = cio.read_array(path)
-        if arr.ndim == 4:
-            return np.stack([_checked_mask(m, path) for m in arr])
-    return read_mask(path)
-
-
-def read_mask(path: str | Path) -> np.ndarray:
-    return _checked_mask(cio.read_stack(path), path)
-
-
-def _checked_mask(mask: np.ndarray, path) -> np.ndarray:
-    """A binary code (uint8), or a calibrated mask: each pixel's measured response per sub-frame in [0, 1] (float32)."""
-    from .omp import is_binary
-
-    mask = np.asarray(mask)
-    if not np.isfinite(mask).all():
-        raise InputError(f"mask {path}: contains NaN or Inf")
-    outside = (mask < 0) | (mask > 1)
-    if outside.any():
-        bad = np.unique(mask[outside])[:3].tolist()
-        raise InputError(f"mask {path}: values outside [0, 1] (e.g. {bad}); a mask is 0/1, or a calibrated "
-                         "response per sub-frame in [0, 1]")
-    if not mask.any():
-        raise InputError(f"mask {path}: no pixel is ever open (all zeros); there is nothing to reconstruct")
-    return mask.astype(np.uint8) if is_binary(mask) else mask.astype(np.float32)
 
 
 def reconstruct_volume(
@@ -572,146 +396,6 @@ def _static_volume(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dic
     return volume, info
 
 
-@contextlib.contextmanager
-def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0, fps: int = 30):
-    """Write a volume part by part, as its parts are reconstructed: yields ``put(index, part)``.
-
-    Parts come in order (``volume[index] = part``, the indices consecutive
-    along the first axis).  ``.npy`` outputs are streamed: the header, then
-    each part appended to a temporary file, renamed onto ``output`` when the
-    block ends complete, so memory does not grow with the number of captures
-    (a memory map would: the pages written stay in the process's resident
-    set).  Other formats gather the parts and go through :func:`write_volume`
-    at the end.
-    """
-    output = Path(output)
-    if output.suffix.lower() == ".npy":
-        total = int(np.prod(shape)) * 4
-        with cio.atomic_output(output) as tmp:
-            with open(tmp, "wb") as fh:
-                np.lib.format.write_array_header_2_0(fh, dict(descr="<f4", fortran_order=False, shape=tuple(shape)))
-                start = fh.tell()
-
-                def put(index, part):
-                    fh.write(np.ascontiguousarray(part, dtype="<f4").tobytes())
-
-                yield put
-                if fh.tell() - start != total:
-                    raise RuntimeError(f"output {output}: {fh.tell() - start} of {total} bytes written")
-        return
-    volume = np.empty(tuple(shape), np.float32)
-
-    def gather(index, part):
-        volume[index] = part
-
-    yield gather
-    write_volume(volume, output, data_range=data_range, fps=fps)
-
-
-def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 255.0, fps: int = 30) -> Path:
-    """Write a volume by the output's suffix.
-
-    Parameters
-    ----------
-    volume : ndarray of shape (N, H, W), or (C, N, H, W) for colour
-    output : str or Path
-        ``.npy`` (float32, as given), ``.zarr`` (float32 Zarr array), ``.mat``
-        (MATLAB v5, ``recon`` (H, W, N) single), ``.tif``/``.tiff``
-        (multi-page float32), ``.mp4`` (H.264), ``.mkv``/``.avi`` (FFV1,
-        lossless 8-bit), ``.gif``, or a name without suffix (or ``.d``): a
-        folder of 16-bit TIFF frames.  Videos and frames scale ``data_range``
-        to full scale.
-    """
-    output = Path(output)
-    suffix = output.suffix.lower()
-    volume = np.asarray(volume)
-    if suffix == ".npy":
-        cio.write_array(output, volume.astype(np.float32))
-    elif suffix == ".zarr":
-        save_array(output, volume.astype(np.float32), chunks=volume.shape[:-2] + (256, 256),
-                   attrs=dict(kind="codedvideo-volume"))
-    elif suffix == ".mat":
-        from .cacti import write_mat_volume
-
-        write_mat_volume(output, volume)
-    elif suffix in (".tif", ".tiff"):
-        cio.write_stack(output, volume, dtype=np.float32)
-    elif suffix in VIDEO_SUFFIXES:
-        cio.write_video(output, volume, data_range=data_range, fps=fps)
-    elif suffix in ("", ".d"):
-        cio.write_frames(output, volume, fmt="tiff16", data_range=data_range)
-    else:
-        raise InputError(f"output {output}: unknown format {suffix!r} "
-                         "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .gif or a folder)")
-    return output
-
-
-#: Suffixes :func:`write_volume` writes ("" and ".d": a folder of 16-bit TIFF frames).
-OUTPUT_SUFFIXES = (".npy", ".zarr", ".mat", ".tif", ".tiff", ".mp4", ".mkv", ".avi", ".gif", "", ".d")
-
-
-def output_kind(output: str | Path) -> str:
-    """``"file"`` or ``"folder"``: what :func:`write_volume` writes at ``output`` (an unknown suffix is an error)."""
-    if Path(output).name in ("", ".", ".."):
-        raise InputError(f"output {output}: names no file or folder of its own; give a new name such as out.npy")
-    suffix = Path(output).suffix.lower()
-    if suffix not in OUTPUT_SUFFIXES:
-        raise InputError(f"output {output}: unknown format {suffix!r} "
-                         "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .avi, .gif or a folder)")
-    return "folder" if suffix in (".zarr", "", ".d") else "file"
-
-
-def check_size(shape: tuple, path, patch: int = PATCH) -> None:
-    """Raise :class:`InputError` naming ``path`` when an (H, W) image is smaller than one patch.
-
-    One-pixel-wide strips (and anything narrower than ``patch`` pixels) are
-    refused: no ``patch x patch`` patch fits, so the sparse model has nothing
-    to work on.
-    """
-    h, w = shape[-2:]
-    if h < patch or w < patch:
-        raise InputError(f"coded image {path}: {h}x{w} pixels is smaller than one {patch}x{patch} patch "
-                         f"(at least {patch} rows and {patch} columns are needed)")
-
-
-def metrics_path(output: str | Path) -> Path:
-    output = Path(output)
-    return output.with_name((output.stem if output.suffix else output.name) + ".metrics.json")
-
-
-def read_volume(path: str | Path, *, color: str = "luma") -> np.ndarray:
-    """Read a volume written by :func:`write_volume` (or any stack :func:`codedvideo.io.read_stack` reads).
-
-    A ``.mat`` file gives its ``recon`` variable, else ``orig`` (a CACTI
-    file's ground truth).  ``.npy``, ``.zarr`` and ``.mat`` give the array as
-    stored (N, H, W) or (C, N, H, W); images and videos follow ``color``.
-
-    Returns
-    -------
-    ndarray of shape (N, H, W) (or (C, N, H, W)), float32
-    """
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix == ".zarr":
-        return load_array(path)
-    if suffix == ".mat":
-        from .cacti import read_mat_volume
-
-        return read_mat_volume(path)
-    if suffix == ".npy":
-        arr = cio.read_array(path)
-        if arr.ndim not in (3, 4):
-            raise InputError(f"volume {path}: expected shape (N, H, W) or (C, N, H, W), got {arr.shape}")
-        if not np.isfinite(arr).all():
-            raise InputError(f"volume {path}: contains NaN or Inf")
-        return arr.astype(np.float32)
-    if suffix in VIDEO_SUFFIXES:
-        return cio.read_video(path, color=color)
-    if path.is_dir():  # a frame folder written by write_frames reads back in frame units
-        return cio.read_stack(path, color=color) * np.float32(cio.read_frames_scale(path))
-    return cio.read_stack(path, color=color)
-
-
 def trivial_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Every sub-frame = coded / open count: the baseline a method must beat."""
     return physics.static_estimate(coded, mask)
@@ -761,7 +445,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         report["seconds"]["simulate"] = time.perf_counter() - t0
     if "reconstruct" in cfg.stages:
         D, dmeta = load_dictionary(dict_path)
-        _check_dictionary(dmeta, cfg.frames, dict_path)
+        check_dictionary(dmeta, cfg.frames, dict_path)
         from .units import infer_data_range, static_peak
 
         rc = cfg.reconstruct
@@ -796,8 +480,9 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
                                          data_range=units.value)
             report["seconds"]["evaluate"] = time.perf_counter() - t0
     report["seconds"]["total"] = sum(report["seconds"].values())
-    written.append(_write_json(metrics_path(out / cfg.output.video), report))
+    written.append(write_json(metrics_path(out / cfg.output.video), report))
     for path in written:
         mark_written(path)
     report["metrics_path"] = str(metrics_path(out / cfg.output.video))
     return report
+

@@ -1,0 +1,257 @@
+"""Volumes and captures on disk, by suffix: coded images, masks, reconstructed videos, metrics JSON.
+
+Readers check what they read (finite values, mask weights in [0, 1]) and
+name the file in their errors; writers go through a temporary name
+(:func:`codedvideo.io.atomic_output`), so nothing is left half-written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from pathlib import Path
+
+import numpy as np
+
+from . import io as cio
+from .errors import InputError
+from .io import VIDEO_SUFFIXES
+from .patches import PATCH
+from .store import load_array, save_array
+
+
+def write_json(path: Path, payload: dict) -> Path:
+    from .metrics import json_safe
+
+    with cio.atomic_output(path) as tmp:  # strict JSON: an infinite PSNR is null
+        Path(tmp).write_text(json.dumps(json_safe(payload), indent=2, default=_json_default, allow_nan=False) + "\n")
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+#: The files :func:`write_capture` writes into its folder.
+CAPTURE_FILES = ("coded.npy", "mask.npy", "truth.npy", "coded.tif")
+
+
+def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[str, Path]:
+    """Write coded.npy, mask.npy, truth.npy and coded.tif (:data:`CAPTURE_FILES`) into ``outdir``."""
+    outdir = Path(outdir)
+    paths = {}
+    for name in ("coded", "mask", "truth"):
+        paths[name] = outdir / f"{name}.npy"
+        cio.write_array(paths[name], capture[name])
+    paths["coded_tif"] = outdir / "coded.tif"
+    if capture["coded"].ndim == 3:  # several captures: one page each
+        cio.write_stack(paths["coded_tif"], capture["coded"], dtype=np.float32)
+    else:
+        cio.write_image(paths["coded_tif"], capture["coded"])
+    return paths
+
+
+def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
+    """A coded image (H, W) float32, or (C, H, W) with ``color="channels"`` (see :mod:`codedvideo.io`)."""
+    coded = cio.read_image(path, color=color)
+    if not np.isfinite(coded).all():
+        raise InputError(f"coded image {path}: contains NaN or Inf")
+    return coded
+
+
+def read_coded_stack(path: str | Path) -> np.ndarray:
+    """Coded images (T, H, W) float32: a .npy (H, W) or (T, H, W), a (multi-page) image, a folder or
+    printf pattern of images, or a lossless video (one coded image per video frame)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        arr = cio.read_array(path)
+        if arr.ndim not in (2, 3):
+            raise InputError(f"coded image {path}: expected shape (H, W) or (T, H, W), got {arr.shape}")
+        coded = arr.astype(np.float32).reshape((-1, *arr.shape[-2:]))
+    elif suffix in VIDEO_SUFFIXES:
+        coded = cio.read_video(path)
+    else:
+        coded = cio.read_stack(path)
+    if not np.isfinite(coded).all():
+        raise InputError(f"coded image {path}: contains NaN or Inf")
+    return coded
+
+
+def read_masks(path: str | Path) -> np.ndarray:
+    """A mask (N, H, W), or one mask per capture (T, N, H, W) from a .npy (see :func:`read_mask`)."""
+    if Path(path).suffix.lower() == ".npy":
+        arr = cio.read_array(path)
+        if arr.ndim == 4:
+            return np.stack([_checked_mask(m, path) for m in arr])
+    return read_mask(path)
+
+
+def read_mask(path: str | Path) -> np.ndarray:
+    return _checked_mask(cio.read_stack(path), path)
+
+
+def _checked_mask(mask: np.ndarray, path) -> np.ndarray:
+    """A binary code (uint8), or a calibrated mask: each pixel's measured response per sub-frame in [0, 1] (float32)."""
+    from .omp import is_binary
+
+    mask = np.asarray(mask)
+    if not np.isfinite(mask).all():
+        raise InputError(f"mask {path}: contains NaN or Inf")
+    outside = (mask < 0) | (mask > 1)
+    if outside.any():
+        bad = np.unique(mask[outside])[:3].tolist()
+        raise InputError(f"mask {path}: values outside [0, 1] (e.g. {bad}); a mask is 0/1, or a calibrated "
+                         "response per sub-frame in [0, 1]")
+    if not mask.any():
+        raise InputError(f"mask {path}: no pixel is ever open (all zeros); there is nothing to reconstruct")
+    return mask.astype(np.uint8) if is_binary(mask) else mask.astype(np.float32)
+
+
+@contextlib.contextmanager
+def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0, fps: int = 30):
+    """Write a volume part by part, as its parts are reconstructed: yields ``put(index, part)``.
+
+    Parts come in order (``volume[index] = part``, the indices consecutive
+    along the first axis).  ``.npy`` outputs are streamed: the header, then
+    each part appended to a temporary file, renamed onto ``output`` when the
+    block ends complete, so memory does not grow with the number of captures
+    (a memory map would: the pages written stay in the process's resident
+    set).  Other formats gather the parts and go through :func:`write_volume`
+    at the end.
+    """
+    output = Path(output)
+    if output.suffix.lower() == ".npy":
+        total = int(np.prod(shape)) * 4
+        with cio.atomic_output(output) as tmp:
+            with open(tmp, "wb") as fh:
+                np.lib.format.write_array_header_2_0(fh, dict(descr="<f4", fortran_order=False, shape=tuple(shape)))
+                start = fh.tell()
+
+                def put(index, part):
+                    fh.write(np.ascontiguousarray(part, dtype="<f4").tobytes())
+
+                yield put
+                if fh.tell() - start != total:
+                    raise RuntimeError(f"output {output}: {fh.tell() - start} of {total} bytes written")
+        return
+    volume = np.empty(tuple(shape), np.float32)
+
+    def gather(index, part):
+        volume[index] = part
+
+    yield gather
+    write_volume(volume, output, data_range=data_range, fps=fps)
+
+
+def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 255.0, fps: int = 30) -> Path:
+    """Write a volume by the output's suffix.
+
+    Parameters
+    ----------
+    volume : ndarray of shape (N, H, W), or (C, N, H, W) for colour
+    output : str or Path
+        ``.npy`` (float32, as given), ``.zarr`` (float32 Zarr array), ``.mat``
+        (MATLAB v5, ``recon`` (H, W, N) single), ``.tif``/``.tiff``
+        (multi-page float32), ``.mp4`` (H.264), ``.mkv``/``.avi`` (FFV1,
+        lossless 8-bit), ``.gif``, or a name without suffix (or ``.d``): a
+        folder of 16-bit TIFF frames.  Videos and frames scale ``data_range``
+        to full scale.
+    """
+    output = Path(output)
+    suffix = output.suffix.lower()
+    volume = np.asarray(volume)
+    if suffix == ".npy":
+        cio.write_array(output, volume.astype(np.float32))
+    elif suffix == ".zarr":
+        save_array(output, volume.astype(np.float32), chunks=volume.shape[:-2] + (256, 256),
+                   attrs=dict(kind="codedvideo-volume"))
+    elif suffix == ".mat":
+        from .cacti import write_mat_volume
+
+        write_mat_volume(output, volume)
+    elif suffix in (".tif", ".tiff"):
+        cio.write_stack(output, volume, dtype=np.float32)
+    elif suffix in VIDEO_SUFFIXES:
+        cio.write_video(output, volume, data_range=data_range, fps=fps)
+    elif suffix in ("", ".d"):
+        cio.write_frames(output, volume, fmt="tiff16", data_range=data_range)
+    else:
+        raise InputError(f"output {output}: unknown format {suffix!r} "
+                         "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .gif or a folder)")
+    return output
+
+
+#: Suffixes :func:`write_volume` writes ("" and ".d": a folder of 16-bit TIFF frames).
+OUTPUT_SUFFIXES = (".npy", ".zarr", ".mat", ".tif", ".tiff", ".mp4", ".mkv", ".avi", ".gif", "", ".d")
+
+
+def output_kind(output: str | Path) -> str:
+    """``"file"`` or ``"folder"``: what :func:`write_volume` writes at ``output`` (an unknown suffix is an error)."""
+    if Path(output).name in ("", ".", ".."):
+        raise InputError(f"output {output}: names no file or folder of its own; give a new name such as out.npy")
+    suffix = Path(output).suffix.lower()
+    if suffix not in OUTPUT_SUFFIXES:
+        raise InputError(f"output {output}: unknown format {suffix!r} "
+                         "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .avi, .gif or a folder)")
+    return "folder" if suffix in (".zarr", "", ".d") else "file"
+
+
+def check_size(shape: tuple, path, patch: int = PATCH) -> None:
+    """Raise :class:`InputError` naming ``path`` when an (H, W) image is smaller than one patch.
+
+    One-pixel-wide strips (and anything narrower than ``patch`` pixels) are
+    refused: no ``patch x patch`` patch fits, so the sparse model has nothing
+    to work on.
+    """
+    h, w = shape[-2:]
+    if h < patch or w < patch:
+        raise InputError(f"coded image {path}: {h}x{w} pixels is smaller than one {patch}x{patch} patch "
+                         f"(at least {patch} rows and {patch} columns are needed)")
+
+
+def metrics_path(output: str | Path) -> Path:
+    output = Path(output)
+    return output.with_name((output.stem if output.suffix else output.name) + ".metrics.json")
+
+
+def read_volume(path: str | Path, *, color: str = "luma") -> np.ndarray:
+    """Read a volume written by :func:`write_volume` (or any stack :func:`codedvideo.io.read_stack` reads).
+
+    A ``.mat`` file gives its ``recon`` variable, else ``orig`` (a CACTI
+    file's ground truth).  ``.npy``, ``.zarr`` and ``.mat`` give the array as
+    stored (N, H, W) or (C, N, H, W); images and videos follow ``color``.
+
+    Returns
+    -------
+    ndarray of shape (N, H, W) (or (C, N, H, W)), float32
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".zarr":
+        return load_array(path)
+    if suffix == ".mat":
+        from .cacti import read_mat_volume
+
+        return read_mat_volume(path)
+    if suffix == ".npy":
+        arr = cio.read_array(path)
+        if arr.ndim not in (3, 4):
+            raise InputError(f"volume {path}: expected shape (N, H, W) or (C, N, H, W), got {arr.shape}")
+        if not np.isfinite(arr).all():
+            raise InputError(f"volume {path}: contains NaN or Inf")
+        return arr.astype(np.float32)
+    if suffix in VIDEO_SUFFIXES:
+        return cio.read_video(path, color=color)
+    if path.is_dir():  # a frame folder written by write_frames reads back in frame units
+        return cio.read_stack(path, color=color) * np.float32(cio.read_frames_scale(path))
+    return cio.read_stack(path, color=color)
+
