@@ -107,3 +107,54 @@ def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_p
     remote, info = result["value"]
     assert info["tiles_computed"] == info["tiles"] == 192
     np.testing.assert_array_equal(remote, local)
+
+
+@pytest.mark.slow
+def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_path):
+    """A sequence of captures as one graph on two worker processes; one is SIGKILLed while tiles of the
+    sequence run: its tasks are rescheduled, and every capture equals the local run bit for bit."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from codedvideo.stages import sparse_volumes
+
+    distributed = pytest.importorskip("distributed")
+    video = make_scene("default", frames=4 * 4, size=(64, 96))
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
+    codeds = [simulate(video[4 * t : 4 * t + 4], mask, sigma=2.0, rng=t) for t in range(4)]
+    D = dct_dictionary(4)
+    s = OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0)
+
+    def run(cache, scheduler=None):
+        return [v for _, v, _ in sparse_volumes(4, lambda i: (codeds[i], mask), D, settings=s, tile=8, cache=cache,
+                                                progress=False, scheduler=scheduler)]
+
+    local = run(tmp_path / "local")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        pids = list(client.run(os.getpid).values())
+        result = {}
+
+        def remote():
+            try:
+                result["value"] = run(tmp_path / "remote", cluster.scheduler_address)
+            except BaseException as exc:  # reported below
+                result["error"] = exc
+
+        def finished_tiles() -> int:  # digests are written last
+            return sum(1 for p in (tmp_path / "remote").glob("recon-*.zarr/digest/c/**/*") if p.is_file())
+
+        thread = threading.Thread(target=remote)
+        thread.start()
+        t0 = time.monotonic()
+        while thread.is_alive() and time.monotonic() - t0 < 120 and finished_tiles() < 40:
+            time.sleep(0.02)
+        assert thread.is_alive() and finished_tiles() < 4 * 96, "finished before a worker could be killed"
+        os.kill(pids[0], signal.SIGKILL)
+        thread.join(300)
+    assert "error" not in result, result.get("error")
+    assert len(result["value"]) == 4
+    for got, want in zip(result["value"], local):
+        np.testing.assert_array_equal(got, want)

@@ -414,7 +414,7 @@ def _cmd_reconstruct(a) -> int:
     one metrics JSON with an entry per coded image and the totals."""
     from .metrics import evaluate
     from .volumes import write_json, metrics_path, volume_writer
-    from .stages import reconstruct_capture, trivial_estimate
+    from .stages import reconstruct_captures, trivial_estimate
     from .units import infer_data_range, static_peak, tolerance_warning
 
     rc, noise, out = _reconstruct_options(a)  # before any work
@@ -436,37 +436,32 @@ def _cmd_reconstruct(a) -> int:
     white = None if a.trust_saturated or raw else noise.white_level
     h, w = job.codeds[0].shape[-2:]
     shape = (count, n, h, w) if job.kind == "channels" else (3, n, h, w) if job.kind == "bayer" else (count * n, h, w)
-    recon, trivial_of = reconstruct_capture, trivial_estimate
+    options = dict(data_range=units, settings=settings, dictionary=D, dictionary_key=meta.get("sha256", ""),
+                   dictionary_name=str(a.dictionary or ""), white_level=white, where=job.source, tile=rc.tile,
+                   cache=a.cache, scheduler=rc.scheduler, workers=rc.workers, progress=not a.quiet)
+    trivial_of = trivial_estimate
     if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
         from .bayer import reconstruct_bayer, static_estimate
 
-        recon = lambda *args, **kw: reconstruct_bayer(*args, pattern=a.bayer, **kw)  # noqa: E731
+        results = iter([(0, *reconstruct_bayer(a.method, job.codeds[0], job.mask(0), pattern=a.bayer, **options))])
         trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
+    else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
+        still_of = None
+        if job.kind == "captures" and count > 1 and not a.independent_captures:
+            from .sequence import still_pixels
+
+            # what did not change since the capture before or until the one after
+            still_of = lambda i: still_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale)  # noqa: E731
+        results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, **options)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
-    temporal = job.kind == "captures" and count > 1 and not a.independent_captures
     from .sequence import StepErrors
 
     steps = StepErrors()
     with contextlib.ExitStack() as stack:
+        stack.callback(getattr(results, "close", lambda: None))
         put = None  # the output is opened once the first result exists: a failure before leaves nothing
-        # several coded images: one progress bar for the whole job (with its ETA), none per image
-        bar = None
-        if count > 1 and not a.quiet:
-            from tqdm.auto import tqdm
-
-            bar = stack.enter_context(tqdm(total=count, desc="reconstruct", unit=job.kind[:-1]))
-        for i, label in enumerate(job.labels):
-            still = None
-            if temporal:  # what did not change since the capture before or until the one after
-                from .sequence import still_pixels
-
-                still = still_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale)
-            volume, info = recon(
-                a.method, job.codeds[i], job.mask(i), data_range=units, settings=settings, dictionary=D,
-                dictionary_key=meta.get("sha256", ""), dictionary_name=str(a.dictionary or ""), white_level=white,
-                still=still, where=job.source, tile=rc.tile, cache=a.cache, scheduler=rc.scheduler,
-                workers=rc.workers, progress=not a.quiet and bar is None)
-            entry = dict(label, reconstruction=info)
+        for i, volume, info in results:
+            entry = dict(job.labels[i], reconstruction=info)
             if raw:
                 entry["raw"] = raw[i]
             truth = job.truth(i)
@@ -487,8 +482,6 @@ def _cmd_reconstruct(a) -> int:
             t_write += time.perf_counter() - t1
             entries.append(entry)
             del volume
-            if bar is not None:
-                bar.update(1)
         t1 = time.perf_counter()
     t_write += time.perf_counter() - t1
     mark_written(a.output)

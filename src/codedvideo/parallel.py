@@ -1,26 +1,34 @@
 """Dask wiring: the tile plan, the task graph and its executors.
 
 This is the only module that imports dask.  The plan is plain data
-(:func:`plan_tiles`), the graph is one ``dask.delayed`` task per tile, and the
-same graph runs on the local threaded scheduler (default: both cores), the
-synchronous scheduler (tests, debugging) or a dask.distributed scheduler given
-by address (a cluster started by hand, or by dask-jobqueue on Slurm/PBS).
+(:func:`plan_tiles`); the graph of a job is one ``dask.delayed`` task per
+distinct tile content over all of its captures' working stores
+(:func:`build_graph`), and the same graph runs on the local threaded scheduler
+(default: both cores), the synchronous scheduler (tests, debugging) or a
+dask.distributed scheduler given by address (a cluster started by hand, or by
+dask-jobqueue on Slurm/PBS).  The whole graph runs at once while the caller
+takes the captures in order as each is complete (:func:`stream_graph`).
 
 A tile task reads its region *with a halo of* ``patch - 1`` pixels from the Zarr
 working store, reconstructs it, keeps the core (whose pixels then see exactly
 the patches they see in the whole image) and writes the core and a statistics
-row back to the store.  Tiles are the store's chunks, so concurrent tasks never
-write the same chunk, and a rerun skips the tiles whose statistics exist.
+row back to the store (to every store with a tile of equal content).  Tiles are
+the store's chunks, so concurrent tasks never write the same chunk, and a rerun
+skips the tiles whose digests check out.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import os
+import queue
 import sys
+import threading
 import time
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import dask
@@ -91,33 +99,84 @@ def _one_blas_thread_in_worker() -> None:
     _WORKER_LIMITED = True
 
 
-def _tile_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings, patch: int) -> np.ndarray:
+def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) -> np.ndarray:
+    """Solve one tile's content and write its core into every working store that has a tile of that content.
+
+    ``places`` are ``(store_path, Tile)`` pairs whose halo inputs are equal bit
+    for bit (:func:`tile_content`): the first is read and solved, the core is
+    written to each.
+    """
+    store_path, first = places[0]
+    hy0, hy1, hx0, hx1 = first.halo
+    y0, y1, x0, x1 = first.core
     store = WorkStore(store_path)
-    hy0, hy1, hx0, hx1 = tile.halo
-    y0, y1, x0, x1 = tile.core
     coded, mask = store.read_inputs(hy0, hy1, hx0, hx1)
     _one_blas_thread_in_worker()
     try:
         volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch, origin=(hy0, hx0),
                                            image_shape=store.group["coded"].shape)
     except Exception as exc:  # name the tile, keep the cause
-        raise RuntimeError(f"tile {tile.index} (rows {y0}:{y1}, cols {x0}:{x1}): {exc}") from exc
+        raise RuntimeError(f"tile {first.index} (rows {y0}:{y1}, cols {x0}:{x1}) of {store_path}: {exc}") from exc
     core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]
-    store.write_tile(tile.index, tile.core, core, stats)
+    for path, tile in places:
+        (store if path == store_path else WorkStore(path)).write_tile(tile.index, tile.core, core, stats)
     return stats
 
 
-def build_graph(store_path: str, tiles: list[Tile], D: np.ndarray, settings: OmpSettings, *, patch: int = 7):
-    """One delayed task per tile, sharing a single dictionary node.
+def tile_content(coded: np.ndarray, mask: np.ndarray, tile: Tile, *, stride: int = 1) -> str:
+    """A digest of what a tile's answer depends on: its halo inputs and where its core lies in the halo.
 
-    Task names are unique to this graph: a distributed scheduler shared by
-    several runs (or by two rounds of one run) never takes one run's tile for
-    another's.
+    Two tiles with the same digest have the same answer bit for bit, so one
+    is solved and both are written: a still background under a repeating code
+    across captures, or flat regions (black borders, sky) inside one.  With a
+    patch stride above 1 the patches taken depend on the position in the
+    image, which then joins the digest.
+    """
+    hy0, hy1, hx0, hx1 = tile.halo
+    y0, y1, x0, x1 = tile.core
+    h = hashlib.blake2b(digest_size=16)
+    h.update(np.asarray([y0 - hy0, y1 - hy0, x0 - hx0, x1 - hx0, hy1 - hy0, hx1 - hx0], np.int64).tobytes())
+    if stride > 1:
+        h.update(np.asarray([hy0, hx0, *coded.shape], np.int64).tobytes())
+    h.update(np.ascontiguousarray(coded[hy0:hy1, hx0:hx1]).tobytes())
+    m = np.ascontiguousarray(mask[:, hy0:hy1, hx0:hx1])
+    h.update(m.dtype.str.encode())
+    h.update(m.tobytes())
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class TileWork:
+    """The tiles of one working store still to compute, with the digest of each tile's content."""
+
+    store: str
+    tiles: tuple[Tile, ...]
+    contents: tuple[str, ...]
+
+
+def build_graph(works: list[TileWork], D: np.ndarray, settings: OmpSettings, *, patch: int = 7):
+    """One delayed task per distinct tile content over every store, sharing a single dictionary node.
+
+    Returns ``(tasks, needs)``: ``needs[j]`` lists the tasks that store ``j``
+    waits for.  Task names are unique to this graph: a distributed scheduler
+    shared by several runs (or by two rounds of one run) never takes one
+    run's tile for another's.
     """
     d_node = dask.delayed(D, pure=True, name="dictionary-" + dask.base.tokenize(D))
     task = dask.delayed(_tile_task, pure=False)
     run = uuid.uuid4().hex[:12]
-    return [task(store_path, t, d_node, settings, patch, dask_key_name=f"tile-{run}-{t.index}") for t in tiles]
+    places: dict[str, list] = {}
+    seen = set()  # (store, tile): a store listed twice (equal captures) is written once
+    for work in works:
+        for tile, content in zip(work.tiles, work.contents):
+            if (work.store, tile.index) not in seen:
+                seen.add((work.store, tile.index))
+                places.setdefault(content, []).append((work.store, tile))
+    order = {content: i for i, content in enumerate(places)}
+    tasks = [task(tuple(where), d_node, settings, patch, dask_key_name=f"tile-{run}-{i}")
+             for i, where in enumerate(places.values())]
+    needs = [sorted({order[c] for c in work.contents}) for work in works]
+    return tasks, needs
 
 
 @contextlib.contextmanager
@@ -135,48 +194,114 @@ def _single_threaded_blas(enabled: bool):
         yield
 
 
-def run_graph(
+class _Cancelled(Exception):
+    """The consumer of a streamed graph stopped early: the remaining tasks are not started."""
+
+
+def stream_graph(
     tasks: list,
+    needs: list[list[int]],
     *,
     scheduler: str | None = None,
     workers: int | None = None,
     progress: bool = True,
-) -> list:
-    """Execute tile tasks and return their results in order.
+    desc: str = "reconstruct",
+) -> Iterator[int]:
+    """Run one graph and yield ``j = 0, 1, ...`` in order, each as soon as the tasks ``needs[j]`` have finished.
+
+    The whole graph runs at once, so every core stays busy across the
+    groups' boundaries, while the caller consumes finished groups in order
+    (a capture is written while the next ones compute).  One progress bar
+    with an ETA counts the tasks.  A task's error is raised here; a caller
+    that stops early cancels the tasks not yet started.
 
     Parameters
     ----------
     scheduler : None, "threads", "sync" or a dask.distributed address
-        None and "threads" run on the local threaded scheduler; "sync" runs
-        in this thread; anything containing "://" or ":" is a scheduler address.
+        None and "threads" run on the local threaded scheduler (one BLAS
+        thread per worker thread); "sync" runs in a thread of its own, one
+        task at a time; anything else is a scheduler address.
     workers : int, optional
         Local worker threads (default: the number of cores).
-    progress : bool
-        Show a progress bar.
     """
-    if not tasks:
-        return []
-    if scheduler and scheduler not in ("threads", "sync"):
-        from distributed import Client, progress as dprogress
+    from tqdm.auto import tqdm
 
-        with Client(scheduler) as client:
-            futures = client.compute(tasks)
-            if progress:
-                dprogress(futures)
-            return client.gather(futures)
-    from dask.diagnostics import ProgressBar
-
-    n_workers = workers or os.cpu_count() or 1
-    bar = ProgressBar(dt=0.5) if progress else contextlib.nullcontext()
-    if scheduler == "sync":
-        with bar:
-            return list(dask.compute(*tasks, scheduler="sync"))
-    with bar, _single_threaded_blas(True):  # one core per worker thread
-        return list(dask.compute(*tasks, scheduler="threads", num_workers=n_workers))
+    bar = tqdm(total=len(tasks), desc=desc, unit="tile", disable=not progress or not tasks, leave=False)
+    try:
+        if scheduler and scheduler not in ("threads", "sync"):
+            yield from _stream_distributed(tasks, needs, scheduler, bar)
+        else:
+            yield from _stream_local(tasks, needs, scheduler, workers, bar)
+    finally:
+        bar.close()
 
 
-def reconstruct_tiles(
-    store: WorkStore,
+def _stream_local(tasks, needs, scheduler, workers, bar) -> Iterator[int]:
+    from dask.callbacks import Callback
+
+    done_keys: queue.Queue = queue.Queue()
+    stop = threading.Event()
+    index = {task.key: i for i, task in enumerate(tasks)}
+
+    def pretask(key, dsk, state):
+        if stop.is_set():
+            raise _Cancelled()
+
+    def posttask(key, result, dsk, state, worker_id):
+        if key in index:
+            done_keys.put(index[key])
+
+    def run():
+        try:
+            with _single_threaded_blas(scheduler != "sync"):  # one core per worker thread
+                dask.compute(*tasks, scheduler="sync" if scheduler == "sync" else "threads",
+                             num_workers=workers or os.cpu_count() or 1,
+                             callbacks=[Callback(pretask=pretask, posttask=posttask)._callback])
+            done_keys.put(None)
+        except BaseException as exc:  # handed to the consumer
+            done_keys.put(exc)
+
+    thread = threading.Thread(target=run, name="codedvideo-graph", daemon=True)
+    thread.start()
+    finished = np.zeros(len(tasks), bool)
+    try:
+        for j, need in enumerate(needs):
+            while not finished[need].all():
+                item = done_keys.get()
+                if isinstance(item, BaseException):
+                    raise item
+                if item is None:  # the graph ended: everything is done
+                    finished[:] = True
+                    break
+                finished[item] = True
+                bar.update(1)
+            yield j
+    finally:
+        stop.set()
+        thread.join()
+
+
+def _stream_distributed(tasks, needs, address, bar) -> Iterator[int]:
+    from distributed import Client, wait
+
+    with Client(address) as client:
+        futures = client.compute(tasks)
+        counted = 0
+        try:
+            for j, need in enumerate(needs):
+                wait([futures[i] for i in need])
+                for i in need:
+                    futures[i].result()  # raises the task's error
+                done = sum(f.done() for f in futures)
+                bar.update(done - counted)
+                counted = done
+                yield j
+        finally:
+            client.cancel([f for f in futures if not f.done()])
+
+
+def reconstruct_stores(
+    stores: list[WorkStore],
     D: np.ndarray,
     settings: OmpSettings,
     *,
@@ -185,41 +310,66 @@ def reconstruct_tiles(
     scheduler: str | None = None,
     workers: int | None = None,
     progress: bool = True,
-) -> tuple[np.ndarray, dict]:
-    """Reconstruct every tile of a working store that is not done yet, and assemble the volume.
+) -> Iterator[tuple[int, np.ndarray, dict]]:
+    """Reconstruct every tile of every working store that is not done yet, as one graph; yield the volumes in order.
 
-    Every tile that claims to be done is read back and checked against its
-    digest; those that pass are reused, the others (never finished, damaged,
-    truncated, deleted, copied over) are computed, then read back and checked
-    in turn -- up to :data:`MAX_ATTEMPTS` rounds.  The volume is assembled
-    from verified reads only.  The caller holds the entry's lock.
+    The stores are a job's captures (one store may appear more than once:
+    captures with equal inputs).  Every tile that claims to be done is
+    checked against its digest and reused; the others of all stores form one
+    graph (:func:`build_graph`: a task per distinct tile content), so both
+    cores, or a cluster, stay busy across captures.  As soon as the tiles of
+    store ``j`` are done, its tiles are read back and checked, any that fail
+    are computed again (up to :data:`MAX_ATTEMPTS` rounds), and
+    ``(j, volume, summary)`` is yielded, in the order of ``stores``; no more
+    than the volume being handed out is held.  The caller holds each
+    entry's lock.
 
-    Returns
-    -------
+    Yields
+    ------
+    j : int
     volume : ndarray (N, H, W) float32
     summary : dict
         Tiles computed now, reused and found damaged, the summed statistics
         and ``seconds_verify``, the time spent reading tiles back and checking them.
     """
-    shape = tuple(store.group["coded"].shape)
-    tiles = plan_tiles(shape, tile, patch=patch)
+    plans, works = [], []
+    for store in stores:
+        coded, mask = store.read_inputs(0, None, 0, None)
+        tiles = plan_tiles(tuple(coded.shape), tile, patch=patch)
+        ok, damaged, _, _ = store.read_verified(tiles, assemble=False)
+        if damaged.any():
+            log.warning("cache entry %s: tiles %s failed their checksum (damaged); computing them again",
+                        store.path, np.flatnonzero(damaged).tolist())
+        todo = tuple(t for t in tiles if not ok[t.index])
+        works.append(TileWork(str(store.path), todo,
+                              tuple(tile_content(coded, mask, t, stride=settings.stride) for t in todo)))
+        plans.append((tiles, damaged))
+        del coded, mask
+    tasks, needs = build_graph(works, D, settings, patch=patch)
+    for j in stream_graph(tasks, needs, scheduler=scheduler, workers=workers, progress=progress):
+        tiles, damaged = plans[j]
+        volume, summary = _verified_volume(stores[j], tiles, {t.index for t in works[j].tiles}, D, settings,
+                                           patch=patch, scheduler=scheduler, workers=workers)
+        yield j, volume, dict(summary, tiles_damaged=int(damaged.sum()), tile_tasks=len(tasks))
+
+
+def _verified_volume(store: WorkStore, tiles: list[Tile], computed: set[int], D, settings, *, patch, scheduler,
+                     workers) -> tuple[np.ndarray, dict]:
+    """Read every tile of a store back, checked against its digest; compute the ones that fail again."""
     t0 = time.perf_counter()
-    ok, damaged, volume, read_stats = store.read_verified(tiles)
+    ok, _, volume, stats = store.read_verified(tiles)
     seconds_verify = time.perf_counter() - t0
-    stats = np.where(ok[:, None], read_stats, np.nan)
-    if damaged.any():
-        log.warning("cache entry %s: tiles %s failed their checksum (damaged); computing them again",
-                    store.path, np.flatnonzero(damaged).tolist())
-    computed: set[int] = set()
-    for attempt in range(MAX_ATTEMPTS):
-        todo = [t for t in tiles if not ok[t.index]]
+    stats = np.where(ok[:, None], stats, np.nan)
+    for _ in range(MAX_ATTEMPTS - 1):
+        todo = tuple(t for t in tiles if not ok[t.index])
         if not todo:
             break
-        if attempt:
-            log.warning("cache entry %s: tiles %s did not read back as written; computing them again",
-                        store.path, [t.index for t in todo])
-        run_graph(build_graph(str(store.path), todo, D, settings, patch=patch), scheduler=scheduler, workers=workers,
-                  progress=progress)
+        log.warning("cache entry %s: tiles %s did not read back as written; computing them again",
+                    store.path, [t.index for t in todo])
+        work = TileWork(str(store.path), todo, tuple(f"{store.path}:{t.index}" for t in todo))
+        tasks, needs = build_graph([work], D, settings, patch=patch)
+        for _ in stream_graph(tasks, needs, scheduler=scheduler, workers=workers, progress=False):
+            pass
         computed.update(t.index for t in todo)
         t0 = time.perf_counter()
         ok_now, _, _, read_stats = store.read_verified(todo, volume)
@@ -232,4 +382,4 @@ def reconstruct_tiles(
                            f"written after {MAX_ATTEMPTS} attempts")
     totals = dict(zip(STAT_NAMES, stats.sum(0).tolist()))
     return volume, dict(tiles=len(tiles), tiles_computed=len(computed), tiles_reused=len(tiles) - len(computed),
-                        tiles_damaged=int(damaged.sum()), seconds_verify=seconds_verify, **totals)
+                        seconds_verify=seconds_verify, **totals)

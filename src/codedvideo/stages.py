@@ -10,10 +10,13 @@ second, atoms used, and PSNR/SSIM when the truth is known.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import logging
 import time
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +31,7 @@ from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
 from .errors import InputError
 from .metrics import evaluate
-from .parallel import plan_tiles, reconstruct_tiles
+from .parallel import plan_tiles, reconstruct_stores
 from .patches import PATCH
 from .reconstruct import STAT_NAMES, OmpSettings
 from .scenes import load_video, training_videos
@@ -212,6 +215,152 @@ def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> t
     return coded, mask_used, count
 
 
+def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray, *, warn: bool = True) -> int:
+    """Raise :class:`InputError` when a capture cannot be sparse-coded; return its count of never-open pixels."""
+    physics.check_pair(coded.shape, mask.shape)
+    n, h, w = mask.shape
+    if D.shape[0] != n * PATCH * PATCH:
+        raise InputError(f"dictionary has {D.shape[0]} rows, the mask needs N*49 = {n * PATCH * PATCH} (N = {n})")
+    if h < PATCH or w < PATCH:
+        raise InputError(f"coded image {h}x{w} is smaller than one {PATCH}x{PATCH} patch")
+    never_open = int((~mask.astype(bool).any(0)).sum())
+    if never_open == h * w:
+        raise InputError("mask: no pixel is ever open; there is nothing to reconstruct")
+    if never_open and warn:
+        warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=3)
+    return never_open
+
+
+def sparse_volumes(
+    count: int,
+    capture,
+    D: np.ndarray,
+    *,
+    settings: OmpSettings,
+    tile: int = 128,
+    cache: str | Path = "cache",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    dictionary_key: str = "",
+    warn_never_open: bool = True,
+) -> Iterator[tuple[int, np.ndarray | None, dict | None]]:
+    """Sparse-code ``count`` captures as one job: one graph over (capture, tile); yield the volumes in order.
+
+    Parameters
+    ----------
+    count : int
+        T, the number of captures.
+    capture : callable
+        ``capture(i)`` -> ``(coded (H, W), mask (N, H, W))`` in working
+        units, or None for a capture that is not sparse-coded (yielded as
+        ``(i, None, None)`` for the caller to fill in).  It is called twice
+        per capture (to plan, then to finish), so that no more than one
+        capture's inputs are held at a time.
+    D : ndarray of shape (N * 49, K)
+
+    Yields
+    ------
+    i : int
+    volume : ndarray of shape (N, H, W), float32
+    info : dict
+        The statistics of :func:`reconstruct_volume`.
+
+    Each capture's working store is the cache entry ``cache/recon-KEY.zarr``,
+    shared by every run with the same inputs and settings (equal captures of
+    one job share it too): runs on one entry take its lock in turn (a second
+    run waits, then reuses the finished tiles); an entry whose metadata or
+    inputs are damaged is rebuilt, and a tile that fails its checksum when
+    read back is computed again, never returned (``tiles_damaged``).  When
+    every pixel has the same shutter pattern (open in every sub-frame: bump
+    length N, the global shutter, N = 1; or a global flutter sequence) no
+    pixel tells one instant from another, so per-patch sparse coding can only
+    invent motion (measured: a flutter code fell 6 dB below the static
+    estimate): that capture's result is the static estimate ``coded / open
+    count`` itself (``method: "static"``), computed without tiles.
+    """
+    dkey = dictionary_key or content_key(D)
+    plan: list = []  # per capture: None (the caller's), "static", or the index of its store
+    stores: list[WorkStore] = []
+    opened: dict[str, WorkStore] = {}
+    seconds_plan = []
+    with contextlib.ExitStack() as locks:
+        for i in range(count):
+            t0 = time.perf_counter()
+            pair = capture(i)
+            if pair is None:
+                plan.append(None)
+            else:
+                coded, mask = pair
+                _check_capture(coded, mask, D, warn=warn_never_open)
+                if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
+                    plan.append("static")
+                else:
+                    key = content_key(RECON_VERSION, coded, mask, dkey, settings.__dict__, tile)
+                    if key not in opened:
+                        entry = Path(cache) / f"recon-{key}.zarr"
+                        # One run at a time per entry (processes, threads, clients of one dask cluster): a
+                        # second run waits here, then reuses the tiles the first one finished.
+                        locks.enter_context(entry_lock(entry))
+                        opened[key] = WorkStore.create(
+                            entry, coded, mask, tile=tile, n_stats=len(STAT_NAMES),
+                            n_tiles=len(plan_tiles(coded.shape, tile, patch=PATCH)),
+                            attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION))
+                    plan.append(len(stores))
+                    stores.append(opened[key])
+                del pair
+            seconds_plan.append(time.perf_counter() - t0)
+        solved = reconstruct_stores(stores, D, settings, tile=tile, patch=PATCH, scheduler=scheduler,
+                                    workers=workers, progress=progress)
+        t_wait = time.perf_counter()
+        for i, how in enumerate(plan):
+            if how is None:
+                yield i, None, None
+                continue
+            coded, mask = capture(i)
+            if how == "static":
+                yield i, *_static_volume(coded, mask)
+                continue
+            j, volume, summary = next(solved)
+            t_solved = time.perf_counter()
+            volume, info = _finish_sparse(volume, summary, coded, mask, settings, stores[j].path)
+            info["seconds"] = dict(store_inputs=seconds_plan[i], reconstruct=t_solved - t_wait - summary["seconds_verify"],
+                                   assemble=summary["seconds_verify"] + time.perf_counter() - t_solved)
+            del coded, mask
+            yield i, volume, info
+            t_wait = time.perf_counter()
+
+
+def _finish_sparse(volume: np.ndarray, summary: dict, coded: np.ndarray, mask: np.ndarray, settings: OmpSettings,
+                   store_path) -> tuple[np.ndarray, dict]:
+    """A capture's solved tiles -> its volume: pixels no patch covers filled from the nearest; the statistics."""
+    if summary.get("dependent_stops"):
+        warnings.warn(f"{int(summary['dependent_stops'])} of {int(summary['patches'])} patches stopped early: their "
+                      "next atom was numerically dependent on the chosen ones (near-duplicate or degenerate "
+                      "dictionary atoms)", stacklevel=4)
+    holes = P.uncovered_pixels(mask.astype(bool).any(0), PATCH, settings.stride)
+    for frame in volume:  # one frame at a time: no copy of the whole volume
+        if not np.isfinite(frame[~holes]).all():
+            raise RuntimeError(f"working store {store_path}: volume has unwritten or non-finite pixels")
+    if holes.any():  # no measured patch covers them: the nearest reconstructed pixel
+        _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
+        volume[:, holes] = volume[:, iy[holes], ix[holes]]
+    residual = physics.forward(volume, mask) - coded
+    never_open = int((~mask.astype(bool).any(0)).sum())
+    info = dict(
+        summary,
+        never_open_pixels=never_open,
+        filled_pixels=int(holes.sum()),
+        atoms_mean=summary["atoms_total"] / max(summary["patches"] - summary["patches_static"], 1),
+        static_fraction=summary["patches_static"] / max(summary["patches"], 1),
+        patches_per_second=summary["patches"] / max(summary["seconds_total"], 1e-9) * (summary["tiles_computed"] > 0),
+        measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))),
+        work_store=str(store_path),
+        method="sparse",
+    )
+    return volume, info
+
+
 def reconstruct_volume(
     coded: np.ndarray,
     mask: np.ndarray,
@@ -225,89 +374,29 @@ def reconstruct_volume(
     progress: bool = True,
     dictionary_key: str = "",
 ) -> tuple[np.ndarray, dict]:
-    """Reconstruct a coded image through the Zarr working store and the dask graph.
+    """Reconstruct one coded image (working units) through the Zarr working store and the dask graph.
 
-    Returns the volume (N, H, W) float32 and a dict of statistics and timings.
-
-    When every pixel has the same shutter pattern (open in every sub-frame:
-    bump length N, the global shutter, N = 1; or a global flutter sequence) no
-    pixel tells one instant from another, so per-patch sparse coding can only
-    invent motion (measured: a flutter code fell 6 dB below the static
-    estimate): the result is then the static estimate ``coded / open count``
-    itself (``method: "static"`` in
-    the statistics), computed directly without tiles.  Patches that stopped
-    early because their next atom was numerically dependent on the chosen
-    ones are counted (``dependent_stops``) and reported by a warning.
-
-    The working store is the cache entry ``cache/recon-KEY.zarr``, shared by
-    every run with the same inputs and settings: runs on one entry take its
-    lock in turn (a second run waits, then reuses the finished tiles); an
-    entry whose metadata or inputs are damaged is rebuilt, and a tile that
-    fails its checksum when read back is computed again, never returned
-    (``tiles_damaged`` in the statistics).
+    A job of one capture (:func:`sparse_volumes`).  Returns the volume
+    (N, H, W) float32 and a dict of statistics and timings.  Patches that
+    stopped early because their next atom was numerically dependent on the
+    chosen ones are counted (``dependent_stops``) and reported by a warning.
     """
-    physics.check_pair(coded.shape, mask.shape)
-    n, h, w = mask.shape
-    if D.shape[0] != n * PATCH * PATCH:
-        raise InputError(f"dictionary has {D.shape[0]} rows, the mask needs N*49 = {n * PATCH * PATCH} (N = {n})")
-    if h < PATCH or w < PATCH:
-        raise InputError(f"coded image {h}x{w} is smaller than one {PATCH}x{PATCH} patch")
-    never_open = int((~mask.astype(bool).any(0)).sum())
-    if never_open == h * w:
-        raise InputError("mask: no pixel is ever open; there is nothing to reconstruct")
-    if never_open:
-        warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=2)
-    if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
-        return _static_volume(coded, mask)
-    timings = {}
-    t0 = time.perf_counter()
-    tiles = plan_tiles((h, w), tile, patch=PATCH)
-    key = content_key(RECON_VERSION, coded, mask, dictionary_key or content_key(D), settings.__dict__, tile)
-    entry = Path(cache) / f"recon-{key}.zarr"
-    # One run at a time per entry (processes, threads, clients of one dask cluster): a second run
-    # waits here, then reuses the tiles the first one finished.  Every tile is checked against its
-    # digest as it is read back; a damaged entry is rebuilt, a damaged tile computed again.
-    with entry_lock(entry):
-        store = WorkStore.create(
-            entry, coded, mask, tile=tile, n_stats=len(STAT_NAMES), n_tiles=len(tiles),
-            attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION),
-        )
-        timings["store_inputs"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        volume, summary = reconstruct_tiles(store, D, settings, tile=tile, patch=PATCH, scheduler=scheduler,
-                                            workers=workers, progress=progress)
-    timings["assemble"] = summary.pop("seconds_verify")  # reading every tile back and checking its digest
-    timings["reconstruct"] = time.perf_counter() - t0 - timings["assemble"]
-    if summary.get("dependent_stops"):
-        warnings.warn(f"{int(summary['dependent_stops'])} of {int(summary['patches'])} patches stopped early: their "
-                      "next atom was numerically dependent on the chosen ones (near-duplicate or degenerate "
-                      "dictionary atoms)", stacklevel=2)
-    holes = P.uncovered_pixels(mask.astype(bool).any(0), PATCH, settings.stride)
-    if not np.isfinite(volume[:, ~holes]).all():
-        raise RuntimeError(f"working store {store.path}: volume has unwritten or non-finite pixels")
-    if holes.any():  # no measured patch covers them: the nearest reconstructed pixel
-        _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
-        volume[:, holes] = volume[:, iy[holes], ix[holes]]
-    residual = physics.forward(volume, mask) - coded
-    info = dict(
-        summary,
-        never_open_pixels=never_open,
-        filled_pixels=int(holes.sum()),
-        atoms_mean=summary["atoms_total"] / max(summary["patches"] - summary["patches_static"], 1),
-        static_fraction=summary["patches_static"] / max(summary["patches"], 1),
-        patches_per_second=summary["patches"] / max(summary["seconds_total"], 1e-9) * (summary["tiles_computed"] > 0),
-        measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))),
-        work_store=str(store.path),
-        seconds=timings,
-        method="sparse",
-    )
+    coded = np.asarray(coded, np.float32)
+    results = sparse_volumes(1, lambda i: (coded, mask), D, settings=settings, tile=tile, cache=cache,
+                             scheduler=scheduler, workers=workers, progress=progress, dictionary_key=dictionary_key)
+    with contextlib.closing(results):
+        _, volume, info = next(results)
     return volume, info
 
 
-def reconstruct_capture(
+#: Methods that sparse-code patches (through :func:`sparse_volumes`); the others are :mod:`codedvideo.baselines`.
+SPARSE_METHODS = ("omp", "dct")
+
+
+def reconstruct_captures(
     method: str,
-    coded: np.ndarray,
-    mask: np.ndarray,
+    codeds,
+    mask_of,
     *,
     data_range,
     settings: OmpSettings,
@@ -315,69 +404,124 @@ def reconstruct_capture(
     dictionary_key: str = "",
     dictionary_name: str = "",
     white_level: float | None = None,
-    still: np.ndarray | None = None,
+    still_of=None,
     where: str = "coded image",
     tile: int = 128,
     cache: str | Path = "cache",
     scheduler: str | None = None,
     workers: int | None = None,
     progress: bool = True,
-) -> tuple[np.ndarray, dict]:
-    """One capture in its own units -> its video in the same units, by any method.
+) -> Iterator[tuple[int, np.ndarray, dict]]:
+    """Captures in their own units -> their videos in the same units, by any method, in order, as one job.
 
-    The capture is scaled to working units (:class:`codedvideo.units.DataRange`,
-    ``settings`` already in them), reconstructed and scaled back, so the same
-    capture in other units gives the same video times the scale.  Pixels at
-    or above ``white_level`` (capture units; None: trust every pixel) are
-    missing measurements.  Pixels of ``still`` (:func:`codedvideo.sequence.still_pixels`)
-    take ``coded / open count`` in every sub-frame, and the patches over them
-    are left out of the sparse coding.
+    Parameters
+    ----------
+    codeds : sequence of T coded images (H, W), in the capture's units
+    mask_of : callable ``mask_of(i)`` -> the (N, H, W) mask of capture ``i``
+    data_range : :class:`codedvideo.units.DataRange`
+        The captures are scaled to working units (``settings`` already in
+        them), reconstructed and scaled back, so the same captures in other
+        units give the same videos times the scale.
+    white_level : float, optional
+        Pixels at or above it (capture units) are missing measurements.
+    still_of : callable, optional
+        ``still_of(i)`` -> (H, W) bool (:func:`codedvideo.sequence.still_pixels`):
+        those pixels take ``coded / open count`` in every sub-frame, and the
+        patches over them are left out of the sparse coding.
+
+    Yields
+    ------
+    ``(i, volume (N, H, W) float32, info)`` for i = 0 .. T-1, each as soon as
+    it is done; the sparse methods run every capture's tiles in one graph.
     """
-    from .baselines import reconstruct_method
+    from .baselines import METHODS, reconstruct_method
+    from .sequence import normalised
 
-    coded_used, mask_used, saturated = coded, mask, 0
-    if white_level is not None:
-        coded_used, mask_used, saturated = drop_saturated(coded, mask, white_level)
-        if saturated and not mask_used.any():
-            raise InputError(f"{where}: every measured pixel is at or above --white-level {white_level}; "
-                             "nothing is left to reconstruct (--trust-saturated uses them anyway)")
+    if method not in METHODS:
+        raise InputError(f"method {method!r}: unknown; choose one of {', '.join(METHODS)}")
     scale = np.float32(data_range.scale)
-    if scale != 1:
-        coded_used = np.asarray(coded_used, np.float32) * scale
-    n_still = 0
-    if still is not None:
-        still = still & np.asarray(mask_used).any(0)
-        n_still = int(still.sum())
-    if n_still == still_total(mask_used) and n_still:  # nothing moves: no sparse coding at all
-        volume, info = _static_volume(coded_used, mask_used)
-    else:
-        if n_still:  # the still pixels' patches: left out (no measurement, so no patch estimate)
+    count = len(codeds)
+    stills: dict[int, np.ndarray] = {}  # (H, W) bool per capture: small next to its inputs
+
+    @functools.lru_cache(maxsize=1)  # the finishing step asks twice in a row; one capture's inputs held at most
+    def used(i: int):
+        """Capture i as reconstructed: working units, saturated and still pixels left out; its still pixels and
+        saturated count; None for the still pixels when nothing moves (no sparse coding at all)."""
+        coded, mask = codeds[i], mask_of(i)
+        coded_used, mask_used, saturated = coded, mask, 0
+        if white_level is not None:
+            coded_used, mask_used, saturated = drop_saturated(coded, mask, white_level)
+            if saturated and not mask_used.any():
+                raise InputError(f"{where}: every measured pixel is at or above --white-level {white_level}; "
+                                 "nothing is left to reconstruct (--trust-saturated uses them anyway)")
+        coded_used = np.asarray(coded_used, np.float32) * scale if scale != 1 else np.asarray(coded_used, np.float32)
+        still = None
+        if still_of is not None:
+            if i not in stills:
+                stills[i] = still_of(i) & np.asarray(mask_used).any(0)
+            still = stills[i] if stills[i].any() else None
+        moving = still is None or int(still.sum()) < int(np.asarray(mask_used).any(0).sum())
+        if still is not None and moving:  # the still pixels' patches: left out (no measurement, no patch estimate)
             mask_used = np.where(still[None], 0, mask_used).astype(mask_used.dtype)
             coded_used = np.where(still, 0, coded_used).astype(np.float32)
-        with warnings.catch_warnings():
-            if n_still:
-                warnings.filterwarnings("ignore", message=".*pixels are never open.*")
-            volume, info = reconstruct_method(method, coded_used, mask_used, dictionary=dictionary, settings=settings,
-                                              tile=tile, cache=cache, scheduler=scheduler, workers=workers,
-                                              progress=progress, dictionary_key=dictionary_key,
-                                              dictionary_name=dictionary_name)
-    if n_still:
-        from .sequence import normalised
+        return coded_used, mask_used, still, moving, saturated
 
-        q = normalised(coded, mask)[0] * scale
-        volume[:, still] = q[still]
-    info["still_pixels"] = n_still
-    if scale != 1:
-        volume = volume / scale
-        if info.get("measurement_residual_rms") is not None:
-            info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(scale)
-    info["saturated_pixels"] = saturated
+    sparse = method in SPARSE_METHODS
+    if sparse:
+        from .dictionaries import dct_dictionary, prepare_dictionary
+
+        if method == "dct":
+            dictionary, dictionary_key = dct_dictionary(mask_of(0).shape[0]), ""
+        elif dictionary is None:
+            raise InputError("method omp: needs a dictionary (--dictionary DICT.zarr)")
+        # unit-norm atoms, zero atoms dropped (the same array when it already is)
+        prepared = prepare_dictionary(dictionary, dictionary_name or f"of method {method}")
+        if prepared is not dictionary:  # the caller's key names the given atoms: key the cache by the used ones
+            dictionary, dictionary_key = prepared, ""
+
+    if still_of is not None:  # the still pixels are left out as never open: warn of the mask's own only
+        never_open = int((~np.asarray(mask_of(0)).astype(bool).any(0)).sum())
+        if never_open:
+            warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=2)
+
+    def for_sparse(i: int):
+        coded_used, mask_used, _, moving, _ = used(i)
+        return (coded_used, mask_used) if sparse and moving else None
+
+    results = (sparse_volumes(count, for_sparse, dictionary, settings=settings, tile=tile, cache=cache,
+                              scheduler=scheduler, workers=workers, progress=progress, dictionary_key=dictionary_key,
+                              warn_never_open=still_of is None)
+               if sparse else ((i, None, None) for i in range(count)))
+    with contextlib.closing(results) if sparse else contextlib.nullcontext():
+        for i, volume, info in results:
+            coded_used, mask_used, still, moving, saturated = used(i)
+            if not moving:  # nothing moves: no sparse coding at all
+                volume, info = _static_volume(coded_used, mask_used)
+            elif volume is None:
+                volume, info = reconstruct_method(method, coded_used, mask_used)
+            if sparse:
+                info = dict(info, method=method, dictionary_atoms=int(dictionary.shape[1]))
+            if still is not None:
+                q = normalised(codeds[i], mask_of(i))[0] * scale
+                volume[:, still] = q[still]
+            info["still_pixels"] = 0 if still is None else int(still.sum())
+            if scale != 1:
+                volume /= scale
+                if info.get("measurement_residual_rms") is not None:
+                    info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(scale)
+            info["saturated_pixels"] = saturated
+            del coded_used, mask_used
+            yield i, volume, info
+
+
+def reconstruct_capture(method: str, coded: np.ndarray, mask: np.ndarray, *, still: np.ndarray | None = None,
+                        **options) -> tuple[np.ndarray, dict]:
+    """One capture in its own units -> its video in the same units: a job of one (:func:`reconstruct_captures`)."""
+    results = reconstruct_captures(method, [coded], lambda i: mask, still_of=None if still is None else (lambda i: still),
+                                   **options)
+    with contextlib.closing(results):
+        _, volume, info = next(results)
     return volume, info
-
-
-def still_total(mask: np.ndarray) -> int:
-    """Pixels that are open at least once."""
-    return int(np.asarray(mask).any(0).sum())
 
 
 def _static_volume(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dict]:

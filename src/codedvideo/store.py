@@ -481,7 +481,7 @@ class WorkStore:
                     pass
             return out
 
-    def read_verified(self, tiles, volume: np.ndarray | None = None):
+    def read_verified(self, tiles, volume: np.ndarray | None = None, *, assemble: bool = True):
         """Read tiles and check each against its digest.
 
         Parameters
@@ -491,6 +491,10 @@ class WorkStore:
             Verified cores are copied into it.  None: a new array (the whole
             volume as read, when every tile is asked for; NaN elsewhere)
             whose cores that failed are NaN.
+        assemble : bool
+            False: only check the tiles, one core at a time (the returned
+            volume is None), so that planning a job of many captures never
+            holds their volumes.
 
         Returns
         -------
@@ -511,13 +515,15 @@ class WorkStore:
         varr = self.group["volume"]
         claimed = [t for t in tiles if digests[t.index].any()]
         bulk = None
-        if claimed and 2 * len(claimed) > n_tiles:  # most of the volume: one read, chunks fetched concurrently
+        if not assemble:
+            volume = None
+        elif claimed and 2 * len(claimed) > n_tiles:  # most of the volume: one read, chunks fetched concurrently
             try:
                 bulk = np.asarray(varr[...])
             except Exception:  # some chunk cannot be decoded: tile by tile below
                 bulk = None
-        adopt = volume is None and bulk is not None and len(tiles) == n_tiles
-        if volume is None:
+        adopt = assemble and volume is None and bulk is not None and len(tiles) == n_tiles
+        if assemble and volume is None:
             volume = bulk if adopt else np.full(varr.shape, np.nan, np.float32)
         for t in claimed:
             y0, y1, x0, x1 = t.core
@@ -531,7 +537,7 @@ class WorkStore:
                     continue
             if tile_digest(self.key, t.index, t.core, core, stats[t.index]).tobytes() == digests[t.index].tobytes():
                 ok[t.index] = True
-                if not adopt:
+                if assemble and not adopt:
                     volume[:, y0:y1, x0:x1] = core
             else:
                 damaged[t.index] = True
