@@ -12,7 +12,10 @@ Cases (issue "Fast reconstruction"):
   startup  a 256x256 N = 8 reconstruct as a whole process against its in-process time
   calibrated  a code misregistered by half a pixel: nominal binary mask against the measured float mask
   sequence 10 captures (256x256, N = 8) 70 % still, all still and all moving, as one job and
-           capture by capture (whole CLI processes); peak memory at T = 1, 10, 100
+           capture by capture (--independent-captures: no still regions, no join; whole CLI
+           processes), the boundary step error; peak memory at T = 1, 10, 100
+  video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
+           peak resident memory)
 
 Every case runs in its own process so that its peak resident memory is its
 own; each also times a fixed-size SGEMM so figures can be read as ratios
@@ -352,7 +355,8 @@ def case_sequence(quick: bool) -> dict:
                 seconds, peak = _cli("reconstruct", "--coded", tmp / f"{name}-coded.npy", "--mask", tmp / f"{name}-mask.npy",
                                      "--output", result, "--cache", tmp / f"cache-{name}-{mode}", *flag, cwd=ROOT)
                 recon = np.load(result)
-                row[mode] = dict(seconds=seconds, peak_rss_mb=peak, psnr=_psnr(recon, video))
+                row[mode] = dict(seconds=seconds, peak_rss_mb=peak, psnr=_psnr(recon, video),
+                                 boundary_to_inside=_boundary_ratio(recon, video, 8))
                 if name == "static70":  # the moving part: the right 30 % of the frame
                     row[mode]["psnr_moving"] = _psnr(recon, video, slice(int(round(0.7 * size[1])), None))
             row["time_ratio"] = row["sequence"]["seconds"] / row["independent"]["seconds"]
@@ -369,6 +373,45 @@ def case_sequence(quick: bool) -> dict:
                                  tmp / f"m{t}.npy", "--cache", tmp / f"cache-m{t}", cwd=ROOT)
             memory[str(t)] = dict(seconds=seconds, peak_rss_mb=peak)
         out["memory"] = memory
+    return out
+
+
+def _boundary_ratio(recon: np.ndarray, truth: np.ndarray, n: int) -> float:
+    """Error of the frame-to-frame step across capture boundaries over the error inside captures."""
+    from codedvideo.sequence import StepErrors
+
+    steps = StepErrors()
+    for t in range(len(recon) // n):
+        steps.add(recon[t * n : (t + 1) * n], truth[t * n : (t + 1) * n])
+    return steps.summary()["boundary_to_inside"]
+
+
+def case_video(quick: bool) -> dict:
+    """Issue 15: coded video at camera sizes, N = 18 (bump 3), whole CLI processes with peak resident memory:
+    1280x720 with T = 30 captures (540 frames), and one 3840x2160 capture."""
+    import tempfile
+
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+
+    runs = (((128, 160), 3), ((216, 384), 1)) if quick else (((720, 1280), 30), ((2160, 3840), 1))
+    out = dict(case="video", frames=18, sgemm_gflops=sgemm_gflops())
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
+        tmp = Path(tmp)
+        for size, t_count in runs:
+            video = make_scene("default", frames=18 * t_count, size=size)
+            cap = simulate_capture(video, code="hitomi", bump=3, sigma=0.0, seed=0, captures=t_count)
+            for key in ("coded", "mask"):
+                np.save(tmp / f"{key}.npy", cap[key])
+            del cap
+            seconds, peak = _cli("reconstruct", "--coded", tmp / "coded.npy", "--mask", tmp / "mask.npy",
+                                 "--output", tmp / "recon.npy", "--cache", tmp / "cache", cwd=ROOT)
+            recon = np.load(tmp / "recon.npy", mmap_mode="r")
+            out[f"{size[1]}x{size[0]} T={t_count}"] = dict(
+                size=list(size), captures=t_count, seconds=seconds, seconds_per_capture=seconds / t_count,
+                peak_rss_mb=peak, psnr=float(np.mean([_psnr(np.asarray(recon[i : i + 18]), video[i : i + 18])
+                                                      for i in range(0, 18 * t_count, 18)])))
+            del video, recon
     return out
 
 
@@ -441,7 +484,7 @@ def case_calibrated(quick: bool) -> dict:
 
 
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
-             sequence=case_sequence, calibrated=case_calibrated, startup=case_startup, units=case_units)
+             sequence=case_sequence, video=case_video, calibrated=case_calibrated, startup=case_startup, units=case_units)
 
 
 def run_child(name: str, quick: bool) -> dict:
@@ -499,8 +542,16 @@ def table(results: dict) -> str:
             rows.append(f"  70 %-still / moving: {100 * r['moving_vs_still70_time']:.0f} % of the time; still / moving: "
                         f"{100 * r['still_vs_moving_time']:.0f} %; moving, one job / capture by capture: "
                         f"{100 * r['moving']['time_ratio']:.0f} %")
+            rows.append("  boundary step / inside step: " + ", ".join(
+                f"{scene} {r[scene]['sequence'].get('boundary_to_inside') or 0:.2f} joined, "
+                f"{r[scene]['independent'].get('boundary_to_inside') or 0:.2f} alone" for scene in ("static70", "moving")))
             rows.append("  peak RSS by T: " + ", ".join(f"T = {t}: {m['peak_rss_mb']:.0f} MB ({m['seconds']:.1f} s)"
                                                        for t, m in r["memory"].items()))
+        if name == "video":
+            for key, v in r.items():
+                if isinstance(v, dict) and "captures" in v:
+                    rows.append(f"  video {key} N = 18: {v['seconds']:.0f} s ({v['seconds_per_capture']:.1f} s a capture), "
+                                f"peak {v['peak_rss_mb']:.0f} MB, {v['psnr']:.2f} dB")
         if name == "bayer":
             rows.append(f"  bayer {r['pattern']}: colour result {r['omp']['psnr']:.2f} dB, demosaicked static estimate "
                         f"{r['static']['psnr']:.2f} dB")
@@ -520,7 +571,7 @@ def table(results: dict) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", default="a,static,b,b1,c,quality,bayer,sequence,calibrated,startup,units")
+    ap.add_argument("--cases", default="a,static,b,b1,c,quality,bayer,sequence,video,calibrated,startup,units")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()

@@ -178,12 +178,17 @@ def test_cli_reconstructs_every_measurement(tmp_path, scene, dct, capsys):
     assert cli("evaluate", "--recon", out, "--truth", tmp_path / "two.mat") == 0
     ev = json.loads(capsys.readouterr().out)
     assert ev["psnr"] == pytest.approx(metrics["quality"]["psnr"], abs=1e-6)
-    # one measurement only: the same frames as in the whole run
+    # one measurement only: the same frames as in the whole run with measurements on their own (no join)
+    assert cli("reconstruct", "--cacti", tmp_path / "two.mat", "--dictionary", dct, "--output", tmp_path / "alone.npy",
+               "--tile", 32, "--cache", tmp_path / "cache", "--independent-captures") == 0
     assert cli("reconstruct", "--cacti", tmp_path / "two.mat", "--measurement", 2, "--dictionary", dct,
                "--output", tmp_path / "m2.npy", "--tile", 32, "--cache", tmp_path / "cache") == 0
-    np.testing.assert_allclose(np.load(tmp_path / "m2.npy"), recon[N:], atol=1e-4)
+    np.testing.assert_allclose(np.load(tmp_path / "m2.npy"), np.load(tmp_path / "alone.npy")[N:], atol=1e-4)
+    # joined, the measurements' frames away from their boundary are those of each on its own
+    np.testing.assert_allclose(recon[N + 3 : 2 * N], np.load(tmp_path / "alone.npy")[N + 3 :], atol=1e-4)
     m2 = json.loads((tmp_path / "m2.metrics.json").read_text())
-    assert m2["quality"]["psnr"] == pytest.approx(per[1], abs=1e-4)
+    alone = json.loads((tmp_path / "alone.metrics.json").read_text())
+    assert m2["quality"]["psnr"] == pytest.approx(alone["quality"]["psnr_per_measurement"][1], abs=1e-4)
 
 
 def test_cli_cacti_errors(tmp_path, scene, dct, capsys):

@@ -52,7 +52,7 @@ def test_a_sequence_equals_its_captures_reconstructed_one_by_one(sequence, tmp_p
     coded, masks = np.load(cap / "coded.npy"), np.load(cap / "mask.npy")
     common = ["--method", "dct", "--cache", tmp_path / "cache"]
     _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--truth",
-         cap / "truth.npy", "--output", tmp_path / "all.npy", *common)
+         cap / "truth.npy", "--output", tmp_path / "all.npy", "--independent-captures", *common)
     whole = np.load(tmp_path / "all.npy")
     assert whole.shape == (T * N, H, W)
     for t in range(T):
@@ -84,6 +84,21 @@ def test_mask_per_capture_must_match_the_number_of_captures(sequence, tmp_path, 
     assert main(["-q", "reconstruct", "--coded", str(sequence / "cap" / "coded.npy"), "--mask", str(tmp_path / "m.npy"),
                  "--method", "dct", "--output", str(tmp_path / "r.npy"), "--cache", str(tmp_path / "c")]) == 2
     assert "2 masks" in capsys.readouterr().err and not (tmp_path / "r.npy").exists()
+
+
+def test_the_boundary_step_is_no_worse_than_a_step_inside_a_capture(tmp_path, capsys):
+    """Through the command line: captures joined (the default) against reconstructed on their own."""
+    _run(capsys, "simulate", "synth:default", "--frames", "8", "--size", "96", "96", "--captures", "4", "--seed", "1",
+         "--output", tmp_path / "cap")
+    cap, ratio, psnr = tmp_path / "cap", {}, {}
+    for name, flag in (("joined", []), ("alone", ["--independent-captures"])):
+        _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--truth",
+             cap / "truth.npy", "--output", tmp_path / f"{name}.npy", "--cache", tmp_path / "cache", *flag)
+        quality = json.loads((tmp_path / f"{name}.metrics.json").read_text())["quality"]
+        ratio[name], psnr[name] = quality["boundaries"]["boundary_to_inside"], quality["psnr"]
+    assert ratio["alone"] > 1.1  # the flicker the join removes
+    assert ratio["joined"] <= 1.0
+    assert psnr["joined"] >= psnr["alone"] - 0.05
 
 
 @pytest.mark.slow

@@ -146,8 +146,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--overwrite", action="store_true",
                    help="replace an existing output file that codedvideo did not write (folders: never)")
     r.add_argument("--independent-captures", action="store_true",
-                   help="a stack of coded images: reconstruct each on its own (default: regions still from one "
-                        "capture to the next take coded / open count, without sparse coding)")
+                   help="a stack of coded images (or a CACTI file's measurements): reconstruct each on its own "
+                        "(default: regions still from one capture to the next take coded / open count, without "
+                        "sparse coding, and the step from one capture to the next is smoothed along the motion)")
 
     e = sub.add_parser("evaluate", help="per-frame and mean PSNR/SSIM as JSON")
     e.add_argument("--recon", required=True, help=".npy, .zarr, .mat, .tif, a video or frames")
@@ -453,6 +454,11 @@ def _cmd_reconstruct(a) -> int:
             # what did not change since the capture before or until the one after
             still_of = lambda i: still_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale)  # noqa: E731
         results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, **options)
+        if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
+            from .sequence import joined
+
+            # the step from one capture to the next smoothed along the motion, both measurements kept
+            results = joined(results, job.codeds, job.mask, data_range=units.value)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     from .sequence import StepErrors
 

@@ -19,6 +19,8 @@ step along the motion, without moving either capture's measurement.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 from scipy import ndimage
 
@@ -273,3 +275,24 @@ def join_captures(
     b[n - k :] += _project_out(change[:k], np.asarray(mask_before)[n - k :])
     a[:k] += _project_out(change[k:], np.asarray(mask_after)[:k])
     return b, a
+
+
+def joined(results, codeds, mask_of, *, data_range: float | None = None):
+    """A stream of reconstructed captures ``(i, volume, info)`` in order, each joined to the next (:func:`join_captures`).
+
+    A capture is handed on once the next one has arrived and the step between
+    them is smoothed, so two volumes are held at a time; ``info["seconds"]["join"]``
+    is the time spent on the capture's join with its successor.
+    """
+    held = None
+    for i, volume, info in results:
+        if held is not None:
+            j, before, before_info = held
+            t0 = time.perf_counter()
+            before, volume = join_captures(before, volume, coded_before=codeds[j], mask_before=mask_of(j),
+                                           coded_after=codeds[i], mask_after=mask_of(i), data_range=data_range)
+            before_info.setdefault("seconds", {})["join"] = time.perf_counter() - t0
+            yield j, before, before_info
+        held = (i, volume, info)
+    if held is not None:
+        yield held
