@@ -88,15 +88,14 @@ def capture(scene: str, frames: int, size, code: str, bump: int, seed: int = 0):
 
 def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128, stride=1, repeats=1):
     """Reconstruct ``repeats`` times (each into a fresh store); seconds: the median, seconds_first: the first."""
-    from codedvideo.config import PipelineConfig, auto_tolerance
+    from codedvideo.config import PipelineConfig, omp_settings
     from codedvideo.metrics import evaluate
     from codedvideo.stages import reconstruct_volume
-    from codedvideo.reconstruct import OmpSettings
     import tempfile
 
     rc = PipelineConfig().reconstruct
-    s = OmpSettings(max_atoms=rc.max_atoms, tol_rms=auto_tolerance(0.0), batch=rc.batch,
-                    static_atoms=rc.static_atoms if static_atoms is None else static_atoms, stride=stride)
+    s = omp_settings(rc.model_copy(update=dict(static_atoms=rc.static_atoms if static_atoms is None else static_atoms,
+                                               stride=stride)), 0.0)
     times = []
     for _ in range(repeats):
         with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # fresh store: nothing reused
@@ -128,10 +127,10 @@ def timed_gaptv(cap, repeats=1):
 def naive_omp(cap, D, *, crop=48):
     """The naive implementation: per patch, build S_p D in Python loops and run textbook OMP."""
     from codedvideo import patches as P
-    from codedvideo.config import PipelineConfig, auto_tolerance
+    from codedvideo.config import PipelineConfig, auto_tolerance, omp_settings
     from codedvideo.metrics import evaluate
     from codedvideo.omp import omp_reference
-    from codedvideo.reconstruct import OmpSettings, reconstruct_region
+    from codedvideo.reconstruct import reconstruct_region
 
     coded = cap["coded"][:crop, :crop]
     mask = cap["mask"][:, :crop, :crop]
@@ -155,7 +154,8 @@ def naive_omp(cap, D, *, crop=48):
     naive_s = time.perf_counter() - t
     vol = P.fold(est, coded.shape) / P.coverage(coded.shape)[None]
     t = time.perf_counter()
-    fast, _ = reconstruct_region(coded, mask, D, OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol_rms, static_atoms=0))
+    fast, _ = reconstruct_region(coded, mask, D, omp_settings(rc.model_copy(update=dict(tol_rms=tol_rms, static_atoms=0)),
+                                                              0.0))
     fast_s = time.perf_counter() - t
     return dict(crop=crop, patches=int(y.shape[0]), naive_seconds=naive_s, fast_seconds=fast_s,
                 naive_psnr=evaluate(vol, truth)["psnr"], fast_psnr=evaluate(fast, truth)["psnr"],
@@ -231,12 +231,11 @@ def case_quality(quick: bool) -> dict:
     import tempfile
 
     from codedvideo.baselines import gap_tv
-    from codedvideo.config import PipelineConfig, auto_tolerance
+    from codedvideo.config import PipelineConfig, omp_settings
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.metrics import evaluate
     from codedvideo.scenes import load_video
     from codedvideo.stages import reconstruct_volume, simulate_capture
-    from codedvideo.reconstruct import OmpSettings
 
     D, meta = dictionary_for(8)
     Dd = dct_dictionary(8)
@@ -250,9 +249,8 @@ def case_quality(quick: bool) -> dict:
                 cap = simulate_capture(video, code=code, bump=bump, sigma=sigma, seed=0)
                 row = dict(scene=scene, kind="real" if scene.startswith("footage:") else "synthetic",
                            code=code, bump=bump, sigma=sigma)
-                tol = auto_tolerance(sigma)
                 for label, dic, atoms in (("default", D, rc.max_atoms), ("dct", Dd, 16)):
-                    s = OmpSettings(max_atoms=atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms)
+                    s = omp_settings(rc.model_copy(update=dict(max_atoms=atoms)), sigma)
                     with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
                         t = time.perf_counter()
                         vol, _ = reconstruct_volume(cap["coded"], cap["mask"], dic, settings=s, cache=tmp, progress=False)
@@ -575,6 +573,7 @@ def main() -> int:
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
+    (ROOT / "cache").mkdir(exist_ok=True)  # the cases' temporary stores live there (absent in a fresh clone)
     if a.child:
         from codedvideo.omp_kernel import load_kernels
 

@@ -44,13 +44,12 @@ import numpy as np
 
 from . import baselines
 from . import io as cio
-from .config import PipelineConfig, auto_tolerance
+from .config import PipelineConfig, auto_tolerance, omp_settings
 from .metrics import evaluate
 from .cache import RECON_VERSION, content_key
 from .volumes import write_json
 from .scenes import load_video
 from .stages import simulate_capture, train_dictionary
-from .reconstruct import OmpSettings
 from .store import load_dictionary
 
 #: Part of every experiment key: bump it when what an experiment records changes.
@@ -144,9 +143,9 @@ class Runner:
         D, dkey, omp = None, "", None
         if method in ("omp", "dct"):
             r = self.cfg.reconstruct
-            omp = OmpSettings(max_atoms=max_atoms or r.max_atoms,
-                              tol_rms=float(tol_rms) if tol_rms is not None else auto_tolerance(sigma),
-                              batch=r.batch, static_atoms=r.static_atoms, stride=stride or r.stride)
+            omp = omp_settings(r.model_copy(update=dict(
+                max_atoms=max_atoms or r.max_atoms, tol_rms="auto" if tol_rms is None else float(tol_rms),
+                stride=stride or r.stride)), sigma)
             settings.update(omp.__dict__, tile=r.tile, version=RECON_VERSION)
             if method == "omp":
                 D, meta = self.dictionary(frames, atoms)
