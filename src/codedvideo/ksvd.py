@@ -1,6 +1,6 @@
 """K-SVD dictionary learning (Aharon, Elad and Bruckstein, 2006).
 
-Each iteration is a sparse-coding step (batched OMP, :mod:`codedvideo.omp`)
+Each iteration is a sparse-coding step (Batch-OMP, :func:`codedvideo.omp_kernel.batch_omp`)
 composed with a dictionary-update step: every atom in turn is replaced by the
 leading left singular vector of the residual restricted to the samples that
 use it, and those samples' coefficients by the matching right singular vector
@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .omp import PlainOperator, omp
+from .omp_kernel import batch_omp
 
 DUPLICATE_COS = 0.99
 
@@ -88,7 +88,7 @@ def ksvd(
     K = D.shape[1]
     hist = KsvdHistory()
     for it in range(iterations):
-        codes = omp(X, PlainOperator(D), max_atoms=sparsity, tol=tol)
+        codes = batch_omp(X, D, max_atoms=sparsity, tol=tol)
         coef = codes.coef.copy()
         # residual E = X - codes D^T
         E = X.copy()

@@ -23,14 +23,19 @@ Gram-Schmidt applied twice, the residual and linear-dependence stops.  Dot
 products of length ``m`` accumulate in float64; correlations are float32.
 Every patch is computed alone, so its answer never depends on its batch, tile
 or worker.
+
+K-SVD's coding step, where every signal shares one unmasked dictionary, has
+its own kernel here (numba is imported by this module only):
+:func:`batch_omp`, Batch-OMP from the Gram matrix ``D^T D`` and one matrix
+product ``X D``, with the same selection and stopping rules.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
-from .omp import _TINY, DEPENDENCE_TOL, MIN_VISIBLE, SELECT_BITS, OmpResult, pattern_table
+from .omp import _TINY, DEPENDENCE_TOL, MIN_VISIBLE, SELECT_BITS, OmpResult, _safe_inverse, pattern_table
 
 #: Largest pattern table (bytes) this path builds; beyond it (codes with many
 #: distinct patterns, e.g. Bernoulli at large N) the dense operator is used.
@@ -394,6 +399,178 @@ class WeightsOMP:
         _omp_weights_kernel(y, S, self.D3, self.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef,
                             count, res2, dependent)
         return OmpResult(index=index, coef=coef, count=count, residual=res2, dependent=dependent)
+
+
+#: Signals per block of :func:`_batch_omp_kernel`: a thread allocates its work arrays once per block.
+_BATCH_BLOCK = 256
+
+
+@njit(parallel=True, nogil=True, cache=True, fastmath={"reassoc", "contract"})
+def _batch_omp_kernel(X, Dt, alpha0, G, inv, tol, kmax, dep_tol, select_bits, index, coef, count, res2, dependent):
+    """Batch-OMP (Rubinstein, Zibulevsky and Elad 2008) of the signals ``X`` given ``alpha0 = X D``.
+
+    Only the Gram matrix ``G = D^T D`` and the initial correlations are used:
+    with the selected atoms ``I``, the Cholesky factor ``L L^T = G[I, I]`` and
+    ``z = L^{-1} D[:, I]^T x`` (so ``gamma = L^{-T} z``), the correlations of
+    the residual are ``alpha0 - G[:, I] gamma`` and its squared norm is
+    ``||x||^2 - ||z||^2``.  ``L`` is the transpose of the ``R`` of the thin QR
+    that :func:`codedvideo.omp.omp` keeps, and ``z`` its ``Q^T y``: the same
+    pursuit, without a residual vector.
+
+    ``alpha0`` (float32 or float64) only ranks the atoms.  The correlations of
+    the selected atoms, from which ``z``, the coefficients and the residual
+    follow, are recomputed in float64 from ``X`` and ``Dt`` (``m`` multiply-adds
+    an atom): the residual is a difference of two nearly equal energies, and
+    float32 correlations (relative error ~1e-7 of ``||x||^2``) would decide a
+    small tolerance by roundoff.
+    """
+    P, K = alpha0.shape
+    m = X.shape[1]
+    n_blocks = (P + _BATCH_BLOCK - 1) // _BATCH_BLOCK
+    for b in prange(n_blocks):
+        alpha = np.empty(K, np.float64)
+        score = np.empty(K, np.float32)
+        score_bits = score.view(np.int32)
+        L = np.zeros((kmax, kmax), np.float64)
+        z = np.zeros(kmax, np.float64)
+        w = np.zeros(kmax, np.float64)
+        gamma = np.zeros(kmax, np.float64)
+        sel = np.zeros(kmax, np.int64)
+        for p in range(b * _BATCH_BLOCK, min(P, (b + 1) * _BATCH_BLOCK)):
+            rr = 0.0
+            for e in range(m):
+                rr += np.float64(X[p, e]) ** 2
+            res2[p] = rr
+            count[p] = 0
+            dependent[p] = False
+            if rr <= tol[p]:
+                continue
+            for k in range(K):
+                alpha[k] = alpha0[p, k]
+            n_sel = 0
+            for it in range(kmax):
+                # selection exactly as omp._select: |score| rounded to 13 bits, ties to the lowest atom
+                best = np.int32(0)
+                for k in range(K):
+                    score[k] = np.float32(alpha[k]) * inv[k]
+                    score_bits[k] &= select_bits
+                    best = max(best, score_bits[k])
+                j = 0
+                while score_bits[j] != best:
+                    j += 1
+                # new row of the Cholesky factor: L[:it, :it] w = G[I, j]
+                for t in range(it):
+                    v = G[sel[t], j]
+                    for s in range(t):
+                        v -= L[t, s] * w[s]
+                    w[t] = v / L[t, t]
+                gjj = G[j, j]
+                piv = gjj
+                for t in range(it):
+                    piv -= w[t] * w[t]
+                # sqrt(piv) is the norm of the atom's component outside the span of the selected ones
+                # (R[it, it] of the QR path), so the dependence stop is the same test
+                qn = np.sqrt(piv) if piv > 0.0 else 0.0
+                if not (qn > dep_tol * np.sqrt(max(gjj, 0.0)) and best > 0):
+                    dependent[p] = True
+                    break
+                for t in range(it):
+                    L[it, t] = w[t]
+                L[it, it] = qn
+                sel[it] = j
+                v = 0.0
+                for e in range(m):
+                    v += np.float64(X[p, e]) * np.float64(Dt[j, e])
+                for t in range(it):
+                    v -= L[it, t] * z[t]
+                z[it] = v / qn
+                rr -= z[it] * z[it]  # the new orthonormal direction removes z[it]**2 of the energy
+                n_sel = it + 1
+                if rr < 0.0:
+                    rr = 0.0
+                # gamma = L^-T z: the coefficients on the selected atoms
+                for t in range(n_sel - 1, -1, -1):
+                    v = z[t]
+                    for s in range(t + 1, n_sel):
+                        v -= L[s, t] * gamma[s]
+                    gamma[t] = v / L[t, t]
+                if rr <= tol[p] or n_sel == kmax:
+                    break
+                # correlations of the new residual: alpha0 - G[:, I] gamma (G symmetric: rows of G)
+                for k in range(K):
+                    alpha[k] = alpha0[p, k]
+                for t in range(n_sel):
+                    g = G[sel[t]]
+                    c = gamma[t]
+                    for k in range(K):
+                        alpha[k] -= c * g[k]
+            count[p] = n_sel
+            res2[p] = rr
+            for t in range(n_sel):
+                index[p, t] = sel[t]
+                coef[p, t] = gamma[t]
+
+
+def batch_omp(X: np.ndarray, D: np.ndarray, *, max_atoms: int, tol=0.0, chunk: int = 8192,
+              precision=np.float32) -> OmpResult:
+    """OMP of many signals over one dictionary (Batch-OMP), compiled and parallel over signals.
+
+    The same problem and rules as :func:`codedvideo.omp.omp` with
+    :class:`codedvideo.omp.PlainOperator` (normalised selection rounded to
+    :data:`SELECT_BITS`, ties to the lowest atom, the residual, sparsity and
+    linear-dependence stops), computed from ``G = D^T D`` (once) and
+    ``X D`` (one matrix product per chunk of signals) instead of explicit
+    residuals, as suits K-SVD's coding step where every signal shares ``D``.
+
+    Parameters
+    ----------
+    X : ndarray of shape (P, m)
+        Signals (rows).
+    D : ndarray of shape (m, K)
+        Dictionary; atoms of any norm (selection is by normalised correlation,
+        zero atoms are never selected).
+    max_atoms : int
+        Maximum atoms per signal (``<= m``).
+    tol : float or ndarray of shape (P,)
+        Stop when the squared residual ``||D alpha - x||^2 <= tol``.
+    chunk : int
+        Signals per matrix product ``X D`` (bounds the memory to ``chunk * K`` values).
+    precision : dtype
+        Of the product ``X D`` that ranks the atoms: float32 (the precision of
+        the numpy path's correlations, and twice as fast) or float64.  The
+        pursuit itself (Cholesky factor, coefficients, residual) is float64.
+
+    Returns
+    -------
+    OmpResult
+        ``index``, ``coef`` (coefficients of the atoms of ``D`` as given) of shape
+        (P, min(max_atoms, m)); ``count``; ``residual`` (squared, float32); ``dependent``.
+    """
+    X = np.ascontiguousarray(X, dtype=np.float32)
+    D = np.ascontiguousarray(D, dtype=np.float32)
+    P, m = X.shape
+    if D.shape[0] != m:
+        raise ValueError(f"dictionary has {D.shape[0]} rows, signals have {m} entries")
+    kmax = int(min(max_atoms, m))
+    D64 = D.astype(np.float64)
+    G = D64.T @ D64
+    # the same inverse norms as PlainOperator, so that the rounded scores are the same numbers
+    inv = _safe_inverse(np.sqrt((D64**2).sum(0)).astype(np.float32))
+    tol = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, dtype=np.float64), (P,)))
+    index = np.zeros((P, kmax), np.int32)
+    coef64 = np.zeros((P, kmax), np.float64)
+    count = np.zeros(P, np.int32)
+    res2 = np.zeros(P, np.float64)
+    dependent = np.zeros(P, np.bool_)
+    Dp = D64 if np.dtype(precision) == np.float64 else D
+    Dt = np.ascontiguousarray(D.T)
+    for a in range(0, P, chunk):
+        b = min(P, a + chunk)
+        alpha0 = X[a:b].astype(Dp.dtype, copy=False) @ Dp
+        _batch_omp_kernel(X[a:b], Dt, alpha0, G, inv, tol[a:b], kmax, DEPENDENCE_TOL, SELECT_BITS, index[a:b],
+                          coef64[a:b], count[a:b], res2[a:b], dependent[a:b])
+    return OmpResult(index=index, coef=coef64.astype(np.float32), count=count, residual=res2.astype(np.float32),
+                     dependent=dependent)
 
 
 def load_kernels() -> float:
