@@ -1,11 +1,11 @@
-"""Batch-OMP (K-SVD's coding step) against the numpy OMP."""
+"""Batch-OMP (K-SVD's coding step) against the numpy OMP, and the compiled K-SVD update against numpy."""
 
 import numpy as np
 import pytest
 
 from codedvideo.ksvd import ksvd
 from codedvideo.omp import PlainOperator, omp
-from codedvideo.omp_kernel import batch_omp
+from codedvideo.omp_kernel import batch_omp, row_energy, subtract_codes, update_atoms
 from conftest import random_dictionary
 
 
@@ -95,6 +95,51 @@ def test_batch_omp_stops_on_linear_dependence_as_numpy_omp_does(rng):
     _assert_same_pursuit(res, ref, 20)
     outside = Y.astype(np.float64) - (Y @ basis) @ basis.T
     np.testing.assert_allclose(res.residual, (outside**2).sum(1), rtol=1e-4)
+
+
+def _update_reference(E, D, coef, index, count, atoms, steps):
+    """The numpy K-SVD atom update (rank-1 by power iteration), one atom after the other."""
+    E, D, coef = E.astype(np.float64), D.astype(np.float64), coef.astype(np.float64)
+    for k in atoms:
+        users, slot = np.nonzero((index == k) & (np.arange(index.shape[1])[None, :] < count[:, None]))
+        Ek = E[users] + coef[users, slot, None] * D[:, k][None, :]
+        d = D[:, k]
+        for _ in range(steps):
+            d = Ek.T @ (Ek @ d)
+            d /= np.linalg.norm(d)
+        x = Ek @ d
+        D[:, k], coef[users, slot] = d, x
+        E[users] = Ek - x[:, None] * d[None, :]
+    return E, D, coef
+
+
+def test_compiled_ksvd_update_equals_the_numpy_update(rng):
+    f, K, P = 30, 40, 500
+    D = random_dictionary(rng, f, K)
+    X = rng.normal(size=(P, f)).astype(np.float32) * 10
+    codes = batch_omp(X, D, max_atoms=4, tol=0.0)
+    coef = codes.coef.copy()
+    E = np.empty_like(X)
+    err = np.empty(P)
+    subtract_codes(X, codes.index, coef, codes.count, np.ascontiguousarray(D.T), E, err)
+    np.testing.assert_allclose(E, X - codes.dense(K) @ D.T, atol=1e-4)
+    np.testing.assert_allclose(err, row_energy(E), rtol=1e-6)
+    S = codes.index.shape[1]
+    flat = np.where(np.arange(S)[None, :] < codes.count[:, None], codes.index, -1).ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(K + 1))
+    atoms = np.array([a for a in rng.permutation(K) if bounds[a + 1] > bounds[a]])
+    E_ref, D_ref, coef_ref = _update_reference(E, D, coef, codes.index, codes.count, atoms, 3)
+    Dt = np.ascontiguousarray(D.T)
+    update_atoms(E, err, Dt, coef, atoms, order, bounds, 3)
+    np.testing.assert_allclose(Dt.T, D_ref, atol=1e-4)
+    np.testing.assert_allclose(coef, coef_ref, atol=1e-3)
+    np.testing.assert_allclose(E, E_ref, atol=1e-3)
+    np.testing.assert_allclose(err, (E.astype(np.float64) ** 2).sum(1), rtol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(Dt, axis=1)[atoms], 1.0, rtol=1e-5)
+    # the update lowers the residual (each atom's rank-1 fit is at least as good as the old one)
+    before = X.astype(np.float64) - codes.dense(K) @ D.T.astype(np.float64)
+    assert err.sum() < 0.99 * (before**2).sum()
 
 
 def test_ksvd_with_batch_omp_reduces_the_error_on_patches(rng):
