@@ -441,7 +441,7 @@ def reconstruct_captures(
         raise InputError(f"method {method!r}: unknown; choose one of {', '.join(METHODS)}")
     scale = np.float32(data_range.scale)
     count = len(codeds)
-    stills: dict[int, np.ndarray] = {}  # (H, W) bool per capture: small next to its inputs
+    stills: dict[int, np.ndarray | None] = {}  # (H, W) bool per capture with still pixels (None: nothing still)
 
     @functools.lru_cache(maxsize=1)  # the finishing step asks twice in a row; one capture's inputs held at most
     def used(i: int):
@@ -458,8 +458,9 @@ def reconstruct_captures(
         still = None
         if still_of is not None:
             if i not in stills:
-                stills[i] = still_of(i) & np.asarray(mask_used).any(0)
-            still = stills[i] if stills[i].any() else None
+                found = still_of(i) & np.asarray(mask_used).any(0)
+                stills[i] = found if found.any() else None
+            still = stills[i]
         moving = still is None or int(still.sum()) < int(np.asarray(mask_used).any(0).sum())
         if still is not None and moving:  # the still pixels' patches: left out (no measurement, no patch estimate)
             mask_used = np.where(still[None], 0, mask_used).astype(mask_used.dtype)
