@@ -128,7 +128,7 @@ def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_pa
     s = OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0)
 
     def run(cache, scheduler=None):
-        return [v for _, v, _ in sparse_volumes(4, lambda i: (codeds[i], mask), D, settings=s, tile=8, cache=cache,
+        return [v for _, v, _ in sparse_volumes(4, lambda i: (codeds[i], mask, None), D, settings=s, tile=8, cache=cache,
                                                 progress=False, scheduler=scheduler)]
 
     local = run(tmp_path / "local")

@@ -179,7 +179,7 @@ def test_a_tile_equal_to_one_already_solved_reuses_its_result(tmp_path):
     moved[:, 40:, 40:] = np.roll(frames[:, 40:, 40:], 2, axis=0)  # something changes in the corner tile only
     codeds = [simulate(frames, mask), simulate(moved, mask), simulate(frames, mask) + np.float32(0)]
     D, s = dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=1.0)
-    results = list(sparse_volumes(3, lambda i: (codeds[i], mask), D, settings=s, tile=16, cache=tmp_path / "job",
+    results = list(sparse_volumes(3, lambda i: (codeds[i], mask, None), D, settings=s, tile=16, cache=tmp_path / "job",
                                   progress=False))
     tasks = results[0][2]["tile_tasks"]
     assert tasks < 2 * 9  # 9 tiles a capture; capture 1 shares all but the tiles near the corner, capture 2 all
@@ -188,3 +188,28 @@ def test_a_tile_equal_to_one_already_solved_reuses_its_result(tmp_path):
         alone, _ = reconstruct_volume(codeds[i], mask, D, settings=s, tile=16, cache=tmp_path / f"alone{i}",
                                       progress=False)
         np.testing.assert_array_equal(volume, alone)
+
+
+def test_captures_are_handed_out_in_order_while_later_ones_still_compute(tmp_path):
+    """One graph over (capture, tile), streamed: the first capture arrives before the last capture's tiles are done."""
+    from codedvideo.codes import make_code
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.physics import simulate
+    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.stages import sparse_volumes
+    from codedvideo.synth import make_scene
+
+    video = make_scene("default", frames=4 * 6, size=(48, 48))
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
+    codeds = [simulate(video[4 * t : 4 * t + 4], mask, sigma=1.0, rng=t) for t in range(6)]
+
+    def finished_tiles() -> int:  # digests are written last
+        return sum(1 for p in (tmp_path / "c").glob("recon-*.zarr/digest/c/**/*") if p.is_file())
+
+    seen = []
+    for i, volume, _ in sparse_volumes(6, lambda i: (codeds[i], mask, None), dct_dictionary(4),
+                                       settings=OmpSettings(max_atoms=6, tol_rms=0.5), tile=16, cache=tmp_path / "c",
+                                       progress=False, workers=1):
+        seen.append((i, finished_tiles()))
+    assert [i for i, _ in seen] == list(range(6))
+    assert seen[0][1] < 6 * 9 // 2  # the first capture came out with most of the job still to compute

@@ -46,7 +46,7 @@ _TEMP = re.compile(r"^\.((dict|recon)-[0-9a-f]{16}\.zarr)\.tmp-\d+-[0-9a-f]{8}$"
 _LOCK = re.compile(r"^((dict|recon)-[0-9a-f]{16})\.lock$")
 _REPORT = re.compile(r"^([0-9a-f]{16})\.(json|npy)$")
 #: What a store of each kind may hold at its top level (a damaged one is still recognised by these).
-_MEMBERS = {"dict": {"zarr.json", "atoms"}, "recon": {"zarr.json", "coded", "mask", "volume", "stats", "digest"}}
+_MEMBERS = {"dict": {"zarr.json", "atoms"}, "recon": {"zarr.json", "coded", "mask", "still", "volume", "stats", "digest"}}
 _KINDS = {"dict": "dictionary", "recon": "reconstruction"}
 #: Statuses that ``clean_cache(root, broken_only=True)`` removes.
 REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
@@ -55,7 +55,7 @@ REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
 # ----------------------------------------------------------------------------- keys
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v4"  # v4: per-tile digests in the working store
+RECON_VERSION = "recon-v5"  # v4: per-tile digests in the working store; v5: still patches across captures
 
 
 def content_key(*parts) -> str:
@@ -218,9 +218,10 @@ def _check_reconstruction(path: Path) -> tuple[str, str]:
     try:
         coded = np.asarray(store.group["coded"][...])
         mask = np.asarray(store.group["mask"][...])
+        still = np.asarray(store.group["still"][...])
     except Exception as exc:
         return "broken", f"inputs unreadable ({type(exc).__name__}: {exc})"
-    if inputs_digest(coded, mask) != attrs.get("inputs_digest"):
+    if inputs_digest(coded, mask, still) != attrs.get("inputs_digest"):
         return "broken", "inputs do not match their recorded digest"
     try:
         ok, damaged, _, _ = store.read_verified(store.tiles())

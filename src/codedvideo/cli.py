@@ -449,10 +449,10 @@ def _cmd_reconstruct(a) -> int:
     else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
         still_of = None
         if job.kind == "captures" and count > 1 and not a.independent_captures:
-            from .sequence import still_pixels
+            from .sequence import agreeing_pixels
 
             # what did not change since the capture before or until the one after
-            still_of = lambda i: still_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale)  # noqa: E731
+            still_of = lambda i: agreeing_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale)  # noqa: E731
         results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, **options)
         if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
             from .sequence import joined

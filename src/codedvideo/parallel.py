@@ -110,11 +110,11 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
     hy0, hy1, hx0, hx1 = first.halo
     y0, y1, x0, x1 = first.core
     store = WorkStore(store_path)
-    coded, mask = store.read_inputs(hy0, hy1, hx0, hx1)
+    coded, mask, still = store.read_inputs(hy0, hy1, hx0, hx1)
     _one_blas_thread_in_worker()
     try:
         volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch, origin=(hy0, hx0),
-                                           image_shape=store.group["coded"].shape)
+                                           image_shape=store.group["coded"].shape, still=still.astype(bool))
     except Exception as exc:  # name the tile, keep the cause
         raise RuntimeError(f"tile {first.index} (rows {y0}:{y1}, cols {x0}:{x1}) of {store_path}: {exc}") from exc
     core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]
@@ -123,7 +123,7 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
     return stats
 
 
-def tile_content(coded: np.ndarray, mask: np.ndarray, tile: Tile, *, stride: int = 1) -> str:
+def tile_content(coded: np.ndarray, mask: np.ndarray, still: np.ndarray, tile: Tile, *, stride: int = 1) -> str:
     """A digest of what a tile's answer depends on: its halo inputs and where its core lies in the halo.
 
     Two tiles with the same digest have the same answer bit for bit, so one
@@ -142,6 +142,7 @@ def tile_content(coded: np.ndarray, mask: np.ndarray, tile: Tile, *, stride: int
     m = np.ascontiguousarray(mask[:, hy0:hy1, hx0:hx1])
     h.update(m.dtype.str.encode())
     h.update(m.tobytes())
+    h.update(np.ascontiguousarray(still[hy0:hy1, hx0:hx1], dtype=np.uint8).tobytes())
     return h.hexdigest()
 
 
@@ -173,7 +174,10 @@ def build_graph(works: list[TileWork], D: np.ndarray, settings: OmpSettings, *, 
                 seen.add((work.store, tile.index))
                 places.setdefault(content, []).append((work.store, tile))
     order = {content: i for i, content in enumerate(places)}
-    tasks = [task(tuple(where), d_node, settings, patch, dask_key_name=f"tile-{run}-{i}")
+    # dask's local scheduler runs sibling tasks in descending order of their names: named so that the first
+    # captures' tiles run first and the captures complete in order (the test of streaming checks it)
+    last = len(places) - 1
+    tasks = [task(tuple(where), d_node, settings, patch, dask_key_name=f"tile-{run}-{last - i:09d}")
              for i, where in enumerate(places.values())]
     needs = [sorted({order[c] for c in work.contents}) for work in works]
     return tasks, needs
@@ -334,7 +338,7 @@ def reconstruct_stores(
     """
     plans, works = [], []
     for store in stores:
-        coded, mask = store.read_inputs(0, None, 0, None)
+        coded, mask, still = store.read_inputs(0, None, 0, None)
         tiles = plan_tiles(tuple(coded.shape), tile, patch=patch)
         ok, damaged, _, _ = store.read_verified(tiles, assemble=False)
         if damaged.any():
@@ -342,9 +346,9 @@ def reconstruct_stores(
                         store.path, np.flatnonzero(damaged).tolist())
         todo = tuple(t for t in tiles if not ok[t.index])
         works.append(TileWork(str(store.path), todo,
-                              tuple(tile_content(coded, mask, t, stride=settings.stride) for t in todo)))
+                              tuple(tile_content(coded, mask, still, t, stride=settings.stride) for t in todo)))
         plans.append((tiles, damaged))
-        del coded, mask
+        del coded, mask, still
     tasks, needs = build_graph(works, D, settings, patch=patch)
     for j in stream_graph(tasks, needs, scheduler=scheduler, workers=workers, progress=progress):
         tiles, damaged = plans[j]

@@ -155,6 +155,7 @@ def _few_patterns(mask: np.ndarray, D: np.ndarray, m: int) -> bool:
 def reconstruct_region(
     coded: np.ndarray, mask: np.ndarray, D: np.ndarray, settings: OmpSettings, *, patch: int = P.PATCH,
     origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None, operator: str = "auto",
+    still: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct every pixel of a region from the patches inside it.
 
@@ -182,6 +183,13 @@ def reconstruct_region(
         kernel's answers, so the choice between the two never shows);
         "dense": the dense numpy operator for every patch (the same answers
         within float roundoff).  Both for tests and timings.
+    still : ndarray of shape (h, w), bool, optional
+        Pixels known to be still (their ``coded / open count`` agrees with a
+        neighbouring capture, :mod:`codedvideo.sequence`).  A patch whose
+        every pixel is still takes the still answer, ``coded / open count``
+        in every sub-frame, with no dictionary search (counted in
+        ``patches_static``); every other patch is solved with all of its
+        measurements.
 
     Patches that a still scene explains (:func:`still_patches`: at most
     ``settings.static_atoms`` atoms of the 2D DCT, constant in time, reach the
@@ -247,6 +255,9 @@ def reconstruct_region(
         valid &= (rows_on[:, None] & cols_on[None, :]).ravel()
     if settings.weighting not in ("uniform", "fit"):
         raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
+    still_rows = None
+    if still is not None and np.any(still):  # patches wholly still: the still answer, no search
+        still_rows = P.extract(np.asarray(still, np.uint8), patch).all(1) & valid
     summed = np.zeros((n, h, w), np.float32)
     weight = np.zeros((1, h, w), np.float32)
     atoms = hit = dep = n_static = 0
@@ -260,6 +271,13 @@ def reconstruct_region(
         est = np.zeros((y.shape[0], n * m), np.float32)
         t0 = time.perf_counter()
         rows = np.flatnonzero(valid[sl])
+        if still_rows is not None and rows.size:
+            calm = still_rows[sl][rows]
+            if calm.any():
+                q = y[rows[calm]] / np.maximum(n_pix[sl][rows[calm]], 1e-12).astype(np.float32)
+                est[rows[calm]] = np.broadcast_to(q[:, None, :], (q.shape[0], n, m)).reshape(q.shape[0], n * m)
+                n_static += int(calm.sum())
+                rows = rows[~calm]
         if settings.static_atoms > 0 and rows.size:
             ok, still = still_patches(y[rows], n_pix[sl][rows], tol[rows], settings.static_atoms, frames=n, patch=patch)
             est[rows[ok]] = still

@@ -3,12 +3,13 @@
 For a scene that does not move, the coded value of a pixel divided by its open
 count, ``q = coded / open count``, is the frame value itself, the same in every
 capture whatever the code.  A single coded image cannot tell still texture from
-motion; two captures can.  A pixel is *still* when ``q`` agrees, within the
-noise, with the capture before or after it, and so does every pixel of every
-7x7 patch that covers it (its 13x13 neighbourhood).  Such a pixel's answer is
-``q`` in every sub-frame, with no dictionary search; and since every patch
-that contains it lies wholly in the still region, leaving those patches out
-takes no measurement away from a patch that moves.
+motion; two captures can.  A pixel *agrees* when ``q`` agrees, within the
+noise, with the capture before or after it (:func:`agreeing_pixels`).  A 7x7
+patch whose every pixel agrees is still: it takes ``q`` in every sub-frame as
+its estimate, with no dictionary search, while every other patch is solved
+with all of its measurements; the pixels averaged from still patches alone
+(those whose 13x13 neighbourhood agrees, :func:`still_pixels`) are ``q``
+exactly.
 
 Captures reconstructed one by one also meet badly: the first and last
 sub-frames of a capture are its least determined, so the step from one capture
@@ -37,7 +38,20 @@ def normalised(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def still_pixels(codeds, masks, i: int, *, sigma: float, patch: int = 7, scale: float = 1.0) -> np.ndarray:
-    """Pixels of capture ``i`` whose whole ``2 * patch - 1`` neighbourhood is still (module docstring).
+    """Pixels of capture ``i`` whose whole ``2 * patch - 1`` neighbourhood is still (module docstring):
+    :func:`agreeing_pixels` eroded so that every patch over such a pixel lies in the still region."""
+    agree = agreeing_pixels(codeds, masks, i, sigma=sigma, scale=scale)
+    return erode_to_patches(agree, patch)
+
+
+def erode_to_patches(agree: np.ndarray, patch: int = 7) -> np.ndarray:
+    """The pixels of ``agree`` every ``patch x patch`` patch over which lies inside ``agree``."""
+    # every patch containing the pixel lies inside the still region (patches lie inside the image)
+    return ndimage.minimum_filter(agree.view(np.uint8), size=2 * patch - 1, mode="nearest").astype(bool)
+
+
+def agreeing_pixels(codeds, masks, i: int, *, sigma: float, scale: float = 1.0) -> np.ndarray:
+    """Pixels of capture ``i`` whose ``coded / open count`` agrees, within the noise, with the capture before or after.
 
     Parameters
     ----------
@@ -64,8 +78,7 @@ def still_pixels(codeds, masks, i: int, *, sigma: float, patch: int = 7, scale: 
             spread = sigma * np.sqrt(1 / np.maximum(k, 1e-12) ** 2 + 1 / np.maximum(kj, 1e-12) ** 2)
         tol = np.maximum(STILL_SIGMAS * spread, STILL_FLOOR)
         agree |= (k > 0) & (kj > 0) & (np.abs(q - qj) <= tol)
-    # every patch containing the pixel lies inside the still region (patches lie inside the image)
-    return ndimage.minimum_filter(agree.view(np.uint8), size=2 * patch - 1, mode="nearest").astype(bool)
+    return agree
 
 
 class StepErrors:

@@ -215,7 +215,7 @@ def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> t
     return coded, mask_used, count
 
 
-def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray, *, warn: bool = True) -> int:
+def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray) -> int:
     """Raise :class:`InputError` when a capture cannot be sparse-coded; return its count of never-open pixels."""
     physics.check_pair(coded.shape, mask.shape)
     n, h, w = mask.shape
@@ -226,7 +226,7 @@ def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray, *, warn: 
     never_open = int((~mask.astype(bool).any(0)).sum())
     if never_open == h * w:
         raise InputError("mask: no pixel is ever open; there is nothing to reconstruct")
-    if never_open and warn:
+    if never_open:
         warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=3)
     return never_open
 
@@ -243,7 +243,6 @@ def sparse_volumes(
     workers: int | None = None,
     progress: bool = True,
     dictionary_key: str = "",
-    warn_never_open: bool = True,
 ) -> Iterator[tuple[int, np.ndarray | None, dict | None]]:
     """Sparse-code ``count`` captures as one job: one graph over (capture, tile); yield the volumes in order.
 
@@ -252,9 +251,12 @@ def sparse_volumes(
     count : int
         T, the number of captures.
     capture : callable
-        ``capture(i)`` -> ``(coded (H, W), mask (N, H, W))`` in working
-        units, or None for a capture that is not sparse-coded (yielded as
-        ``(i, None, None)`` for the caller to fill in).  It is called twice
+        ``capture(i)`` -> ``(coded (H, W), mask (N, H, W), still)`` in
+        working units, ``still`` an (H, W) bool map of pixels known to be
+        still (their wholly still patches take the still answer,
+        :func:`codedvideo.reconstruct.reconstruct_region`) or None; or None
+        for a capture that is not sparse-coded (yielded as ``(i, None,
+        None)`` for the caller to fill in).  It is called twice
         per capture (to plan, then to finish), so that no more than one
         capture's inputs are held at a time.
     D : ndarray of shape (N * 49, K)
@@ -291,12 +293,13 @@ def sparse_volumes(
             if pair is None:
                 plan.append(None)
             else:
-                coded, mask = pair
-                _check_capture(coded, mask, D, warn=warn_never_open)
+                coded, mask, still = pair
+                _check_capture(coded, mask, D)
                 if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
                     plan.append("static")
                 else:
-                    key = content_key(RECON_VERSION, coded, mask, dkey, settings.__dict__, tile)
+                    key = content_key(RECON_VERSION, coded, mask, dkey, settings.__dict__, tile,
+                                      *(() if still is None else (np.asarray(still, np.uint8),)))
                     if key not in opened:
                         entry = Path(cache) / f"recon-{key}.zarr"
                         # One run at a time per entry (processes, threads, clients of one dask cluster): a
@@ -305,7 +308,8 @@ def sparse_volumes(
                         opened[key] = WorkStore.create(
                             entry, coded, mask, tile=tile, n_stats=len(STAT_NAMES),
                             n_tiles=len(plan_tiles(coded.shape, tile, patch=PATCH)),
-                            attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION))
+                            attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION),
+                            still=still)
                     plan.append(len(stores))
                     stores.append(opened[key])
                 del pair
@@ -317,7 +321,7 @@ def sparse_volumes(
             if how is None:
                 yield i, None, None
                 continue
-            coded, mask = capture(i)
+            coded, mask, _ = capture(i)
             if how == "static":
                 yield i, *_static_volume(coded, mask)
                 continue
@@ -382,7 +386,7 @@ def reconstruct_volume(
     chosen ones are counted (``dependent_stops``) and reported by a warning.
     """
     coded = np.asarray(coded, np.float32)
-    results = sparse_volumes(1, lambda i: (coded, mask), D, settings=settings, tile=tile, cache=cache,
+    results = sparse_volumes(1, lambda i: (coded, mask, None), D, settings=settings, tile=tile, cache=cache,
                              scheduler=scheduler, workers=workers, progress=progress, dictionary_key=dictionary_key)
     with contextlib.closing(results):
         _, volume, info = next(results)
@@ -425,9 +429,12 @@ def reconstruct_captures(
     white_level : float, optional
         Pixels at or above it (capture units) are missing measurements.
     still_of : callable, optional
-        ``still_of(i)`` -> (H, W) bool (:func:`codedvideo.sequence.still_pixels`):
-        those pixels take ``coded / open count`` in every sub-frame, and the
-        patches over them are left out of the sparse coding.
+        ``still_of(i)`` -> (H, W) bool (:func:`codedvideo.sequence.agreeing_pixels`):
+        pixels whose ``coded / open count`` agrees with a neighbouring
+        capture.  Patches wholly inside them take that value in every
+        sub-frame without a dictionary search; a capture in which every
+        measured pixel agrees is the still estimate itself.  (Methods without
+        patches: the pixels whose 13x13 neighbourhood agrees take it.)
 
     Yields
     ------
@@ -435,7 +442,7 @@ def reconstruct_captures(
     it is done; the sparse methods run every capture's tiles in one graph.
     """
     from .baselines import METHODS, reconstruct_method
-    from .sequence import normalised
+    from .sequence import erode_to_patches, normalised
 
     if method not in METHODS:
         raise InputError(f"method {method!r}: unknown; choose one of {', '.join(METHODS)}")
@@ -445,8 +452,8 @@ def reconstruct_captures(
 
     @functools.lru_cache(maxsize=1)  # the finishing step asks twice in a row; one capture's inputs held at most
     def used(i: int):
-        """Capture i as reconstructed: working units, saturated and still pixels left out; its still pixels and
-        saturated count; None for the still pixels when nothing moves (no sparse coding at all)."""
+        """Capture i as reconstructed: working units, saturated pixels left out; its agreeing pixels (None:
+        none), whether anything moves, and its saturated count."""
         coded, mask = codeds[i], mask_of(i)
         coded_used, mask_used, saturated = coded, mask, 0
         if white_level is not None:
@@ -462,9 +469,6 @@ def reconstruct_captures(
                 stills[i] = found if found.any() else None
             still = stills[i]
         moving = still is None or int(still.sum()) < int(np.asarray(mask_used).any(0).sum())
-        if still is not None and moving:  # the still pixels' patches: left out (no measurement, no patch estimate)
-            mask_used = np.where(still[None], 0, mask_used).astype(mask_used.dtype)
-            coded_used = np.where(still, 0, coded_used).astype(np.float32)
         return coded_used, mask_used, still, moving, saturated
 
     sparse = method in SPARSE_METHODS
@@ -480,18 +484,12 @@ def reconstruct_captures(
         if prepared is not dictionary:  # the caller's key names the given atoms: key the cache by the used ones
             dictionary, dictionary_key = prepared, ""
 
-    if still_of is not None:  # the still pixels are left out as never open: warn of the mask's own only
-        never_open = int((~np.asarray(mask_of(0)).astype(bool).any(0)).sum())
-        if never_open:
-            warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=2)
-
     def for_sparse(i: int):
-        coded_used, mask_used, _, moving, _ = used(i)
-        return (coded_used, mask_used) if sparse and moving else None
+        coded_used, mask_used, still, moving, _ = used(i)
+        return (coded_used, mask_used, still) if sparse and moving else None
 
     results = (sparse_volumes(count, for_sparse, dictionary, settings=settings, tile=tile, cache=cache,
-                              scheduler=scheduler, workers=workers, progress=progress, dictionary_key=dictionary_key,
-                              warn_never_open=still_of is None)
+                              scheduler=scheduler, workers=workers, progress=progress, dictionary_key=dictionary_key)
                if sparse else ((i, None, None) for i in range(count)))
     with contextlib.closing(results) if sparse else contextlib.nullcontext():
         for i, volume, info in results:
@@ -502,9 +500,10 @@ def reconstruct_captures(
                 volume, info = reconstruct_method(method, coded_used, mask_used)
             if sparse:
                 info = dict(info, method=method, dictionary_atoms=int(dictionary.shape[1]))
-            if still is not None:
+            if still is not None and not sparse:  # no patches: the pixels whose every patch would be still
+                inner = erode_to_patches(still, PATCH)
                 q = normalised(codeds[i], mask_of(i))[0] * scale
-                volume[:, still] = q[still]
+                volume[:, inner] = q[inner]
             info["still_pixels"] = 0 if still is None else int(still.sum())
             if scale != 1:
                 volume /= scale

@@ -43,12 +43,12 @@ log = logging.getLogger("codedvideo")
 FORMAT_VERSION = 1
 DICTIONARY_KIND = "codedvideo-dictionary"
 WORKSTORE_KIND = "codedvideo-reconstruction"
-#: Layout of a working store: 2 added the per-tile ``digest`` array.
-WORKSTORE_FORMAT = 2
+#: Layout of a working store: 2 added the per-tile ``digest`` array, 3 the ``still`` map.
+WORKSTORE_FORMAT = 3
 #: Bytes of a tile digest (blake2b).
 DIGEST_SIZE = 32
 #: The arrays of a working store.
-WORKSTORE_ARRAYS = ("coded", "mask", "volume", "stats", "digest")
+WORKSTORE_ARRAYS = ("coded", "mask", "still", "volume", "stats", "digest")
 
 
 def _tmp_sibling(path: Path) -> Path:
@@ -281,10 +281,12 @@ def mask_dtype(mask: np.ndarray) -> np.dtype:
     return np.dtype("uint8") if is_binary(mask) else np.dtype("<f4")
 
 
-def inputs_digest(coded: np.ndarray, mask: np.ndarray) -> str:
-    """blake2b of the inputs as a working store holds them (float32 coded image, mask as :func:`mask_dtype`)."""
+def inputs_digest(coded: np.ndarray, mask: np.ndarray, still: np.ndarray) -> str:
+    """blake2b of the inputs as a working store holds them (float32 coded image, mask as :func:`mask_dtype`,
+    uint8 still map)."""
     h = hashlib.blake2b(digest_size=DIGEST_SIZE, person=b"codedvideo-in")
-    for a in (np.ascontiguousarray(coded, dtype="<f4"), np.ascontiguousarray(mask, dtype=mask_dtype(mask))):
+    for a in (np.ascontiguousarray(coded, dtype="<f4"), np.ascontiguousarray(mask, dtype=mask_dtype(mask)),
+              np.ascontiguousarray(still, dtype=np.uint8)):
         h.update(str(a.shape).encode())
         h.update(a.data)
     return h.hexdigest()
@@ -305,6 +307,7 @@ def workstore_layout(n: int, h: int, w: int, *, tile: int, n_stats: int, n_tiles
     return dict(
         coded=((h, w), (tile, tile), np.dtype("float32"), 0.0),
         mask=((n, h, w), (n, tile, tile), np.dtype(mask), 0),
+        still=((h, w), (tile, tile), np.dtype("uint8"), 0),
         volume=((n, h, w), (n, tile, tile), np.dtype("float32"), np.nan),
         stats=((n_tiles, n_stats), (1, n_stats), np.dtype("float64"), np.nan),
         digest=((n_tiles, DIGEST_SIZE), (1, DIGEST_SIZE), np.dtype("uint8"), 0),
@@ -380,12 +383,15 @@ class WorkStore:
         n_stats: int,
         n_tiles: int,
         attrs: dict,
+        still: np.ndarray | None = None,
     ) -> "WorkStore":
         """Reuse the entry at ``path`` when it is sound and holds these inputs; otherwise build it afresh.
 
         A reused entry must have this key, the current layout, every array
         (``zarr.json`` included) readable with the right shape, chunks and
-        dtype, and inputs equal bit for bit to ``coded`` and ``mask``.
+        dtype, and inputs equal bit for bit to ``coded``, ``mask`` and ``still``
+        (pixels whose patches take the still answer, :mod:`codedvideo.sequence`;
+        None: none).
         Anything else -- a damaged or deleted ``zarr.json``, a damaged input
         chunk, an entry of an older layout -- is logged and replaced by a new
         entry, built under a temporary name and renamed into place, so no
@@ -394,8 +400,10 @@ class WorkStore:
         path = Path(path)
         coded = np.asarray(coded, dtype=np.float32)
         mask = np.asarray(mask, dtype=mask_dtype(mask))
+        still = np.zeros(coded.shape, np.uint8) if still is None else np.asarray(still, dtype=np.uint8)
         if os.path.lexists(path):
-            problem = cls._problem(path, coded, mask, key=attrs.get("key"), tile=tile, n_stats=n_stats, n_tiles=n_tiles)
+            problem = cls._problem(path, coded, mask, still, key=attrs.get("key"), tile=tile, n_stats=n_stats,
+                                   n_tiles=n_tiles)
             if problem is None:
                 return cls(path)
             log.warning("cache entry %s: %s; rebuilding it", path, problem)
@@ -408,11 +416,11 @@ class WorkStore:
             layout = workstore_layout(n, h, w, tile=tile, n_stats=n_stats, n_tiles=n_tiles, mask=mask.dtype)
             for name, (shape, chunks, dtype, fill) in layout.items():
                 arr = group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill)
-                if name in ("coded", "mask"):
-                    arr[...] = coded if name == "coded" else mask
+                if name in ("coded", "mask", "still"):
+                    arr[...] = dict(coded=coded, mask=mask, still=still)[name]
             group.attrs.update(json.loads(json.dumps(dict(
                 attrs, kind=WORKSTORE_KIND, format_version=WORKSTORE_FORMAT, tile=int(tile), n_tiles=int(n_tiles),
-                inputs_digest=inputs_digest(coded, mask), complete_inputs=True))))
+                inputs_digest=inputs_digest(coded, mask, still), complete_inputs=True))))
             _replace_dir(tmp, path)
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -420,8 +428,8 @@ class WorkStore:
         return cls(path)
 
     @staticmethod
-    def _problem(path: Path, coded: np.ndarray, mask: np.ndarray, *, key, tile: int, n_stats: int,
-                 n_tiles: int) -> str | None:
+    def _problem(path: Path, coded: np.ndarray, mask: np.ndarray, still: np.ndarray, *, key, tile: int,
+                 n_stats: int, n_tiles: int) -> str | None:
         try:
             group = zarr.open_group(str(path), mode="r")
             problem = workstore_problem(group, key=key)
@@ -434,15 +442,19 @@ class WorkStore:
                 return "its coded image differs from the input (damaged)"
             if not _same_bits(group["mask"][...], mask):
                 return "its mask differs from the input (damaged)"
+            if not _same_bits(group["still"][...], still):
+                return "its still map differs from the input (damaged)"
         except Exception as exc:  # zarr raises its own types for damaged metadata and chunks
             return f"unreadable ({type(exc).__name__}: {exc})"
         return None
 
     # -- tile access, used inside tasks -------------------------------------------------
-    def read_inputs(self, y0: int, y1: int, x0: int, x1: int) -> tuple[np.ndarray, np.ndarray]:
+    def read_inputs(self, y0: int, y1: int, x0: int, x1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The coded image, the mask and the still map (uint8) of a region."""
         coded = self.group["coded"][y0:y1, x0:x1]
         mask = self.group["mask"][:, y0:y1, x0:x1]
-        return np.asarray(coded), np.asarray(mask)
+        still = self.group["still"][y0:y1, x0:x1]
+        return np.asarray(coded), np.asarray(mask), np.asarray(still)
 
     def write_tile(self, index: int, region: tuple[int, int, int, int], volume: np.ndarray, stats: np.ndarray) -> None:
         """Write a tile's volume core and statistics row, then (last) their digest.
