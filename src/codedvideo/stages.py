@@ -510,6 +510,7 @@ def reconstruct_captures(
                 if info.get("measurement_residual_rms") is not None:
                     info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(scale)
             info["saturated_pixels"] = saturated
+            stills.pop(i, None)  # capture i is done: its map is not asked for again
             del coded_used, mask_used
             yield i, volume, info
 
