@@ -290,20 +290,35 @@ def join_captures(
     return b, a
 
 
-def joined(results, codeds, mask_of, *, data_range: float | None = None):
+def joined(results, codeds, mask_of, *, data_range: float | None = None, still_of=None, margin: int = 16):
     """A stream of reconstructed captures ``(i, volume, info)`` in order, each joined to the next (:func:`join_captures`).
 
     A capture is handed on once the next one has arrived and the step between
     them is smoothed, so two volumes are held at a time; ``info["seconds"]["join"]``
-    is the time spent on the capture's join with its successor.
+    is the time spent on the capture's join with its successor.  With
+    ``still_of`` (:func:`agreeing_pixels`), the join is left out where both
+    captures are ``coded / open count`` exactly (their 13x13 neighbourhoods
+    agree): only the box around the rest, with ``margin`` pixels for the
+    motion estimate, is joined, and nothing when nothing moves.
     """
     held = None
     for i, volume, info in results:
         if held is not None:
             j, before, before_info = held
             t0 = time.perf_counter()
-            before, volume = join_captures(before, volume, coded_before=codeds[j], mask_before=mask_of(j),
-                                           coded_after=codeds[i], mask_after=mask_of(i), data_range=data_range)
+            box = (slice(None), slice(None))
+            if still_of is not None:
+                moving = ~(erode_to_patches(still_of(j)) & erode_to_patches(still_of(i)))
+                rows, cols = np.flatnonzero(moving.any(1)), np.flatnonzero(moving.any(0))
+                box = None if rows.size == 0 else (
+                    slice(max(rows[0] - margin, 0), rows[-1] + margin + 1),
+                    slice(max(cols[0] - margin, 0), cols[-1] + margin + 1))
+            if box is not None:
+                b, a = join_captures(before[(slice(None), *box)], volume[(slice(None), *box)],
+                                     coded_before=codeds[j][box], mask_before=mask_of(j)[(slice(None), *box)],
+                                     coded_after=codeds[i][box], mask_after=mask_of(i)[(slice(None), *box)],
+                                     data_range=data_range)
+                before[(slice(None), *box)], volume[(slice(None), *box)] = b, a
             before_info.setdefault("seconds", {})["join"] = time.perf_counter() - t0
             yield j, before, before_info
         held = (i, volume, info)
