@@ -213,3 +213,24 @@ def test_captures_are_handed_out_in_order_while_later_ones_still_compute(tmp_pat
         seen.append((i, finished_tiles()))
     assert [i for i, _ in seen] == list(range(6))
     assert seen[0][1] < 6 * 9 // 2  # the first capture came out with most of the job still to compute
+
+
+def test_a_stream_is_read_capture_by_capture_and_checked_before_any_work(sequence, tmp_path, capsys):
+    """A (T, H, W) .npy is read one capture at a time (never whole); a NaN in any capture is a one-line error naming
+    the file and the capture, before anything is written."""
+    from codedvideo.volumes import NpyStack, read_coded_stack
+
+    coded = np.load(sequence / "cap" / "coded.npy")
+    stack = read_coded_stack(sequence / "cap" / "coded.npy")
+    assert isinstance(stack, NpyStack) and stack.shape == coded.shape and len(stack) == T
+    for t in range(T):
+        np.testing.assert_array_equal(stack[t], coded[t])
+    bad = coded.copy()
+    bad[2, 5, 7] = np.nan
+    np.save(tmp_path / "bad.npy", bad)
+    capsys.readouterr()
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "bad.npy"), "--mask", str(sequence / "cap" / "mask.npy"),
+                 "--method", "dct", "--output", str(tmp_path / "r.npy"), "--cache", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bad.npy" in err and "capture 3" in err and "NaN" in err
+    assert not (tmp_path / "r.npy").exists() and not (tmp_path / "c").exists()

@@ -744,3 +744,22 @@ def write_array(path: str | os.PathLike, array: np.ndarray) -> Path:
 
 def read_array(path: str | os.PathLike) -> np.ndarray:
     return _read_npy(Path(path))
+
+
+def npy_layout(path: str | os.PathLike) -> tuple[tuple[int, ...], np.dtype, int] | None:
+    """``(shape, dtype, data offset)`` of a C-ordered numeric .npy file whose size matches its header, so that
+    its parts can be read one at a time; None for any other file (read it whole with :func:`read_array`,
+    which names the problem)."""
+    try:
+        with open(path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(fh)
+            offset = fh.tell()
+    except (OSError, ValueError, EOFError):
+        return None
+    if fortran or dtype.kind not in "biuf" or dtype.hasobject:
+        return None
+    if os.path.getsize(path) != offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize:
+        return None
+    return tuple(shape), dtype, offset

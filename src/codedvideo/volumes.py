@@ -67,11 +67,51 @@ def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
     return coded
 
 
-def read_coded_stack(path: str | Path) -> np.ndarray:
+class NpyStack:
+    """The coded images (T, H, W) of a .npy file, read one at a time: a long stream is never held whole.
+
+    Indexing with a capture number reads that capture as float32 and checks
+    it; ``shape``, ``dtype`` and ``len`` are those of the file.
+    """
+
+    def __init__(self, path: Path, shape: tuple[int, int, int], dtype: np.dtype, offset: int):
+        self.path, self.shape, self.dtype, self._offset = path, shape, dtype, offset
+        self._count = shape[1] * shape[2]
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, i):
+        if not isinstance(i, (int, np.integer)):
+            raise TypeError("NpyStack: index with one capture number")
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"capture {i} of {len(self)}")
+        i = int(i) % len(self)
+        part = np.fromfile(self.path, dtype=self.dtype, count=self._count,
+                           offset=self._offset + i * self._count * self.dtype.itemsize)
+        part = part.reshape(self.shape[1:]).astype(np.float32)
+        if not np.isfinite(part).all():
+            raise InputError(f"coded image {self.path}: capture {i + 1} contains NaN or Inf")
+        return part
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def __array__(self, dtype=None, copy=None):
+        return np.stack(list(self)).astype(dtype or np.float32)
+
+
+def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack:
     """Coded images (T, H, W) float32: a .npy (H, W) or (T, H, W), a (multi-page) image, a folder or
     printf pattern of images, or a lossless video (one coded image per video frame)."""
     path = Path(path)
     suffix = path.suffix.lower()
+    layout = cio.npy_layout(path) if suffix == ".npy" else None
+    if layout is not None and len(layout[0]) == 3 and layout[0][0] > 1:  # a stream: read capture by capture
+        stack = NpyStack(path, *layout)
+        for coded in stack:  # checked whole before any work, one capture at a time
+            del coded
+        return stack
     if suffix == ".npy":
         arr = cio.read_array(path)
         if arr.ndim not in (2, 3):
