@@ -1,0 +1,321 @@
+"""Non-local sparse coding: similar patches under different codes solved together (issue 16).
+
+The same structure recurs in many patches of a scene, and every copy was seen
+through a different shutter pattern: a group of ``k`` similar patches holds
+``k x 49`` measurements of nearly the same unknowns.  From a first estimate (the
+default per-patch OMP of :func:`codedvideo.reconstruct.reconstruct_region`):
+
+1. block matching: for every reference patch, the ``group`` patches of the
+   current estimate closest to it as whole ``7 x 7 x N`` blocks (sum of squared
+   differences over every sub-frame, so similar in space and in motion) whose
+   corners lie within ``window`` pixels (:func:`codedvideo.omp_kernel.block_match`:
+   deterministic, the reference itself first, ties to the earlier offset);
+2. joint solve: simultaneous OMP of the group (:func:`codedvideo.omp_kernel.somp_kernel`),
+   one support for the whole group, every member's coefficients fit to its own
+   measurement ``y_p = S_p D alpha_p`` under its own code;
+3. aggregation: every member's estimate is added at its own place ("all") or
+   only the reference's ("reference"), each pixel divided by the weight it got;
+4. iterations: the next pass regroups on the new estimate.
+
+Arrays in, arrays out: no I/O, no dask.  Like ``reconstruct_region``, a region
+sees only its own patches, so tiled callers keep a halo of at least
+``patch - 1 + window`` pixels (the matches of a kept patch may lie ``window``
+pixels further).  With ``group=1`` it is the default reconstruction (the same
+still test, the same OMP operation for operation, the same fold).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from . import patches as P
+from .omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, is_binary, pixel_patterns, synthesize
+from .omp_kernel import TableOMP, block_match, scatter_patches, somp_kernel, table_fits
+from .reconstruct import OmpSettings, still_patches
+
+#: Names of the statistics, in the order of the stats vector.
+STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_static", "seconds_match",
+              "seconds_solve", "seconds_total", "fallback")
+
+#: Defaults chosen on the benchmark (tasks/bench_nonlocal.py).
+GROUP = 8
+WINDOW = 6
+ITERATIONS = 1
+STEP = 2
+#: A group's atom budget is this times ``settings.max_atoms`` (k x 49 measurements afford more atoms).
+ATOMS_FACTOR = 2
+
+
+def nonlocal_region(
+    coded: np.ndarray, mask: np.ndarray, D: np.ndarray, first: np.ndarray, settings: OmpSettings, *,
+    group: int = GROUP, window: int = WINDOW, iterations: int = ITERATIONS, step: int | None = None,
+    atoms: int | None = None, consensus: float = 0.0,
+    aggregate: str = "all", max_distance: float | None = None, project: bool | None = None,
+    patch: int = P.PATCH, origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reconstruct a region by simultaneous sparse coding of groups of similar patches.
+
+    Parameters
+    ----------
+    coded : ndarray of shape (h, w)
+    mask : ndarray of shape (N, h, w)
+        A binary code or a calibrated mask whose distinct pixel patterns fit a
+        pattern table (any other mask: ``first`` is returned, ``stats[fallback] = 1``).
+    D : ndarray of shape (N * patch**2, K)
+    first : ndarray of shape (N, h, w)
+        First estimate of the region (the default reconstruction); NaN reads as 0.
+    settings : OmpSettings
+        ``max_atoms``, ``tol_rms`` (per member), ``static_atoms`` (still test of
+        the reference patches), ``stride`` (reference patches, as the default's),
+        ``weighting`` ("fit": an estimate counts ``1 / (1 + e**2 / tol_rms**2)``).
+    group : int
+        Patches per group, the reference included (1: the default reconstruction).
+    window : int
+        Search radius in pixels around the reference's corner.
+    iterations : int
+        Passes; each regroups on the previous pass's estimate.
+    step : int
+        Stride of the reference patches (combined with ``settings.stride``; None:
+        1 for a group of one, ``STEP`` otherwise); with
+        ``aggregate="all"`` every pixel still gets about ``group * 49 / step**2`` estimates.
+    atoms : int, optional
+        Atoms of a group's shared support (None: ``settings.max_atoms`` for a group
+        of one, ``ATOMS_FACTOR`` times it otherwise).
+    consensus : float
+        Pull of every member's coefficients towards the group's shared fit
+        (:func:`codedvideo.omp_kernel.somp_kernel`; 0: none).
+    aggregate : {"all", "reference"}
+        Add every member's estimate at its place, or only the reference's.
+    max_distance : float, optional
+        Keep only members whose RMS block difference to the reference is at
+        most this (grey levels per voxel); None: the ``group`` closest.
+    project : bool
+        After each pass, add the per-pixel minimum-norm correction that makes
+        the estimate reproduce the coded image exactly (None: for groups of more
+        than one; measured +0.1 dB on average).
+    origin, image_shape : the region's corner in the image and the image's (H, W)
+        (reference strides count from the image's corner, as in the default).
+
+    Returns
+    -------
+    volume : ndarray of shape (N, h, w), float32
+    stats : ndarray of shape (len(STAT_NAMES),), float64
+    """
+    t_start = time.perf_counter()
+    n, h, w = mask.shape
+    if h < patch or w < patch:
+        raise ValueError(f"region {h}x{w} is smaller than one {patch}x{patch} patch")
+    if step is None:
+        step = 1 if group == 1 else STEP
+    if project is None:
+        project = group > 1
+    if group < 1 or window < 0 or iterations < 0 or step < 1:
+        raise ValueError("group >= 1, window >= 0, iterations >= 0, step >= 1")
+    if aggregate not in ("all", "reference"):
+        raise ValueError(f"aggregate {aggregate!r}: choose all or reference")
+    if settings.weighting not in ("uniform", "fit"):
+        raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
+    m = patch * patch
+    F = n * m
+    if D.shape[0] != F:
+        raise ValueError(f"dictionary has {D.shape[0]} rows, patches have {F}")
+    coded = np.asarray(coded, dtype=np.float32)
+    first = np.asarray(first, dtype=np.float32)
+    binary = is_binary(mask)
+    if not binary:
+        mask = np.asarray(mask, dtype=np.float32)
+    stats = np.zeros(len(STAT_NAMES))
+    hp, wp = P.grid_shape((h, w), patch)
+    stats[0] = hp * wp
+    patterns, which = pixel_patterns(mask)
+    if not table_fits(len(patterns), D, m):
+        stats[8] = 1.0
+        stats[7] = time.perf_counter() - t_start
+        return first.copy(), stats
+    table = TableOMP(patterns, D, m)
+    open_any = mask.any(0)
+    y_all = np.ascontiguousarray(P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch))
+    pat_all = np.ascontiguousarray(P.extract(which, patch), dtype=np.int32)
+    n_pix = P.extract(mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64), patch)
+    n_open = (n_pix > 0).sum(1).astype(np.float32)
+    tol_all = np.ascontiguousarray(n_open * settings.tol_rms**2, dtype=np.float64)
+    measured = n_open > 0
+    # reference patches: the default's stride grid combined with ``step``
+    stride = max(settings.stride, step)
+    ref = measured.copy()
+    if stride > 1:
+        if stride > patch:
+            raise ValueError(f"stride {stride}: must be 1 to {patch} (the patch size)")
+        ih, iw = image_shape or (h, w)
+        rows_on = P.stride_rows(origin[0], hp, ih - patch + 1, stride)
+        cols_on = P.stride_rows(origin[1], wp, iw - patch + 1, stride)
+        ref &= (rows_on[:, None] & cols_on[None, :]).ravel()
+    # the still test of the reference patches (it does not depend on the estimate)
+    still_est = np.zeros((0, F), np.float32)
+    still_ok = np.zeros(hp * wp, np.bool_)
+    if settings.static_atoms > 0:
+        rows = np.flatnonzero(ref)
+        if rows.size:
+            ok, still_est = still_patches(y_all[rows], n_pix[rows], tol_all[rows], settings.static_atoms,
+                                          frames=n, patch=patch)
+            still_ok[rows[ok]] = True
+            stats[4] = ok.sum()
+    still_slot = np.full(hp * wp, -1, np.int64)
+    still_slot[still_ok] = np.arange(int(still_ok.sum()))
+    if atoms is None:
+        atoms = settings.max_atoms if group == 1 else ATOMS_FACTOR * settings.max_atoms
+    kmax = int(min(atoms, m))
+    Dt = np.ascontiguousarray(np.asarray(D, np.float32).T)
+    current = np.nan_to_num(first, nan=0.0).astype(np.float32)
+    volume = first.copy()
+    for _ in range(iterations):
+        t0 = time.perf_counter()
+        k = min(group, (2 * window + 1) ** 2, hp * wp)
+        idx, dist = match_groups(current, k, window, patch=patch)
+        if max_distance is not None:
+            far = dist > (max_distance**2) * F
+            far[:, 0] = False
+            idx[far] = -1
+        idx[~measured[np.maximum(idx, 0)]] = -1  # members without a measurement have nothing to add
+        idx[:, 0] = np.arange(hp * wp)
+        stats[5] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        summed = np.zeros((n, h, w), np.float32)
+        weight = np.zeros((h, w), np.float32)
+        solved = ref & ~still_ok  # references whose group is solved jointly
+        n_groups = n_members = atoms = 0
+        band = max(1, settings.batch // max(1, wp * (k if aggregate == "all" else 1)))
+        for r0 in range(0, hp, band):
+            r1 = min(hp, r0 + band)
+            sl = slice(r0 * wp, r1 * wp)
+            refs = np.flatnonzero(solved[sl]) + r0 * wp
+            mem = idx[refs]
+            # compact each group's members to the front (refs first, matches in order)
+            order = np.argsort(mem < 0, axis=1, kind="stable")
+            mem = np.ascontiguousarray(np.take_along_axis(mem, order, 1))
+            size = (mem >= 0).sum(1).astype(np.int64)
+            G = refs.size
+            index = np.zeros((G, k, kmax), np.int32)
+            coef = np.zeros((G, k, kmax), np.float32)
+            count = np.zeros((G, k), np.int32)
+            res2 = np.zeros((G, k), np.float32)
+            dep = np.zeros((G, k), np.bool_)
+            if G:
+                somp_kernel(y_all, pat_all, np.maximum(mem, 0), size, table.B, table.B2, table.floor, tol_all, kmax,
+                            DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count, res2, dep, float(consensus))
+            n_groups += G
+            n_members += int(size.sum())
+            atoms += int(count.sum())
+            if aggregate == "reference" or k == 1:  # one estimate per patch: the default's fold
+                est = np.zeros(((r1 - r0) * wp, F), np.float32)
+                wgt = ref[sl].astype(np.float32)
+                res = OmpResult(index=index[:, 0], coef=coef[:, 0], count=count[:, 0], residual=res2[:, 0],
+                                dependent=dep[:, 0])
+                est[refs - r0 * wp] = synthesize(res, D)
+                st = np.flatnonzero(still_ok[sl])
+                est[st] = still_est[still_slot[st + r0 * wp]]
+                if settings.weighting == "fit":
+                    e2 = _misfit(est, y_all[sl], pat_all[sl], patterns, n, m) / np.maximum(n_open[sl], 1)
+                    wgt = wgt / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
+                    est *= wgt[:, None]
+                P.fold_rows(est, summed, r0, patch)
+                w3 = weight[None]
+                P.fold_rows(np.repeat(wgt[:, None], m, 1), w3, r0, patch)
+            else:
+                live = np.arange(k)[None, :] < size[:, None]
+                where = mem[live]
+                res = OmpResult(index=index[live], coef=coef[live], count=count[live], residual=res2[live],
+                                dependent=dep[live])
+                est = synthesize(res, D)
+                wgt = np.ones(where.size, np.float32)
+                if settings.weighting == "fit":
+                    e2 = _misfit(est, y_all[where], pat_all[where], patterns, n, m) / np.maximum(n_open[where], 1)
+                    wgt = wgt / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
+                scatter_patches(est, where, wgt, wp, patch, summed, weight)
+                st = np.flatnonzero(still_ok[sl]) + r0 * wp
+                if st.size:
+                    scatter_patches(still_est[still_slot[st]], st, np.ones(st.size, np.float32), wp, patch,
+                                    summed, weight)
+        stats[6] += time.perf_counter() - t0
+        stats[1] += n_groups
+        stats[2] = n_members / max(n_groups, 1)
+        stats[3] += atoms
+        with np.errstate(invalid="ignore", divide="ignore"):
+            volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
+        if project:
+            volume = project_measurements(volume, coded, mask)
+        current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
+    stats[7] = time.perf_counter() - t_start
+    return volume, stats
+
+
+def match_groups(volume: np.ndarray, group: int, window: int, *, patch: int = P.PATCH
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The ``group`` patches of ``volume`` (N, h, w) closest to every patch, corners within ``window`` pixels.
+
+    Distance: the sum of squared differences of the whole ``patch x patch x N``
+    blocks.  Deterministic: the patch itself first, then increasing distance,
+    ties to the earlier offset (``(0, 0)``, then raster order of ``(dy, dx)``).
+
+    Returns
+    -------
+    idx : ndarray of shape (P, group), int64
+        Raster indices of the members (``-1`` where fewer candidates exist).
+    dist : ndarray of shape (P, group), float64
+        Their squared distances (``inf`` for ``-1``).
+    """
+    vol = np.ascontiguousarray(np.nan_to_num(np.asarray(volume, np.float32), nan=0.0))
+    hp, wp = P.grid_shape(vol.shape[1:], patch)
+    idx = np.zeros((hp * wp, group), np.int64)
+    dist = np.zeros((hp * wp, group), np.float64)
+    block_match(vol, patch, window, group, idx, dist)
+    return idx, dist
+
+
+def joint_omp(y: np.ndarray, S: np.ndarray, D: np.ndarray, *, max_atoms: int, tol, consensus: float = 0.0
+              ) -> np.ndarray:
+    """Simultaneous OMP of one group: patches ``y`` (k, m) seen through codes ``S`` (k, N, m).
+
+    One support for the group, each member's coefficients fit to its own
+    measurement (:func:`codedvideo.omp_kernel.somp_kernel`); a group of one is
+    the default OMP.  Returns the members' estimates ``D alpha_p``, shape (k, N*m).
+    """
+    y = np.ascontiguousarray(y, np.float32)
+    k, n, m = S.shape
+    patterns, which = pixel_patterns(np.moveaxis(np.asarray(S), 1, 0))  # (N, k, m) -> which (k, m)
+    table = TableOMP(patterns, D, m)
+    kmax = int(min(max_atoms, m))
+    tol = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, np.float64), (k,)))
+    index = np.zeros((1, k, kmax), np.int32)
+    coef = np.zeros((1, k, kmax), np.float32)
+    count = np.zeros((1, k), np.int32)
+    res2 = np.zeros((1, k), np.float32)
+    dep = np.zeros((1, k), np.bool_)
+    somp_kernel(y, np.ascontiguousarray(which, np.int32), np.arange(k, dtype=np.int64)[None], np.array([k], np.int64),
+                table.B, table.B2, table.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count,
+                res2, dep, float(consensus))
+    return synthesize(OmpResult(index=index[0], coef=coef[0], count=count[0], residual=res2[0], dependent=dep[0]), D)
+
+
+def _misfit(est: np.ndarray, y: np.ndarray, pat: np.ndarray, patterns: np.ndarray, n: int, m: int) -> np.ndarray:
+    """``||y_p - S_p E_p||^2`` of every patch estimate (rows of ``est``)."""
+    S = patterns[pat].transpose(0, 2, 1)  # (P, N, m)
+    r = y - (S * est.reshape(-1, n, m)).sum(1)
+    return np.einsum("pm,pm->p", r, r)
+
+
+def project_measurements(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The nearest volume (per pixel, least squares) that reproduces the coded image exactly.
+
+    ``v + s (y - s.v) / (s.s)`` at every measured pixel (``s`` its shutter weights);
+    unmeasured and NaN pixels are left as they are.
+    """
+    s = np.asarray(mask, np.float32)
+    v = np.asarray(volume, np.float32)
+    ss = (s * s).sum(0)
+    r = np.asarray(coded, np.float32) - (s * np.nan_to_num(v)).sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = np.where(ss > 0, r / ss, 0.0).astype(np.float32)
+    return (v + s * corr[None]).astype(np.float32)

@@ -1,0 +1,123 @@
+"""Issue 16: the non-local method (similar patches under different codes solved together) beside
+the default OMP, GAP-TV and the 3D DCT, on case_quality's scenes and codes (256x256, N = 8).
+
+The non-local method's seconds include the default reconstruction it starts from.
+Results go to bench/results/nonlocal.json and a table is printed.
+
+    python tasks/bench_nonlocal.py [--quick] [--scenes footage:bikes-a,...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tasks"))
+from bench import QUALITY_CODES, QUALITY_SCENES, _q, sgemm_gflops  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+
+
+def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict:
+    """Default OMP, the non-local method (its seconds include the default's), GAP-TV and the 3D DCT
+    (same OMP, up to 16 atoms) on held-out real footage and synthetic scenes, N = 8."""
+    from codedvideo import shipped
+    from codedvideo.baselines import gap_tv
+    from codedvideo.config import PipelineConfig, omp_settings
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.metrics import evaluate
+    from codedvideo.nonlocal_sc import nonlocal_region
+    from codedvideo.omp_kernel import load_kernels
+    from codedvideo.scenes import load_video
+    from codedvideo.stages import reconstruct_volume, simulate_capture
+    from codedvideo.store import load_dictionary
+
+    load_kernels()
+    D, _ = load_dictionary(shipped.verified(8))
+    Dd = dct_dictionary(8)
+    rc = PipelineConfig().reconstruct
+    size = (96, 96) if quick else (256, 256)
+    options = options or {}
+    (ROOT / "cache").mkdir(exist_ok=True)
+    # compile the non-local kernels outside the timings
+    warm = load_video((scenes or QUALITY_SCENES)[0], frames=8, size=(32, 32))
+    cap = simulate_capture(warm, code="hitomi", bump=2, sigma=0.0, seed=0)
+    nonlocal_region(cap["coded"], cap["mask"], D, warm, omp_settings(rc, 0.0))
+    rows = []
+    for scene in scenes or (QUALITY_SCENES[:2] if quick else QUALITY_SCENES):
+        video = load_video(scene, frames=8, size=size)
+        for code, bump in QUALITY_CODES:
+            for sigma in (0.0, 4.0):
+                cap = simulate_capture(video, code=code, bump=bump, sigma=sigma, seed=0)
+                row = dict(scene=scene, kind="real" if scene.startswith("footage:") else "synthetic",
+                           code=code, bump=bump, sigma=sigma)
+                for label, dic, atoms in (("default", D, rc.max_atoms), ("dct", Dd, 16)):
+                    s = omp_settings(rc.model_copy(update=dict(max_atoms=atoms)), sigma)
+                    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
+                        t = time.perf_counter()
+                        vol, _ = reconstruct_volume(cap["coded"], cap["mask"], dic, settings=s, cache=tmp,
+                                                    progress=False)
+                        row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+                    if label == "default":
+                        first = vol
+                s = omp_settings(rc, sigma)
+                t = time.perf_counter()
+                vol, stats = nonlocal_region(cap["coded"], cap["mask"], D, first, s, **options)
+                row["nonlocal"] = dict(seconds=row["default"]["seconds"] + time.perf_counter() - t,
+                                       **_q(evaluate(vol, video)))
+                t = time.perf_counter()
+                vol = gap_tv(cap["coded"], cap["mask"])
+                row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+                rows.append(row)
+                print("  ".join(table_row(row)), flush=True)
+    return dict(case="nonlocal", size=list(size), frames=8, options=options, rows=rows,
+                sgemm_gflops=sgemm_gflops())
+
+
+def table_row(x: dict) -> list[str]:
+    cell = lambda v: f"{v['psnr']:6.2f} {v['seconds']:5.2f}s"  # noqa: E731
+    return [f"{x['scene']:<24}{x['code'] + ' L=' + str(x['bump']):<12}{x['sigma']:>4.0f}",
+            *(f"{cell(x[k]):>14}" for k in ("nonlocal", "default", "gaptv", "dct")),
+            f"{x['nonlocal']['psnr'] - x['default']['psnr']:+6.2f}"]
+
+
+def nonlocal_table(r: dict) -> list[str]:
+    out = [f"{'scene':<24}{'code':<12}{'sig':>4}  {'nonlocal dB/s':>14}  {'default':>14}  {'gap-tv':>14}  "
+           f"{'dct (16)':>14}  {'nl-def':>6}"]
+    out += ["  ".join(table_row(x)) for x in r["rows"]]
+    for kind in ("real", "synthetic"):
+        sel = [x for x in r["rows"] if x["kind"] == kind]
+        if sel:
+            m = {k: np.mean([x[k]["psnr"] for x in sel]) for k in ("nonlocal", "default", "gaptv", "dct")}
+            sec = {k: np.mean([x[k]["seconds"] for x in sel]) for k in ("nonlocal", "default")}
+            worst = min(x["nonlocal"]["psnr"] - x["default"]["psnr"] for x in sel)
+            out.append(f"mean over {kind} ({len(sel)}): nonlocal {m['nonlocal']:.2f} dB (gap-tv "
+                       f"{m['nonlocal'] - m['gaptv']:+.2f}), default {m['default']:.2f} (gap-tv "
+                       f"{m['default'] - m['gaptv']:+.2f}), gap-tv {m['gaptv']:.2f}, dct {m['dct']:.2f}; "
+                       f"time {sec['nonlocal'] / sec['default']:.2f}x the default; worst nonlocal-default {worst:+.2f}")
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--scenes", help="comma-separated scene specs (default: case_quality's)")
+    ap.add_argument("--options", default="{}", help="JSON keyword arguments of nonlocal_region")
+    ap.add_argument("--out", default=str(RESULTS / "nonlocal.json"))
+    a = ap.parse_args()
+    r = case_nonlocal(a.quick, a.scenes.split(",") if a.scenes else None, json.loads(a.options))
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(r, indent=1))
+    print("\n".join(nonlocal_table(r)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,125 @@
+"""The non-local method (issue 16): grouping, the joint solve under different codes, stiff inputs."""
+
+import numpy as np
+import pytest
+
+from codedvideo.nonlocal_sc import joint_omp, match_groups, nonlocal_region
+from codedvideo.reconstruct import OmpSettings, reconstruct_region
+
+from conftest import random_dictionary
+
+N = 4
+PATCH = 7
+M = PATCH * PATCH
+
+
+def smooth_scene(rng, h=24, w=24, n=N):
+    """A moving smooth pattern with texture, 0..255."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    frames = [128 + 60 * np.sin((xx + 1.5 * t) / 3.0) * np.cos(yy / 4.0) + 20 * np.sin((xx + yy) / 2.0)
+              for t in range(n)]
+    return np.stack(frames).astype(np.float32) + rng.normal(0, 1, (n, h, w)).astype(np.float32)
+
+
+def capture(video, rng, sigma=0.0, p=0.5):
+    mask = (rng.random(video.shape) < p).astype(np.float32)
+    coded = (mask * video).sum(0) + rng.normal(0, sigma, video.shape[1:]).astype(np.float32) * (sigma > 0)
+    return coded.astype(np.float32), mask
+
+
+@pytest.fixture
+def D(rng):
+    return random_dictionary(rng, N * M, 64)
+
+
+def test_grouping_is_deterministic_and_starts_with_the_patch_itself(rng):
+    vol = rng.normal(size=(N, 20, 22)).astype(np.float32)
+    vol[:, :, 11:] = vol[:, :, :11]  # exact duplicates: ties that must be broken the same way every time
+    a, da = match_groups(vol, 6, 4)
+    b, db = match_groups(vol.copy(), 6, 4)
+    assert np.array_equal(a, b) and np.array_equal(da, db)
+    assert np.array_equal(a[:, 0], np.arange(a.shape[0]))
+    assert (np.diff(da, axis=1) >= 0).all()
+    # a patch 11 columns away is identical but outside a window of 4; inside a window of 11 it comes second
+    c, dc = match_groups(vol, 2, 11)
+    wp = 22 - PATCH + 1
+    assert c[0, 1] == 11 and dc[0, 1] == 0.0
+    assert a[0, 1] != 11 and da[0, 1] > 0
+    # every member lies within the window
+    r, q = np.divmod(a, wp)
+    r0, q0 = np.divmod(np.arange(a.shape[0]), wp)
+    assert (np.abs(r - r0[:, None]) <= 4).all() and (np.abs(q - q0[:, None]) <= 4).all()
+
+
+def test_identical_patches_under_different_codes_beat_any_member_alone(rng):
+    """One 10-sparse patch seen by 8 codes: alone, OMP picks a wrong support for some members (49
+    measurements, half of them closed); the group's shared support recovers every member."""
+    D = random_dictionary(rng, N * M, 128)
+    support = rng.choice(128, 10, replace=False)
+    x = D[:, support] @ (rng.uniform(1, 2, 10) * rng.choice([-1, 1], 10)).astype(np.float32)
+    k = 8
+    S = (rng.random((k, N, M)) < 0.5).astype(np.float32)
+    y = (S * x.reshape(N, M)).sum(1) + rng.normal(0, 0.02, (k, M)).astype(np.float32)
+    tol = 1.5 * M * 0.02**2  # about the noise energy of a member
+    alone = np.stack([joint_omp(y[i : i + 1], S[i : i + 1], D, max_atoms=12, tol=tol)[0] for i in range(k)])
+    together = joint_omp(y, S, D, max_atoms=12, tol=tol)
+    err_alone = np.linalg.norm(alone - x, axis=1) / np.linalg.norm(x)
+    err_together = np.linalg.norm(together - x, axis=1) / np.linalg.norm(x)
+    assert err_together.max() < 0.05  # every member recovered to the noise
+    assert err_alone.max() > 0.3  # alone, some member is not
+    assert err_together.mean() < 0.5 * err_alone.mean()
+    assert (err_together <= err_alone * 1.1 + 1e-3).all()  # and no member is worse off in the group
+
+
+@pytest.mark.parametrize("static_atoms", [0, 8])
+def test_group_of_one_is_the_default_reconstruction(rng, D, static_atoms):
+    video = smooth_scene(rng)
+    coded, mask = capture(video, rng, sigma=2.0)
+    s = OmpSettings(max_atoms=6, tol_rms=2.0, static_atoms=static_atoms)
+    first, _ = reconstruct_region(coded, mask, D, s)
+    vol, stats = nonlocal_region(coded, mask, D, first, s, group=1)
+    assert np.array_equal(vol, first, equal_nan=True)
+    # a real group changes the answer (the test above would pass for a method that ignores the group)
+    vol8, _ = nonlocal_region(coded, mask, D, first, s, group=8, window=3)
+    assert not np.allclose(vol8, first)
+
+
+def _stiff_cases(rng):
+    video = smooth_scene(rng)
+    coded, mask = capture(video, rng)
+    yield "all-zero coded", np.zeros_like(coded), mask
+    yield "saturated constant", mask.sum(0) * 255.0, mask
+    noisy = coded + rng.normal(0, 40, coded.shape).astype(np.float32)
+    yield "sigma 40", noisy, mask
+    closed = mask.copy()
+    closed[:, 5:9, 5:9] = 0  # never-open pixels, a whole patch among them
+    closed[:, 14:21, 0:7] = 0
+    yield "never open", (closed * video).sum(0), closed
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_output_is_finite_on_stiff_inputs(rng, D, case):
+    name, coded, mask = list(_stiff_cases(rng))[case]
+    tol = 40.0 if name == "sigma 40" else 1.0
+    s = OmpSettings(max_atoms=8, tol_rms=tol)
+    first, _ = reconstruct_region(coded, mask, D, s)
+    vol, stats = nonlocal_region(coded, mask, D, first, s, group=8, window=4, iterations=2)
+    assert vol.shape == first.shape and vol.dtype == np.float32
+    covered = np.isfinite(first)
+    assert np.isfinite(vol[covered]).all(), name
+    assert np.isfinite(stats).all()
+    if name == "all-zero coded":
+        assert np.abs(vol[covered]).max() == 0.0
+
+
+def test_near_duplicate_atoms_stay_finite(rng):
+    D = random_dictionary(rng, N * M, 48)
+    D[:, 1::2] = D[:, 0::2] + 1e-7 * rng.normal(size=(N * M, 24)).astype(np.float32)  # pairs of near twins
+    D /= np.linalg.norm(D, axis=0)
+    video = smooth_scene(rng)
+    coded, mask = capture(video, rng)
+    s = OmpSettings(max_atoms=12, tol_rms=0.0, static_atoms=0)
+    first, _ = reconstruct_region(coded, mask, D, s)
+    vol, _ = nonlocal_region(coded, mask, D, first, s, group=8, window=4)
+    assert np.isfinite(vol).all()
+    assert np.abs(vol).max() < 1e4  # no blow-up from nearly dependent columns
