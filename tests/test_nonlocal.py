@@ -123,3 +123,20 @@ def test_near_duplicate_atoms_stay_finite(rng):
     vol, _ = nonlocal_region(coded, mask, D, first, s, group=8, window=4)
     assert np.isfinite(vol).all()
     assert np.abs(vol).max() < 1e4  # no blow-up from nearly dependent columns
+
+
+def test_a_tile_with_a_halo_gives_the_whole_image_answer(rng, D):
+    """Region in, region out: a tile with a halo of ``patch - 1 + 2 * window`` keeps the whole image's pixels."""
+    video = smooth_scene(rng, 40, 44)
+    coded, mask = capture(video, rng, sigma=1.0)
+    s = OmpSettings(max_atoms=6, tol_rms=1.0)
+    first, _ = reconstruct_region(coded, mask, D, s)
+    window, group = 2, 4
+    whole, _ = nonlocal_region(coded, mask, D, first, s, group=group, window=window)
+    halo = PATCH - 1 + 2 * window
+    y0, y1, x0, x1 = 3, 37, 5, 40  # a region with the kept part [y0 + halo, y1 - halo) x [x0 + halo, x1 - halo)
+    tile, _ = nonlocal_region(coded[y0:y1, x0:x1], mask[:, y0:y1, x0:x1], D, first[:, y0:y1, x0:x1], s,
+                              group=group, window=window, origin=(y0, x0), image_shape=coded.shape)
+    keep = (slice(None), slice(halo, y1 - y0 - halo), slice(halo, x1 - x0 - halo))
+    assert tile[keep].size > 0
+    np.testing.assert_allclose(tile[keep], whole[:, y0:y1, x0:x1][keep], rtol=0, atol=1e-3)

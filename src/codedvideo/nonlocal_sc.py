@@ -19,8 +19,10 @@ default per-patch OMP of :func:`codedvideo.reconstruct.reconstruct_region`):
 
 Arrays in, arrays out: no I/O, no dask.  Like ``reconstruct_region``, a region
 sees only its own patches, so tiled callers keep a halo of at least
-``patch - 1 + window`` pixels (the matches of a kept patch may lie ``window``
-pixels further).  With ``group=1`` it is the default reconstruction (the same
+``iterations * (patch - 1 + 2 * window)`` pixels (a kept pixel's estimates come
+from members whose references lie ``window`` away, whose candidates lie another
+``window`` further; tested), and pass the first estimate over the whole region
+(itself valid there: the default's own halo around it).  With ``group=1`` it is the default reconstruction (the same
 still test, the same OMP operation for operation, the same fold).
 """
 
@@ -40,10 +42,10 @@ STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_stati
               "seconds_solve", "seconds_total", "fallback")
 
 #: Defaults chosen on the benchmark (tasks/bench_nonlocal.py).
-GROUP = 8
+GROUP = 16
 WINDOW = 6
 ITERATIONS = 1
-STEP = 2
+STEP = 3
 #: A group's atom budget is this times ``settings.max_atoms`` (k x 49 measurements afford more atoms).
 ATOMS_FACTOR = 2
 
@@ -51,7 +53,7 @@ ATOMS_FACTOR = 2
 def nonlocal_region(
     coded: np.ndarray, mask: np.ndarray, D: np.ndarray, first: np.ndarray, settings: OmpSettings, *,
     group: int = GROUP, window: int = WINDOW, iterations: int = ITERATIONS, step: int | None = None,
-    atoms: int | None = None, consensus: float = 0.0,
+    atoms: int | None = None, consensus: float = 0.0, similarity: float | None = None,
     aggregate: str = "all", max_distance: float | None = None, project: bool | None = None,
     patch: int = P.PATCH, origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -86,6 +88,9 @@ def nonlocal_region(
     consensus : float
         Pull of every member's coefficients towards the group's shared fit
         (:func:`codedvideo.omp_kernel.somp_kernel`; 0: none).
+    similarity : float, optional
+        With ``aggregate="all"``, a member's estimate counts ``exp(-d**2 / similarity**2)``,
+        ``d`` its RMS block difference to the reference (grey levels); None: all count 1.
     aggregate : {"all", "reference"}
         Add every member's estimate at its place, or only the reference's.
     max_distance : float, optional
@@ -195,6 +200,7 @@ def nonlocal_region(
             # compact each group's members to the front (refs first, matches in order)
             order = np.argsort(mem < 0, axis=1, kind="stable")
             mem = np.ascontiguousarray(np.take_along_axis(mem, order, 1))
+            dmem = np.take_along_axis(dist[refs], order, 1)
             size = (mem >= 0).sum(1).astype(np.int64)
             G = refs.size
             index = np.zeros((G, k, kmax), np.int32)
@@ -230,6 +236,8 @@ def nonlocal_region(
                                 dependent=dep[live])
                 est = synthesize(res, D)
                 wgt = np.ones(where.size, np.float32)
+                if similarity is not None:
+                    wgt = np.exp(-dmem[live] / F / max(similarity, 1e-6) ** 2).astype(np.float32)
                 if settings.weighting == "fit":
                     e2 = _misfit(est, y_all[where], pat_all[where], patterns, n, m) / np.maximum(n_open[where], 1)
                     wgt = wgt / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
