@@ -37,7 +37,8 @@ measurements (+0.1).  Measured and left off: a second pass regrouping on the new
 estimate (+0.01), similarity weights (0), a distance cap on members (groups
 shrink, worse), a pull of the members' coefficients towards the group's shared
 fit (worse at every strength tried: the members are shifted copies, not the same
-coefficients), misfit weights (+0.1, slower).
+coefficients), misfit weights (+0.1, slower), BM3D's 1/atoms weights (+0.01),
+a tolerance 0.6x or 1.5x the default's (0 / -0.04).
 """
 
 from __future__ import annotations
