@@ -14,6 +14,8 @@ Cases (issue "Fast reconstruction"):
   sequence 10 captures (256x256, N = 8) 70 % still, all still and all moving, as one job and
            capture by capture (--independent-captures: no still regions, no join; whole CLI
            processes), the boundary step error; peak memory at T = 1, 10, 100
+  nonlocal the non-local method (issue 16) beside the default, GAP-TV and the DCT on the quality
+           case's scenes and codes (tasks/bench_nonlocal.py)
   video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
            peak resident memory)
 
@@ -413,6 +415,13 @@ def case_video(quick: bool) -> dict:
     return out
 
 
+def case_nonlocal(quick: bool) -> dict:
+    """Issue 16: the non-local method beside the default, GAP-TV and the DCT (tasks/bench_nonlocal.py)."""
+    from bench_nonlocal import case_nonlocal as run
+
+    return run(quick)
+
+
 def case_startup(quick: bool) -> dict:
     """Issue 14: a 256x256 N = 8 reconstruct timed as a whole process against its own in-process time
     (the metrics' total: reading, reconstructing, writing), median of 3, each into a fresh cache."""
@@ -483,6 +492,7 @@ def case_calibrated(quick: bool) -> dict:
 
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
              sequence=case_sequence, video=case_video, calibrated=case_calibrated, startup=case_startup, units=case_units)
+CASES["nonlocal"] = case_nonlocal  # a keyword: not a dict() argument
 
 
 def run_child(name: str, quick: bool) -> dict:
@@ -559,6 +569,10 @@ def table(results: dict) -> str:
                 rows.append(f"  {scene}: still-scene test {s['skip']['seconds']:.2f} s {s['skip']['psnr']:.2f} dB "
                             f"({100 * s['skip']['static_fraction']:.0f}% patches still) vs off {s['no_skip']['seconds']:.2f} s "
                             f"{s['no_skip']['psnr']:.2f} dB")
+    if "nonlocal" in results["cases"] and "error" not in results["cases"]["nonlocal"]:
+        from bench_nonlocal import nonlocal_table
+
+        rows.extend(nonlocal_table(results["cases"]["nonlocal"]))
     if "quality" in results["cases"] and "error" not in results["cases"]["quality"]:
         rows.extend(quality_table(results["cases"]["quality"]))
     c = results["cases"]
@@ -569,7 +583,7 @@ def table(results: dict) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", default="a,static,b,b1,c,quality,bayer,sequence,video,calibrated,startup,units")
+    ap.add_argument("--cases", default="a,static,b,b1,c,quality,nonlocal,bayer,sequence,video,calibrated,startup,units")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()

@@ -100,11 +100,12 @@ def test_reconstruct_method_dispatch(scene, tmp_path):
         assert info["method"] == method and info["seconds"]["reconstruct"] >= 0
         if method in ("dct", "gaptv"):
             assert evaluate(vol, scene)["psnr"] > trivial
-    with pytest.raises(InputError, match="needs a dictionary"):
-        reconstruct_method("omp", cap["coded"], cap["mask"])
+    for method in ("omp", "nonlocal"):
+        with pytest.raises(InputError, match=f"method {method}: needs a dictionary"):
+            reconstruct_method(method, cap["coded"], cap["mask"])
     with pytest.raises(InputError, match="unknown"):
         reconstruct_method("nope", cap["coded"], cap["mask"])
-    assert set(METHODS) == {"omp", "dct", "thinout", "interp", "gaptv"}
+    assert set(METHODS) == {"omp", "nonlocal", "dct", "thinout", "interp", "gaptv"}
 
 
 def test_cli_reconstruct_method_without_dictionary(tmp_path, scene):

@@ -46,7 +46,7 @@ from .physics import adjoint, check_pair, forward, static_estimate
 
 #: Names of ``codedvideo reconstruct --method``: per-patch OMP with the learned
 #: dictionary (``omp``) or the 3D DCT (``dct``), and the baselines of this module.
-METHODS = ("omp", "dct", "thinout", "interp", "gaptv")
+METHODS = ("omp", "nonlocal", "dct", "thinout", "interp", "gaptv")
 
 
 def _tent(radius: int) -> np.ndarray:
@@ -338,21 +338,13 @@ def reconstruct_method(
     check_pair(np.shape(coded), np.shape(mask))
     if method not in METHODS:
         raise InputError(f"method {method!r}: unknown; choose one of {', '.join(METHODS)}")
-    if method in ("omp", "dct"):
-        from .stages import reconstruct_volume
+    if method in ("omp", "nonlocal", "dct"):
         from .reconstruct import OmpSettings
+        from .stages import reconstruct_volume, sparse_method
 
-        from .dictionaries import dct_dictionary, prepare_dictionary
-
-        if method == "dct":
-            dictionary, dictionary_key = dct_dictionary(mask.shape[0]), ""
-        elif dictionary is None:
-            raise InputError("method omp: needs a dictionary (--dictionary DICT.zarr)")
-        # unit-norm atoms, zero atoms dropped (the same array when it already is)
-        prepared = prepare_dictionary(dictionary, dictionary_name or f"of method {method}")
-        if prepared is not dictionary:  # the caller's key names the given atoms: key the cache by the used ones
-            dictionary, dictionary_key = prepared, ""
-        volume, info = reconstruct_volume(coded, mask, dictionary, settings=settings or OmpSettings(), tile=tile,
+        settings, dictionary, dictionary_key = sparse_method(method, settings or OmpSettings(), dictionary,
+                                                             dictionary_key, dictionary_name, frames=mask.shape[0])
+        volume, info = reconstruct_volume(coded, mask, dictionary, settings=settings, tile=tile,
                                           cache=cache, scheduler=scheduler, workers=workers, progress=progress,
                                           dictionary_key=dictionary_key)
         return volume, dict(info, method=method, dictionary_atoms=int(dictionary.shape[1]))

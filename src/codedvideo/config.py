@@ -113,6 +113,8 @@ class ReconstructConfig(_Strict):
     stride: int = Field(1, ge=1, le=7)
     #: Average of overlapping estimates: "uniform" (the paper) or "fit" (weighted by misfit).
     weighting: Literal["uniform", "fit"] = "uniform"
+    #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved together.
+    method: Literal["omp", "nonlocal"] = "omp"
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
     tile: int = Field(128, ge=8, le=4096)
     batch: int = Field(4096, ge=1, le=1 << 20)
@@ -269,7 +271,7 @@ def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
 
     tol = auto_tolerance(sigma * scale) if rc.tol_rms == "auto" else float(rc.tol_rms) * scale
     return OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms,
-                       stride=rc.stride, weighting=rc.weighting)
+                       stride=rc.stride, weighting=rc.weighting, method=rc.method)
 
 
 def auto_tolerance(sigma: float) -> float:

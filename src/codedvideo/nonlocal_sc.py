@@ -187,7 +187,6 @@ def nonlocal_region(
     if atoms is None:
         atoms = settings.max_atoms if group == 1 else ATOMS_FACTOR * settings.max_atoms
     kmax = int(min(atoms, m))
-    Dt = np.ascontiguousarray(np.asarray(D, np.float32).T)
     current = np.nan_to_num(first, nan=0.0).astype(np.float32)
     volume = first.copy()
     for _ in range(iterations):

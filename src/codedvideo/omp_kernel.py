@@ -752,7 +752,6 @@ def block_match(vol, patch, window, k, idx, dist):
         Output: their squared distances (``inf`` past the candidates), increasing.
     """
     n, h, w = vol.shape
-    hp = h - patch + 1
     wp = w - patch + 1
     idx[:] = -1
     dist[:] = np.inf

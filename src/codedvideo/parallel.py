@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import dask
 import numpy as np
 
-from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region
+from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
 from .store import WorkStore
 
 log = logging.getLogger("codedvideo")
@@ -52,16 +52,17 @@ class Tile:
     halo: tuple[int, int, int, int]
 
 
-def plan_tiles(shape: tuple[int, int], tile: int, *, patch: int = 7) -> list[Tile]:
+def plan_tiles(shape: tuple[int, int], tile: int, *, patch: int = 7, halo: int | None = None) -> list[Tile]:
     """Cut an image into ``tile x tile`` cores (the last ones smaller) with halos.
 
-    The halo is ``patch - 1`` pixels on every side, clipped at the image border,
-    so every patch that covers a core pixel lies inside the tile's halo region.
+    The halo is ``patch - 1`` pixels on every side (or ``halo``:
+    :func:`codedvideo.reconstruct.tile_halo`), clipped at the image border, so
+    every patch that covers a core pixel lies inside the tile's halo region.
     """
     h, w = shape
     if tile < 1:
         raise ValueError(f"tile size must be >= 1, got {tile}")
-    halo = patch - 1
+    halo = patch - 1 if halo is None else halo
     tiles = []
     for y0 in range(0, h, tile):
         for x0 in range(0, w, tile):
@@ -113,8 +114,16 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
     coded, mask, still = store.read_inputs(hy0, hy1, hx0, hx1)
     _one_blas_thread_in_worker()
     try:
+        shape = store.group["coded"].shape
         volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch, origin=(hy0, hx0),
-                                           image_shape=store.group["coded"].shape, still=still.astype(bool))
+                                           image_shape=shape, still=still.astype(bool))
+        if settings.method == "nonlocal":  # the per-patch estimate is the first estimate of the groups
+            from .nonlocal_sc import nonlocal_region
+
+            t0 = time.perf_counter()
+            volume, _ = nonlocal_region(coded, mask, D, volume, settings, patch=patch, origin=(hy0, hx0),
+                                        image_shape=shape)
+            stats[STAT_NAMES.index("seconds_total")] += time.perf_counter() - t0
     except Exception as exc:  # name the tile, keep the cause
         raise RuntimeError(f"tile {first.index} (rows {y0}:{y1}, cols {x0}:{x1}) of {store_path}: {exc}") from exc
     core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]
@@ -339,7 +348,7 @@ def reconstruct_stores(
     plans, works = [], []
     for store in stores:
         coded, mask, still = store.read_inputs(0, None, 0, None)
-        tiles = plan_tiles(tuple(coded.shape), tile, patch=patch)
+        tiles = plan_tiles(tuple(coded.shape), tile, patch=patch, halo=tile_halo(settings, patch))
         ok, damaged, _, _ = store.read_verified(tiles, assemble=False)
         if damaged.any():
             log.warning("cache entry %s: tiles %s failed their checksum (damaged); computing them again",

@@ -63,6 +63,23 @@ class OmpSettings:
     #: "fit": each counts ``1 / (1 + e**2 / tol_rms**2)``, ``e`` the RMS misfit of its
     #: patch to the measurement, so estimates that explain their data poorly weigh less.
     weighting: str = "uniform"
+    #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved
+    #: together under their own codes (:mod:`codedvideo.nonlocal_sc`).
+    method: str = "omp"
+
+
+def tile_halo(settings: OmpSettings, patch: int = P.PATCH) -> int:
+    """Pixels a tile reads beyond its core so that its core comes out as in the whole image.
+
+    Per-patch OMP: ``patch - 1`` (every patch over a core pixel).  Non-local: the
+    first estimate's ``patch - 1`` plus what a core pixel's groups reach,
+    ``patch - 1 + 2 * window`` (:mod:`codedvideo.nonlocal_sc`).
+    """
+    if settings.method == "nonlocal":
+        from .nonlocal_sc import WINDOW
+
+        return 2 * (patch - 1) + 2 * WINDOW
+    return patch - 1
 
 
 def static_dictionary(frames: int, patch: int = P.PATCH) -> np.ndarray:

@@ -394,7 +394,30 @@ def reconstruct_volume(
 
 
 #: Methods that sparse-code patches (through :func:`sparse_volumes`); the others are :mod:`codedvideo.baselines`.
-SPARSE_METHODS = ("omp", "dct")
+SPARSE_METHODS = ("omp", "nonlocal", "dct")
+
+
+def sparse_method(method: str, settings: OmpSettings, dictionary: np.ndarray | None, dictionary_key: str,
+                  dictionary_name: str, *, frames: int) -> tuple[OmpSettings, np.ndarray, str]:
+    """The settings, dictionary and its cache key a sparse method runs with.
+
+    ``omp`` and ``nonlocal`` use ``dictionary`` (required), ``dct`` the
+    complete 3D DCT.  Atoms of any nonzero norm give the same answer: they go
+    through :func:`~codedvideo.dictionaries.prepare_dictionary` (unit norm,
+    zero atoms dropped with a warning, all-zero refused), and a changed
+    dictionary is keyed by its own contents.
+    """
+    from .dictionaries import dct_dictionary, prepare_dictionary
+
+    settings = dataclasses.replace(settings, method="nonlocal" if method == "nonlocal" else "omp")
+    if method == "dct":
+        dictionary, dictionary_key = dct_dictionary(frames), ""
+    elif dictionary is None:
+        raise InputError(f"method {method}: needs a dictionary (--dictionary DICT.zarr)")
+    prepared = prepare_dictionary(dictionary, dictionary_name or f"of method {method}")
+    if prepared is not dictionary:  # the caller's key names the given atoms: key the cache by the used ones
+        dictionary, dictionary_key = prepared, ""
+    return settings, dictionary, dictionary_key
 
 
 def reconstruct_captures(
@@ -473,16 +496,8 @@ def reconstruct_captures(
 
     sparse = method in SPARSE_METHODS
     if sparse:
-        from .dictionaries import dct_dictionary, prepare_dictionary
-
-        if method == "dct":
-            dictionary, dictionary_key = dct_dictionary(mask_of(0).shape[0]), ""
-        elif dictionary is None:
-            raise InputError("method omp: needs a dictionary (--dictionary DICT.zarr)")
-        # unit-norm atoms, zero atoms dropped (the same array when it already is)
-        prepared = prepare_dictionary(dictionary, dictionary_name or f"of method {method}")
-        if prepared is not dictionary:  # the caller's key names the given atoms: key the cache by the used ones
-            dictionary, dictionary_key = prepared, ""
+        settings, dictionary, dictionary_key = sparse_method(method, settings, dictionary, dictionary_key,
+                                                             dictionary_name, frames=mask_of(0).shape[0])
 
     def for_sparse(i: int):
         coded_used, mask_used, still, moving, _ = used(i)
@@ -602,7 +617,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         t0 = time.perf_counter()
         # saturated pixels (noise.white_level) are missing measurements
         volume, info = reconstruct_capture(
-            "omp", capture["coded"], capture["mask"], data_range=units, settings=omp_settings(rc, sigma, scale=units.scale),
+            rc.method, capture["coded"], capture["mask"], data_range=units, settings=omp_settings(rc, sigma, scale=units.scale),
             dictionary=D, dictionary_key=dmeta["sha256"], dictionary_name=str(dict_path),
             white_level=cfg.noise.white_level, where="simulated capture", tile=rc.tile, cache=cfg.cache,
             scheduler=rc.scheduler, workers=rc.workers, progress=progress)
