@@ -75,6 +75,15 @@ def test_streamed_output_equals_the_output_written_at_once(sequence, tmp_path, c
     from codedvideo.volumes import read_volume
 
     np.testing.assert_array_equal(np.load(tmp_path / "s.npy"), read_volume(tmp_path / "s.tif"))
+    # a grey video is encoded capture by capture: the same frames as the whole volume written at once
+    from codedvideo.volumes import write_volume
+
+    _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--method", "dct",
+         "--cache", tmp_path / "cache", "--output", tmp_path / "s.mkv")
+    write_volume(np.load(tmp_path / "s.npy"), tmp_path / "whole.mkv")
+    streamed, whole = read_volume(tmp_path / "s.mkv"), read_volume(tmp_path / "whole.mkv")
+    assert streamed.shape == (T * N, H, W)
+    np.testing.assert_array_equal(streamed, whole)
 
 
 def test_mask_per_capture_must_match_the_number_of_captures(sequence, tmp_path, capsys):

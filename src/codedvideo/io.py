@@ -524,17 +524,31 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
         row/column, and the size is recorded in the container's comment so
         that :func:`read_video` crops the padding off again.
     """
+    path = Path(path)
+    data = _frames_last(frames, path, "video")
+    with video_writer(path, data.shape[1:3], colour=data.ndim == 4, data_range=data_range, fps=fps) as write:
+        write(data)
+    return path
+
+
+@contextlib.contextmanager
+def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool = False, data_range: float = 255.0,
+                 fps: int = 30):
+    """Encode a video part by part (:func:`write_video`'s formats): yields ``write(frames)``.
+
+    ``frames`` are (n, H, W) grey or (n, H, W, 3) RGB, in order; each part is
+    encoded as it comes, so a long video is never held whole.  The file
+    appears under ``path`` only when the block ends without an error.
+    """
     import av
 
     path = Path(path)
     suffix = path.suffix.lower()
-    data = _to_uint8(_frames_last(frames, path, "video"), data_range)
-    colour = data.ndim == 4
-    height, width = data.shape[1], data.shape[2]
+    height, width = size
+    pad = (0, 0)
     if suffix == ".mp4":
         codec, pix_fmt, options = "libx264", "yuv420p", {"crf": "17", "preset": "medium"}
-        pad = ((0, 0), (0, data.shape[1] % 2), (0, data.shape[2] % 2)) + (((0, 0),) if colour else ())
-        data = np.pad(data, pad, mode="edge")
+        pad = (height % 2, width % 2)
     elif suffix in (".mkv", ".avi"):
         codec, pix_fmt, options = "ffv1", "bgr0" if colour else "gray", {}
     elif suffix == ".gif":
@@ -548,18 +562,26 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
                 # the size before any padding, so read_video returns the frames as given
                 container.metadata["comment"] = f"{SIZE_TAG}{height}x{width}"
                 stream = container.add_stream(codec, rate=fps)
-                stream.width, stream.height = data.shape[2], data.shape[1]
+                stream.width, stream.height = width + pad[1], height + pad[0]
                 stream.pix_fmt = pix_fmt
                 if options:
                     stream.options = options
-                for img in data:
-                    for packet in stream.encode(av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format=in_fmt)):
-                        container.mux(packet)
+
+                def write(frames: np.ndarray) -> None:
+                    data = _to_uint8(np.asarray(frames), data_range)
+                    if any(pad):
+                        data = np.pad(data, ((0, 0), (0, pad[0]), (0, pad[1])) + (((0, 0),) if colour else ()),
+                                      mode="edge")
+                    for img in data:
+                        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format=in_fmt)
+                        for packet in stream.encode(frame):
+                            container.mux(packet)
+
+                yield write
                 for packet in stream.encode(None):
                     container.mux(packet)
         except (av.error.FFmpegError, OSError) as exc:
             raise OutputError(f"video {path}: cannot write ({exc})") from exc
-    return path
 
 
 def _oiio_write(path: Path, pages: list[np.ndarray], fmt: str) -> None:

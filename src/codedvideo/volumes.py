@@ -165,8 +165,9 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0
     each part appended to a temporary file, renamed onto ``output`` when the
     block ends complete, so memory does not grow with the number of captures
     (a memory map would: the pages written stay in the process's resident
-    set).  Other formats gather the parts and go through :func:`write_volume`
-    at the end.
+    set).  Grey videos (.mp4, .mkv, .avi, .gif) are encoded part by part the
+    same way.  Other formats (and colour videos) gather the parts and go
+    through :func:`write_volume` at the end.
     """
     output = Path(output)
     if output.suffix.lower() == ".npy":
@@ -182,6 +183,10 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0
                 yield put
                 if fh.tell() - start != total:
                     raise RuntimeError(f"output {output}: {fh.tell() - start} of {total} bytes written")
+        return
+    if output.suffix.lower() in VIDEO_SUFFIXES and len(shape) == 3:  # grey frames: encoded as they come
+        with cio.video_writer(output, tuple(shape[1:]), data_range=data_range, fps=fps) as write:
+            yield lambda index, part: write(part)
         return
     volume = np.empty(tuple(shape), np.float32)
 
