@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import json
 import logging
 import sys
@@ -452,8 +453,9 @@ def _cmd_reconstruct(a) -> int:
         if job.kind == "captures" and count > 1 and not a.independent_captures:
             from .sequence import agreeing_pixels
 
-            # what did not change since the capture before or until the one after
-            still_of = lambda i: agreeing_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale)  # noqa: E731
+            # what did not change since the capture before or until the one after (asked again by the join)
+            still_of = functools.lru_cache(maxsize=4)(
+                lambda i: agreeing_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale))
         results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, **options)
         if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
             from .sequence import joined
