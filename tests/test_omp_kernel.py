@@ -121,3 +121,73 @@ def test_more_than_64_subframes_use_the_dense_path(rng):
     coded = (mask * rng.uniform(0, 255, (n, 12, 12))).sum(0).astype(np.float32)
     vol, stats = reconstruct_region(coded, mask, D, OmpSettings(max_atoms=4, tol_rms=2.0))
     assert np.isfinite(vol).all() and stats[2] > 0
+
+
+# ----------------------------------------------------------------------------- codes with many patterns
+def test_compiled_table_equals_the_numpy_pattern_table(rng):
+    """build_table gives pattern_table's bits: binary codes with many patterns, and calibrated weights."""
+    from codedvideo.omp import pattern_table
+    from codedvideo.omp_kernel import build_table
+
+    D = random_dictionary(rng, 8 * 49, 70) * np.float32(3.0)
+    patterns, _ = pixel_patterns(make_code("bernoulli", (40, 40), frames=8, rng=2))
+    assert len(patterns) > 200  # nearly all 256 patterns of N = 8
+    assert np.array_equal(build_table(patterns, D, 49), pattern_table(patterns, D, 49))
+    weights = (rng.uniform(0.1, 1.0, (30, 8)) * (rng.random((30, 8)) < 0.6)).astype(np.float32)
+    weights[0] = 0.0  # a pixel never open: a zero row
+    assert np.array_equal(build_table(weights, D, 49), pattern_table(weights, D, 49))
+
+
+def test_shared_table_is_reused_only_for_the_same_patterns_and_dictionary(rng):
+    from codedvideo.omp_kernel import build_table, shared_table
+
+    D = random_dictionary(rng, 6 * 49, 40)
+    patterns, _ = pixel_patterns(make_code("bernoulli", (20, 20), frames=6, rng=4))
+    first = shared_table(patterns, D, 49)
+    assert shared_table(patterns.copy(), D.copy(), 49) is first
+    assert np.array_equal(first, build_table(patterns, D, 49))
+    D2 = D.copy()
+    D2[5, 7] += 1.0  # one entry of the dictionary changed: a new table
+    other = shared_table(patterns, D2, 49)
+    assert other is not first and np.array_equal(other, build_table(patterns, D2, 49))
+    assert not np.array_equal(other, first)
+    fewer = shared_table(patterns[:-1], D, 49)
+    assert fewer.shape[1] == len(patterns) - 1 and np.array_equal(fewer, first[:, :-1])
+
+
+def test_kernel_on_a_bernoulli_code_at_n8_matches_the_other_exact_paths(rng):
+    """256 patterns: the table kernel gives the per-patch kernel's bits and the numpy operator's atoms."""
+    from codedvideo.omp_kernel import WeightsOMP
+
+    n, K = 8, 160
+    D, mask, patterns, pat, S = _problem(rng, "bernoulli", n, K, (7 + 9, 7 + 13))
+    assert len(patterns) > 100
+    video = rng.uniform(0, 255, size=(n,) + mask.shape[1:]).astype(np.float32)
+    Y = P.extract((mask * video).sum(0).astype(np.float32))
+    tol = (S.sum(1) > 0).sum(1) * 4.0
+    res = TableOMP(patterns, D, 49).solve(Y, pat, max_atoms=8, tol=tol)
+    per_patch = WeightsOMP(D, 49).solve(Y, S.astype(np.float32), max_atoms=8, tol=tol)
+    for f in ("index", "coef", "count", "residual", "dependent"):
+        assert np.array_equal(getattr(res, f), getattr(per_patch, f)), f
+    ref = omp(Y, MaskedOperator(S, D), max_atoms=8, tol=tol)
+    np.testing.assert_array_equal(res.count, ref.count)
+    np.testing.assert_array_equal(np.where(np.arange(8) < res.count[:, None], res.index, -1),
+                                  np.where(np.arange(8) < ref.count[:, None], ref.index, -1))
+    np.testing.assert_allclose(synthesize(res, D), synthesize(ref, D), atol=1e-2 * 255 / 100)
+
+
+def test_kernel_column_norms_round_every_square(rng):
+    """The norms are sums of the float32 squares B * B in pixel order, as the table of squares gave them:
+    no fused multiply-add from the kernel's contraction flag (it changed atoms of a Bernoulli code)."""
+    from codedvideo.omp_kernel import column_norms2
+
+    B = rng.normal(size=(49, 3, 4096)).astype(np.float32) * rng.uniform(0.5, 5, (49, 3, 1)).astype(np.float32)
+    pat = rng.integers(0, 3, 49).astype(np.int32)
+    rows = B[np.arange(49), pat]
+    want = np.zeros(B.shape[2], np.float32)
+    fused = np.zeros(B.shape[2], np.float32)
+    for i in range(49):
+        want = want + rows[i] * rows[i]
+        fused = (fused.astype(np.float64) + rows[i].astype(np.float64) ** 2).astype(np.float32)
+    assert not np.array_equal(want, fused)  # the data tell the two apart
+    assert np.array_equal(column_norms2(B, pat), want)

@@ -14,7 +14,11 @@ correlation is::
 closed shutter.  A gather-and-add does not run at matrix-multiply speed in
 numpy, so this kernel is compiled (numba): one patch at a time, its whole OMP
 in cache (table rows, residual, thin QR), and the GIL released, so the tile
-tasks of a thread pool run side by side.
+tasks of a thread pool run side by side.  A code with many patterns (Bernoulli
+at N = 8: 256 patterns, a 25 MB table that no cache holds) pays for bringing
+its 49 rows into cache once per patch: the column norms are computed from those
+rows (no second table of squares), and the table is built compiled and kept
+for the next tiles (:func:`shared_table`) instead of once per tile.
 
 It solves the same problem as :func:`codedvideo.omp.omp` with the same rules:
 normalised selection rounded to 13 significant bits (:data:`SELECT_BITS`, ties
@@ -34,10 +38,14 @@ residual and the atom-by-atom dictionary update of :mod:`codedvideo.ksvd`
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
+
 import numpy as np
 from numba import njit, prange
 
-from .omp import _TINY, DEPENDENCE_TOL, MIN_VISIBLE, SELECT_BITS, OmpResult, _safe_inverse, pattern_table
+from .omp import _TINY, DEPENDENCE_TOL, MIN_VISIBLE, SELECT_BITS, OmpResult, _safe_inverse
 
 #: Largest pattern table (bytes) this path builds; beyond it (codes with many
 #: distinct patterns, e.g. Bernoulli at large N) the dense operator is used.
@@ -78,8 +86,80 @@ def _correlate(B, pat, r, c):
         i += 1
 
 
+@njit(nogil=True, cache=True, fastmath=False)
+def _column_norms2(B, pat, c):
+    """``c[k] = sum_i B[i, pat_i, k]**2`` in float32, every square rounded before it is added.
+
+    Compiled without contraction (a fused multiply-add would skip that rounding),
+    so the norms are the sums of the float32 squares ``B * B``, in pixel order.
+    ``fastmath=False`` is explicit: numba compiles a callee that does not set it
+    with its caller's flags, and :func:`_omp_kernel` allows contraction.
+    Read from the table rows themselves: a table of squares beside ``B`` would
+    double the bytes a patch brings into cache (the table of a code with many
+    patterns does not fit in it).
+    """
+    K = c.size
+    c[:] = 0.0
+    for i in range(pat.size):
+        row = B[i, pat[i]]
+        for k in range(K):
+            c[k] += row[k] * row[k]
+
+
 @njit(nogil=True, cache=True, fastmath={"contract"})
-def _omp_kernel(y, pat, B, B2, floor, tol, kmax, dep_tol, select_bits, tiny, index, coef, count, res2, dependent):
+def _column_norms2_as_in_kernel(B, pat, c):
+    _column_norms2(B, pat, c)
+
+
+def column_norms2(B: np.ndarray, pat: np.ndarray) -> np.ndarray:
+    """The squared column norms of one patch's ``A_p`` as :func:`_omp_kernel` computes them (for tests).
+
+    Called from a function compiled with the kernel's flags, so a test sees
+    whether contraction leaks into the norms (it would change selected atoms).
+    """
+    c = np.empty(B.shape[2], np.float32)
+    _column_norms2_as_in_kernel(B, np.ascontiguousarray(pat, dtype=np.int32), c)
+    return c
+
+
+@njit(nogil=True, cache=True, fastmath=False)
+def _fill_table(patterns, D3, B):
+    """``B[i, u] = sum_t patterns[u, t] D3[t, i]``: each row summed in sub-frame order from zero.
+
+    Compiled without contraction: each product is rounded before it is added,
+    exactly as :func:`codedvideo.omp.pattern_table` (numpy) sums them.
+    """
+    U, N = patterns.shape
+    m, K = D3.shape[1], D3.shape[2]
+    for i in range(m):
+        for u in range(U):
+            row = B[i, u]
+            row[:] = 0.0
+            for t in range(N):
+                w = patterns[u, t]
+                if w != 0.0:
+                    d = D3[t, i]
+                    for k in range(K):
+                        row[k] += w * d[k]
+
+
+def build_table(patterns: np.ndarray, D: np.ndarray, patch_pixels: int) -> np.ndarray:
+    """:func:`codedvideo.omp.pattern_table`, compiled (the same bits; GIL released).
+
+    The numpy version makes a pass over the whole table per sub-frame; a code
+    with many patterns (Bernoulli at N = 8: 256 patterns, 25 MB) spent a tenth
+    of a tile's time there.
+    """
+    patterns = np.ascontiguousarray(patterns, dtype=np.float32)
+    n = patterns.shape[1]
+    D3 = np.ascontiguousarray(np.asarray(D, dtype=np.float32).reshape(n, patch_pixels, -1))
+    B = np.empty((patch_pixels, patterns.shape[0], D3.shape[2]), np.float32)
+    _fill_table(patterns, D3, B)
+    return B
+
+
+@njit(nogil=True, cache=True, fastmath={"contract"})
+def _omp_kernel(y, pat, B, floor, tol, kmax, dep_tol, select_bits, tiny, index, coef, count, res2, dependent):
     P, m = y.shape
     K = B.shape[2]
     c = np.empty(K, np.float32)
@@ -102,12 +182,7 @@ def _omp_kernel(y, pat, B, B2, floor, tol, kmax, dep_tol, select_bits, tiny, ind
         dependent[p] = False
         if s <= tol[p]:
             continue
-        # squared column norms of A_p, then the usable columns' inverse norms
-        c[:] = 0.0
-        for i in range(m):
-            row = B2[i, pat[p, i]]
-            for k in range(K):
-                c[k] += row[k]
+        _column_norms2(B, pat[p], c)  # squared column norms of A_p, then the usable columns' inverse norms
         big = 0.0  # the zero-column floor is relative to the patch's largest column: any atom scale
         for k in range(K):
             inv[k] = np.sqrt(max(c[k], np.float32(0.0)))
@@ -192,7 +267,6 @@ def _omp_weights_kernel(y, S, D3, floor, tol, kmax, dep_tol, select_bits, tiny, 
     P, N, m = S.shape
     K = D3.shape[2]
     B = np.zeros((m, 1, K), np.float32)
-    B2 = np.zeros((m, 1, K), np.float32)
     pat = np.zeros((1, m), np.int32)
     y1 = np.empty((1, m), np.float32)
     tol1 = np.empty(1, np.float64)
@@ -211,15 +285,12 @@ def _omp_weights_kernel(y, S, D3, floor, tol, kmax, dep_tol, select_bits, tiny, 
                     d = D3[t, i]
                     for k in range(K):
                         row[k] += w * d[k]
-            row2 = B2[i, 0]
-            for k in range(K):
-                row2[k] = row[k] * row[k]
         for i in range(m):
             y1[0, i] = y[p, i]
         tol1[0] = tol[p]
         index1[:] = 0
         coef1[:] = 0.0
-        _omp_kernel(y1, pat, B, B2, floor, tol1, kmax, dep_tol, select_bits, tiny, index1, coef1, count1, res1, dep1)
+        _omp_kernel(y1, pat, B, floor, tol1, kmax, dep_tol, select_bits, tiny, index1, coef1, count1, res1, dep1)
         index[p, :] = index1[0]
         coef[p, :] = coef1[0]
         count[p] = count1[0]
@@ -324,6 +395,38 @@ def _visibility_floor(D: np.ndarray) -> np.ndarray:
     return (MIN_VISIBLE * atom_norms).astype(np.float32)
 
 
+#: Pattern tables kept for the next regions: the tiles of one image share their code's patterns
+#: and the dictionary, and a table with many patterns (25 MB for Bernoulli at N = 8) is worth keeping.
+TABLES_KEPT = 2
+_tables: OrderedDict = OrderedDict()
+_tables_lock = threading.Lock()
+
+
+def shared_table(patterns: np.ndarray, D: np.ndarray, patch_pixels: int) -> np.ndarray:
+    """:func:`build_table`, reused while the same patterns and dictionary come back (read only).
+
+    Keyed by the contents of both (a hash), so a table is never reused for
+    another dictionary or code; the last :data:`TABLES_KEPT` are kept.  One
+    builder at a time: a tile that asks while another builds the same table waits for it.
+    """
+    patterns = np.ascontiguousarray(patterns, dtype=np.float32)
+    D = np.ascontiguousarray(D, dtype=np.float32)
+    h = hashlib.blake2b(digest_size=16)
+    h.update(np.array([patch_pixels, *patterns.shape, *D.shape], np.int64).tobytes())
+    h.update(patterns.data)
+    h.update(D.data)
+    key = h.digest()
+    with _tables_lock:
+        B = _tables.get(key)
+        if B is None:
+            B = build_table(patterns, D, patch_pixels)
+            _tables[key] = B
+            while len(_tables) > TABLES_KEPT:
+                _tables.popitem(last=False)
+        _tables.move_to_end(key)
+    return B
+
+
 class TableOMP:
     """OMP over the patches of one region through its pixel-pattern table.
 
@@ -338,8 +441,7 @@ class TableOMP:
 
     def __init__(self, patterns: np.ndarray, D: np.ndarray, patch_pixels: int):
         D = np.asarray(D, dtype=np.float32)
-        self.B = pattern_table(patterns, D, patch_pixels)
-        self.B2 = self.B * self.B
+        self.B = shared_table(patterns, D, patch_pixels)
         self.floor = _visibility_floor(D)
 
     def solve(self, y: np.ndarray, pat: np.ndarray, *, max_atoms: int, tol) -> OmpResult:
@@ -354,7 +456,7 @@ class TableOMP:
         count = np.zeros(P, np.int32)
         res2 = np.zeros(P, np.float32)
         dependent = np.zeros(P, np.bool_)
-        _omp_kernel(y, pat, self.B, self.B2, self.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS,
+        _omp_kernel(y, pat, self.B, self.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS,
                     _TINY, index, coef, count, res2, dependent)
         return OmpResult(index=index, coef=coef, count=count, residual=res2, dependent=dependent)
 
