@@ -243,3 +243,34 @@ def test_a_stream_is_read_capture_by_capture_and_checked_before_any_work(sequenc
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "bad.npy" in err and "capture 3" in err and "NaN" in err
     assert not (tmp_path / "r.npy").exists() and not (tmp_path / "c").exists()
+
+
+def test_still_patches_give_the_same_bits_at_every_tile_size(tmp_path):
+    """Patches wholly inside the still map take coded / open count; the pixels only they cover are that value
+    exactly, whether their tile is wholly still (answered without patches) or not: tile sizes agree bit for bit."""
+    from codedvideo.codes import make_code
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.physics import simulate
+    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.sequence import erode_to_patches, normalised
+    from codedvideo.stages import sparse_volumes
+    from codedvideo.synth import make_scene
+
+    video = make_scene("default", frames=4, size=(64, 72))
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=5)
+    coded = simulate(video, mask)
+    still = np.zeros(coded.shape, bool)
+    still[:, :40] = True
+    D, s = dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=1.0)
+    runs = {}
+    for tile in (16, 24, 128):
+        (_, volume, info), = sparse_volumes(1, lambda i: (coded, mask, still), D, settings=s, tile=tile,
+                                            cache=tmp_path / f"t{tile}", progress=False)
+        runs[tile] = volume
+        assert info["patches_static"] >= 58 * 34  # every patch inside the still columns
+    np.testing.assert_array_equal(runs[16], runs[128])
+    np.testing.assert_array_equal(runs[24], runs[128])
+    inner = erode_to_patches(still)
+    q = normalised(coded, mask)[0]
+    assert inner.sum() > 0
+    np.testing.assert_array_equal(runs[128][:, inner], np.broadcast_to(q[inner], (4, int(inner.sum()))))

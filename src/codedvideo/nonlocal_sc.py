@@ -223,7 +223,7 @@ def nonlocal_region(
             res2 = np.zeros((G, k), np.float32)
             dep = np.zeros((G, k), np.bool_)
             if G:
-                somp_kernel(y_all, pat_all, np.maximum(mem, 0), size, table.B, table.B2, table.floor, tol_all, kmax,
+                somp_kernel(y_all, pat_all, np.maximum(mem, 0), size, table.B, table.floor, tol_all, kmax,
                             DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count, res2, dep, float(consensus))
             n_groups += G
             n_members += int(size.sum())
@@ -316,7 +316,7 @@ def joint_omp(y: np.ndarray, S: np.ndarray, D: np.ndarray, *, max_atoms: int, to
     res2 = np.zeros((1, k), np.float32)
     dep = np.zeros((1, k), np.bool_)
     somp_kernel(y, np.ascontiguousarray(which, np.int32), np.arange(k, dtype=np.int64)[None], np.array([k], np.int64),
-                table.B, table.B2, table.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count,
+                table.B, table.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count,
                 res2, dep, float(consensus))
     return synthesize(OmpResult(index=index[0], coef=coef[0], count=count[0], residual=res2[0], dependent=dep[0]), D)
 

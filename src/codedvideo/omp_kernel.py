@@ -910,7 +910,7 @@ def block_match(vol, patch, window, k, idx, dist):
 
 
 @njit(nogil=True, cache=True, fastmath={"contract"})
-def somp_kernel(y, pat, members, size, B, B2, floor, tol, kmax, dep_tol, select_bits, tiny,
+def somp_kernel(y, pat, members, size, B, floor, tol, kmax, dep_tol, select_bits, tiny,
                 index, coef, count, res2, dependent, consensus):
     """Simultaneous OMP of groups of patches, each member through its own code (shared support).
 
@@ -974,11 +974,7 @@ def somp_kernel(y, pat, members, size, B, B2, floor, tol, kmax, dep_tol, select_
             active[a] = s > tol[p]
             if active[a]:
                 n_active += 1
-                c[:] = 0.0
-                for i in range(m):
-                    row = B2[i, pat[p, i]]
-                    for k in range(K):
-                        c[k] += row[k]
+                _column_norms2(B, pat[p], c)  # as the table kernel computes them (a group of one is the default)
                 big = 0.0
                 for k in range(K):
                     inv[a, k] = np.sqrt(max(c[k], np.float32(0.0)))

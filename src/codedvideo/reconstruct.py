@@ -169,6 +169,13 @@ def _few_patterns(mask: np.ndarray, D: np.ndarray, m: int) -> bool:
     return np.unique(np.tensordot(probe, mask, axes=(0, 0))).size <= limit
 
 
+def _still_answer(coded: np.ndarray, mask: np.ndarray, binary: bool) -> np.ndarray:
+    """``coded / open count`` (a calibrated mask: over the sum of its weights), 0 where never open; (h, w) float32."""
+    k = mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(k > 0, coded / np.maximum(k, 1e-12).astype(np.float32), 0).astype(np.float32)
+
+
 def reconstruct_region(
     coded: np.ndarray, mask: np.ndarray, D: np.ndarray, settings: OmpSettings, *, patch: int = P.PATCH,
     origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None, operator: str = "auto",
@@ -238,9 +245,14 @@ def reconstruct_region(
         if not np.isfinite(mask).all() or (mask < 0).any():
             raise ValueError("mask weights must be finite and >= 0")
     open_any = mask.any(0)
+    hp, wp = P.grid_shape((h, w), patch)
+    if still is not None and settings.stride == 1 and np.all(still) and open_any.all():
+        # a wholly still region: every patch takes the still answer, so every pixel is coded / open count
+        q = _still_answer(coded, mask, binary)
+        stats = np.array([hp * wp, hp * wp, 0, 0, 0, 0.0, time.perf_counter() - t_start], dtype=np.float64)
+        return np.repeat(q[None], n, axis=0), stats
     y_all = P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch)  # (Pn, m)
     S_all = P.extract(mask.astype(np.uint8) if binary else mask, patch)  # (Pn, N, m)
-    hp, wp = P.grid_shape((h, w), patch)
     groups = None if operator != "auto" else periodic_groups(mask, patch)
     # periodic codes: the few distinct patch operators are built once for the region, however
     # few its patches, so that small edge tiles solve them with the same arithmetic as large ones
@@ -325,6 +337,10 @@ def reconstruct_region(
     weight = weight[0]
     with np.errstate(invalid="ignore", divide="ignore"):
         volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
+    if still_rows is not None:  # pixels only still patches cover: the still answer exactly, as a still tile gives
+        others = P.fold(np.repeat((valid & ~still_rows).astype(np.float32)[:, None], m, 1), (h, w), patch)[0]
+        inner = (others == 0) & (weight > 0)
+        volume[:, inner] = _still_answer(coded, mask, binary)[inner]
     stats = np.array(
         [y_all.shape[0], n_static, atoms, hit, dep, t_omp, time.perf_counter() - t_start],
         dtype=np.float64,
