@@ -158,11 +158,19 @@ def _flow(frames: np.ndarray, skip: int) -> tuple[np.ndarray, np.ndarray]:
     return vy.astype(np.float32), vx.astype(np.float32)
 
 
+#: Interpolation order of the motion-compensated resamplings.  Measured on 10 captures of the default
+#: scene (256x256, N = 8): linear 0.031 s a boundary, step ratio 0.99, 29.14 dB; cubic 0.061 s, 0.99,
+#: 29.21 dB (alone: 1.29, 28.81 dB).  Whole CLI processes, 10 moving captures, median of 3: linear 102.7 %,
+#: cubic 105.6 % of the captures reconstructed on their own: linear keeps within the 5 % asked.
+JOIN_ORDER = 1
+
+
 def _shift(img: np.ndarray, dy: np.ndarray, dx: np.ndarray, grid) -> np.ndarray:
-    """``img`` sampled at ``(y + dy, x + dx)`` (cubic spline; edges repeat)."""
+    """``img`` sampled at ``(y + dy, x + dx)`` (spline of order :data:`JOIN_ORDER`; edges repeat)."""
     if not (np.any(dy) or np.any(dx)):
         return img.copy()
-    return ndimage.map_coordinates(img, [grid[0] + dy, grid[1] + dx], order=3, mode="nearest").astype(np.float32)
+    return ndimage.map_coordinates(img, [grid[0] + dy, grid[1] + dx], order=JOIN_ORDER,
+                                   mode="nearest").astype(np.float32)
 
 
 def _project_out(change: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -241,7 +249,7 @@ def join_captures(
     Notes
     -----
     Cost: one optical-flow estimate (a few filters over 8 frames) and ten
-    cubic resamplings of an (H, W) image; about 0.1 s at 256 x 256.
+    linear resamplings of an (H, W) image; about 0.03 s at 256 x 256.
     """
     from .units import static_peak
 
