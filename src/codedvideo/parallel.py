@@ -80,7 +80,7 @@ def _one_blas_thread_in_worker() -> None:
 
     Each task is one core, and the same single-threaded kernels give the same bits
     everywhere.  Local runs are limited (and restored) around the whole graph by
-    :func:`run_graph`; a per-task context would race between concurrent tasks, since
+    :func:`stream_graph`; a per-task context would race between concurrent tasks, since
     the limit is process-wide.
     """
     global _WORKER_LIMITED
