@@ -64,20 +64,20 @@ def test_distributed_with_the_still_test_is_bit_identical_too(cluster, tmp_path)
     assert info["patches_static"] > 0  # the still test did take some patches
 
 
-@pytest.mark.slow
-def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_path):
-    """SIGKILL one of two worker processes while tiles run: its tasks are rescheduled, nothing is lost."""
+def _finished_tiles(cache) -> int:
+    """Tiles finished in the working stores under ``cache``: a tile's digest is written last."""
+    return sum(1 for p in cache.glob("recon-*.zarr/digest/c/**/*") if p.is_file())
+
+
+def _kill_a_worker_midway(job, cache, *, after: int, total: int):
+    """Run ``job(scheduler_address)`` on two worker processes on loopback, SIGKILL one of them once ``after``
+    tiles under ``cache`` are finished (fewer than ``total``), and return what the job returned."""
     import os
     import signal
     import threading
     import time
 
-    import zarr
-
     distributed = pytest.importorskip("distributed")
-    coded, mask, D = _scene((96, 128))
-    s = OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0)
-    local, _ = reconstruct_volume(coded, mask, D, settings=s, tile=8, cache=tmp_path / "local", progress=False)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         pids = list(client.run(os.getpid).values())
@@ -85,26 +85,32 @@ def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_p
 
         def run():
             try:
-                result["value"] = reconstruct_volume(coded, mask, D, settings=s, tile=8, cache=tmp_path / "remote",
-                                                     progress=False, scheduler=cluster.scheduler_address)
+                result["value"] = job(cluster.scheduler_address)
             except BaseException as exc:  # reported below
                 result["error"] = exc
 
         thread = threading.Thread(target=run)
         thread.start()
-        t0, done = time.monotonic(), 0
-        while thread.is_alive() and time.monotonic() - t0 < 120 and done < 10:
-            stores = list((tmp_path / "remote").glob("recon-*.zarr"))
-            try:
-                done = int(np.isfinite(zarr.open_group(str(stores[0]), mode="r")["stats"][:]).all(1).sum()) if stores else 0
-            except Exception:
-                done = 0
+        t0 = time.monotonic()
+        while thread.is_alive() and time.monotonic() - t0 < 120 and _finished_tiles(cache) < after:
             time.sleep(0.02)
-        assert thread.is_alive(), "the run finished before a worker could be killed; make the scene larger"
+        assert thread.is_alive() and _finished_tiles(cache) < total, "finished before a worker could be killed"
         os.kill(pids[0], signal.SIGKILL)
         thread.join(300)
     assert "error" not in result, result.get("error")
-    remote, info = result["value"]
+    return result["value"]
+
+
+@pytest.mark.slow
+def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_path):
+    """SIGKILL one of two worker processes while tiles run: its tasks are rescheduled, nothing is lost."""
+    coded, mask, D = _scene((96, 128))
+    s = OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0)
+    local, _ = reconstruct_volume(coded, mask, D, settings=s, tile=8, cache=tmp_path / "local", progress=False)
+    remote, info = _kill_a_worker_midway(
+        lambda address: reconstruct_volume(coded, mask, D, settings=s, tile=8, cache=tmp_path / "remote",
+                                           progress=False, scheduler=address),
+        tmp_path / "remote", after=10, total=192)
     assert info["tiles_computed"] == info["tiles"] == 192
     np.testing.assert_array_equal(remote, local)
 
@@ -113,14 +119,8 @@ def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_p
 def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_path):
     """A sequence of captures as one graph on two worker processes; one is SIGKILLed while tiles of the
     sequence run: its tasks are rescheduled, and every capture equals the local run bit for bit."""
-    import os
-    import signal
-    import threading
-    import time
-
     from codedvideo.stages import sparse_volumes
 
-    distributed = pytest.importorskip("distributed")
     video = make_scene("default", frames=4 * 4, size=(64, 96))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
     codeds = [simulate(video[4 * t : 4 * t + 4], mask, sigma=2.0, rng=t) for t in range(4)]
@@ -128,33 +128,12 @@ def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_pa
     s = OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0)
 
     def run(cache, scheduler=None):
-        return [v for _, v, _ in sparse_volumes(4, lambda i: (codeds[i], mask, None), D, settings=s, tile=8, cache=cache,
-                                                progress=False, scheduler=scheduler)]
+        return [v for _, v, _ in sparse_volumes(4, lambda i: (codeds[i], mask, None), D, settings=s, tile=8,
+                                                cache=cache, progress=False, scheduler=scheduler)]
 
     local = run(tmp_path / "local")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        pids = list(client.run(os.getpid).values())
-        result = {}
-
-        def remote():
-            try:
-                result["value"] = run(tmp_path / "remote", cluster.scheduler_address)
-            except BaseException as exc:  # reported below
-                result["error"] = exc
-
-        def finished_tiles() -> int:  # digests are written last
-            return sum(1 for p in (tmp_path / "remote").glob("recon-*.zarr/digest/c/**/*") if p.is_file())
-
-        thread = threading.Thread(target=remote)
-        thread.start()
-        t0 = time.monotonic()
-        while thread.is_alive() and time.monotonic() - t0 < 120 and finished_tiles() < 40:
-            time.sleep(0.02)
-        assert thread.is_alive() and finished_tiles() < 4 * 96, "finished before a worker could be killed"
-        os.kill(pids[0], signal.SIGKILL)
-        thread.join(300)
-    assert "error" not in result, result.get("error")
-    assert len(result["value"]) == 4
-    for got, want in zip(result["value"], local):
+    remote = _kill_a_worker_midway(lambda address: run(tmp_path / "remote", address), tmp_path / "remote",
+                                   after=40, total=4 * 96)
+    assert len(remote) == 4
+    for got, want in zip(remote, local):
         np.testing.assert_array_equal(got, want)
