@@ -188,6 +188,8 @@ class ReportConfig(_Strict):
     speed_atoms: list[int] = [128, 256]
     speed_codes: list[Literal["hitomi", "hitomi-tiled"]] = ["hitomi", "hitomi-tiled"]
     speed_strides: list[Annotated[int, Field(ge=1, le=7)]] = [1, 2, 3]
+    #: Speed study: the sparse methods besides the configured one, each a point with its default settings.
+    speed_methods: list[Literal["omp", "nonlocal"]] = ["omp", "nonlocal"]
     #: The scene of the frame strips and the side-by-side video.
     video_scene: str = "default"
     fps: int = Field(4, ge=1)

@@ -49,7 +49,7 @@ from .metrics import evaluate
 from .cache import RECON_VERSION, content_key
 from .volumes import write_json
 from .scenes import load_video
-from .stages import simulate_capture, train_dictionary
+from .stages import SPARSE_METHODS, simulate_capture, train_dictionary
 from .store import load_dictionary
 
 #: Part of every experiment key: bump it when what an experiment records changes.
@@ -141,13 +141,13 @@ class Runner:
         settings = dict(scene=scene, size=list(rc.size), frames=frames, code=code, bump=bump, sigma=float(sigma),
                         method=method, seed=self.cfg.seed, repeats=repeats)
         D, dkey, omp = None, "", None
-        if method in ("omp", "dct"):
+        if method in SPARSE_METHODS:
             r = self.cfg.reconstruct
             omp = omp_settings(r.model_copy(update=dict(
                 max_atoms=max_atoms or r.max_atoms, tol_rms="auto" if tol_rms is None else float(tol_rms),
-                stride=stride or r.stride)), sigma)
-            settings.update(omp.__dict__, tile=r.tile, version=RECON_VERSION)
-            if method == "omp":
+                stride=stride or r.stride, method="nonlocal" if method == "nonlocal" else "omp")), sigma)
+            settings.update(omp.__dict__, tile=r.tile, version=RECON_VERSION, method=method)
+            if method != "dct":
                 D, meta = self.dictionary(frames, atoms)
                 dkey = meta["sha256"]
                 settings["dictionary_atoms"] = int(D.shape[1])
@@ -229,12 +229,15 @@ def run_experiments(runner: Runner) -> dict:
     variants += [dict(label=f"{k} atoms", atoms=k) for k in rc.speed_atoms if k != k0]
     variants += [dict(label=f"code {c}", code=c) for c in rc.speed_codes if c != "hitomi"]
     variants += [dict(label=f"patch stride {st}", stride=st) for st in rc.speed_strides if st != r.stride]
+    variants = [dict(v, method=r.method) for v in variants]
+    variants += [dict(label="default settings", method=m) for m in rc.speed_methods if m != r.method]
     for v in variants:
         for scene in rc.scenes:
-            rec = runner.run(scene=scene, frames=n, code=v.get("code", "hitomi"), bump=L, sigma=0.0, method="omp",
-                             max_atoms=v.get("max_atoms"), tol_rms=v.get("tol_rms"), atoms=v.get("atoms"),
-                             stride=v.get("stride"), timed=True)
-            out["speed"].append(dict(rec, label=f"OMP {v['label']}", in_mean=True))
+            rec = runner.run(scene=scene, frames=n, code=v.get("code", "hitomi"), bump=L, sigma=0.0,
+                             method=v["method"], max_atoms=v.get("max_atoms"), tol_rms=v.get("tol_rms"),
+                             atoms=v.get("atoms"), stride=v.get("stride"), timed=True)
+            name = "OMP" if v["method"] == "omp" else "non-local OMP"
+            out["speed"].append(dict(rec, label=f"{name} {v['label']}", in_mean=True))
     return out
 
 
