@@ -103,3 +103,18 @@ def test_run_pipeline_yaml(workdir):
     cfg.write_text("frames: 4\nreconstruct: {tiles: 32}\n")
     proc = run("run", cfg, cwd=workdir, check=False)
     assert proc.returncode == 2 and "reconstruct.tiles" in proc.stderr and "unknown key" in proc.stderr
+
+
+def test_the_installed_command_keeps_its_exit_code_and_flushes_its_output(workdir, capture):
+    """`codedvideo` leaves without finalising the interpreter (cli.console_main): its exit code and its
+    last line of output must still arrive."""
+    script = Path(sys.executable).with_name("codedvideo")
+    if not script.exists():
+        pytest.skip("the console script is not installed next to this interpreter")
+    proc = subprocess.run([str(script), "codes", "check", str(capture / "mask.npy")], capture_output=True, text=True,
+                          cwd=workdir, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["frames"] == 8
+    proc = subprocess.run([str(script), "codes", "check", str(workdir / "missing.npy")], capture_output=True,
+                          text=True, cwd=workdir, timeout=600)
+    assert proc.returncode == 2 and "missing.npy" in proc.stderr

@@ -8,11 +8,13 @@ behind because every writer goes through a temporary name.
 from __future__ import annotations
 
 import argparse
+import atexit
 import contextlib
 import dataclasses
 import functools
 import json
 import logging
+import os
 import sys
 import time
 import warnings
@@ -695,5 +697,25 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def console_main() -> None:
+    """The ``codedvideo`` command: :func:`main`, then leave without finalising the interpreter.
+
+    Freeing the modules a run loaded (numba, scipy, zarr, dask) takes 0.2 to
+    0.6 s after the work is done and every output is closed (measured on a
+    2-core machine: a 4 s reconstruction took 4.4 s as a whole process).  So
+    the exit handlers run (log handlers, zarr's event loop), the standard
+    streams are flushed, and the process ends with the command's exit code.
+    An exception that escapes :func:`main` exits the usual way, traceback and all.
+    """
+    code = main()
+    atexit._run_exitfuncs()  # what interpreter shutdown would run
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a reader that went away, or a closed stream: nothing more to say
+            pass
+    os._exit(code)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console_main()

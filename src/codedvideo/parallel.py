@@ -32,6 +32,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import dask
+import dask.local
+import dask.threaded
 import numpy as np
 
 from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
@@ -267,7 +269,9 @@ def _stream_local(tasks, needs, scheduler, workers, bar) -> Iterator[int]:
     def run():
         try:
             with _single_threaded_blas(scheduler != "sync"):  # one core per worker thread
-                dask.compute(*tasks, scheduler="sync" if scheduler == "sync" else "threads",
+                # the scheduler as a function: a name would make dask import distributed (0.1 to 0.5 s)
+                # to look for a client first
+                dask.compute(*tasks, scheduler=dask.local.get_sync if scheduler == "sync" else dask.threaded.get,
                              num_workers=workers or os.cpu_count() or 1,
                              callbacks=[Callback(pretask=pretask, posttask=posttask)._callback])
             done_keys.put(None)

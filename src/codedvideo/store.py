@@ -418,7 +418,7 @@ class WorkStore:
                 arr = group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill)
                 if name in ("coded", "mask", "still"):
                     arr[...] = dict(coded=coded, mask=mask, still=still)[name]
-            group.attrs.update(json.loads(json.dumps(dict(
+            group.update_attributes(json.loads(json.dumps(dict(
                 attrs, kind=WORKSTORE_KIND, format_version=WORKSTORE_FORMAT, tile=int(tile), n_tiles=int(n_tiles),
                 inputs_digest=inputs_digest(coded, mask, still), complete_inputs=True))))
             _replace_dir(tmp, path)
@@ -587,7 +587,7 @@ def save_array(path: str | os.PathLike, array: np.ndarray, *, chunks=None, attrs
         arr = zarr.create_array(str(tmp), shape=array.shape, chunks=chunks or array.shape, dtype=array.dtype)
         arr[...] = array
         if attrs:
-            arr.attrs.update(json.loads(json.dumps(dict(attrs, format_version=FORMAT_VERSION))))
+            arr.update_attributes(json.loads(json.dumps(dict(attrs, format_version=FORMAT_VERSION))))  # one metadata write
         _replace_dir(tmp, path)
     except OSError as exc:
         shutil.rmtree(tmp, ignore_errors=True)
