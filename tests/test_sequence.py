@@ -67,23 +67,40 @@ def test_a_sequence_equals_its_captures_reconstructed_one_by_one(sequence, tmp_p
     assert len(metrics["quality"]["boundaries"]["pairs"]) == T - 1
 
 
+STREAMED = ("s.tif", "s.mkv", "s.zarr", "s_frames")  # besides .npy: every grey output is written capture by capture
+
+
 def test_streamed_output_equals_the_output_written_at_once(sequence, tmp_path, capsys):
+    from codedvideo.volumes import read_volume, write_volume
+
     cap = sequence / "cap"
-    for out in ("s.npy", "s.tif"):  # .npy is streamed capture by capture, .tif written at the end
+    for out in ("s.npy", *STREAMED):
         _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--method", "dct",
              "--cache", tmp_path / "cache", "--output", tmp_path / out)
-    from codedvideo.volumes import read_volume
+    volume = np.load(tmp_path / "s.npy")
+    assert volume.shape == (T * N, H, W)
+    for out in STREAMED:
+        whole = tmp_path / f"whole-{out}"
+        write_volume(volume, whole)
+        np.testing.assert_array_equal(read_volume(tmp_path / out), read_volume(whole), err_msg=out)
+    np.testing.assert_array_equal(read_volume(tmp_path / "s.tif"), volume)  # float32 pages: exact
+    np.testing.assert_array_equal(read_volume(tmp_path / "s.zarr"), volume)
+    import zarr
 
-    np.testing.assert_array_equal(np.load(tmp_path / "s.npy"), read_volume(tmp_path / "s.tif"))
-    # a grey video is encoded capture by capture: the same frames as the whole volume written at once
-    from codedvideo.volumes import write_volume
+    assert zarr.open_array(str(tmp_path / "s.zarr"), mode="r").chunks[0] == N  # a capture per chunk
 
-    _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--method", "dct",
-         "--cache", tmp_path / "cache", "--output", tmp_path / "s.mkv")
-    write_volume(np.load(tmp_path / "s.npy"), tmp_path / "whole.mkv")
-    streamed, whole = read_volume(tmp_path / "s.mkv"), read_volume(tmp_path / "whole.mkv")
-    assert streamed.shape == (T * N, H, W)
-    np.testing.assert_array_equal(streamed, whole)
+
+@pytest.mark.parametrize("out", ["s.npy", *STREAMED])
+def test_a_stream_cut_short_leaves_no_output(tmp_path, out):
+    from codedvideo.volumes import volume_writer
+
+    parts = np.random.default_rng(0).uniform(0, 255, (2, N, H, W)).astype(np.float32)
+    with pytest.raises(RuntimeError, match="capture 2 failed"):
+        with volume_writer(tmp_path / out, (3 * N, H, W), part=N) as put:
+            for i, part in enumerate(parts):
+                put(slice(i * N, (i + 1) * N), part)
+            raise RuntimeError("capture 2 failed")
+    assert os.listdir(tmp_path) == []  # neither the output nor a temporary
 
 
 def test_mask_per_capture_must_match_the_number_of_captures(sequence, tmp_path, capsys):
@@ -274,3 +291,34 @@ def test_still_patches_give_the_same_bits_at_every_tile_size(tmp_path):
     q = normalised(coded, mask)[0]
     assert inner.sum() > 0
     np.testing.assert_array_equal(runs[128][:, inner], np.broadcast_to(q[inner], (4, int(inner.sum()))))
+
+
+def test_a_streams_truth_is_read_capture_by_capture_with_the_same_figures(sequence, tmp_path, capsys):
+    """A (T*N, H, W) .npy truth is read N frames at a time: the same figures as the same truth read whole (a
+    multi-page TIFF); a NaN in it is a one-line error naming the file and the frame, before any work."""
+    from codedvideo.io import write_stack
+    from codedvideo.volumes import NpyStack, read_truth_stack
+
+    cap = sequence / "cap"
+    truth = np.load(cap / "truth.npy")
+    stack = read_truth_stack(cap / "truth.npy", N)
+    assert isinstance(stack, NpyStack)
+    np.testing.assert_array_equal(stack[N : 2 * N], truth[N : 2 * N])
+    write_stack(tmp_path / "truth.tif", truth)
+    figures = []
+    for name, path in (("a", cap / "truth.npy"), ("b", tmp_path / "truth.tif")):
+        _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--method", "dct",
+             "--cache", tmp_path / "cache", "--truth", path, "--output", tmp_path / f"{name}.npy")
+        quality = json.loads((tmp_path / f"{name}.metrics.json").read_text())["quality"]
+        figures.append((quality["psnr_per_frame"], quality["boundaries"]["pairs"]))
+    assert figures[0] == figures[1] and len(figures[0][0]) == T * N
+    bad = truth.copy()
+    bad[N + 1, 3, 3] = np.inf
+    np.save(tmp_path / "bad.npy", bad)
+    capsys.readouterr()
+    assert main(["-q", "reconstruct", "--coded", str(cap / "coded.npy"), "--mask", str(cap / "mask.npy"), "--truth",
+                 str(tmp_path / "bad.npy"), "--method", "dct", "--output", str(tmp_path / "r.npy"), "--cache",
+                 str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bad.npy" in err and f"frame {N + 2}" in err
+    assert not (tmp_path / "r.npy").exists()

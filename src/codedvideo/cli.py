@@ -352,7 +352,7 @@ class _Captures:
 def _read_captures(a) -> _Captures:
     from .io import stored_dtype
     from .physics import check_pair
-    from .volumes import check_size, read_coded, read_coded_stack, read_masks, read_volume
+    from .volumes import check_size, read_coded, read_coded_stack, read_masks, read_truth_stack, read_volume
 
     if a.cacti:
         from .cacti import read_cacti
@@ -396,8 +396,8 @@ def _read_captures(a) -> _Captures:
     kind = "channels" if color else "single" if coded.shape[0] == 1 else "captures"
     n = masks[0].shape[0]
     truths = None
-    if a.truth:
-        truth = read_volume(a.truth, color="channels" if color else "luma")
+    if a.truth:  # a stream's truth (.npy) is read capture by capture, as its coded images
+        truth = read_volume(a.truth, color="channels") if color else read_truth_stack(a.truth, n)
         truth = truth[None] if color and truth.ndim == 3 else truth
         want = (coded.shape[0], n, *coded.shape[-2:]) if color else (coded.shape[0] * n, *coded.shape[-2:])
         if truth.shape != want:
@@ -487,7 +487,7 @@ def _cmd_reconstruct(a) -> int:
                     steps.add(volume, truth)
             t1 = time.perf_counter()
             if put is None:
-                put = stack.enter_context(volume_writer(a.output, shape, data_range=units.value, fps=out.fps))
+                put = stack.enter_context(volume_writer(a.output, shape, data_range=units.value, fps=out.fps, part=n))
             put(i if job.kind == "channels" else slice(None) if job.kind == "bayer" else slice(i * n, (i + 1) * n),
                 volume)
             t_write += time.perf_counter() - t1

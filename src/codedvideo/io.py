@@ -584,33 +584,59 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
             raise OutputError(f"video {path}: cannot write ({exc})") from exc
 
 
+class _OiioPages:
+    """An image file written page by page (one subimage each): ``add(page, fmt)``, then ``close()``.
+
+    The file is opened at the first page, for ``pages`` subimages of that
+    page's size and type; a file of several pages needs a format that holds
+    them (TIFF, EXR).
+    """
+
+    def __init__(self, path: Path, pages: int):
+        import OpenImageIO as oiio
+
+        self.path, self.pages, self.written, self.spec = path, pages, 0, None
+        self.out = oiio.ImageOutput.create(str(path))
+        if self.out is None:
+            raise OutputError(f"image {path}: no writer for this format ({_one_line(oiio.geterror())})")
+
+    def add(self, page: np.ndarray, fmt: str) -> None:
+        """One page of (H, W) or (C, H, W) pixels."""
+        import OpenImageIO as oiio
+
+        # OpenImageIO wants (H, W, C) pixels; a 2-D array is misread
+        page = page[..., None] if page.ndim == 2 else np.moveaxis(page, 0, -1)
+        if self.written >= self.pages:
+            raise OutputError(f"image {self.path}: more than the {self.pages} pages announced")
+        if self.spec is None:
+            h, w, c = page.shape
+            self.spec = oiio.ImageSpec(w, h, c, fmt)
+            if c in (2, 4):
+                self.spec.attribute("oiio:UnassociatedAlpha", 1)  # colour values are not premultiplied by alpha
+            if self.pages > 1:
+                if not self.out.supports("multiimage"):
+                    raise OutputError(f"image {self.path}: the format cannot hold {self.pages} pages")
+                ok = self.out.open(str(self.path), [self.spec] * self.pages)
+            else:
+                ok = self.out.open(str(self.path), self.spec)
+            if not ok:
+                raise OutputError(f"image {self.path}: cannot open for writing ({self.out.geterror()})")
+        elif not self.out.open(str(self.path), self.spec, "AppendSubimage"):
+            raise OutputError(f"image {self.path}: cannot append page {self.written} ({self.out.geterror()})")
+        if not self.out.write_image(np.ascontiguousarray(page)):
+            raise OutputError(f"image {self.path}: cannot write ({self.out.geterror()})")
+        self.written += 1
+
+    def close(self) -> None:
+        self.out.close()
+
+
 def _oiio_write(path: Path, pages: list[np.ndarray], fmt: str) -> None:
     """Write pages of (H, W) or (C, H, W) pixels (one subimage each)."""
-    import OpenImageIO as oiio
-
-    out = oiio.ImageOutput.create(str(path))
-    if out is None:
-        raise OutputError(f"image {path}: no writer for this format ({_one_line(oiio.geterror())})")
-    # OpenImageIO wants (H, W, C) pixels; a 2-D array is misread
-    pages = [p[..., None] if p.ndim == 2 else np.moveaxis(p, 0, -1) for p in pages]
-    h, w, c = pages[0].shape
-    spec = oiio.ImageSpec(w, h, c, fmt)
-    if c in (2, 4):
-        spec.attribute("oiio:UnassociatedAlpha", 1)  # colour values are not premultiplied by alpha
+    out = _OiioPages(path, len(pages))
     try:
-        if len(pages) > 1:
-            if not out.supports("multiimage"):
-                raise OutputError(f"image {path}: the format cannot hold {len(pages)} pages")
-            ok = out.open(str(path), [spec] * len(pages))
-        else:
-            ok = out.open(str(path), spec)
-        if not ok:
-            raise OutputError(f"image {path}: cannot open for writing ({out.geterror()})")
-        for i, page in enumerate(pages):
-            if i > 0 and not out.open(str(path), spec, "AppendSubimage"):
-                raise OutputError(f"image {path}: cannot append page {i} ({out.geterror()})")
-            if not out.write_image(np.ascontiguousarray(page)):
-                raise OutputError(f"image {path}: cannot write ({out.geterror()})")
+        for page in pages:
+            out.add(page, fmt)
     finally:
         out.close()
 
@@ -672,18 +698,40 @@ def write_stack(path: str | os.PathLike, stack: np.ndarray, *, dtype=None) -> Pa
     :func:`write_image` (TIFF: float32 by default, uint8 or uint16; EXR:
     float32 or float16).  A (C, N, H, W) colour stack gives C-channel pages.
     """
-    path = Path(path)
     stack = np.asarray(stack)
-    if path.suffix.lower() not in (".tif", ".tiff", ".exr"):
-        raise InputError(f"stack {path}: multi-page files are .tif/.tiff or .exr, not {path.suffix!r}")
     if stack.ndim == 4:
         stack = np.moveaxis(stack, 0, 1)  # (N, C, H, W): one C-channel page per frame
     elif stack.ndim != 3:
         raise InputError(f"stack {path}: expected shape (N, H, W) or (C, N, H, W), got {stack.shape}")
-    arr, fmt = _pixels(path, stack, dtype)
+    with stack_writer(path, len(stack), dtype=dtype) as write:
+        write(stack)
+    return Path(path)
+
+
+@contextlib.contextmanager
+def stack_writer(path: str | os.PathLike, pages: int, *, dtype=None):
+    """Write a multi-page file (:func:`write_stack`'s formats) part by part: yields ``write(pages)``.
+
+    ``pages`` parts of (n, H, W) (or (n, C, H, W)) come in order, each written
+    as it comes, so a long stack is never held whole; the file appears under
+    ``path`` only when the block ends with all ``pages`` pages written.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in (".tif", ".tiff", ".exr"):
+        raise InputError(f"stack {path}: multi-page files are .tif/.tiff or .exr, not {path.suffix!r}")
+    _pixels(path, np.zeros(1), dtype)  # the pixel type is checked before anything is written
     with atomic_output(path) as tmp:
-        _oiio_write(tmp, list(arr), fmt)
-    return path
+        out = _OiioPages(tmp, pages)
+        try:
+            def write(part: np.ndarray) -> None:
+                for page in np.asarray(part):
+                    out.add(*_pixels(path, page, dtype))
+
+            yield write
+        finally:
+            out.close()
+        if out.written != pages:
+            raise OutputError(f"stack {path}: {out.written} of {pages} pages written")
 
 
 def write_multipage_tiff(path: str | os.PathLike, stack: np.ndarray) -> Path:
@@ -712,35 +760,57 @@ def write_frames(
         values), "png" (8-bit, ``data_range`` -> 255), "png16" and "dpx"
         (16-bit, ``data_range`` -> 65535).
     """
-    directory = Path(directory)
     frames = np.asarray(frames)
     if frames.ndim == 4:
         frames = np.moveaxis(frames, 0, 1)  # (N, C, H, W): one colour file per frame
     elif frames.ndim != 3:
         raise InputError(f"frames {directory}: expected shape (N, H, W) or (C, N, H, W), got {frames.shape}")
-    names = []
+    with frames_writer(directory, fmt=fmt, data_range=data_range, prefix=prefix) as write:
+        return write(frames)
+
+
+#: Frame formats of :func:`write_frames`: name -> (file extension, OpenImageIO type, full scale or None for raw values)
+_FRAME_FORMATS = {"tiff16": ("tif", "uint16", 65535.0), "exr": ("exr", "float", None), "png": ("png", "uint8", 255.0),
+                  "png16": ("png", "uint16", 65535.0), "dpx": ("dpx", "uint16", 65535.0)}
+
+
+@contextlib.contextmanager
+def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_range: float = 255.0,
+                  prefix: str = "frame"):
+    """Write a folder of frames (:func:`write_frames`) part by part: yields ``write(frames)`` -> their paths.
+
+    Parts of (n, H, W) (or (n, C, H, W) colour) frames come in order and are
+    numbered on; the folder appears under ``directory`` only when the block
+    ends without an error.
+    """
+    directory = Path(directory)
+    if fmt not in _FRAME_FORMATS:
+        raise InputError(f"frames {directory}: unknown frame format {fmt!r}")
+    ext, ofmt, full = _FRAME_FORMATS[fmt]
     with atomic_output(directory) as tmp:
         tmp.mkdir()
-        for i, frame in enumerate(frames):
-            if fmt == "tiff16":
-                name, arr, ofmt = f"{prefix}_{i:04d}.tif", np.clip(np.rint(frame * (65535.0 / data_range)), 0, 65535).astype(np.uint16), "uint16"
-            elif fmt == "exr":
-                name, arr, ofmt = f"{prefix}_{i:04d}.exr", frame.astype(np.float32), "float"
-            elif fmt == "png":
-                name, arr, ofmt = f"{prefix}_{i:04d}.png", _to_uint8(frame, data_range), "uint8"
-            elif fmt in ("png16", "dpx"):
-                ext = "png" if fmt == "png16" else "dpx"
-                name, ofmt = f"{prefix}_{i:04d}.{ext}", "uint16"
-                arr = np.clip(np.rint(frame * (65535.0 / data_range)), 0, 65535).astype(np.uint16)
-            else:
-                raise InputError(f"frames {directory}: unknown frame format {fmt!r}")
-            _oiio_write(tmp / name, [arr], ofmt)
-            names.append(directory / name)
+        count = 0
+
+        def write(frames: np.ndarray) -> list[Path]:
+            nonlocal count
+            names = []
+            for frame in np.asarray(frames):
+                if full is None:
+                    arr = frame.astype(np.float32)
+                elif full == 255.0:
+                    arr = _to_uint8(frame, data_range)
+                else:
+                    arr = np.clip(np.rint(frame * (full / data_range)), 0, full).astype(np.uint16)
+                name = f"{prefix}_{count:04d}.{ext}"
+                _oiio_write(tmp / name, [arr], ofmt)
+                names.append(directory / name)
+                count += 1
+            return names
+
+        yield write
         # how stored values map back to frame units, for read_frames_scale (the image files alone
         # do not say which data_range was mapped to their full scale)
-        full = {"png": 255.0, "exr": None}.get(fmt, 65535.0)
         (tmp / FRAMES_SIDECAR).write_text(json.dumps(dict(format=fmt, data_range=data_range, full_scale=full)) + "\n")
-    return names
 
 
 def read_frames_scale(directory: str | os.PathLike) -> float:

@@ -580,19 +580,34 @@ class WorkStore:
 
 def save_array(path: str | os.PathLike, array: np.ndarray, *, chunks=None, attrs: dict | None = None) -> Path:
     """Write one array as a Zarr store, atomically."""
+    with array_writer(path, array.shape, array.dtype, chunks=chunks, attrs=attrs) as arr:
+        arr[...] = array
+    return Path(path)
+
+
+@contextlib.contextmanager
+def array_writer(path: str | os.PathLike, shape: tuple, dtype, *, chunks=None, attrs: dict | None = None):
+    """Write one Zarr array part by part: yields the array (assign its parts), renamed into place at the end.
+
+    The array is made under a temporary name; only when the block ends
+    without an error do its attributes (with the format version) go in and
+    the store appear under ``path``, so a reader never sees it half-written.
+    """
     path = Path(path)
     tmp = _tmp_sibling(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        arr = zarr.create_array(str(tmp), shape=array.shape, chunks=chunks or array.shape, dtype=array.dtype)
-        arr[...] = array
+        arr = zarr.create_array(str(tmp), shape=tuple(shape), chunks=chunks or tuple(shape), dtype=dtype)
+        yield arr
         if attrs:
-            arr.update_attributes(json.loads(json.dumps(dict(attrs, format_version=FORMAT_VERSION))))  # one metadata write
+            arr.update_attributes(json.loads(json.dumps(dict(attrs, format_version=FORMAT_VERSION))))
         _replace_dir(tmp, path)
     except OSError as exc:
         shutil.rmtree(tmp, ignore_errors=True)
         raise OutputError(f"{path}: cannot write Zarr array ({exc.strerror or exc})") from exc
-    return path
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def load_array(path: str | os.PathLike) -> np.ndarray:

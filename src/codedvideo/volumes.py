@@ -17,7 +17,7 @@ from . import io as cio
 from .errors import InputError
 from .io import VIDEO_SUFFIXES
 from .patches import PATCH
-from .store import load_array, save_array
+from .store import array_writer, load_array, save_array
 
 
 def write_json(path: Path, payload: dict) -> Path:
@@ -68,37 +68,66 @@ def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
 
 
 class NpyStack:
-    """The coded images (T, H, W) of a .npy file, read one at a time: a long stream is never held whole.
+    """The images (T, H, W) of a .npy file, read a few at a time: a long stream is never held whole.
 
-    Indexing with a capture number reads that capture as float32 and checks
-    it; ``shape``, ``dtype`` and ``len`` are those of the file.
+    Indexing with a number reads that image, with a slice (step 1) those
+    images, as float32, checked finite; ``shape``, ``dtype`` and ``len`` are
+    those of the file.  ``what`` names the file in errors ("coded image",
+    "truth").
     """
 
-    def __init__(self, path: Path, shape: tuple[int, int, int], dtype: np.dtype, offset: int):
-        self.path, self.shape, self.dtype, self._offset = path, shape, dtype, offset
+    def __init__(self, path: Path, shape: tuple[int, int, int], dtype: np.dtype, offset: int, *,
+                 what: str = "coded image"):
+        self.path, self.shape, self.dtype, self._offset, self.what = path, shape, dtype, offset, what
         self._count = shape[1] * shape[2]
 
     def __len__(self) -> int:
         return self.shape[0]
 
     def __getitem__(self, i):
+        if isinstance(i, slice):
+            start, stop, step = i.indices(len(self))
+            if step != 1:
+                raise TypeError("NpyStack: slices of consecutive images only")
+            return self._read(start, max(stop - start, 0))
         if not isinstance(i, (int, np.integer)):
-            raise TypeError("NpyStack: index with one capture number")
+            raise TypeError("NpyStack: index with a number or a slice")
         if not -len(self) <= i < len(self):
-            raise IndexError(f"capture {i} of {len(self)}")
-        i = int(i) % len(self)
-        part = np.fromfile(self.path, dtype=self.dtype, count=self._count,
-                           offset=self._offset + i * self._count * self.dtype.itemsize)
-        part = part.reshape(self.shape[1:]).astype(np.float32)
+            raise IndexError(f"image {i} of {len(self)}")
+        return self._read(int(i) % len(self), 1)[0]
+
+    def _read(self, start: int, count: int) -> np.ndarray:
+        part = np.fromfile(self.path, dtype=self.dtype, count=count * self._count,
+                           offset=self._offset + start * self._count * self.dtype.itemsize)
+        part = part.reshape((count, *self.shape[1:])).astype(np.float32)
         if not np.isfinite(part).all():
-            raise InputError(f"coded image {self.path}: capture {i + 1} contains NaN or Inf")
+            bad = start + int(np.flatnonzero(~np.isfinite(part).reshape(count, -1).all(1))[0])
+            what = "capture" if self.what == "coded image" else "frame"
+            raise InputError(f"{self.what} {self.path}: {what} {bad + 1} contains NaN or Inf")
         return part
+
+    def check(self, block: int = 1) -> None:
+        """Read the whole file ``block`` images at a time: a NaN anywhere is an error before any work."""
+        for start in range(0, len(self), block):
+            self[start : start + block]
 
     def __iter__(self):
         return (self[i] for i in range(len(self)))
 
     def __array__(self, dtype=None, copy=None):
-        return np.stack(list(self)).astype(dtype or np.float32)
+        return self[:].astype(dtype or np.float32)
+
+
+def read_truth_stack(path: str | Path, frames: int) -> np.ndarray | NpyStack:
+    """A truth video (T*N, H, W): a long .npy stream is read ``frames`` at a time (checked whole first, part by
+    part); anything else whole (:func:`read_volume`)."""
+    path = Path(path)
+    layout = cio.npy_layout(path) if path.suffix.lower() == ".npy" else None
+    if layout is not None and len(layout[0]) == 3 and layout[0][0] > frames:
+        stack = NpyStack(path, *layout, what="truth")
+        stack.check(frames)
+        return stack
+    return read_volume(path)
 
 
 def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack:
@@ -109,8 +138,7 @@ def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack:
     layout = cio.npy_layout(path) if suffix == ".npy" else None
     if layout is not None and len(layout[0]) == 3 and layout[0][0] > 1:  # a stream: read capture by capture
         stack = NpyStack(path, *layout)
-        for coded in stack:  # checked whole before any work, one capture at a time
-            del coded
+        stack.check()  # before any work, one capture at a time
         return stack
     if suffix == ".npy":
         arr = cio.read_array(path)
@@ -157,36 +185,52 @@ def _checked_mask(mask: np.ndarray, path) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0, fps: int = 30):
+def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0, fps: int = 30,
+                  part: int | None = None):
     """Write a volume part by part, as its parts are reconstructed: yields ``put(index, part)``.
 
     Parts come in order (``volume[index] = part``, the indices consecutive
-    along the first axis).  ``.npy`` outputs are streamed: the header, then
-    each part appended to a temporary file, renamed onto ``output`` when the
-    block ends complete, so memory does not grow with the number of captures
-    (a memory map would: the pages written stay in the process's resident
-    set).  Grey videos (.mp4, .mkv, .avi, .gif) are encoded part by part the
-    same way.  Other formats (and colour videos) gather the parts and go
-    through :func:`write_volume` at the end.
+    along the first axis).  A grey volume (N, H, W) is written as its parts
+    come, in every format of :func:`write_volume` but ``.mat``, so memory does
+    not grow with the number of captures: ``.npy`` (the header, then each part
+    appended; a memory map would keep the pages written in the process's
+    resident set), videos (encoded part by part), multi-page TIFF (page by
+    page), a folder of frames (file by file) and ``.zarr`` (chunks of ``part``
+    frames: a capture's N).  Each appears under ``output`` only when the
+    block ends complete.  ``.mat`` files and colour volumes gather the parts
+    and go through :func:`write_volume` at the end.
     """
     output = Path(output)
-    if output.suffix.lower() == ".npy":
+    suffix = output.suffix.lower()
+    grey = len(shape) == 3
+    if suffix == ".npy":
         total = int(np.prod(shape)) * 4
         with cio.atomic_output(output) as tmp:
             with open(tmp, "wb") as fh:
                 np.lib.format.write_array_header_2_0(fh, dict(descr="<f4", fortran_order=False, shape=tuple(shape)))
                 start = fh.tell()
-
-                def put(index, part):
-                    np.ascontiguousarray(part, dtype="<f4").tofile(fh)  # no copy of a float32 part
-
-                yield put
+                yield lambda index, part: np.ascontiguousarray(part, dtype="<f4").tofile(fh)  # a float32 part: no copy
                 if fh.tell() - start != total:
                     raise RuntimeError(f"output {output}: {fh.tell() - start} of {total} bytes written")
         return
-    if output.suffix.lower() in VIDEO_SUFFIXES and len(shape) == 3:  # grey frames: encoded as they come
-        with cio.video_writer(output, tuple(shape[1:]), data_range=data_range, fps=fps) as write:
+    streamed = None
+    if grey and suffix in VIDEO_SUFFIXES:
+        streamed = cio.video_writer(output, tuple(shape[1:]), data_range=data_range, fps=fps)
+    elif grey and suffix in (".tif", ".tiff"):
+        streamed = cio.stack_writer(output, shape[0], dtype=np.float32)
+    elif grey and suffix in ("", ".d"):
+        streamed = cio.frames_writer(output, fmt="tiff16", data_range=data_range)
+    if streamed is not None:
+        with streamed as write:
             yield lambda index, part: write(part)
+        return
+    if grey and suffix == ".zarr":
+        chunks = (min(part or shape[0], shape[0]), *(min(256, s) for s in shape[1:]))
+        with array_writer(output, shape, np.float32, chunks=chunks, attrs=dict(kind="codedvideo-volume")) as arr:
+            def put(index, part):
+                arr[index] = np.asarray(part, dtype=np.float32)
+
+            yield put
         return
     volume = np.empty(tuple(shape), np.float32)
 
