@@ -322,3 +322,32 @@ def test_a_streams_truth_is_read_capture_by_capture_with_the_same_figures(sequen
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "bad.npy" in err and f"frame {N + 2}" in err
     assert not (tmp_path / "r.npy").exists()
+
+
+def test_a_folder_of_coded_images_is_read_capture_by_capture(sequence, tmp_path, capsys):
+    """A camera's stream as a folder of float TIFF files (one capture each) is read one file at a time and gives
+    the video of the same stack as one .npy; a file of another size is a one-line error naming it, before any work."""
+    from codedvideo.io import write_image
+    from codedvideo.volumes import ImageStack, read_coded_stack
+
+    cap = sequence / "cap"
+    coded = np.load(cap / "coded.npy")
+    (tmp_path / "stream").mkdir()
+    for t in range(T):
+        write_image(tmp_path / "stream" / f"coded_{t + 1}.tif", coded[t])
+    stack = read_coded_stack(tmp_path / "stream")
+    assert isinstance(stack, ImageStack) and stack.shape == coded.shape
+    np.testing.assert_array_equal(stack[T - 1], coded[T - 1])
+    for name, source in (("folder", tmp_path / "stream"), ("pattern", tmp_path / "stream" / "coded_%d.tif"),
+                         ("npy", cap / "coded.npy")):
+        _run(capsys, "reconstruct", "--coded", source, "--mask", cap / "mask.npy", "--method", "dct", "--cache",
+             tmp_path / "cache", "--output", tmp_path / f"{name}.npy")
+    np.testing.assert_array_equal(np.load(tmp_path / "folder.npy"), np.load(tmp_path / "npy.npy"))
+    np.testing.assert_array_equal(np.load(tmp_path / "pattern.npy"), np.load(tmp_path / "npy.npy"))
+    write_image(tmp_path / "stream" / "coded_2.tif", coded[1, :-2])
+    capsys.readouterr()
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "stream"), "--mask", str(cap / "mask.npy"),
+                 "--method", "dct", "--output", str(tmp_path / "r.npy"), "--cache", str(tmp_path / "c")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "coded_2.tif" in err and f"{H - 2}x{W}" in err
+    assert not (tmp_path / "r.npy").exists()

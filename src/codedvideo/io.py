@@ -374,18 +374,9 @@ def read_stack(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
     ndarray of shape (N, H, W), or (C, N, H, W) for ``color="channels"``, float32
     """
     check_color(color)
-    spath = str(path)
+    files = frame_files(path)
     path = Path(path)
-    if is_pattern(spath) and not path.exists():
-        files = _pattern_frames(spath)
-        if not files:
-            raise InputError(f"frames {spath}: no file matches the pattern")
-        frames = [read_image(f, color=color) for f in files]
-    elif path.is_dir():
-        files = sorted((f for f in path.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")),
-                       key=_natural_key)
-        if not files:
-            raise InputError(f"frames {path}: the folder holds no image files")
+    if files is not None:
         frames = [read_image(f, color=color) for f in files]
     elif path.suffix.lower() == ".npy":
         arr = _read_npy(path)
@@ -401,6 +392,25 @@ def read_stack(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
         raise InputError(f"stack {path}: frames differ in shape {sorted(shapes)}")
     stack = np.stack(frames, axis=1 if color == "channels" else 0)
     return _finite(stack.astype(np.float32), path, "stack")
+
+
+def frame_files(path: str | os.PathLike) -> list[Path] | None:
+    """The image files of a folder of frames (natural order: ``f_2`` before ``f_10``) or a printf pattern
+    (``frames/%04d.png``: numbers from 0 or 1 up to the first gap); None for any other path."""
+    spath = str(path)
+    path = Path(path)
+    if is_pattern(spath) and not path.exists():
+        files = _pattern_frames(spath)
+        if not files:
+            raise InputError(f"frames {spath}: no file matches the pattern")
+        return files
+    if path.is_dir():
+        files = sorted((f for f in path.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")),
+                       key=_natural_key)
+        if not files:
+            raise InputError(f"frames {path}: the folder holds no image files")
+        return files
+    return None
 
 
 def read_video(

@@ -118,6 +118,39 @@ class NpyStack:
         return self[:].astype(dtype or np.float32)
 
 
+class ImageStack:
+    """The coded images of a folder or printf pattern of image files (one capture a file), read one at a
+    time, as :class:`NpyStack`: ``shape``, ``len`` and indexing with a capture number."""
+
+    def __init__(self, source: Path, files: list[Path]):
+        self.path, self.files = source, list(files)
+        first = cio.read_image(self.files[0])
+        self.shape, self.dtype = (len(self.files), *first.shape), first.dtype
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __getitem__(self, i):
+        if not isinstance(i, (int, np.integer)):
+            raise TypeError("ImageStack: index with one capture number")
+        image = cio.read_image(self.files[int(i)])  # IndexError past the end, as a list
+        if image.shape != self.shape[1:]:
+            raise InputError(f"coded image {self.files[int(i)]}: {image.shape[0]}x{image.shape[1]} pixels, "
+                             f"but the first image of {self.path} has {self.shape[1]}x{self.shape[2]}")
+        return image.astype(np.float32)
+
+    def check(self) -> None:
+        """Read every file once: an unreadable one, one of another size or a NaN is an error before any work."""
+        for i in range(len(self)):
+            self[i]
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def __array__(self, dtype=None, copy=None):
+        return np.stack(list(self)).astype(dtype or np.float32)
+
+
 def read_truth_stack(path: str | Path, frames: int) -> np.ndarray | NpyStack:
     """A truth video (T*N, H, W): a long .npy stream is read ``frames`` at a time (checked whole first, part by
     part); anything else whole (:func:`read_volume`)."""
@@ -130,7 +163,7 @@ def read_truth_stack(path: str | Path, frames: int) -> np.ndarray | NpyStack:
     return read_volume(path)
 
 
-def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack:
+def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack:
     """Coded images (T, H, W) float32: a .npy (H, W) or (T, H, W), a (multi-page) image, a folder or
     printf pattern of images, or a lossless video (one coded image per video frame)."""
     path = Path(path)
@@ -139,6 +172,11 @@ def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack:
     if layout is not None and len(layout[0]) == 3 and layout[0][0] > 1:  # a stream: read capture by capture
         stack = NpyStack(path, *layout)
         stack.check()  # before any work, one capture at a time
+        return stack
+    files = None if suffix == ".npy" else cio.frame_files(path)
+    if files is not None and len(files) > 1:  # a folder or pattern of images: read capture by capture
+        stack = ImageStack(path, files)
+        stack.check()
         return stack
     if suffix == ".npy":
         arr = cio.read_array(path)
