@@ -324,10 +324,11 @@ def test_a_streams_truth_is_read_capture_by_capture_with_the_same_figures(sequen
     assert not (tmp_path / "r.npy").exists()
 
 
-def test_a_folder_of_coded_images_is_read_capture_by_capture(sequence, tmp_path, capsys):
-    """A camera's stream as a folder of float TIFF files (one capture each) is read one file at a time and gives
-    the video of the same stack as one .npy; a file of another size is a one-line error naming it, before any work."""
-    from codedvideo.io import write_image
+def test_a_folder_or_tiff_of_coded_images_is_read_capture_by_capture(sequence, tmp_path, capsys):
+    """A camera's stream as a folder of float TIFF files (one capture each), or as one multi-page TIFF, is read
+    one capture at a time and gives the video of the same stack as one .npy; a file of another size is a one-line
+    error naming it, before any work."""
+    from codedvideo.io import write_image, write_stack
     from codedvideo.volumes import ImageStack, read_coded_stack
 
     cap = sequence / "cap"
@@ -338,12 +339,17 @@ def test_a_folder_of_coded_images_is_read_capture_by_capture(sequence, tmp_path,
     stack = read_coded_stack(tmp_path / "stream")
     assert isinstance(stack, ImageStack) and stack.shape == coded.shape
     np.testing.assert_array_equal(stack[T - 1], coded[T - 1])
+    write_stack(tmp_path / "stream.tif", coded)  # a multi-page TIFF: a page a capture, read page by page
+    pages = read_coded_stack(tmp_path / "stream.tif")
+    assert isinstance(pages, ImageStack) and pages.shape == coded.shape
+    np.testing.assert_array_equal(pages[1], coded[1])
     for name, source in (("folder", tmp_path / "stream"), ("pattern", tmp_path / "stream" / "coded_%d.tif"),
-                         ("npy", cap / "coded.npy")):
+                         ("pages", tmp_path / "stream.tif"), ("npy", cap / "coded.npy")):
         _run(capsys, "reconstruct", "--coded", source, "--mask", cap / "mask.npy", "--method", "dct", "--cache",
              tmp_path / "cache", "--output", tmp_path / f"{name}.npy")
     np.testing.assert_array_equal(np.load(tmp_path / "folder.npy"), np.load(tmp_path / "npy.npy"))
     np.testing.assert_array_equal(np.load(tmp_path / "pattern.npy"), np.load(tmp_path / "npy.npy"))
+    np.testing.assert_array_equal(np.load(tmp_path / "pages.npy"), np.load(tmp_path / "npy.npy"))
     write_image(tmp_path / "stream" / "coded_2.tif", coded[1, :-2])
     capsys.readouterr()
     assert main(["-q", "reconstruct", "--coded", str(tmp_path / "stream"), "--mask", str(cap / "mask.npy"),

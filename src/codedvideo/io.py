@@ -187,7 +187,8 @@ def _to_gray(arr: np.ndarray, path, color: str) -> np.ndarray:
     return np.tensordot(rgb.astype(np.float32), LUMA, axes=([-1], [0]))
 
 
-def _oiio_read_all(path: Path, color: str, first_only: bool) -> list[np.ndarray]:
+def _oiio_read_all(path: Path, color: str, first_only: bool, *, page: int = 0) -> list[np.ndarray]:
+    """The pages of an image file from ``page`` on (``first_only``: that page alone)."""
     import OpenImageIO as oiio
 
     if not path.exists():
@@ -201,9 +202,11 @@ def _oiio_read_all(path: Path, color: str, first_only: bool) -> list[np.ndarray]
         raise InputError(f"image {path}: cannot read ({_one_line(oiio.geterror() or 'unknown format or corrupt file')})")
     pages = []
     try:
-        sub = 0
+        sub = page
         while True:
             if sub > 0 and not inp.seek_subimage(sub, 0):
+                if sub == page:
+                    raise InputError(f"image {path}: has no page {page + 1}")
                 break
             spec = inp.spec()
             native = spec.format
@@ -216,18 +219,40 @@ def _oiio_read_all(path: Path, color: str, first_only: bool) -> list[np.ndarray]
                 break
     finally:
         inp.close()
-    if not first_only and path.suffix.lower() in (".tif", ".tiff"):
-        expected = _tiff_page_count(path)
+    if not first_only and page == 0 and path.suffix.lower() in (".tif", ".tiff"):
+        expected = tiff_page_count(path)
         if expected != len(pages):  # a cut page chain reads as a shorter stack otherwise
             raise InputError(f"image {path}: corrupt or truncated (read {len(pages)} of {expected} TIFF pages)")
     return pages
 
 
-def _tiff_page_count(path: Path) -> int:
+def read_page(path: str | os.PathLike, page: int, *, color: str = "luma") -> np.ndarray:
+    """Page ``page`` (from 0) of a multi-page image file, in the file's units, float32 (as :func:`read_image`)."""
+    path = Path(path)
+    check_color(color)
+    return _finite(_oiio_read_all(path, color, first_only=True, page=page)[0], path)
+
+
+def tiff_page_count(path: str | os.PathLike) -> int:
     """Pages in the main IFD chain of a (Big)TIFF; :class:`InputError` when the chain runs past the end."""
+    import mmap
+
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:  # mapped, not read: a long stack is not held to count its pages
+            data = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if os.fstat(fh.fileno()).st_size else b""
+    except OSError as exc:
+        raise InputError(f"image {path}: cannot read ({exc.strerror or exc})") from exc
+    try:
+        return _ifd_chain_length(data, path)
+    finally:
+        if isinstance(data, mmap.mmap):
+            data.close()
+
+
+def _ifd_chain_length(data, path: Path) -> int:
     import struct
 
-    data = path.read_bytes()
     if len(data) < 8 or data[:2] not in (b"II", b"MM"):
         raise InputError(f"image {path}: not a TIFF file")
     e = "<" if data[:2] == b"II" else ">"

@@ -119,28 +119,38 @@ class NpyStack:
 
 
 class ImageStack:
-    """The coded images of a folder or printf pattern of image files (one capture a file), read one at a
+    """Coded images a file each (a folder or printf pattern) or a page each (a multi-page TIFF), read one at a
     time, as :class:`NpyStack`: ``shape``, ``len`` and indexing with a capture number."""
 
-    def __init__(self, source: Path, files: list[Path]):
-        self.path, self.files = source, list(files)
-        first = cio.read_image(self.files[0])
-        self.shape, self.dtype = (len(self.files), *first.shape), first.dtype
+    def __init__(self, source: Path, *, files: list[Path] | None = None, pages: int | None = None):
+        self.path, self.files = source, None if files is None else list(files)
+        self._count = len(self.files) if self.files is not None else int(pages)
+        first = self._read(0)
+        self.shape, self.dtype = (self._count, *first.shape), first.dtype
+
+    def _read(self, i: int) -> np.ndarray:
+        return cio.read_image(self.files[i]) if self.files is not None else cio.read_page(self.path, i)
+
+    def _name(self, i: int) -> str:
+        return str(self.files[i]) if self.files is not None else f"{self.path} (page {i + 1})"
 
     def __len__(self) -> int:
-        return len(self.files)
+        return self._count
 
     def __getitem__(self, i):
         if not isinstance(i, (int, np.integer)):
             raise TypeError("ImageStack: index with one capture number")
-        image = cio.read_image(self.files[int(i)])  # IndexError past the end, as a list
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"capture {i} of {len(self)}")
+        i = int(i) % len(self)
+        image = self._read(i)
         if image.shape != self.shape[1:]:
-            raise InputError(f"coded image {self.files[int(i)]}: {image.shape[0]}x{image.shape[1]} pixels, "
-                             f"but the first image of {self.path} has {self.shape[1]}x{self.shape[2]}")
+            raise InputError(f"coded image {self._name(i)}: {image.shape[0]}x{image.shape[1]} pixels, but the "
+                             f"first image of {self.path} has {self.shape[1]}x{self.shape[2]}")
         return image.astype(np.float32)
 
     def check(self) -> None:
-        """Read every file once: an unreadable one, one of another size or a NaN is an error before any work."""
+        """Read every image once: an unreadable one, one of another size or a NaN is an error before any work."""
         for i in range(len(self)):
             self[i]
 
@@ -174,8 +184,9 @@ def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack:
         stack.check()  # before any work, one capture at a time
         return stack
     files = None if suffix == ".npy" else cio.frame_files(path)
-    if files is not None and len(files) > 1:  # a folder or pattern of images: read capture by capture
-        stack = ImageStack(path, files)
+    pages = cio.tiff_page_count(path) if files is None and suffix in (".tif", ".tiff") else 1
+    if (files is not None and len(files) > 1) or pages > 1:  # images a capture each: read capture by capture
+        stack = ImageStack(path, files=files, pages=pages)
         stack.check()
         return stack
     if suffix == ".npy":
