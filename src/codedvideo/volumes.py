@@ -67,13 +67,39 @@ def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
     return coded
 
 
-class NpyStack:
+class _LazyStack:
+    """What the stacks read a few images at a time share: ``shape``, ``len``, iteration, bounds and a check."""
+
+    shape: tuple[int, int, int]
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _index(self, i) -> int:
+        if not isinstance(i, (int, np.integer)):
+            raise TypeError(f"{type(self).__name__}: index with a number")
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"image {i} of {len(self)}")
+        return int(i) % len(self)
+
+    def check(self) -> None:
+        """Read every image once: an unreadable one, one of another size or a NaN is an error before any work."""
+        for i in range(len(self)):
+            self[i]
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    def __array__(self, dtype=None, copy=None):
+        return np.stack(list(self)).astype(dtype or np.float32)
+
+
+class NpyStack(_LazyStack):
     """The images (T, H, W) of a .npy file, read a few at a time: a long stream is never held whole.
 
     Indexing with a number reads that image, with a slice (step 1) those
-    images, as float32, checked finite; ``shape``, ``dtype`` and ``len`` are
-    those of the file.  ``what`` names the file in errors ("coded image",
-    "truth").
+    images, as float32, checked finite; ``shape`` and ``dtype`` are those of
+    the file.  ``what`` names the file in errors ("coded image", "truth").
     """
 
     def __init__(self, path: Path, shape: tuple[int, int, int], dtype: np.dtype, offset: int, *,
@@ -81,20 +107,13 @@ class NpyStack:
         self.path, self.shape, self.dtype, self._offset, self.what = path, shape, dtype, offset, what
         self._count = shape[1] * shape[2]
 
-    def __len__(self) -> int:
-        return self.shape[0]
-
     def __getitem__(self, i):
         if isinstance(i, slice):
             start, stop, step = i.indices(len(self))
             if step != 1:
                 raise TypeError("NpyStack: slices of consecutive images only")
             return self._read(start, max(stop - start, 0))
-        if not isinstance(i, (int, np.integer)):
-            raise TypeError("NpyStack: index with a number or a slice")
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"image {i} of {len(self)}")
-        return self._read(int(i) % len(self), 1)[0]
+        return self._read(self._index(i), 1)[0]
 
     def _read(self, start: int, count: int) -> np.ndarray:
         part = np.fromfile(self.path, dtype=self.dtype, count=count * self._count,
@@ -111,54 +130,28 @@ class NpyStack:
         for start in range(0, len(self), block):
             self[start : start + block]
 
-    def __iter__(self):
-        return (self[i] for i in range(len(self)))
 
-    def __array__(self, dtype=None, copy=None):
-        return self[:].astype(dtype or np.float32)
-
-
-class ImageStack:
+class ImageStack(_LazyStack):
     """Coded images a file each (a folder or printf pattern) or a page each (a multi-page TIFF), read one at a
-    time, as :class:`NpyStack`: ``shape``, ``len`` and indexing with a capture number."""
+    time, as :class:`NpyStack`."""
 
     def __init__(self, source: Path, *, files: list[Path] | None = None, pages: int | None = None):
         self.path, self.files = source, None if files is None else list(files)
-        self._count = len(self.files) if self.files is not None else int(pages)
         first = self._read(0)
-        self.shape, self.dtype = (self._count, *first.shape), first.dtype
+        count = len(self.files) if self.files is not None else int(pages)
+        self.shape, self.dtype = (count, *first.shape), first.dtype
 
     def _read(self, i: int) -> np.ndarray:
         return cio.read_image(self.files[i]) if self.files is not None else cio.read_page(self.path, i)
 
-    def _name(self, i: int) -> str:
-        return str(self.files[i]) if self.files is not None else f"{self.path} (page {i + 1})"
-
-    def __len__(self) -> int:
-        return self._count
-
     def __getitem__(self, i):
-        if not isinstance(i, (int, np.integer)):
-            raise TypeError("ImageStack: index with one capture number")
-        if not -len(self) <= i < len(self):
-            raise IndexError(f"capture {i} of {len(self)}")
-        i = int(i) % len(self)
+        i = self._index(i)
         image = self._read(i)
         if image.shape != self.shape[1:]:
-            raise InputError(f"coded image {self._name(i)}: {image.shape[0]}x{image.shape[1]} pixels, but the "
+            name = self.files[i] if self.files is not None else f"{self.path} (page {i + 1})"
+            raise InputError(f"coded image {name}: {image.shape[0]}x{image.shape[1]} pixels, but the "
                              f"first image of {self.path} has {self.shape[1]}x{self.shape[2]}")
         return image.astype(np.float32)
-
-    def check(self) -> None:
-        """Read every image once: an unreadable one, one of another size or a NaN is an error before any work."""
-        for i in range(len(self)):
-            self[i]
-
-    def __iter__(self):
-        return (self[i] for i in range(len(self)))
-
-    def __array__(self, dtype=None, copy=None):
-        return np.stack(list(self)).astype(dtype or np.float32)
 
 
 def read_truth_stack(path: str | Path, frames: int) -> np.ndarray | NpyStack:
