@@ -317,12 +317,46 @@ def _stream_distributed(tasks, needs, address, bar) -> Iterator[int]:
             client.cancel([f for f in futures if not f.done()])
 
 
+@dataclass(frozen=True)
+class StorePlan:
+    """What one working store needs: all its tiles, those found damaged, and the work left (:class:`TileWork`)."""
+
+    tiles: tuple[Tile, ...]
+    damaged: np.ndarray
+    work: TileWork
+
+
+def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.ndarray | None,
+               settings: OmpSettings, *, tile: int, patch: int = 7) -> StorePlan:
+    """Plan a working store's tiles from its inputs in memory (as :meth:`WorkStore.create` was given them).
+
+    A store made afresh has no tile done; a reused one has each tile that
+    claims to be done checked against its digest (a damaged one is logged and
+    computed again).  The tiles left are keyed by their content
+    (:func:`tile_content`), so that equal tiles of any store are solved once.
+    """
+    from .store import workstore_inputs
+
+    coded, mask, still = workstore_inputs(coded, mask, still)
+    tiles = tuple(plan_tiles(tuple(coded.shape), tile, patch=patch, halo=tile_halo(settings, patch)))
+    if store.created:
+        ok = damaged = np.zeros(len(tiles), bool)
+    else:
+        ok, damaged, _, _ = store.read_verified(tiles, assemble=False)
+        if damaged.any():
+            log.warning("cache entry %s: tiles %s failed their checksum (damaged); computing them again",
+                        store.path, np.flatnonzero(damaged).tolist())
+    todo = tuple(t for t in tiles if not ok[t.index])
+    contents = tuple(tile_content(coded, mask, still, t, stride=settings.stride) for t in todo)
+    return StorePlan(tiles, damaged, TileWork(str(store.path), todo, contents))
+
+
 def reconstruct_stores(
     stores: list[WorkStore],
+    plans: list[StorePlan],
     D: np.ndarray,
     settings: OmpSettings,
     *,
-    tile: int,
     patch: int = 7,
     scheduler: str | None = None,
     workers: int | None = None,
@@ -331,15 +365,14 @@ def reconstruct_stores(
     """Reconstruct every tile of every working store that is not done yet, as one graph; yield the volumes in order.
 
     The stores are a job's captures (one store may appear more than once:
-    captures with equal inputs).  Every tile that claims to be done is
-    checked against its digest and reused; the others of all stores form one
-    graph (:func:`build_graph`: a task per distinct tile content), so both
-    cores, or a cluster, stay busy across captures.  As soon as the tiles of
-    store ``j`` are done, its tiles are read back and checked, any that fail
-    are computed again (up to :data:`MAX_ATTEMPTS` rounds), and
-    ``(j, volume, summary)`` is yielded, in the order of ``stores``; no more
-    than the volume being handed out is held.  The caller holds each
-    entry's lock.
+    captures with equal inputs), each with its :func:`plan_store`.  The tiles
+    left of all stores form one graph (:func:`build_graph`: a task per
+    distinct tile content), so both cores, or a cluster, stay busy across
+    captures.  As soon as the tiles of store ``j`` are done, its tiles are
+    read back and checked, any that fail are computed again (up to
+    :data:`MAX_ATTEMPTS` rounds), and ``(j, volume, summary)`` is yielded, in
+    the order of ``stores``; no more than the volume being handed out is
+    held.  The caller holds each entry's lock.
 
     Yields
     ------
@@ -349,25 +382,13 @@ def reconstruct_stores(
         Tiles computed now, reused and found damaged, the summed statistics
         and ``seconds_verify``, the time spent reading tiles back and checking them.
     """
-    plans, works = [], []
-    for store in stores:
-        coded, mask, still = store.read_inputs(0, None, 0, None)
-        tiles = plan_tiles(tuple(coded.shape), tile, patch=patch, halo=tile_halo(settings, patch))
-        ok, damaged, _, _ = store.read_verified(tiles, assemble=False)
-        if damaged.any():
-            log.warning("cache entry %s: tiles %s failed their checksum (damaged); computing them again",
-                        store.path, np.flatnonzero(damaged).tolist())
-        todo = tuple(t for t in tiles if not ok[t.index])
-        works.append(TileWork(str(store.path), todo,
-                              tuple(tile_content(coded, mask, still, t, stride=settings.stride) for t in todo)))
-        plans.append((tiles, damaged))
-        del coded, mask, still
+    works = [plan.work for plan in plans]
     tasks, needs = build_graph(works, D, settings, patch=patch)
     for j in stream_graph(tasks, needs, scheduler=scheduler, workers=workers, progress=progress):
-        tiles, damaged = plans[j]
-        volume, summary = _verified_volume(stores[j], tiles, {t.index for t in works[j].tiles}, D, settings,
-                                           patch=patch, scheduler=scheduler, workers=workers)
-        yield j, volume, dict(summary, tiles_damaged=int(damaged.sum()), tile_tasks=len(tasks))
+        plan = plans[j]
+        volume, summary = _verified_volume(stores[j], list(plan.tiles), {t.index for t in plan.work.tiles}, D,
+                                           settings, patch=patch, scheduler=scheduler, workers=workers)
+        yield j, volume, dict(summary, tiles_damaged=int(plan.damaged.sum()), tile_tasks=len(tasks))
 
 
 def _verified_volume(store: WorkStore, tiles: list[Tile], computed: set[int], D, settings, *, patch, scheduler,

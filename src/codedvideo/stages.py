@@ -31,7 +31,7 @@ from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
 from .errors import InputError
 from .metrics import evaluate
-from .parallel import plan_tiles, reconstruct_stores
+from .parallel import StorePlan, plan_store, plan_tiles, reconstruct_stores
 from .patches import PATCH
 from .reconstruct import STAT_NAMES, OmpSettings
 from .scenes import load_video, training_videos
@@ -283,8 +283,8 @@ def sparse_volumes(
     """
     dkey = dictionary_key or content_key(D)
     plan: list = []  # per capture: None (the caller's), "static", or the index of its store
-    stores: list[WorkStore] = []
-    opened: dict[str, WorkStore] = {}
+    stores: list[tuple[WorkStore, StorePlan]] = []  # per sparse-coded capture (equal captures: the same pair)
+    opened: dict[str, tuple[WorkStore, StorePlan]] = {}
     seconds_plan = []
     with contextlib.ExitStack() as locks:
         for i in range(count):
@@ -305,17 +305,19 @@ def sparse_volumes(
                         # One run at a time per entry (processes, threads, clients of one dask cluster): a
                         # second run waits here, then reuses the tiles the first one finished.
                         locks.enter_context(entry_lock(entry))
-                        opened[key] = WorkStore.create(
+                        store = WorkStore.create(
                             entry, coded, mask, tile=tile, n_stats=len(STAT_NAMES),
                             n_tiles=len(plan_tiles(coded.shape, tile, patch=PATCH)),
                             attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION),
                             still=still)
+                        # its tiles planned from the inputs in hand (not read back from the store)
+                        opened[key] = store, plan_store(store, coded, mask, still, settings, tile=tile, patch=PATCH)
                     plan.append(len(stores))
                     stores.append(opened[key])
                 del pair
             seconds_plan.append(time.perf_counter() - t0)
-        solved = reconstruct_stores(stores, D, settings, tile=tile, patch=PATCH, scheduler=scheduler,
-                                    workers=workers, progress=progress)
+        solved = reconstruct_stores([store for store, _ in stores], [p for _, p in stores], D, settings, patch=PATCH,
+                                    scheduler=scheduler, workers=workers, progress=progress)
         t_wait = time.perf_counter()
         for i, how in enumerate(plan):
             if how is None:
@@ -327,7 +329,7 @@ def sparse_volumes(
                 continue
             j, volume, summary = next(solved)
             t_solved = time.perf_counter()
-            volume, info = _finish_sparse(volume, summary, coded, mask, settings, stores[j].path)
+            volume, info = _finish_sparse(volume, summary, coded, mask, settings, stores[j][0].path)
             info["seconds"] = dict(store_inputs=seconds_plan[i], reconstruct=t_solved - t_wait - summary["seconds_verify"],
                                    assemble=summary["seconds_verify"] + time.perf_counter() - t_solved)
             del coded, mask

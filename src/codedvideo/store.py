@@ -281,6 +281,14 @@ def mask_dtype(mask: np.ndarray) -> np.dtype:
     return np.dtype("uint8") if is_binary(mask) else np.dtype("<f4")
 
 
+def workstore_inputs(coded: np.ndarray, mask: np.ndarray, still: np.ndarray | None):
+    """``(coded, mask, still)`` as a working store holds them: float32, :func:`mask_dtype`, uint8 (None: all 0)."""
+    coded = np.asarray(coded, dtype=np.float32)
+    mask = np.asarray(mask, dtype=mask_dtype(mask))
+    still = np.zeros(coded.shape, np.uint8) if still is None else np.asarray(still, dtype=np.uint8)
+    return coded, mask, still
+
+
 def inputs_digest(coded: np.ndarray, mask: np.ndarray, still: np.ndarray) -> str:
     """blake2b of the inputs as a working store holds them (float32 coded image, mask as :func:`mask_dtype`,
     uint8 still map)."""
@@ -371,6 +379,8 @@ class WorkStore:
         self.path = Path(path)
         self.group = zarr.open_group(str(self.path), mode=mode)
         self.key = str(self.group.attrs.get("key", ""))
+        #: Made afresh by :meth:`create` (no tile of it is done), rather than opened or reused.
+        self.created = False
 
     @classmethod
     def create(
@@ -398,9 +408,7 @@ class WorkStore:
         reader ever sees it half-made.  The caller holds :func:`entry_lock`.
         """
         path = Path(path)
-        coded = np.asarray(coded, dtype=np.float32)
-        mask = np.asarray(mask, dtype=mask_dtype(mask))
-        still = np.zeros(coded.shape, np.uint8) if still is None else np.asarray(still, dtype=np.uint8)
+        coded, mask, still = workstore_inputs(coded, mask, still)
         if os.path.lexists(path):
             problem = cls._problem(path, coded, mask, still, key=attrs.get("key"), tile=tile, n_stats=n_stats,
                                    n_tiles=n_tiles)
@@ -425,7 +433,9 @@ class WorkStore:
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             raise OutputError(f"working store {path}: cannot write ({exc.strerror or exc})") from exc
-        return cls(path)
+        store = cls(path)
+        store.created = True
+        return store
 
     @staticmethod
     def _problem(path: Path, coded: np.ndarray, mask: np.ndarray, still: np.ndarray, *, key, tile: int,
