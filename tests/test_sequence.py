@@ -357,3 +357,24 @@ def test_a_folder_or_tiff_of_coded_images_is_read_capture_by_capture(sequence, t
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "coded_2.tif" in err and f"{H - 2}x{W}" in err
     assert not (tmp_path / "r.npy").exists()
+
+
+def test_a_lossless_video_of_coded_images_is_decoded_capture_by_capture(sequence, tmp_path, capsys):
+    """A coded camera's FFV1 stream (a frame a capture) is decoded on demand, in any order a job asks for its
+    captures, and gives the video of the same stack as a .npy."""
+    from codedvideo.io import write_video
+    from codedvideo.volumes import VideoStack, read_coded_stack
+
+    cap = sequence / "cap"
+    coded = np.rint(np.load(cap / "coded.npy") / 4).astype(np.float32)  # 8-bit frames: the FFV1 stream is exact
+    np.save(tmp_path / "coded.npy", coded)
+    write_video(tmp_path / "coded.mkv", coded, data_range=255.0)
+    stack = read_coded_stack(tmp_path / "coded.mkv")
+    assert isinstance(stack, VideoStack) and stack.shape == coded.shape
+    stack.KEEP = 1  # only the last frame kept: every step back decodes afresh
+    for i in (2, 0, 1, 2, 2, 1, 0):
+        np.testing.assert_array_equal(stack[i], coded[i])
+    for name in ("mkv", "npy"):
+        _run(capsys, "reconstruct", "--coded", tmp_path / f"coded.{name}", "--mask", cap / "mask.npy", "--method",
+             "dct", "--cache", tmp_path / "cache", "--data-range", 255, "--output", tmp_path / f"{name}.npy")
+    np.testing.assert_array_equal(np.load(tmp_path / "mkv.npy"), np.load(tmp_path / "npy.npy"))

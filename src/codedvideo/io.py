@@ -456,11 +456,29 @@ def read_video(
         stack = read_stack(path, color=color)
         sl = slice(start, None if max_frames is None else start + max_frames)
         return stack[:, sl] if color == "channels" else stack[sl]
+    frames = []
+    for frame in iter_video(path, color=color, start=start):
+        frames.append(frame)
+        if max_frames is not None and len(frames) >= max_frames:
+            break
+    if not frames:
+        raise InputError(f"video {path}: no frames decoded (from frame {start})")
+    return np.stack(frames, axis=1 if color == "channels" else 0).astype(np.float32)
+
+
+def iter_video(path: str | os.PathLike, *, color: str = "luma", start: int = 0):
+    """The frames of a video file one at a time (:func:`read_video`'s units), from frame ``start``.
+
+    A GIF without its trailer, or a file that decodes to the end with fewer
+    frames than its header promises, is an :class:`InputError`.
+    """
     import av
 
+    path = Path(path)
     if not path.exists():
         raise InputError(f"video {path}: no such file")
-    frames = []
+    if path.suffix.lower() == ".gif" and not _gif_complete(path):
+        raise InputError(f"video {path}: truncated (no GIF trailer)")
     decoded = 0
     try:
         with av.open(str(path)) as container:
@@ -479,19 +497,11 @@ def read_video(
                 pixels = frame.to_ndarray() if grey else frame.to_ndarray(format="rgb24")
                 if size is not None:  # written by write_video: undo the encoder's padding
                     pixels = pixels[: size[0], : size[1]]
-                frames.append(_to_gray(pixels, path, "channels" if color == "channels" else "luma"))
-                if max_frames is not None and len(frames) >= max_frames:
-                    break
-            else:  # decoded to the end: a stream that ends early was cut short
-                if expected is not None and decoded < expected - 1:
-                    raise InputError(f"video {path}: truncated (decoded {decoded} of {expected} frames)")
+                yield _to_gray(pixels, path, "channels" if color == "channels" else "luma").astype(np.float32)
+            if expected is not None and decoded < expected - 1:  # a stream that ends early was cut short
+                raise InputError(f"video {path}: truncated (decoded {decoded} of {expected} frames)")
     except (av.error.FFmpegError, OSError) as exc:
         raise InputError(f"video {path}: cannot decode ({_one_line(exc)})") from exc
-    if path.suffix.lower() == ".gif" and not _gif_complete(path):
-        raise InputError(f"video {path}: truncated (no GIF trailer)")
-    if not frames:
-        raise InputError(f"video {path}: no frames decoded (from frame {start})")
-    return np.stack(frames, axis=1 if color == "channels" else 0).astype(np.float32)
 
 
 def _tagged_size(container) -> tuple[int, int] | None:

@@ -154,6 +154,47 @@ class ImageStack(_LazyStack):
         return image.astype(np.float32)
 
 
+class VideoStack(_LazyStack):
+    """The coded images of a (lossless) video, a frame each, decoded on demand: a long stream is never held whole.
+
+    Frames are decoded forward and the last :data:`KEEP` kept, so the access
+    of a job (each capture with its neighbours, in order, twice) decodes the
+    video about twice; a capture further back starts the decoding again.
+    """
+
+    #: Decoded frames kept (a capture and its neighbours).
+    KEEP = 4
+
+    def __init__(self, path: Path):
+        self.path = path
+        count, first = 0, None
+        for frame in cio.iter_video(path):  # the whole file checked before any work
+            first = frame if first is None else first
+            count += 1
+        if first is None:
+            raise InputError(f"video {path}: no frames decoded")
+        self.shape, self.dtype = (count, *first.shape), first.dtype
+        self._frames, self._next, self._kept = None, 0, {}
+
+    def __getitem__(self, i):
+        i = self._index(i)
+        if i in self._kept:
+            return self._kept[i].copy()
+        if self._frames is None or i < self._next:
+            if self._frames is not None:
+                self._frames.close()
+            self._frames, self._next = cio.iter_video(self.path), 0
+        while self._next <= i:
+            self._kept[self._next] = next(self._frames)
+            self._kept.pop(self._next - self.KEEP, None)
+            self._next += 1
+        return self._kept[i].copy()
+
+    def __del__(self):
+        if getattr(self, "_frames", None) is not None:
+            self._frames.close()
+
+
 def read_truth_stack(path: str | Path, frames: int) -> np.ndarray | NpyStack:
     """A truth video (T*N, H, W): a long .npy stream is read ``frames`` at a time (checked whole first, part by
     part); anything else whole (:func:`read_volume`)."""
@@ -166,7 +207,7 @@ def read_truth_stack(path: str | Path, frames: int) -> np.ndarray | NpyStack:
     return read_volume(path)
 
 
-def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack:
+def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack | VideoStack:
     """Coded images (T, H, W) float32: a .npy (H, W) or (T, H, W), a (multi-page) image, a folder or
     printf pattern of images, or a lossless video (one coded image per video frame)."""
     path = Path(path)
@@ -187,8 +228,9 @@ def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack:
         if arr.ndim not in (2, 3):
             raise InputError(f"coded image {path}: expected shape (H, W) or (T, H, W), got {arr.shape}")
         coded = arr.astype(np.float32).reshape((-1, *arr.shape[-2:]))
-    elif suffix in VIDEO_SUFFIXES:
-        coded = cio.read_video(path)
+    elif suffix in VIDEO_SUFFIXES:  # a frame a capture: decoded capture by capture
+        stack = VideoStack(path)
+        return stack if len(stack) > 1 else stack[0][None]
     else:
         coded = cio.read_stack(path)
     if not np.isfinite(coded).all():
