@@ -299,3 +299,13 @@ def test_frame_folders_read_back_in_frame_units(tmp_path, fmt, tol):
     back = read_volume(tmp_path / "f")
     assert back.shape == vol.shape
     np.testing.assert_allclose(back, vol, atol=tol + 1e-4)
+
+
+def test_a_stack_written_part_by_part_refuses_a_page_of_another_size_and_leaves_nothing(tmp_path):
+    from codedvideo.errors import OutputError
+
+    with pytest.raises(OutputError, match="page 3 is 8x9x1"):
+        with cio.stack_writer(tmp_path / "s.tif", 4) as write:
+            write(np.zeros((2, 8, 8), np.float32))
+            write(np.zeros((1, 8, 9), np.float32))
+    assert list(tmp_path.iterdir()) == []

@@ -666,6 +666,9 @@ class _OiioPages:
                 ok = self.out.open(str(self.path), self.spec)
             if not ok:
                 raise OutputError(f"image {self.path}: cannot open for writing ({self.out.geterror()})")
+        elif page.shape != (self.spec.height, self.spec.width, self.spec.nchannels):
+            raise OutputError(f"image {self.path}: page {self.written + 1} is {page.shape[0]}x{page.shape[1]}x"
+                              f"{page.shape[2]}, the first {self.spec.height}x{self.spec.width}x{self.spec.nchannels}")
         elif not self.out.open(str(self.path), self.spec, "AppendSubimage"):
             raise OutputError(f"image {self.path}: cannot append page {self.written} ({self.out.geterror()})")
         if not self.out.write_image(np.ascontiguousarray(page)):
