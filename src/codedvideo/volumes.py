@@ -185,7 +185,10 @@ class VideoStack(_LazyStack):
                 self._frames.close()
             self._frames, self._next = cio.iter_video(self.path), 0
         while self._next <= i:
-            self._kept[self._next] = next(self._frames)
+            try:
+                self._kept[self._next] = next(self._frames)
+            except StopIteration:  # the file changed since it was checked
+                raise InputError(f"coded image {self.path}: ends at frame {self._next} of {len(self)}") from None
             self._kept.pop(self._next - self.KEEP, None)
             self._next += 1
         return self._kept[i].copy()
