@@ -378,3 +378,30 @@ def test_a_lossless_video_of_coded_images_is_decoded_capture_by_capture(sequence
         _run(capsys, "reconstruct", "--coded", tmp_path / f"coded.{name}", "--mask", cap / "mask.npy", "--method",
              "dct", "--cache", tmp_path / "cache", "--data-range", 255, "--output", tmp_path / f"{name}.npy")
     np.testing.assert_array_equal(np.load(tmp_path / "mkv.npy"), np.load(tmp_path / "npy.npy"))
+
+
+def test_evaluate_reads_long_videos_a_block_of_frames_at_a_time(tmp_path, capsys):
+    """`codedvideo evaluate` on (T*N, H, W) .npy videos longer than a block compares them block by block: the same
+    figures as the arrays in memory; a NaN in frame k of the reconstruction names the file and the frame."""
+    from codedvideo.metrics import EVALUATE_BLOCK, evaluate
+    from codedvideo.volumes import NpyStack, read_truth_stack
+
+    rng = np.random.default_rng(5)
+    truth = rng.uniform(0, 255, (2 * EVALUATE_BLOCK + 3, 24, 20)).astype(np.float32)
+    recon = (truth + rng.normal(0, 6, truth.shape)).astype(np.float32)
+    np.save(tmp_path / "truth.npy", truth)
+    np.save(tmp_path / "recon.npy", recon)
+    lazy = read_truth_stack(tmp_path / "recon.npy", EVALUATE_BLOCK, what="reconstruction")
+    assert isinstance(lazy, NpyStack)
+    whole = evaluate(recon, truth)
+    assert evaluate(lazy, read_truth_stack(tmp_path / "truth.npy", EVALUATE_BLOCK)) == whole
+    capsys.readouterr()
+    assert main(["-q", "evaluate", "--recon", str(tmp_path / "recon.npy"), "--truth", str(tmp_path / "truth.npy"),
+                 "--data-range", "255"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["psnr_per_frame"] == whole["psnr_per_frame"] and printed["psnr"] == whole["psnr"]
+    recon[EVALUATE_BLOCK + 1, 2, 2] = np.nan
+    np.save(tmp_path / "recon.npy", recon)
+    assert main(["-q", "evaluate", "--recon", str(tmp_path / "recon.npy"), "--truth", str(tmp_path / "truth.npy")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "recon.npy" in err and f"frame {EVALUATE_BLOCK + 2}" in err

@@ -601,19 +601,23 @@ def _method_dictionary(a, frames: int):
 
 
 def _cmd_evaluate(a) -> int:
-    from .metrics import evaluate, json_safe
-    from .volumes import write_json, read_volume
+    from .metrics import EVALUATE_BLOCK, evaluate, json_safe
+    from .volumes import write_json, read_truth_stack, read_volume
     from .units import infer_data_range
 
     out = validated(OutputConfig, dict(data_range=a.data_range))
     if a.output:
         check_outputs([Output(Path(a.output), "file")], dict(recon=a.recon, truth=a.truth), overwrite=a.overwrite)
-    recon, truth = read_volume(a.recon), read_volume(a.truth)
-    if truth.ndim == 4 and recon.ndim == 3:  # a colour truth: a video's or frame folder's channels
+    # long (T*N, H, W) .npy videos are compared a block of frames at a time, never held whole
+    recon = read_truth_stack(a.recon, EVALUATE_BLOCK, what="reconstruction")
+    truth = read_truth_stack(a.truth, EVALUATE_BLOCK)
+    if len(truth.shape) == 4 and len(recon.shape) == 3:  # a colour truth: a video's or frame folder's channels
         recon = read_volume(a.recon, color="channels")
-    if truth.ndim == 4 and recon.shape == truth.shape:  # colour (C, N, H, W): every channel's frames
+    if len(truth.shape) == 4 and recon.shape == truth.shape:  # colour (C, N, H, W): every channel's frames
         recon, truth = recon.reshape(-1, *recon.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])
-    units = infer_data_range(float(truth.max(initial=0.0)), given=out.data_range, what="the truth")
+    peak = max((float(np.max(truth[s : s + EVALUATE_BLOCK], initial=0.0))
+                for s in range(0, truth.shape[0], EVALUATE_BLOCK)), default=0.0)
+    units = infer_data_range(peak, given=out.data_range, what="the truth")
     result = json_safe(dict(evaluate(recon, truth, data_range=units.value),
                             data_range_source=units.source))
     if a.output:

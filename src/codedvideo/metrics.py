@@ -15,12 +15,19 @@ from skimage.metrics import structural_similarity
 from .errors import InputError
 
 
-def evaluate(recon: np.ndarray, truth: np.ndarray, *, data_range: float = 255.0) -> dict:
+#: Frames compared at a time: a long video (or a lazy stack of one, :class:`codedvideo.volumes.NpyStack`)
+#: is never held whole in float64.
+EVALUATE_BLOCK = 16
+
+
+def evaluate(recon, truth, *, data_range: float = 255.0) -> dict:
     """Per-frame and mean PSNR/SSIM of a reconstruction.
 
     Parameters
     ----------
-    recon, truth : ndarray of shape (N, H, W)
+    recon, truth : ndarray of shape (N, H, W), or anything with ``shape`` and
+        slices of consecutive frames (a lazy stack); compared
+        :data:`EVALUATE_BLOCK` frames at a time
     data_range : float
         Peak value of the frames (255 for 8-bit grey levels).
 
@@ -29,23 +36,26 @@ def evaluate(recon: np.ndarray, truth: np.ndarray, *, data_range: float = 255.0)
     dict with ``psnr``, ``ssim`` (means over frames), ``psnr_per_frame``,
     ``ssim_per_frame`` and ``data_range``.
     """
-    recon = np.asarray(recon, dtype=np.float64)
-    truth = np.asarray(truth, dtype=np.float64)
-    if recon.shape != truth.shape:
-        raise InputError(f"evaluate: reconstruction shape {recon.shape} != truth shape {truth.shape}")
-    if recon.ndim != 3:
-        raise InputError(f"evaluate: expected (N, H, W) volumes, got shape {recon.shape}")
-    if not np.isfinite(recon).all():
-        raise InputError("evaluate: the reconstruction contains NaN or Inf")
+    recon = recon if hasattr(recon, "shape") else np.asarray(recon)
+    truth = truth if hasattr(truth, "shape") else np.asarray(truth)
+    if tuple(recon.shape) != tuple(truth.shape):
+        raise InputError(f"evaluate: reconstruction shape {tuple(recon.shape)} != truth shape {tuple(truth.shape)}")
+    if len(recon.shape) != 3:
+        raise InputError(f"evaluate: expected (N, H, W) volumes, got shape {tuple(recon.shape)}")
     psnr = []
     ssim = []
     win = min(7, *truth.shape[1:])
     win -= 1 - win % 2  # odd window no larger than the frame
-    for r, t in zip(recon, truth):
-        mse = float(np.mean((r - t) ** 2))
-        psnr.append(float("inf") if mse == 0 else float(10 * np.log10(float(data_range) ** 2 / mse)))
-        ssim.append(float(structural_similarity(t, r, data_range=data_range, win_size=max(win, 3)))
-                    if win >= 3 else float("nan"))
+    for start in range(0, recon.shape[0], EVALUATE_BLOCK):
+        part = slice(start, start + EVALUATE_BLOCK)
+        recon_part = np.asarray(recon[part], dtype=np.float64)
+        if not np.isfinite(recon_part).all():
+            raise InputError("evaluate: the reconstruction contains NaN or Inf")
+        for r, t in zip(recon_part, np.asarray(truth[part], dtype=np.float64)):
+            mse = float(np.mean((r - t) ** 2))
+            psnr.append(float("inf") if mse == 0 else float(10 * np.log10(float(data_range) ** 2 / mse)))
+            ssim.append(float(structural_similarity(t, r, data_range=data_range, win_size=max(win, 3)))
+                        if win >= 3 else float("nan"))
     return dict(
         psnr=float(np.mean(psnr)),
         ssim=float(np.mean(ssim)),

@@ -198,13 +198,13 @@ class VideoStack(_LazyStack):
             self._frames.close()
 
 
-def read_truth_stack(path: str | Path, frames: int) -> np.ndarray | NpyStack:
-    """A truth video (T*N, H, W): a long .npy stream is read ``frames`` at a time (checked whole first, part by
-    part); anything else whole (:func:`read_volume`)."""
+def read_truth_stack(path: str | Path, frames: int, *, what: str = "truth") -> np.ndarray | NpyStack:
+    """A video (T*N, H, W), a truth or a reconstruction: a long .npy stream is read ``frames`` at a time
+    (checked whole first, part by part); anything else whole (:func:`read_volume`)."""
     path = Path(path)
     layout = cio.npy_layout(path) if path.suffix.lower() == ".npy" else None
     if layout is not None and len(layout[0]) == 3 and layout[0][0] > frames:
-        stack = NpyStack(path, *layout, what="truth")
+        stack = NpyStack(path, *layout, what=what)
         stack.check(frames)
         return stack
     return read_volume(path)
