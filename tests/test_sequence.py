@@ -405,3 +405,40 @@ def test_evaluate_reads_long_videos_a_block_of_frames_at_a_time(tmp_path, capsys
     assert main(["-q", "evaluate", "--recon", str(tmp_path / "recon.npy"), "--truth", str(tmp_path / "truth.npy")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "recon.npy" in err and f"frame {EVALUATE_BLOCK + 2}" in err
+
+
+@pytest.mark.parametrize("source", ["video.mkv", "frames"])
+@pytest.mark.parametrize("new_code", [False, True])
+def test_simulate_streams_a_video_file_capture_by_capture_with_the_same_files(tmp_path, capsys, source, new_code):
+    """`simulate VIDEO --captures T` reads, codes and writes a video file (or a frame folder) capture by capture:
+    the files equal a simulation of the whole clip at once, bit for bit."""
+    from codedvideo.io import write_frames, write_video
+    from codedvideo.scenes import read_clip
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+    from codedvideo.volumes import read_volume
+
+    frames = np.rint(make_scene("default", frames=4 * N, size=(H + 4, W + 6)))
+    write_video(tmp_path / "video.mkv", frames) if source == "video.mkv" else write_frames(tmp_path / "frames", frames)
+    flags = ["--new-code-per-capture"] if new_code else []
+    _run(capsys, "simulate", tmp_path / source, "--frames", N, "--captures", "all", "--start", 2, "--size", H, W,
+         "--noise-sigma", 2, "--seed", 7, *flags, "--output", tmp_path / "cap")
+    whole = simulate_capture(read_clip(str(tmp_path / source), frames=3 * N, size=(H, W), start=2), code="hitomi",
+                             bump=2, sigma=2.0, seed=7, captures=3, new_code_per_capture=new_code)
+    for name in ("coded", "mask", "truth"):
+        np.testing.assert_array_equal(np.load(tmp_path / "cap" / f"{name}.npy"), whole[name], err_msg=name)
+    np.testing.assert_array_equal(read_volume(tmp_path / "cap" / "coded.tif"), whole["coded"])
+
+
+def test_simulate_of_a_video_too_short_for_its_captures_leaves_nothing(tmp_path, capsys):
+    """Found only once the stream runs out: a one-line error naming the video, and no output folder or file."""
+    from codedvideo.io import write_video
+    from codedvideo.synth import make_scene
+
+    write_video(tmp_path / "v.mkv", np.rint(make_scene("default", frames=2 * N + 1, size=(H, W))))
+    capsys.readouterr()
+    assert main(["-q", "simulate", str(tmp_path / "v.mkv"), "--frames", str(N), "--captures", "3", "--output",
+                 str(tmp_path / "cap")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "v.mkv" in err and f"need {3 * N}" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["v.mkv"]

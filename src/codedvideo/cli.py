@@ -12,6 +12,7 @@ import atexit
 import contextlib
 import dataclasses
 import functools
+import itertools
 import json
 import logging
 import os
@@ -204,7 +205,7 @@ def _cmd_train(a) -> int:
 def _cmd_simulate(a) -> int:
     from .volumes import CAPTURE_FILES, write_capture
     from .scenes import load_video
-    from .stages import sensor_model, simulate_capture
+    from .stages import sensor_model, simulate_capture, simulate_stream
 
     code = a.code or ("file" if a.code_file else "hitomi")
     if a.code_file and code != "file":
@@ -245,24 +246,48 @@ def _cmd_simulate(a) -> int:
         outputs.append(Output(Path(a.cacti_out), "file", "--cacti-out"))
     check_outputs(outputs, dict(video=a.video, code_file=a.code_file), overwrite=a.overwrite)  # before any work
     if captures == "all":  # as many whole captures as the video holds from --start
-        from .io import read_video
-        from .scenes import resolve_data
+        from .scenes import count_frames
 
-        captures = read_video(resolve_data(a.video), start=a.start).shape[0] // a.frames
+        captures = count_frames(a.video, start=a.start) // a.frames
         if captures < 1:
             raise InputError(f"video {a.video}: fewer than N = {a.frames} frames from frame {a.start}")
+    options = dict(code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed, p=code_cfg.p,
+                   code_path=code_cfg.path, sensor=sensor_model(noise))
+    if not (a.bayer or a.cacti_out or a.video.startswith(("synth:", "footage:"))):
+        # a video file: read, simulated and written capture by capture (the same files as at once)
+        from .scenes import iter_clips
+        from .volumes import capture_paths, capture_writer
+
+        clips = iter_clips(a.video, frames=a.frames, captures=captures, size=size, start=a.start)
+        first = next(clips)
+        h, w = first.shape[1:]
+        masks = captures if a.new_code_per_capture else 1
+        made = not out.exists()
+        try:
+            with capture_writer(out, coded_shape=(captures, h, w) if captures > 1 else (h, w),
+                                mask_shape=(masks, a.frames, h, w) if masks > 1 else (a.frames, h, w),
+                                truth_shape=(captures * a.frames, h, w)) as put:
+                stream = simulate_stream(itertools.chain([first], clips), captures=captures,
+                                         new_code_per_capture=a.new_code_per_capture, **options)
+                for t, (coded, mask, clip) in enumerate(stream):
+                    put(coded, mask if t < masks else None, clip)
+        except BaseException:  # a video cut short found on the way: no file was renamed into place
+            if made and out.is_dir() and not any(out.iterdir()):
+                out.rmdir()
+            raise
+        paths = capture_paths(out)
+        for path in paths.values():
+            mark_written(path)
+        print(json.dumps({k: str(v) for k, v in paths.items()}))
+        return 0
     if a.bayer:  # the colour video through the filter: coded.npy the mosaic, truth.npy (3, N, H, W)
         from .bayer import load_color_video, simulate_bayer
 
         cap = simulate_bayer(load_color_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start),
-                             a.bayer, where=f"video {a.video}", code=code_cfg.name, bump=code_cfg.bump,
-                             sigma=noise.sigma, seed=a.seed, p=code_cfg.p, code_path=code_cfg.path,
-                             sensor=sensor_model(noise))
+                             a.bayer, where=f"video {a.video}", **options)
     else:
         video = load_video(a.video, frames=a.frames * captures, size=size, seed=a.seed, start=a.start)
-        cap = simulate_capture(video, code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed,
-                               p=code_cfg.p, code_path=code_cfg.path, sensor=sensor_model(noise), captures=captures,
-                               new_code_per_capture=a.new_code_per_capture)
+        cap = simulate_capture(video, captures=captures, new_code_per_capture=a.new_code_per_capture, **options)
     paths = write_capture(cap, a.output)
     if a.cacti_out:
         from .cacti import write_cacti

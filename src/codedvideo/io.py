@@ -882,6 +882,28 @@ def write_array(path: str | os.PathLike, array: np.ndarray) -> Path:
     return path
 
 
+@contextlib.contextmanager
+def npy_writer(path: str | os.PathLike, shape: tuple, dtype="<f4"):
+    """Write a .npy file part by part: yields ``write(part)``; parts in C order, appended as they come.
+
+    The header first, then each part (as ``dtype``), to a temporary renamed onto
+    ``path`` only when the block ends with exactly ``shape`` written, so memory
+    does not grow with the file (a memory map would: its written pages stay in
+    the process's resident set).
+    """
+    path = Path(path)
+    dtype = np.dtype(dtype)
+    total = int(np.prod(shape)) * dtype.itemsize
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.lib.format.write_array_header_2_0(fh, dict(descr=np.lib.format.dtype_to_descr(dtype),
+                                                          fortran_order=False, shape=tuple(shape)))
+            start = fh.tell()
+            yield lambda part: np.ascontiguousarray(part, dtype=dtype).tofile(fh)  # no copy of a part of dtype
+            if fh.tell() - start != total:
+                raise RuntimeError(f"output {path}: {fh.tell() - start} of {total} bytes written")
+
+
 def read_array(path: str | os.PathLike) -> np.ndarray:
     return _read_npy(Path(path))
 

@@ -41,6 +41,49 @@ def read_clip(spec: str, *, frames: int, size: tuple[int, int] | None, start: in
     return np.ascontiguousarray(video[..., :frames, :, :], dtype=np.float32)
 
 
+def iter_clips(spec: str, *, frames: int, captures: int, size: tuple[int, int] | None, start: int = 0):
+    """:func:`read_clip`'s ``frames * captures`` frames, ``frames`` at a time (N, H, W): a video file or a folder
+    or pattern of images is decoded as it goes, so a long stream is never held whole."""
+    path = resolve_data(spec)
+    is_video = str(path).lower().endswith(cio.VIDEO_SUFFIXES)
+    files = None if is_video else cio.frame_files(path)
+    if not is_video and files is None:  # a .npy or a multi-page file: read whole
+        video = read_clip(spec, frames=frames * captures, size=size, start=start)
+        yield from (video[t * frames : (t + 1) * frames] for t in range(captures))
+        return
+    source = cio.iter_video(path, start=start) if is_video else (cio.read_image(f) for f in files[start:])
+    clip, done, first = [], 0, None
+    for frame in source:
+        first = frame.shape if first is None else first
+        if frame.shape != first:
+            raise InputError(f"video {spec}: frames differ in shape ({first} and {frame.shape})")
+        if size is not None:
+            h, w = size
+            if frame.shape[0] < h or frame.shape[1] < w:
+                raise InputError(f"video {spec}: frames {frame.shape} smaller than the requested size {tuple(size)}")
+            y0, x0 = (frame.shape[0] - h) // 2, (frame.shape[1] - w) // 2
+            frame = frame[y0 : y0 + h, x0 : x0 + w]
+        clip.append(frame)
+        if len(clip) == frames:
+            yield np.ascontiguousarray(np.stack(clip), dtype=np.float32)
+            clip, done = [], done + 1
+            if done == captures:
+                return
+    raise InputError(f"video {spec}: has {done * frames + len(clip)} frames from frame {start}, "
+                     f"need {frames * captures}")
+
+
+def count_frames(spec: str, *, start: int = 0) -> int:
+    """Frames of a video file or image sequence from ``start``, counted without holding them."""
+    path = resolve_data(spec)
+    if str(path).lower().endswith(cio.VIDEO_SUFFIXES):
+        return sum(1 for _ in cio.iter_video(path, start=start))
+    files = cio.frame_files(path)
+    if files is not None:
+        return max(len(files) - start, 0)
+    return cio.read_video(path, start=start).shape[0]
+
+
 def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max_speed: float = synth.MAX_SPEED) -> list[np.ndarray]:
     """Training clips: ``synth:train`` (generated) and/or user video paths."""
     videos: list[np.ndarray] = []

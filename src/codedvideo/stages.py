@@ -179,19 +179,37 @@ def simulate_capture(
     if captures < 1 or video.shape[0] % captures:
         raise InputError(f"video of {video.shape[0]} frames: not {captures} captures of equal length")
     n = video.shape[0] // captures
-    ss = np.random.SeedSequence(seed)
-    code_rng, noise_rng = (np.random.default_rng(s) for s in ss.spawn(2))
-    masks = [make_code(code, video.shape[1:], frames=n, bump=bump, p=p, rng=code_rng, path=code_path)
-             for _ in range(captures if new_code_per_capture else 1)]
-    if sensor is not None:
-        sensor = dataclasses.replace(sensor, read_sigma=sigma)
-    coded = []
-    for t in range(captures):  # one noise stream, drawn capture after capture
-        clip, mask = video[t * n : (t + 1) * n], masks[t % len(masks)]
-        coded.append(physics.simulate(clip, mask, sigma=sigma, rng=noise_rng) if sensor is None
-                     else physics.simulate(clip, mask, rng=noise_rng, sensor=sensor))
+    stream = simulate_stream((video[t * n : (t + 1) * n] for t in range(captures)), code=code, bump=bump,
+                             sigma=sigma, seed=seed, p=p, code_path=code_path, sensor=sensor, captures=captures,
+                             new_code_per_capture=new_code_per_capture)
+    coded, masks = [], []
+    for one, mask, _ in stream:
+        coded.append(one)
+        if len(masks) < (captures if new_code_per_capture else 1):
+            masks.append(mask)
     return dict(coded=coded[0] if captures == 1 else np.stack(coded),
                 mask=masks[0] if len(masks) == 1 else np.stack(masks), truth=np.asarray(video, np.float32))
+
+
+def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: float = 0.5,
+                    code_path: str | Path | None = None, sensor: physics.SensorModel | None = None, captures: int = 1,
+                    new_code_per_capture: bool = False) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`simulate_capture` one capture at a time: ``clips`` yields the T clips (N, H, W) in order; yields
+    ``(coded (H, W), mask (N, H, W), clip)`` for each, from the same seeded streams (the same captures bit for
+    bit)."""
+    ss = np.random.SeedSequence(seed)
+    code_rng, noise_rng = (np.random.default_rng(s) for s in ss.spawn(2))
+    if sensor is not None:
+        sensor = dataclasses.replace(sensor, read_sigma=sigma)
+    masks = None
+    for t, clip in enumerate(clips):
+        if masks is None:  # every code is drawn first, from its own stream
+            masks = [make_code(code, clip.shape[1:], frames=clip.shape[0], bump=bump, p=p, rng=code_rng,
+                               path=code_path) for _ in range(captures if new_code_per_capture else 1)]
+        mask = masks[t % len(masks)]
+        # one noise stream, drawn capture after capture
+        yield (physics.simulate(clip, mask, sigma=sigma, rng=noise_rng) if sensor is None
+               else physics.simulate(clip, mask, rng=noise_rng, sensor=sensor)), mask, clip
 
 
 def sensor_model(noise) -> physics.SensorModel | None:

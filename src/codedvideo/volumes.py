@@ -44,19 +44,53 @@ def _json_default(o):
 CAPTURE_FILES = ("coded.npy", "mask.npy", "truth.npy", "coded.tif")
 
 
+def capture_paths(outdir: str | Path) -> dict[str, Path]:
+    """Where a simulated capture's files go (:data:`CAPTURE_FILES`)."""
+    outdir = Path(outdir)
+    return dict(coded=outdir / "coded.npy", mask=outdir / "mask.npy", truth=outdir / "truth.npy",
+                coded_tif=outdir / "coded.tif")
+
+
 def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[str, Path]:
     """Write coded.npy, mask.npy, truth.npy and coded.tif (:data:`CAPTURE_FILES`) into ``outdir``."""
-    outdir = Path(outdir)
-    paths = {}
-    for name in ("coded", "mask", "truth"):
-        paths[name] = outdir / f"{name}.npy"
-        cio.write_array(paths[name], capture[name])
-    paths["coded_tif"] = outdir / "coded.tif"
-    if capture["coded"].ndim == 3:  # several captures: one page each
-        cio.write_stack(paths["coded_tif"], capture["coded"], dtype=np.float32)
-    else:
-        cio.write_image(paths["coded_tif"], capture["coded"])
-    return paths
+    coded, mask, truth = capture["coded"], capture["mask"], capture["truth"]
+    count = coded.shape[0] if coded.ndim == 3 else 1
+    with capture_writer(outdir, coded_shape=coded.shape, mask_shape=mask.shape, truth_shape=truth.shape) as put:
+        for t in range(count):
+            put(coded[t] if coded.ndim == 3 else coded, mask[t] if mask.ndim == 4 else mask if t == 0 else None,
+                np.split(truth, count)[t] if count > 1 else truth)
+    return capture_paths(outdir)
+
+
+@contextlib.contextmanager
+def capture_writer(outdir: str | Path, *, coded_shape: tuple, mask_shape: tuple, truth_shape: tuple):
+    """Write a simulated stream's files (:func:`write_capture`) capture by capture: yields ``put(coded, mask,
+    truth)``.
+
+    ``coded`` is one capture's coded image (H, W), ``mask`` its code (N, H, W)
+    (None once a repeating code has been written), ``truth`` its frames, all in
+    order; the shapes are those of the whole files.  Nothing holds more than
+    one capture, and each file appears only when the block ends complete.
+    """
+    paths = capture_paths(outdir)
+    pages = coded_shape[0] if len(coded_shape) == 3 else 1
+    with contextlib.ExitStack() as files:
+        coded_out = files.enter_context(cio.npy_writer(paths["coded"], coded_shape))
+        truth_out = files.enter_context(cio.npy_writer(paths["truth"], truth_shape))
+        tif_out = files.enter_context(cio.stack_writer(paths["coded_tif"], pages, dtype=np.float32))
+        mask_out = None
+
+        def put(coded: np.ndarray, mask: np.ndarray | None, truth: np.ndarray) -> None:
+            nonlocal mask_out
+            coded_out(coded)
+            tif_out(np.asarray(coded)[None])
+            truth_out(truth)
+            if mask is not None:
+                if mask_out is None:  # the code's own type: binary uint8, or calibrated float weights
+                    mask_out = files.enter_context(cio.npy_writer(paths["mask"], mask_shape, dtype=mask.dtype))
+                mask_out(mask)
+
+        yield put
 
 
 def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
@@ -290,18 +324,10 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0
     output = Path(output)
     suffix = output.suffix.lower()
     grey = len(shape) == 3
-    if suffix == ".npy":
-        total = int(np.prod(shape)) * 4
-        with cio.atomic_output(output) as tmp:
-            with open(tmp, "wb") as fh:
-                np.lib.format.write_array_header_2_0(fh, dict(descr="<f4", fortran_order=False, shape=tuple(shape)))
-                start = fh.tell()
-                yield lambda index, part: np.ascontiguousarray(part, dtype="<f4").tofile(fh)  # a float32 part: no copy
-                if fh.tell() - start != total:
-                    raise RuntimeError(f"output {output}: {fh.tell() - start} of {total} bytes written")
-        return
     streamed = None
-    if grey and suffix in VIDEO_SUFFIXES:
+    if suffix == ".npy":
+        streamed = cio.npy_writer(output, shape)
+    elif grey and suffix in VIDEO_SUFFIXES:
         streamed = cio.video_writer(output, tuple(shape[1:]), data_range=data_range, fps=fps)
     elif grey and suffix in (".tif", ".tiff"):
         streamed = cio.stack_writer(output, shape[0], dtype=np.float32)
