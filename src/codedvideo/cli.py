@@ -205,7 +205,7 @@ def _cmd_train(a) -> int:
 def _cmd_simulate(a) -> int:
     from .volumes import CAPTURE_FILES, write_capture
     from .scenes import load_video
-    from .stages import sensor_model, simulate_capture, simulate_stream
+    from .stages import sensor_model, simulate_capture
 
     code = a.code or ("file" if a.code_file else "hitomi")
     if a.code_file and code != "file":
@@ -254,41 +254,17 @@ def _cmd_simulate(a) -> int:
     options = dict(code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed, p=code_cfg.p,
                    code_path=code_cfg.path, sensor=sensor_model(noise))
     if not (a.bayer or a.cacti_out or a.video.startswith(("synth:", "footage:"))):
-        # a video file: read, simulated and written capture by capture (the same files as at once)
-        from .scenes import iter_clips
-        from .volumes import capture_paths, capture_writer
-
-        clips = iter_clips(a.video, frames=a.frames, captures=captures, size=size, start=a.start)
-        first = next(clips)
-        h, w = first.shape[1:]
-        masks = captures if a.new_code_per_capture else 1
-        made = not out.exists()
-        try:
-            with capture_writer(out, coded_shape=(captures, h, w) if captures > 1 else (h, w),
-                                mask_shape=(masks, a.frames, h, w) if masks > 1 else (a.frames, h, w),
-                                truth_shape=(captures * a.frames, h, w)) as put:
-                stream = simulate_stream(itertools.chain([first], clips), captures=captures,
-                                         new_code_per_capture=a.new_code_per_capture, **options)
-                for t, (coded, mask, clip) in enumerate(stream):
-                    put(coded, mask if t < masks else None, clip)
-        except BaseException:  # a video cut short found on the way: no file was renamed into place
-            if made and out.is_dir() and not any(out.iterdir()):
-                out.rmdir()
-            raise
-        paths = capture_paths(out)
-        for path in paths.values():
-            mark_written(path)
-        print(json.dumps({k: str(v) for k, v in paths.items()}))
-        return 0
-    if a.bayer:  # the colour video through the filter: coded.npy the mosaic, truth.npy (3, N, H, W)
+        paths = _simulate_video_file(a, captures=captures, size=size, options=options)
+    elif a.bayer:  # the colour video through the filter: coded.npy the mosaic, truth.npy (3, N, H, W)
         from .bayer import load_color_video, simulate_bayer
 
         cap = simulate_bayer(load_color_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start),
                              a.bayer, where=f"video {a.video}", **options)
+        paths = write_capture(cap, a.output)
     else:
         video = load_video(a.video, frames=a.frames * captures, size=size, seed=a.seed, start=a.start)
         cap = simulate_capture(video, captures=captures, new_code_per_capture=a.new_code_per_capture, **options)
-    paths = write_capture(cap, a.output)
+        paths = write_capture(cap, a.output)
     if a.cacti_out:
         from .cacti import write_cacti
 
@@ -435,6 +411,34 @@ def _read_captures(a) -> _Captures:
         codeds=coded, masks=masks, truths=truths, labels=labels, kind=kind,
         inputs=dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, color=a.color),
         dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
+
+
+def _simulate_video_file(a, *, captures: int, size, options: dict) -> dict:
+    """``simulate`` of a video file or a folder of frames: read, coded and written capture by capture (the same
+    files as :func:`codedvideo.stages.simulate_capture` of the whole clip); their paths."""
+    from .scenes import iter_clips
+    from .stages import simulate_stream
+    from .volumes import capture_paths, capture_writer
+
+    out = Path(a.output)
+    clips = iter_clips(a.video, frames=a.frames, captures=captures, size=size, start=a.start)
+    first = next(clips)
+    h, w = first.shape[1:]
+    masks = captures if a.new_code_per_capture else 1
+    made = not out.exists()
+    try:
+        with capture_writer(out, coded_shape=(captures, h, w) if captures > 1 else (h, w),
+                            mask_shape=(masks, a.frames, h, w) if masks > 1 else (a.frames, h, w),
+                            truth_shape=(captures * a.frames, h, w)) as put:
+            stream = simulate_stream(itertools.chain([first], clips), captures=captures,
+                                     new_code_per_capture=a.new_code_per_capture, **options)
+            for t, (coded, mask, clip) in enumerate(stream):
+                put(coded, mask if t < masks else None, clip)
+    except BaseException:  # a video cut short found on the way: no file was renamed into place
+        if made and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+    return capture_paths(out)
 
 
 def _cmd_reconstruct(a) -> int:
