@@ -32,13 +32,18 @@ def read_clip(spec: str, *, frames: int, size: tuple[int, int] | None, start: in
     video = cio.read_video(resolve_data(spec), max_frames=frames, start=start, color=color)
     if video.shape[-3] < frames:
         raise InputError(f"video {spec}: has {video.shape[-3]} frames from frame {start}, need {frames}")
-    if size is not None:
-        h, w = size
-        if video.shape[-2] < h or video.shape[-1] < w:
-            raise InputError(f"video {spec}: frames {video.shape[-2:]} smaller than the requested size {tuple(size)}")
-        y0, x0 = (video.shape[-2] - h) // 2, (video.shape[-1] - w) // 2
-        video = video[..., y0 : y0 + h, x0 : x0 + w]
-    return np.ascontiguousarray(video[..., :frames, :, :], dtype=np.float32)
+    return np.ascontiguousarray(_centre_crop(video, size, spec)[..., :frames, :, :], dtype=np.float32)
+
+
+def _centre_crop(frames: np.ndarray, size: tuple[int, int] | None, spec: str) -> np.ndarray:
+    """The centre ``size`` of the last two axes (None: as they are); frames smaller than it are an error."""
+    if size is None:
+        return frames
+    h, w = size
+    if frames.shape[-2] < h or frames.shape[-1] < w:
+        raise InputError(f"video {spec}: frames {frames.shape[-2:]} smaller than the requested size {tuple(size)}")
+    y0, x0 = (frames.shape[-2] - h) // 2, (frames.shape[-1] - w) // 2
+    return frames[..., y0 : y0 + h, x0 : x0 + w]
 
 
 def iter_clips(spec: str, *, frames: int, captures: int, size: tuple[int, int] | None, start: int = 0):
@@ -57,13 +62,7 @@ def iter_clips(spec: str, *, frames: int, captures: int, size: tuple[int, int] |
         first = frame.shape if first is None else first
         if frame.shape != first:
             raise InputError(f"video {spec}: frames differ in shape ({first} and {frame.shape})")
-        if size is not None:
-            h, w = size
-            if frame.shape[0] < h or frame.shape[1] < w:
-                raise InputError(f"video {spec}: frames {frame.shape} smaller than the requested size {tuple(size)}")
-            y0, x0 = (frame.shape[0] - h) // 2, (frame.shape[1] - w) // 2
-            frame = frame[y0 : y0 + h, x0 : x0 + w]
-        clip.append(frame)
+        clip.append(_centre_crop(frame, size, spec))
         if len(clip) == frames:
             yield np.ascontiguousarray(np.stack(clip), dtype=np.float32)
             clip, done = [], done + 1

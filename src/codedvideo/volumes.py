@@ -55,10 +55,11 @@ def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[st
     """Write coded.npy, mask.npy, truth.npy and coded.tif (:data:`CAPTURE_FILES`) into ``outdir``."""
     coded, mask, truth = capture["coded"], capture["mask"], capture["truth"]
     count = coded.shape[0] if coded.ndim == 3 else 1
+    truths = np.split(truth, count) if count > 1 else [truth]  # a colour truth (3, N, H, W): one capture
     with capture_writer(outdir, coded_shape=coded.shape, mask_shape=mask.shape, truth_shape=truth.shape) as put:
         for t in range(count):
             put(coded[t] if coded.ndim == 3 else coded, mask[t] if mask.ndim == 4 else mask if t == 0 else None,
-                np.split(truth, count)[t] if count > 1 else truth)
+                truths[t])
     return capture_paths(outdir)
 
 
