@@ -295,3 +295,21 @@ def test_verify_calls_an_entry_of_an_older_layout_stale_and_clean_removes_it(sce
     assert (tmp["kind"], tmp["status"]) == ("temporary", "leftover")
     assert sorted(clean_cache(tmp_path, broken_only=True)) == sorted([entry, tmp_path / f".{entry.name}.tmp-12345-0123abcd"])
     assert list(tmp_path.iterdir()) == []
+
+
+def test_tile_tasks_share_an_opened_store_until_the_entry_is_rebuilt(scene, tmp_path):
+    """WorkStore.opened hands the tasks of a process one opened store per entry; an entry rebuilt under the
+    same name (other inputs) is opened afresh, so no task reads a stale layout."""
+    from codedvideo.store import WorkStore
+
+    coded, mask, _ = scene
+    path = tmp_path / "recon-x.zarr"
+    made = WorkStore.create(path, coded, mask, tile=TILE, n_stats=7, n_tiles=9, attrs=dict(key="a"))
+    assert WorkStore.opened(path) is made and WorkStore.opened(str(path)) is made
+    shutil.rmtree(path)
+    small = WorkStore.create(path, coded[:40, :40], mask[:, :40, :40], tile=TILE, n_stats=7, n_tiles=4,
+                             attrs=dict(key="b"))
+    again = WorkStore.opened(path)
+    assert again is small and again is not made
+    assert again.read_inputs(0, 40, 0, 40)[0].shape == (40, 40)
+    np.testing.assert_array_equal(again.read_inputs(0, 40, 0, 40)[1], mask[:, :40, :40])

@@ -85,6 +85,59 @@ def test_fold_in_bands_equals_fold_in_one_go(band):
     assert np.array_equal(banded, once)
 
 
+def test_compiled_fold_sums_every_pixel_in_the_documented_order(rng):
+    """fold_rows adds, at each pixel, its patches by corner row (top first), then corner column (right first):
+    the same float32 bits as a plain loop in that order; one value per patch folds like a constant patch."""
+    shape, n = (12, 10), 2
+    hp, wp = P.grid_shape(shape)
+    est = (rng.normal(size=(hp * wp, n, 49)) * 10.0 ** rng.integers(-3, 4, (hp * wp, 1, 1))).astype(np.float32)
+    expected = np.zeros((n, *shape), np.float32)
+    for r in range(hp):
+        for c in range(wp - 1, -1, -1):
+            expected[:, r : r + 7, c : c + 7] += est[r * wp + c].reshape(n, 7, 7)
+    assert np.array_equal(P.fold(est, shape), expected)
+    w = rng.random(hp * wp).astype(np.float32)
+    assert np.array_equal(P.fold(w, shape), P.fold(np.repeat(w[:, None], 49, 1), shape))
+
+
+def test_fold_leaves_out_the_skipped_patches(rng):
+    shape = (15, 13)
+    hp, wp = P.grid_shape(shape)
+    est = rng.normal(size=(hp * wp, 3, 49)).astype(np.float32)
+    skip = rng.random(hp * wp) < 0.4
+    out = np.zeros((3, *shape), np.float32)
+    P.fold_rows(est, out, 0, P.PATCH, skip=skip)
+    assert np.array_equal(out, P.fold(np.where(skip[:, None, None], 0, est), shape))
+    with pytest.raises(ValueError, match="float32"):
+        P.fold_rows(est, np.zeros((3, *shape)), 0, P.PATCH)
+
+
+def test_still_patches_no_other_patch_overlaps_are_not_summed_and_change_nothing(monkeypatch):
+    """Patches of the still map that only still patches overlap are left out of the sum (their pixels take the
+    still answer): the volume is the same bit for bit as when every patch is summed."""
+    from codedvideo import reconstruct as R
+
+    video = make_scene("default", frames=4, size=(40, 44))
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=3)
+    coded = simulate(video, mask)
+    still = np.zeros(coded.shape, bool)
+    still[:, :26] = True
+    D, s = dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=1.0)
+    skipped = []
+    fold_rows = P.fold_rows
+
+    def spy(est, out, row, patch=P.PATCH, skip=None):
+        skipped.append(0 if skip is None else int(skip.sum()))
+        fold_rows(est, out, row, patch, skip=skip)
+
+    monkeypatch.setattr(R.P, "fold_rows", spy)
+    fast, _ = R.reconstruct_region(coded, mask, D, s, still=still)
+    assert sum(skipped) >= 34 * 12  # the still columns far from the moving ones
+    monkeypatch.setattr(R.P, "fold_rows", lambda est, out, row, patch=P.PATCH, skip=None: fold_rows(est, out, row, patch))
+    every, _ = R.reconstruct_region(coded, mask, D, s, still=still)
+    assert np.array_equal(fast, every)
+
+
 def test_pattern_table_rows_do_not_depend_on_the_other_patterns():
     """A pattern's table rows are the same whichever other patterns a region holds."""
     rng = np.random.default_rng(0)

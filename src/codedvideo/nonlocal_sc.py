@@ -241,8 +241,7 @@ def nonlocal_region(
                     wgt = wgt / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
                     est *= wgt[:, None]
                 P.fold_rows(est, summed, r0, patch)
-                w3 = weight[None]
-                P.fold_rows(np.repeat(wgt[:, None], m, 1), w3, r0, patch)
+                P.fold_rows(wgt, weight[None], r0, patch)
             else:
                 live = np.arange(k)[None, :] < size[:, None]
                 where = mem[live]

@@ -112,11 +112,11 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
     store_path, first = places[0]
     hy0, hy1, hx0, hx1 = first.halo
     y0, y1, x0, x1 = first.core
-    store = WorkStore(store_path)
+    store = WorkStore.opened(store_path)
     coded, mask, still = store.read_inputs(hy0, hy1, hx0, hx1)
     _one_blas_thread_in_worker()
     try:
-        shape = store.group["coded"].shape
+        shape = store.array("coded").shape
         volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch, origin=(hy0, hx0),
                                            image_shape=shape, still=still.astype(bool))
         if settings.method == "nonlocal":  # the per-patch estimate is the first estimate of the groups
@@ -130,7 +130,7 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
         raise RuntimeError(f"tile {first.index} (rows {y0}:{y1}, cols {x0}:{x1}) of {store_path}: {exc}") from exc
     core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]
     for path, tile in places:
-        (store if path == store_path else WorkStore(path)).write_tile(tile.index, tile.core, core, stats)
+        (store if path == store_path else WorkStore.opened(path)).write_tile(tile.index, tile.core, core, stats)
     return stats
 
 

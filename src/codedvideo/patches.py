@@ -10,6 +10,7 @@ divides by the exact count from :func:`coverage`.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 #: Side of the square patches of the method (7x7 in the paper): the one home of this constant.
 PATCH = 7
@@ -49,7 +50,7 @@ def fold(patches: np.ndarray, shape: tuple[int, int], patch: int = PATCH) -> np.
 
     Parameters
     ----------
-    patches : ndarray of shape (P, N, M*M) or (P, N*M*M)
+    patches : ndarray of shape (P, N, M*M) or (P, N*M*M), or (P,): one value per patch (N = 1)
     shape : (H, W)
 
     Returns
@@ -60,41 +61,67 @@ def fold(patches: np.ndarray, shape: tuple[int, int], patch: int = PATCH) -> np.
     p = patches.shape[0]
     if p != hp * wp:
         raise ValueError(f"fold: {p} patches do not tile an image of shape {shape}")
-    n = patches.reshape(p, -1).shape[1] // (patch * patch)
+    n = 1 if patches.ndim == 1 else patches.reshape(p, -1).shape[1] // (patch * patch)
     out = np.zeros((n, *shape), dtype=np.float32)
     fold_rows(patches, out, 0, patch)
     return out
 
 
-def fold_rows(patches: np.ndarray, out: np.ndarray, row: int, patch: int = PATCH) -> None:
+def fold_rows(patches: np.ndarray, out: np.ndarray, row: int, patch: int = PATCH,
+              skip: np.ndarray | None = None) -> None:
     """Add whole rows of patches into ``out`` in place: a band of :func:`fold`.
 
     Parameters
     ----------
-    patches : ndarray of shape (k * Wp, N, M*M) or (k * Wp, N*M*M)
+    patches : ndarray of shape (k * Wp, N, M*M) or (k * Wp, N*M*M), or (k * Wp,)
         The patches whose corners lie in grid rows ``row .. row + k - 1``, in
-        raster order (``Wp = W - M + 1``).
+        raster order (``Wp = W - M + 1``); a vector: one value per patch,
+        added to every pixel of the patch (its weight in an average).
     out : ndarray of shape (N, H, W)
-        Accumulator.
+        Accumulator, float32.
     row : int
         First grid row of the band.
+    skip : bool ndarray of shape (k * Wp,), optional
+        Patches left out (whose pixels the caller overwrites anyway).
 
     Every pixel receives its patches in one fixed order, by patch corner row
-    (top first), then by corner column (right first), whatever the band: bands
-    are folded top to bottom and, within a band, the lower offsets ``dy`` (the
-    later corner rows) come last.  Float32 sums then do not depend on how the
-    patch rows are cut into bands (batch size, tile size, image origin), so
-    tiled and whole-image results agree bit for bit.
+    (top first), then by corner column (right first), whatever the band, so
+    float32 sums do not depend on how the patch rows are cut into bands
+    (batch size, tile size, image origin): tiled and whole-image results
+    agree bit for bit.  Compiled (:func:`_fold_kernel`).
     """
     n, h, w = out.shape
     wp = w - patch + 1
     k = patches.shape[0] // wp
     if k * wp != patches.shape[0] or row + k > h - patch + 1:
         raise ValueError(f"fold_rows: {patches.shape[0]} patches are not whole rows of a {h}x{w} grid from row {row}")
-    pt = patches.reshape(k, wp, n, patch, patch)
-    for dy in range(patch - 1, -1, -1):  # corner rows in increasing order: see above
-        for dx in range(patch):
-            out[:, row + dy : row + dy + k, dx : dx + wp] += np.moveaxis(pt[:, :, :, dy, dx], 2, 0)
+    if out.dtype != np.float32 or not out.flags.c_contiguous:
+        raise ValueError("fold_rows: the accumulator must be a C-contiguous float32 array")
+    scalar = patches.ndim == 1
+    pt = np.ascontiguousarray(patches, dtype=np.float32).reshape(k * wp, 1 if scalar else n, -1)
+    if not scalar and pt.shape[2] != patch * patch:
+        raise ValueError(f"fold_rows: patches of {pt.shape[1] * pt.shape[2]} values are not {n}x{patch}x{patch}")
+    if scalar and n != 1:
+        raise ValueError("fold_rows: one value per patch folds into a single-frame accumulator")
+    skip = np.zeros(k * wp, np.bool_) if skip is None else np.ascontiguousarray(skip, dtype=np.bool_)
+    _fold_kernel(pt, out, row, patch, skip, scalar)
+
+
+@njit(nogil=True, cache=True)
+def _fold_kernel(pt, out, row, patch, skip, scalar):  # pragma: no cover - compiled
+    n, w = out.shape[0], out.shape[2]
+    wp = w - patch + 1
+    k = pt.shape[0] // wp
+    for r in range(k):  # corner rows top first, corner columns right first: the order of fold_rows
+        for c in range(wp - 1, -1, -1):
+            p = r * wp + c
+            if skip[p]:
+                continue
+            for t in range(n):
+                for dy in range(patch):
+                    y = row + r + dy
+                    for dx in range(patch):
+                        out[t, y, c + dx] += pt[p, 0, 0] if scalar else pt[p, t, dy * patch + dx]
 
 
 def coverage(shape: tuple[int, int], patch: int = PATCH) -> np.ndarray:

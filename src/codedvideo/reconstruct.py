@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import ndimage
 
 from . import patches as P
 from .omp import (GroupedOperator, MaskedOperator, is_binary, masked_operator, omp, periodic_groups, pixel_patterns,
@@ -252,11 +253,12 @@ def reconstruct_region(
         stats = np.array([hp * wp, hp * wp, 0, 0, 0, 0.0, time.perf_counter() - t_start], dtype=np.float64)
         return np.repeat(q[None], n, axis=0), stats
     y_all = P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch)  # (Pn, m)
-    S_all = P.extract(mask.astype(np.uint8) if binary else mask, patch)  # (Pn, N, m)
+    # every patch's code, (Pn, N, m): the largest array here, made only where a path reads it
+    S_all = functools.cache(lambda: P.extract(mask.astype(np.uint8) if binary else mask, patch))
     groups = None if operator != "auto" else periodic_groups(mask, patch)
     # periodic codes: the few distinct patch operators are built once for the region, however
     # few its patches, so that small edge tiles solve them with the same arithmetic as large ones
-    grouped = None if groups is None else masked_operator(S_all, D, groups=groups, min_share=0)
+    grouped = None if groups is None else masked_operator(S_all(), D, groups=groups, min_share=0)
     if not isinstance(grouped, GroupedOperator):
         grouped = None
     # any other code whose pixels take few shutter patterns (every single-bump code):
@@ -284,9 +286,12 @@ def reconstruct_region(
         valid &= (rows_on[:, None] & cols_on[None, :]).ravel()
     if settings.weighting not in ("uniform", "fit"):
         raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
-    still_rows = None
+    still_rows = skip = None
     if still is not None and np.any(still):  # patches wholly still: the still answer, no search
         still_rows = P.extract(np.asarray(still, np.uint8), patch).all(1) & valid
+        # still patches that no other patch overlaps: their pixels take the still answer below, unsummed
+        near = ndimage.maximum_filter((valid & ~still_rows).reshape(hp, wp), size=2 * patch - 1, mode="constant")
+        skip = still_rows & ~near.ravel()
     summed = np.zeros((n, h, w), np.float32)
     weight = np.zeros((1, h, w), np.float32)
     atoms = hit = dep = n_static = 0
@@ -296,7 +301,7 @@ def reconstruct_region(
         r1 = min(hp, r0 + band)
         s = r0 * wp
         sl = slice(s, r1 * wp)
-        y, S, tol = y_all[sl], S_all[sl], n_open[sl] * settings.tol_rms**2
+        y, tol = y_all[sl], n_open[sl] * settings.tol_rms**2
         est = np.zeros((y.shape[0], n * m), np.float32)
         t0 = time.perf_counter()
         rows = np.flatnonzero(valid[sl])
@@ -316,10 +321,10 @@ def reconstruct_region(
             if table is not None:
                 res = table.solve(y[rows], pat_all[sl][rows], max_atoms=settings.max_atoms, tol=tol[rows])
             elif weights is not None:
-                res = weights.solve(y[rows], S[rows], max_atoms=settings.max_atoms, tol=tol[rows])
+                res = weights.solve(y[rows], S_all()[sl][rows], max_atoms=settings.max_atoms, tol=tol[rows])
             else:
                 # periodic codes share few patch operators; any other code has its own per patch
-                op = MaskedOperator(S[rows], D) if grouped is None else grouped.subset(s + rows)
+                op = MaskedOperator(S_all()[sl][rows], D) if grouped is None else grouped.subset(s + rows)
                 res = omp(y[rows], op, max_atoms=settings.max_atoms, tol=tol[rows])
             est[rows] = synthesize(res, D)
             atoms += int(res.count.sum())
@@ -328,17 +333,17 @@ def reconstruct_region(
         t_omp += time.perf_counter() - t0
         wp_ = valid[sl].astype(np.float32)
         if settings.weighting == "fit":
-            misfit = y - (S * est.reshape(-1, n, m)).sum(1)
+            misfit = y - (S_all()[sl] * est.reshape(-1, n, m)).sum(1)
             e2 = np.einsum("pm,pm->p", misfit, misfit) / np.maximum(n_open[sl], 1)
             wp_ = wp_ / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
             est *= wp_[:, None]
-        P.fold_rows(est, summed, r0, patch)
-        P.fold_rows(np.repeat(wp_[:, None], m, 1), weight, r0, patch)
+        P.fold_rows(est, summed, r0, patch, skip=None if skip is None else skip[sl])
+        P.fold_rows(wp_, weight, r0, patch)
     weight = weight[0]
     with np.errstate(invalid="ignore", divide="ignore"):
         volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
     if still_rows is not None:  # pixels only still patches cover: the still answer exactly, as a still tile gives
-        others = P.fold(np.repeat((valid & ~still_rows).astype(np.float32)[:, None], m, 1), (h, w), patch)[0]
+        others = P.fold((valid & ~still_rows).astype(np.float32), (h, w), patch)[0]
         inner = (others == 0) & (weight > 0)
         volume[:, inner] = _still_answer(coded, mask, binary)[inner]
     stats = np.array(

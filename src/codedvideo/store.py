@@ -18,6 +18,7 @@ recomputed, never returned.  Runs on one entry are serialised by an exclusive
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import errno
 import hashlib
@@ -25,11 +26,15 @@ import json
 import logging
 import os
 import shutil
+import threading
 import uuid
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 import zarr
+import zarr.api.asynchronous
+from zarr.core.sync import sync  # zarr's own event loop, as its synchronous API uses
 
 try:
     import fcntl
@@ -364,6 +369,31 @@ def workstore_problem(group, *, key: str | None = None) -> str | None:
     return None
 
 
+async def _build_entry(path: Path, layout: dict, inputs: dict[str, np.ndarray], attrs: dict) -> None:
+    """A working store's arrays made and its inputs written concurrently (a dozen metadata and chunk
+    writes: 15 ms a capture against 27 ms one by one), then its attributes, ``complete_inputs`` last."""
+    group = await zarr.api.asynchronous.open_group(store=str(path), mode="w")
+    arrays = await asyncio.gather(*(group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill)
+                                    for name, (shape, chunks, dtype, fill) in layout.items()))
+    arrays = dict(zip(layout, arrays))
+    await asyncio.gather(*(arrays[name].setitem(Ellipsis, value) for name, value in inputs.items()))
+    await group.update_attributes(attrs)
+
+
+#: Working stores opened for tile access in this process (:meth:`WorkStore.opened`), the most recent last.
+OPENED_KEPT = 64
+_opened: "OrderedDict[tuple, WorkStore]" = OrderedDict()
+_opened_lock = threading.Lock()
+
+
+def _remember(ident: tuple, store: "WorkStore") -> None:
+    with _opened_lock:
+        _opened[ident] = store
+        _opened.move_to_end(ident)
+        while len(_opened) > OPENED_KEPT:
+            _opened.popitem(last=False)
+
+
 class WorkStore:
     """The chunked working store of one reconstruction: one cache entry.
 
@@ -381,6 +411,38 @@ class WorkStore:
         self.key = str(self.group.attrs.get("key", ""))
         #: Made afresh by :meth:`create` (no tile of it is done), rather than opened or reused.
         self.created = False
+        self._arrays: dict[str, zarr.Array] = {}
+
+    def array(self, name: str) -> zarr.Array:
+        """One of the store's arrays, its metadata read once for this store object."""
+        arr = self._arrays.get(name)
+        if arr is None:
+            arr = self._arrays[name] = self.group[name]
+        return arr
+
+    @classmethod
+    def opened(cls, path: str | os.PathLike) -> "WorkStore":
+        """The store at ``path`` for tile access, opened once per process while it is the same entry.
+
+        Every tile task of a job reads and writes its store; opening the
+        group and its arrays reads four metadata files, several milliseconds
+        a task.  An entry is the same while its ``zarr.json`` is the same
+        file (inode, size, modification time): an entry rebuilt under the
+        same name is opened afresh.
+        """
+        try:
+            st = os.stat(Path(path) / "zarr.json")
+        except OSError:  # no entry: let zarr name the problem
+            return cls(path)
+        ident = (str(path), st.st_ino, st.st_size, st.st_mtime_ns)
+        with _opened_lock:
+            store = _opened.get(ident)
+            if store is not None:
+                _opened.move_to_end(ident)
+                return store
+        store = cls(path)
+        _remember(ident, store)
+        return store
 
     @classmethod
     def create(
@@ -420,21 +482,18 @@ class WorkStore:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             remove_temporaries(path)  # left by killed runs (we hold the lock)
-            group = zarr.open_group(str(tmp), mode="w")
             layout = workstore_layout(n, h, w, tile=tile, n_stats=n_stats, n_tiles=n_tiles, mask=mask.dtype)
-            for name, (shape, chunks, dtype, fill) in layout.items():
-                arr = group.create_array(name, shape=shape, chunks=chunks, dtype=dtype, fill_value=fill)
-                if name in ("coded", "mask", "still"):
-                    arr[...] = dict(coded=coded, mask=mask, still=still)[name]
-            group.update_attributes(json.loads(json.dumps(dict(
+            sync(_build_entry(tmp, layout, dict(coded=coded, mask=mask, still=still), json.loads(json.dumps(dict(
                 attrs, kind=WORKSTORE_KIND, format_version=WORKSTORE_FORMAT, tile=int(tile), n_tiles=int(n_tiles),
-                inputs_digest=inputs_digest(coded, mask, still), complete_inputs=True))))
+                inputs_digest=inputs_digest(coded, mask, still), complete_inputs=True)))))
             _replace_dir(tmp, path)
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             raise OutputError(f"working store {path}: cannot write ({exc.strerror or exc})") from exc
         store = cls(path)
         store.created = True
+        st = os.stat(path / "zarr.json")
+        _remember((str(path), st.st_ino, st.st_size, st.st_mtime_ns), store)
         return store
 
     @staticmethod
@@ -461,9 +520,9 @@ class WorkStore:
     # -- tile access, used inside tasks -------------------------------------------------
     def read_inputs(self, y0: int, y1: int, x0: int, x1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The coded image, the mask and the still map (uint8) of a region."""
-        coded = self.group["coded"][y0:y1, x0:x1]
-        mask = self.group["mask"][:, y0:y1, x0:x1]
-        still = self.group["still"][y0:y1, x0:x1]
+        coded = self.array("coded")[y0:y1, x0:x1]
+        mask = self.array("mask")[:, y0:y1, x0:x1]
+        still = self.array("still")[y0:y1, x0:x1]
         return np.asarray(coded), np.asarray(mask), np.asarray(still)
 
     def write_tile(self, index: int, region: tuple[int, int, int, int], volume: np.ndarray, stats: np.ndarray) -> None:
@@ -477,9 +536,9 @@ class WorkStore:
         y0, y1, x0, x1 = region
         volume = np.ascontiguousarray(volume, dtype=np.float32)
         stats = np.ascontiguousarray(stats, dtype=np.float64)
-        self.group["volume"][:, y0:y1, x0:x1] = volume
-        self.group["stats"][index : index + 1, :] = stats[None]
-        self.group["digest"][index : index + 1, :] = tile_digest(self.key, index, region, volume, stats)[None]
+        self.array("volume")[:, y0:y1, x0:x1] = volume
+        self.array("stats")[index : index + 1, :] = stats[None]
+        self.array("digest")[index : index + 1, :] = tile_digest(self.key, index, region, volume, stats)[None]
 
     # -- verified reads, used by the client -----------------------------------------------
     def tiles(self) -> list[_TileRef]:
@@ -491,7 +550,7 @@ class WorkStore:
 
     def _rows(self, name: str, fill) -> np.ndarray:
         """A per-tile array, whole; rows whose chunk cannot be decoded come back as ``fill``."""
-        arr = self.group[name]
+        arr = self.array(name)
         try:
             return np.asarray(arr[...])
         except Exception:  # a damaged chunk: read row by row
@@ -534,7 +593,7 @@ class WorkStore:
         n_tiles = digests.shape[0]
         ok = np.zeros(n_tiles, bool)
         damaged = np.zeros(n_tiles, bool)
-        varr = self.group["volume"]
+        varr = self.array("volume")
         claimed = [t for t in tiles if digests[t.index].any()]
         bulk = None
         if not assemble:
