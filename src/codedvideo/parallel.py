@@ -37,7 +37,7 @@ import dask.threaded
 import numpy as np
 
 from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
-from .store import WorkStore
+from .store import WorkStore, write_tiles
 
 log = logging.getLogger("codedvideo")
 
@@ -129,8 +129,8 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
     except Exception as exc:  # name the tile, keep the cause
         raise RuntimeError(f"tile {first.index} (rows {y0}:{y1}, cols {x0}:{x1}) of {store_path}: {exc}") from exc
     core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]
-    for path, tile in places:
-        (store if path == store_path else WorkStore.opened(path)).write_tile(tile.index, tile.core, core, stats)
+    write_tiles([(store if path == store_path else WorkStore.opened(path), tile.index, tile.core)
+                 for path, tile in places], core, stats)
     return stats
 
 

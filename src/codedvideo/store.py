@@ -380,6 +380,26 @@ async def _build_entry(path: Path, layout: dict, inputs: dict[str, np.ndarray], 
     await group.update_attributes(attrs)
 
 
+def write_tiles(places: list[tuple["WorkStore", int, tuple[int, int, int, int]]], volume: np.ndarray,
+                stats: np.ndarray) -> None:
+    """Write one solved tile to each of its places ``(store, tile index, core region)``: every volume
+    core and statistics row concurrently, then (last) every digest, as :meth:`WorkStore.write_tile`."""
+    volume = np.ascontiguousarray(volume, dtype=np.float32)
+    stats = np.ascontiguousarray(stats, dtype=np.float64)
+    writes, digests = [], []
+    for store, index, (y0, y1, x0, x1) in places:  # arrays opened here: never from inside zarr's event loop
+        writes.append((store.array("volume").async_array, (slice(None), slice(y0, y1), slice(x0, x1)), volume))
+        writes.append((store.array("stats").async_array, (slice(index, index + 1), slice(None)), stats[None]))
+        digests.append((store.array("digest").async_array, (slice(index, index + 1), slice(None)),
+                        tile_digest(store.key, index, (y0, y1, x0, x1), volume, stats)[None]))
+
+    async def write():
+        await asyncio.gather(*(arr.setitem(sel, value) for arr, sel, value in writes))
+        await asyncio.gather(*(arr.setitem(sel, value) for arr, sel, value in digests))
+
+    sync(write())
+
+
 #: Working stores opened for tile access in this process (:meth:`WorkStore.opened`), the most recent last.
 OPENED_KEPT = 64
 _opened: "OrderedDict[tuple, WorkStore]" = OrderedDict()
@@ -519,11 +539,15 @@ class WorkStore:
 
     # -- tile access, used inside tasks -------------------------------------------------
     def read_inputs(self, y0: int, y1: int, x0: int, x1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The coded image, the mask and the still map (uint8) of a region."""
-        coded = self.array("coded")[y0:y1, x0:x1]
-        mask = self.array("mask")[:, y0:y1, x0:x1]
-        still = self.array("still")[y0:y1, x0:x1]
-        return np.asarray(coded), np.asarray(mask), np.asarray(still)
+        """The coded image, the mask and the still map (uint8) of a region, read concurrently."""
+        region = (slice(y0, y1), slice(x0, x1))
+        arrays = [self.array(name).async_array for name in ("coded", "mask", "still")]
+
+        async def read():
+            return await asyncio.gather(arrays[0].getitem(region), arrays[1].getitem((slice(None), *region)),
+                                        arrays[2].getitem(region))
+
+        return tuple(np.asarray(a) for a in sync(read()))
 
     def write_tile(self, index: int, region: tuple[int, int, int, int], volume: np.ndarray, stats: np.ndarray) -> None:
         """Write a tile's volume core and statistics row, then (last) their digest.
@@ -533,12 +557,7 @@ class WorkStore:
         for done; a digest that matches vouches for exactly the bytes it was
         computed from.
         """
-        y0, y1, x0, x1 = region
-        volume = np.ascontiguousarray(volume, dtype=np.float32)
-        stats = np.ascontiguousarray(stats, dtype=np.float64)
-        self.array("volume")[:, y0:y1, x0:x1] = volume
-        self.array("stats")[index : index + 1, :] = stats[None]
-        self.array("digest")[index : index + 1, :] = tile_digest(self.key, index, region, volume, stats)[None]
+        write_tiles([(self, index, region)], volume, stats)
 
     # -- verified reads, used by the client -----------------------------------------------
     def tiles(self) -> list[_TileRef]:
