@@ -139,3 +139,20 @@ def test_captures_of_different_shapes_are_refused(rng):
     x = np.zeros((N, 8, 9), np.float32)
     with pytest.raises(ValueError):
         join_captures(x, x[:, :, :8], coded_before=x[0], mask_before=x, coded_after=x[0], mask_after=x)
+
+
+def test_the_compiled_warp_samples_as_linear_map_coordinates_with_edges_repeated(rng):
+    """The join's resampling: frame f at (y + vy tau_f, x + vx tau_f), linear, coordinates outside moved onto
+    the border; scipy's map_coordinates(order=1, mode="nearest") within the rounding of the coordinates."""
+    from scipy import ndimage
+
+    from codedvideo.sequence import _warp
+
+    frames = rng.random((3, 23, 31)).astype(np.float32) * 255
+    vy, vx = (rng.normal(size=(2, 23, 31)) * 4).astype(np.float32)  # many samples fall outside the frame
+    tau = np.array([-2.5, 0.0, 3.0], np.float32)
+    grid = np.mgrid[0:23, 0:31].astype(np.float32)
+    expected = np.stack([ndimage.map_coordinates(frames[f], [grid[0] + vy * t, grid[1] + vx * t], order=1,
+                                                 mode="nearest") for f, t in enumerate(tau)])
+    np.testing.assert_allclose(_warp(frames, vy, vx, tau), expected, atol=2e-3)
+    assert np.array_equal(_warp(frames, vy, vx, tau)[1], frames[1])  # no motion: the frame itself, exactly
