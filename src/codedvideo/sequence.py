@@ -165,9 +165,9 @@ def _warp(frames: np.ndarray, vy: np.ndarray, vx: np.ndarray, tau: np.ndarray) -
     Linear interpolation, edges repeated (a coordinate outside the frame is
     moved onto its border).  Linear, not cubic: measured on 10 captures of the
     default scene (256x256, N = 8) cubic gave 29.21 against 29.14 dB and the
-    same step ratio (0.99) for twice the time of a join.  Compiled (:func:`_warp_kernel`), the same values
-    as ``scipy.ndimage.map_coordinates(order=1, mode="nearest")`` to float
-    roundoff, about ten times faster.
+    same step ratio (0.99) for twice the time of a join.  Compiled
+    (:func:`_warp_kernel`): the values of ``scipy.ndimage.map_coordinates(order=1,
+    mode="nearest")`` to the rounding of the coordinates, about ten times faster.
     """
     frames = np.ascontiguousarray(frames, dtype=np.float32)
     out = np.empty_like(frames)
