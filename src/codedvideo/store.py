@@ -383,7 +383,12 @@ async def _build_entry(path: Path, layout: dict, inputs: dict[str, np.ndarray], 
 def write_tiles(places: list[tuple["WorkStore", int, tuple[int, int, int, int]]], volume: np.ndarray,
                 stats: np.ndarray) -> None:
     """Write one solved tile to each of its places ``(store, tile index, core region)``: every volume
-    core and statistics row concurrently, then (last) every digest, as :meth:`WorkStore.write_tile`."""
+    core and statistics row concurrently, then (last) every digest.
+
+    A tile cut short before its digest does not match the digest on disk
+    (none, or an old one of other contents), so it is never taken for done; a
+    digest that matches vouches for exactly the bytes it was computed from.
+    """
     volume = np.ascontiguousarray(volume, dtype=np.float32)
     stats = np.ascontiguousarray(stats, dtype=np.float64)
     writes, digests = [], []
@@ -548,16 +553,6 @@ class WorkStore:
                                         arrays[2].getitem(region))
 
         return tuple(np.asarray(a) for a in sync(read()))
-
-    def write_tile(self, index: int, region: tuple[int, int, int, int], volume: np.ndarray, stats: np.ndarray) -> None:
-        """Write a tile's volume core and statistics row, then (last) their digest.
-
-        A tile cut short between these writes does not match the digest on
-        disk (none, or an old one of other contents), so it is never taken
-        for done; a digest that matches vouches for exactly the bytes it was
-        computed from.
-        """
-        write_tiles([(self, index, region)], volume, stats)
 
     # -- verified reads, used by the client -----------------------------------------------
     def tiles(self) -> list[_TileRef]:
