@@ -156,3 +156,26 @@ def test_the_compiled_warp_samples_as_linear_map_coordinates_with_edges_repeated
                                                  mode="nearest") for f, t in enumerate(tau)])
     np.testing.assert_allclose(_warp(frames, vy, vx, tau), expected, atol=2e-3)
     assert np.array_equal(_warp(frames, vy, vx, tau)[1], frames[1])  # no motion: the frame itself, exactly
+
+
+def test_a_join_works_only_near_what_changes_and_gives_the_whole_frames_values(stream, monkeypatch):
+    """Where the frames around a boundary are still, a join leaves the pixels exactly as they were; near the
+    part that moves it gives what the join over the whole frame gives (to float roundoff)."""
+    from codedvideo import sequence
+
+    captures, coded, mask, _ = stream
+    still = 64  # the left 64 columns still in both captures, alike
+    before, after = captures[0].copy(), captures[1].copy()
+    before[:, :, :still] = before[:1, :, :still]
+    after[:, :, :still] = before[:1, :, :still]
+    kw = dict(coded_before=coded[0], mask_before=mask, coded_after=coded[1], mask_after=mask, data_range=255.0)
+    b, a = join_captures(before, after, **kw)
+    untouched = still - sequence._join_reach(3)  # left of the box around the moving part
+    assert untouched > 0
+    assert np.array_equal(b[:, :, :untouched], before[:, :, :untouched])
+    assert np.array_equal(a[:, :, :untouched], after[:, :, :untouched])
+    assert not np.array_equal(b, before)  # the moving part was joined
+    monkeypatch.setattr(sequence, "_join_reach", lambda k: 10**6)  # the box: the whole frame
+    whole_b, whole_a = join_captures(before, after, **kw)
+    np.testing.assert_allclose(b, whole_b, atol=1e-3)
+    np.testing.assert_allclose(a, whole_a, atol=1e-3)
