@@ -22,6 +22,23 @@ def random_dictionary(rng, n_features, atoms):
     return D / np.linalg.norm(D, axis=0)
 
 
+def partly_still_capture(size, still_columns, seed):
+    """A 4-frame coded capture of the default scene whose left ``still_columns`` are marked still, with the
+    4-frame DCT dictionary and small OMP settings: ``(coded, mask, still, D, settings)``."""
+    from codedvideo.codes import make_code
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.physics import simulate
+    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.synth import make_scene
+
+    video = make_scene("default", frames=4, size=size)
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=seed)
+    coded = simulate(video, mask)
+    still = np.zeros(coded.shape, bool)
+    still[:, :still_columns] = True
+    return coded, mask, still, dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=1.0)
+
+
 # ----------------------------------------------------------------------------- the shipped dictionary, regenerated
 # Regenerating the shipped N = 8 dictionary with its listed settings takes about 4 minutes on one core, so it
 # starts as a background process as soon as the test that needs it is collected, and runs beside the rest of

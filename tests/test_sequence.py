@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from codedvideo.cli import main
+from conftest import partly_still_capture
 
 N, H, W, T = 4, 40, 44, 3
 CLI = [sys.executable, "-m", "codedvideo.cli", "-q"]
@@ -265,20 +266,10 @@ def test_a_stream_is_read_capture_by_capture_and_checked_before_any_work(sequenc
 def test_still_patches_give_the_same_bits_at_every_tile_size(tmp_path):
     """Patches wholly inside the still map take coded / open count; the pixels only they cover are that value
     exactly, whether their tile is wholly still (answered without patches) or not: tile sizes agree bit for bit."""
-    from codedvideo.codes import make_code
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.physics import simulate
-    from codedvideo.reconstruct import OmpSettings
     from codedvideo.sequence import erode_to_patches, normalised
     from codedvideo.stages import sparse_volumes
-    from codedvideo.synth import make_scene
 
-    video = make_scene("default", frames=4, size=(64, 72))
-    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=5)
-    coded = simulate(video, mask)
-    still = np.zeros(coded.shape, bool)
-    still[:, :40] = True
-    D, s = dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=1.0)
+    coded, mask, still, D, s = partly_still_capture((64, 72), 40, seed=5)
     runs = {}
     for tile in (16, 24, 128):
         (_, volume, info), = sparse_volumes(1, lambda i: (coded, mask, still), D, settings=s, tile=tile,

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from codedvideo import patches as P
+from conftest import partly_still_capture
 from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.omp import pattern_table, pixel_patterns
@@ -117,12 +118,7 @@ def test_still_patches_no_other_patch_overlaps_are_not_summed_and_change_nothing
     still answer): the volume is the same bit for bit as when every patch is summed."""
     from codedvideo import reconstruct as R
 
-    video = make_scene("default", frames=4, size=(40, 44))
-    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=3)
-    coded = simulate(video, mask)
-    still = np.zeros(coded.shape, bool)
-    still[:, :26] = True
-    D, s = dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=1.0)
+    coded, mask, still, D, s = partly_still_capture((40, 44), 26, seed=3)
     skipped = []
     fold_rows = P.fold_rows
 
