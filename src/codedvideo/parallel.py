@@ -129,8 +129,7 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
     except Exception as exc:  # name the tile, keep the cause
         raise RuntimeError(f"tile {first.index} (rows {y0}:{y1}, cols {x0}:{x1}) of {store_path}: {exc}") from exc
     core = volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0]
-    write_tiles([(store if path == store_path else WorkStore.opened(path), tile.index, tile.core)
-                 for path, tile in places], core, stats)
+    write_tiles([(WorkStore.opened(path), tile.index, tile.core) for path, tile in places], core, stats)
     return stats
 
 

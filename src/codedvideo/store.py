@@ -411,6 +411,13 @@ _opened: "OrderedDict[tuple, WorkStore]" = OrderedDict()
 _opened_lock = threading.Lock()
 
 
+def _entry_ident(path: str | os.PathLike) -> tuple:
+    """What tells one entry at ``path`` from another made later under the same name: its ``zarr.json``
+    file (inode, size, modification time).  Raises OSError when there is none."""
+    st = os.stat(Path(path) / "zarr.json")
+    return str(path), st.st_ino, st.st_size, st.st_mtime_ns
+
+
 def _remember(ident: tuple, store: "WorkStore") -> None:
     with _opened_lock:
         _opened[ident] = store
@@ -456,10 +463,9 @@ class WorkStore:
         same name is opened afresh.
         """
         try:
-            st = os.stat(Path(path) / "zarr.json")
+            ident = _entry_ident(path)
         except OSError:  # no entry: let zarr name the problem
             return cls(path)
-        ident = (str(path), st.st_ino, st.st_size, st.st_mtime_ns)
         with _opened_lock:
             store = _opened.get(ident)
             if store is not None:
@@ -517,8 +523,7 @@ class WorkStore:
             raise OutputError(f"working store {path}: cannot write ({exc.strerror or exc})") from exc
         store = cls(path)
         store.created = True
-        st = os.stat(path / "zarr.json")
-        _remember((str(path), st.st_ino, st.st_size, st.st_mtime_ns), store)
+        _remember(_entry_ident(path), store)
         return store
 
     @staticmethod
