@@ -142,6 +142,35 @@ def test_a_tile_with_a_halo_gives_the_whole_image_answer(rng, D):
     np.testing.assert_allclose(tile[keep], whole[:, y0:y1, x0:x1][keep], rtol=0, atol=1e-3)
 
 
+@pytest.mark.parametrize("iterations", [1, 2])
+def test_a_core_solves_only_the_groups_that_reach_it_and_keeps_its_pixels(rng, D, iterations, monkeypatch):
+    """``core=``: the kept pixels bit for bit as without it, with fewer groups solved; a box one pixel
+    narrower in the reach (groups that touch the core left out) changes them."""
+    from codedvideo import nonlocal_sc
+
+    video = smooth_scene(rng, 40, 44)
+    coded, mask = capture(video, rng, sigma=1.0)
+    s = OmpSettings(max_atoms=6, tol_rms=1.0)
+    first, _ = reconstruct_region(coded, mask, D, s)
+    window, group = 2, 4
+    whole, whole_stats = nonlocal_region(coded, mask, D, first, s, group=group, window=window, step=1,
+                                         iterations=iterations)
+    core = (14, 26, 16, 30)
+    kept = (slice(None), slice(core[0], core[1]), slice(core[2], core[3]))
+    part, part_stats = nonlocal_region(coded, mask, D, first, s, group=group, window=window, step=1,
+                                       iterations=iterations, core=core)
+    assert np.array_equal(part[kept], whole[kept])
+    groups = nonlocal_sc.STAT_NAMES.index("groups")
+    assert part_stats[groups] < whole_stats[groups]
+
+    reaching = nonlocal_sc._reaching  # one reference row short of the reach: some kept pixel loses a group
+    monkeypatch.setattr(nonlocal_sc, "_reaching",
+                        lambda c, hp, wp, patch, w: reaching((c[0] + 1, *c[1:]), hp, wp, patch, w))
+    short, _ = nonlocal_region(coded, mask, D, first, s, group=group, window=window, step=1,
+                               iterations=iterations, core=core)
+    assert not np.array_equal(short[kept], whole[kept])
+
+
 def test_the_method_through_the_tiled_graph_equals_one_whole_tile(tmp_path):
     """--method nonlocal runs on the Dask tile graph like the default: tiles with the non-local halo
     (reconstruct.tile_halo) give the whole image's answer."""

@@ -71,6 +71,7 @@ def nonlocal_region(
     atoms: int | None = None, consensus: float = 0.0, similarity: float | None = None,
     aggregate: str = "all", max_distance: float | None = None, project: bool | None = None,
     patch: int = P.PATCH, origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None,
+    core: tuple[int, int, int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct a region by simultaneous sparse coding of groups of similar patches.
 
@@ -117,6 +118,11 @@ def nonlocal_region(
         than one; measured +0.1 dB on average).
     origin, image_shape : the region's corner in the image and the image's (H, W)
         (reference strides count from the image's corner, as in the default).
+    core : (y0, y1, x0, x1), optional
+        The rows and columns of the region the caller keeps (a tile's core).
+        The last pass then solves only the groups whose members can cover a
+        kept pixel (:func:`_reaching`): the kept pixels come out bit for bit
+        as without ``core``, the others are left unfinished.  None: the whole region.
 
     Returns
     -------
@@ -173,6 +179,10 @@ def nonlocal_region(
         cols_on = P.stride_rows(origin[1], wp, iw - patch + 1, stride)
         ref &= (rows_on[:, None] & cols_on[None, :]).ravel()
     # the still test of the reference patches (it does not depend on the estimate)
+    # the last pass solves only what reaches the kept pixels; earlier passes regroup on the whole region
+    final_ref = ref if core is None else ref & _reaching(core, hp, wp, patch, window)
+    if iterations <= 1:  # no earlier pass: the others are not even still-tested
+        ref = final_ref
     still_est = np.zeros((0, F), np.float32)
     still_ok = np.zeros(hp * wp, np.bool_)
     if settings.static_atoms > 0:
@@ -189,7 +199,9 @@ def nonlocal_region(
     kmax = int(min(atoms, m))
     current = np.nan_to_num(first, nan=0.0).astype(np.float32)
     volume = first.copy()
-    for _ in range(iterations):
+    for it in range(iterations):
+        if it == iterations - 1:
+            ref = final_ref
         t0 = time.perf_counter()
         k = min(group, (2 * window + 1) ** 2, hp * wp)
         idx, dist = match_groups(current, k, window, patch=patch)
@@ -270,6 +282,20 @@ def nonlocal_region(
         current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
     stats[7] = time.perf_counter() - t_start
     return volume, stats
+
+
+def _reaching(core: tuple[int, int, int, int], hp: int, wp: int, patch: int, window: int) -> np.ndarray:
+    """(hp * wp,) bool: the patch corners whose groups can touch a pixel of the box ``core``.
+
+    A group's members have their corners within ``window`` of the reference's
+    and cover ``patch - 1`` pixels further down and right, so a reference reaches
+    rows ``r - window .. r + window + patch - 1`` (and the same for columns).
+    """
+    y0, y1, x0, x1 = core
+    r, c = np.arange(hp), np.arange(wp)
+    rows = (r + window + patch - 1 >= y0) & (r - window <= y1 - 1)
+    cols = (c + window + patch - 1 >= x0) & (c - window <= x1 - 1)
+    return (rows[:, None] & cols[None, :]).ravel()
 
 
 def match_groups(volume: np.ndarray, group: int, window: int, *, patch: int = P.PATCH

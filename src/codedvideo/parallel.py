@@ -124,7 +124,7 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
 
             t0 = time.perf_counter()
             volume, _ = nonlocal_region(coded, mask, D, volume, settings, patch=patch, origin=(hy0, hx0),
-                                        image_shape=shape)
+                                        image_shape=shape, core=(y0 - hy0, y1 - hy0, x0 - hx0, x1 - hx0))
             stats[STAT_NAMES.index("seconds_total")] += time.perf_counter() - t0
     except Exception as exc:  # name the tile, keep the cause
         raise RuntimeError(f"tile {first.index} (rows {y0}:{y1}, cols {x0}:{x1}) of {store_path}: {exc}") from exc
