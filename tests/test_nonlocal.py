@@ -142,33 +142,28 @@ def test_a_tile_with_a_halo_gives_the_whole_image_answer(rng, D):
     np.testing.assert_allclose(tile[keep], whole[:, y0:y1, x0:x1][keep], rtol=0, atol=1e-3)
 
 
-@pytest.mark.parametrize("iterations", [1, 2])
-def test_a_core_solves_only_the_groups_that_reach_it_and_keeps_its_pixels(rng, D, iterations, monkeypatch):
-    """``core=``: the kept pixels bit for bit as without it, with fewer groups solved; a box one pixel
-    narrower in the reach (groups that touch the core left out) changes them."""
-    from codedvideo import nonlocal_sc
+def test_passes_over_boxes_of_references_add_up_to_the_whole_pass(rng, D):
+    """``refs=`` boxes that partition the corners, ``sums=True``: their sums add up to the whole pass's,
+    and :func:`finish` of the total is the whole region's answer."""
+    from codedvideo.nonlocal_sc import finish
 
     video = smooth_scene(rng, 40, 44)
     coded, mask = capture(video, rng, sigma=1.0)
     s = OmpSettings(max_atoms=6, tol_rms=1.0)
     first, _ = reconstruct_region(coded, mask, D, s)
-    window, group = 2, 4
-    whole, whole_stats = nonlocal_region(coded, mask, D, first, s, group=group, window=window, step=1,
-                                         iterations=iterations)
-    core = (14, 26, 16, 30)
-    kept = (slice(None), slice(core[0], core[1]), slice(core[2], core[3]))
-    part, part_stats = nonlocal_region(coded, mask, D, first, s, group=group, window=window, step=1,
-                                       iterations=iterations, core=core)
-    assert np.array_equal(part[kept], whole[kept])
-    groups = nonlocal_sc.STAT_NAMES.index("groups")
-    assert part_stats[groups] < whole_stats[groups]
-
-    reaching = nonlocal_sc._reaching  # one reference row short of the reach: some kept pixel loses a group
-    monkeypatch.setattr(nonlocal_sc, "_reaching",
-                        lambda c, hp, wp, patch, w: reaching((c[0] + 1, *c[1:]), hp, wp, patch, w))
-    short, _ = nonlocal_region(coded, mask, D, first, s, group=group, window=window, step=1,
-                               iterations=iterations, core=core)
-    assert not np.array_equal(short[kept], whole[kept])
+    whole, _ = nonlocal_region(coded, mask, D, first, s, group=4, window=2)
+    total_s, total_w, _ = nonlocal_region(coded, mask, D, first, s, group=4, window=2, sums=True)
+    hp, wp = 40 - PATCH + 1, 44 - PATCH + 1
+    parts = [nonlocal_region(coded, mask, D, first, s, group=4, window=2, sums=True, refs=(y0, y1, x0, x1))
+             for y0, y1 in ((0, 13), (13, hp)) for x0, x1 in ((0, 20), (20, wp))]
+    assert all(p[0].any() for p in parts)  # every box holds references of its own
+    np.testing.assert_allclose(sum(p[0] for p in parts), total_s, rtol=1e-5, atol=1e-3)
+    np.testing.assert_array_equal(sum(p[1] for p in parts), total_w)
+    np.testing.assert_allclose(finish(sum(p[0] for p in parts), sum(p[1] for p in parts), coded, mask), whole,
+                               rtol=0, atol=1e-3)
+    assert not np.allclose(parts[0][0], total_s)  # a box alone is not the whole pass
+    with pytest.raises(ValueError, match="one pass"):
+        nonlocal_region(coded, mask, D, first, s, iterations=2, sums=True)
 
 
 def test_the_method_through_the_tiled_graph_equals_one_whole_tile(tmp_path):

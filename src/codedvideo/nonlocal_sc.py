@@ -71,7 +71,7 @@ def nonlocal_region(
     atoms: int | None = None, consensus: float = 0.0, similarity: float | None = None,
     aggregate: str = "all", max_distance: float | None = None, project: bool | None = None,
     patch: int = P.PATCH, origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None,
-    core: tuple[int, int, int, int] | None = None,
+    refs: tuple[int, int, int, int] | None = None, sums: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct a region by simultaneous sparse coding of groups of similar patches.
 
@@ -118,11 +118,15 @@ def nonlocal_region(
         than one; measured +0.1 dB on average).
     origin, image_shape : the region's corner in the image and the image's (H, W)
         (reference strides count from the image's corner, as in the default).
-    core : (y0, y1, x0, x1), optional
-        The rows and columns of the region the caller keeps (a tile's core).
-        The last pass then solves only the groups whose members can cover a
-        kept pixel (:func:`_reaching`): the kept pixels come out bit for bit
-        as without ``core``, the others are left unfinished.  None: the whole region.
+    refs : (y0, y1, x0, x1), optional
+        Only reference patches whose corners lie in these rows and columns of
+        the region (None: all).  Boxes that partition the corners split the
+        work of one pass into parts whose ``sums`` add up to the whole
+        (the tile graph, :mod:`codedvideo.parallel`).
+    sums : bool
+        Return ``(summed, weight, stats)`` of the (single) pass: every
+        estimate added at its place and the weight each pixel got, not yet
+        divided or projected (:func:`finish`); the fallback returns None.
 
     Returns
     -------
@@ -139,6 +143,8 @@ def nonlocal_region(
         project = group > 1
     if group < 1 or window < 0 or iterations < 0 or step < 1:
         raise ValueError("group >= 1, window >= 0, iterations >= 0, step >= 1")
+    if sums and iterations != 1:
+        raise ValueError("sums: one pass only (iterations=1)")
     if aggregate not in ("all", "reference"):
         raise ValueError(f"aggregate {aggregate!r}: choose all or reference")
     if settings.weighting not in ("uniform", "fit"):
@@ -159,7 +165,7 @@ def nonlocal_region(
     if not table_fits(len(patterns), D, m):
         stats[8] = 1.0
         stats[7] = time.perf_counter() - t_start
-        return first.copy(), stats
+        return None if sums else (first.copy(), stats)
     table = TableOMP(patterns, D, m)
     open_any = mask.any(0)
     y_all = np.ascontiguousarray(P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch))
@@ -178,11 +184,11 @@ def nonlocal_region(
         rows_on = P.stride_rows(origin[0], hp, ih - patch + 1, stride)
         cols_on = P.stride_rows(origin[1], wp, iw - patch + 1, stride)
         ref &= (rows_on[:, None] & cols_on[None, :]).ravel()
+    if refs is not None:
+        ry0, ry1, rx0, rx1 = refs
+        rows, cols = np.arange(hp), np.arange(wp)
+        ref &= (((rows >= ry0) & (rows < ry1))[:, None] & ((cols >= rx0) & (cols < rx1))[None, :]).ravel()
     # the still test of the reference patches (it does not depend on the estimate)
-    # the last pass solves only what reaches the kept pixels; earlier passes regroup on the whole region
-    final_ref = ref if core is None else ref & _reaching(core, hp, wp, patch, window)
-    if iterations <= 1:  # no earlier pass: the others are not even still-tested
-        ref = final_ref
     still_est = np.zeros((0, F), np.float32)
     still_ok = np.zeros(hp * wp, np.bool_)
     if settings.static_atoms > 0:
@@ -199,9 +205,7 @@ def nonlocal_region(
     kmax = int(min(atoms, m))
     current = np.nan_to_num(first, nan=0.0).astype(np.float32)
     volume = first.copy()
-    for it in range(iterations):
-        if it == iterations - 1:
-            ref = final_ref
+    for _ in range(iterations):
         t0 = time.perf_counter()
         k = min(group, (2 * window + 1) ** 2, hp * wp)
         idx, dist = match_groups(current, k, window, patch=patch)
@@ -275,27 +279,22 @@ def nonlocal_region(
         stats[1] += n_groups
         stats[2] = n_members / max(n_groups, 1)
         stats[3] += atoms
-        with np.errstate(invalid="ignore", divide="ignore"):
-            volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
-        if project:
-            volume = project_measurements(volume, coded, mask)
+        if sums:
+            stats[7] = time.perf_counter() - t_start
+            return summed, weight, stats
+        volume = finish(summed, weight, coded, mask, project=project)
         current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
     stats[7] = time.perf_counter() - t_start
     return volume, stats
 
 
-def _reaching(core: tuple[int, int, int, int], hp: int, wp: int, patch: int, window: int) -> np.ndarray:
-    """(hp * wp,) bool: the patch corners whose groups can touch a pixel of the box ``core``.
-
-    A group's members have their corners within ``window`` of the reference's
-    and cover ``patch - 1`` pixels further down and right, so a reference reaches
-    rows ``r - window .. r + window + patch - 1`` (and the same for columns).
-    """
-    y0, y1, x0, x1 = core
-    r, c = np.arange(hp), np.arange(wp)
-    rows = (r + window + patch - 1 >= y0) & (r - window <= y1 - 1)
-    cols = (c + window + patch - 1 >= x0) & (c - window <= x1 - 1)
-    return (rows[:, None] & cols[None, :]).ravel()
+def finish(summed: np.ndarray, weight: np.ndarray, coded: np.ndarray, mask: np.ndarray, *, project: bool = True
+           ) -> np.ndarray:
+    """A pass's estimate from its sums: each pixel's summed estimates divided by its weight (NaN where
+    it got none), then, with ``project``, made to reproduce the coded image (:func:`project_measurements`)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
+    return project_measurements(volume, coded, mask) if project else volume
 
 
 def match_groups(volume: np.ndarray, group: int, window: int, *, patch: int = P.PATCH
