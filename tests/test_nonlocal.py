@@ -209,3 +209,51 @@ def test_the_method_runs_from_pipeline_yaml(tmp_path):
     metrics = json.loads((tmp_path / "out" / "recon.metrics.json").read_text())
     assert metrics["config"]["reconstruct"]["method"] == "nonlocal"
     assert metrics["quality"]["psnr"] > metrics["trivial"]["psnr"]
+
+
+def _periodic_capture(rng, period=20, reps=6, n=N):
+    """A scene and code that repeat every ``period`` pixels: tiles of that size have equal inputs."""
+    block = rng.uniform(20, 230, (n, period, period)).astype(np.float32)
+    code = (rng.random((n, period, period)) < 0.5).astype(np.uint8)
+    video = np.tile(block, (1, reps, reps))
+    mask = np.tile(code, (1, reps, reps))
+    return (mask * video).sum(0).astype(np.float32), mask, video
+
+
+def test_the_three_stages_give_the_same_bits_on_one_thread_and_on_two(tmp_path, rng):
+    """Blocks' sums are added in block order, whatever order the tasks finish in."""
+    import dataclasses
+
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.stages import reconstruct_volume
+
+    coded, mask, _ = _periodic_capture(rng, period=23, reps=3)
+    s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=1.0), method="nonlocal")
+    D = dct_dictionary(N)
+    runs = [reconstruct_volume(coded, mask, D, settings=s, tile=24, cache=tmp_path / name, progress=False,
+                               scheduler=scheduler)[0]
+            for name, scheduler in (("sync", "sync"), ("threads", "threads"))]
+    assert np.isfinite(runs[0]).all()
+    assert np.array_equal(runs[0], runs[1])
+
+
+def test_tiles_of_equal_inputs_share_an_answer_only_where_the_reference_grid_agrees(tmp_path, rng):
+    """The non-local reference patches lie every third pixel from the image's corner: tiles of equal
+    inputs 20 pixels apart are solved apart (and come out as the whole image), while the default,
+    which has no grid, solves them once."""
+    import dataclasses
+
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.stages import reconstruct_volume
+
+    coded, mask, _ = _periodic_capture(rng)
+    D = dct_dictionary(N)
+    per_patch = OmpSettings(max_atoms=6, tol_rms=1.0)
+    s = dataclasses.replace(per_patch, method="nonlocal")
+    _, omp_info = reconstruct_volume(coded, mask, D, settings=per_patch, tile=20, cache=tmp_path / "o",
+                                     progress=False)
+    tiled, info = reconstruct_volume(coded, mask, D, settings=s, tile=20, cache=tmp_path / "t", progress=False)
+    whole, _ = reconstruct_volume(coded, mask, D, settings=s, tile=120, cache=tmp_path / "w", progress=False)
+    assert omp_info["tile_tasks"] < 36  # equal tiles shared by the default
+    assert info["tile_tasks"] > omp_info["tile_tasks"]
+    np.testing.assert_allclose(tiled, whole, atol=1e-3)

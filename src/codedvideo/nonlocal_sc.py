@@ -22,13 +22,16 @@ sees only its own patches, so tiled callers keep a halo of at least
 ``iterations * (patch - 1 + 2 * window)`` pixels (a kept pixel's estimates come
 from members whose references lie ``window`` away, whose candidates lie another
 ``window`` further; tested), and pass the first estimate over the whole region
-(itself valid there: the default's own halo around it).  With ``group=1`` it is the default reconstruction (the same
-still test, the same OMP operation for operation, the same fold).
+(itself valid there: the default's own halo around it).  The tile graph instead
+splits one pass by its reference patches (``refs=``, ``sums=True``: blocks whose
+sums add up to the whole pass, then :func:`finish`), so that no group is solved
+twice (:mod:`codedvideo.parallel`).  With ``group=1`` it is the default
+reconstruction (the same still test, the same OMP operation for operation, the same fold).
 
 Measured (tasks/bench_nonlocal.py, 256x256, N = 8, the 3 codes x sigma 0 and 4 of
 case_quality; seconds include the default's): on the four held-out real clips
 33.71 dB against the default's 32.40 and GAP-TV's 30.68 (GAP-TV + 3.03 dB, the
-default GAP-TV + 1.72), 3.9x the default's time, never below it (+0.64 to
+default GAP-TV + 1.72), 4.4x the default's time on the tile graph, never below it (+0.64 to
 +2.45 dB a case); synthetic scenes +0.90 dB.  Chosen on a 5-case mix: groups of
 16 at reference stride 3 (8 at stride 2: +1.08 dB, 12: +1.25 but 1.4x slower,
 24 at stride 3: +1.29 but 1.75x), a support of 16 atoms (8: +0.75, 24 helps

@@ -14,7 +14,8 @@ working store, reconstructs it, keeps the core (whose pixels then see exactly
 the patches they see in the whole image) and writes the core and a statistics
 row back to the store (to every store with a tile of equal content).  Tiles are
 the store's chunks, so concurrent tasks never write the same chunk, and a rerun
-skips the tiles whose digests check out.
+skips the tiles whose digests check out.  The non-local method's final tile
+tasks stand on two stages of their own (:func:`_nonlocal_tasks`).
 """
 
 from __future__ import annotations
@@ -143,9 +144,7 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
 
 def _first_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings, patch: int) -> tuple:
     """Stage 1: a tile's first estimate (the default's), its core and statistics."""
-    import dataclasses
-
-    volume, stats = _estimate(store_path, tile, D, dataclasses.replace(settings, method="omp"), patch)
+    volume, stats = _estimate(store_path, tile, D, settings, patch)
     return tile.core, volume, stats
 
 

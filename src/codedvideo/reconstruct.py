@@ -70,11 +70,13 @@ class OmpSettings:
 
 
 def tile_halo(settings: OmpSettings, patch: int = P.PATCH) -> int:
-    """Pixels a tile reads beyond its core so that its core comes out as in the whole image.
+    """Pixels beyond a tile's core that its answer depends on (what keys a tile's content, and what a
+    per-patch tile reads so that its core comes out as in the whole image).
 
     Per-patch OMP: ``patch - 1`` (every patch over a core pixel).  Non-local: the
     first estimate's ``patch - 1`` plus what a core pixel's groups reach,
-    ``patch - 1 + 2 * window`` (:mod:`codedvideo.nonlocal_sc`).
+    ``patch - 1 + 2 * window`` (:mod:`codedvideo.nonlocal_sc`; its tiles are
+    assembled from stages of their own, :mod:`codedvideo.parallel`).
     """
     if settings.method == "nonlocal":
         from .nonlocal_sc import WINDOW
