@@ -64,6 +64,14 @@ def test_distributed_with_the_still_test_is_bit_identical_too(cluster, tmp_path)
     assert info["patches_static"] > 0  # the still test did take some patches
 
 
+def test_the_nonlocal_stages_on_worker_processes_are_bit_identical_too(cluster, tmp_path):
+    """--method nonlocal: first estimates, blocks of groups and tiles as tasks of their own, their results
+    passed between worker processes; the same bits as one local thread."""
+    import dataclasses
+
+    _one_two_remote(cluster, tmp_path, dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=2.0), method="nonlocal"))
+
+
 def _finished_tiles(cache) -> int:
     """Tiles finished in the working stores under ``cache``: a tile's digest is written last."""
     return sum(1 for p in cache.glob("recon-*.zarr/digest/c/**/*") if p.is_file())
