@@ -55,7 +55,8 @@ REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
 # ----------------------------------------------------------------------------- keys
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v5"  # v4: per-tile digests in the working store; v5: still patches across captures
+RECON_VERSION = "recon-v6"  # v4: per-tile digests in the working store; v5: still patches across captures;
+# v6: the non-local method in three stages (its estimates summed block by block: other roundings)
 
 
 def content_key(*parts) -> str:
