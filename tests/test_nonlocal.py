@@ -257,3 +257,31 @@ def test_tiles_of_equal_inputs_share_an_answer_only_where_the_reference_grid_agr
     assert omp_info["tile_tasks"] < 36  # equal tiles shared by the default
     assert info["tile_tasks"] > omp_info["tile_tasks"]
     np.testing.assert_allclose(tiled, whole, atol=1e-3)
+
+
+def test_the_progress_bar_counts_the_stages_and_ends_full(tmp_path, rng, monkeypatch):
+    """A non-local job's bar moves with its first estimates and blocks, not only with its last tasks."""
+    import dataclasses
+
+    import tqdm.auto
+
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.stages import reconstruct_volume
+
+    bars = []
+
+    class Recording(tqdm.auto.tqdm):
+        def close(self):
+            if not self.disable:
+                bars.append((self.total, self.n))
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recording)
+    coded, mask, _ = _periodic_capture(rng, period=23, reps=2)  # 46 x 46: 3 x 3 tiles of 16, 6 x 6 blocks of 8
+    s = OmpSettings(max_atoms=6, tol_rms=1.0)
+    for settings in (s, dataclasses.replace(s, method="nonlocal")):
+        _, info = reconstruct_volume(coded, mask, dct_dictionary(N), settings=settings, tile=16,
+                                     cache=tmp_path / settings.method, progress=True)
+    (omp_total, omp_n), (nl_total, nl_n) = bars
+    assert omp_total == omp_n == 9  # the default: one task a tile
+    assert nl_total == nl_n == 9 + 9 + 36  # tiles, their first estimates and blocks of half a tile

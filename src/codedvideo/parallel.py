@@ -36,6 +36,7 @@ import dask
 import dask.local
 import dask.threaded
 import numpy as np
+from dask.highlevelgraph import HighLevelGraph
 
 from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
 from .store import WorkStore, write_tiles
@@ -140,6 +141,10 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
 # tile each solve the groups of the references whose corners they hold, from the first estimate around
 # them, and return the summed estimates and weights; (3) each tile adds the sums of the blocks that
 # reach it (in block order: deterministic), divides and projects onto its measurements, and is written.
+
+
+#: Key prefixes of the stage tasks (counted by the progress bar beside the tiles).
+STAGE_PREFIXES = ("first-", "groups-")
 
 
 def _first_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings, patch: int) -> tuple:
@@ -361,8 +366,9 @@ def stream_graph(
     The whole graph runs at once, so every core stays busy across the
     groups' boundaries, while the caller consumes finished groups in order
     (a capture is written while the next ones compute).  One progress bar
-    with an ETA counts the tasks.  A task's error is raised here; a caller
-    that stops early cancels the tasks not yet started.
+    with an ETA counts the tasks (locally, the stages the tiles stand on too:
+    the non-local method's first estimates and blocks).  A task's error is
+    raised here; a caller that stops early cancels the tasks not yet started.
 
     Parameters
     ----------
@@ -375,7 +381,7 @@ def stream_graph(
     """
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=len(tasks), desc=desc, unit="tile", disable=not progress or not tasks, leave=False)
+    bar = tqdm(total=len(tasks), desc=desc, unit="task", disable=not progress or not tasks, leave=False)
     try:
         if scheduler and scheduler not in ("threads", "sync"):
             yield from _stream_distributed(tasks, needs, scheduler, bar)
@@ -391,6 +397,11 @@ def _stream_local(tasks, needs, scheduler, workers, bar) -> Iterator[int]:
     done_keys: queue.Queue = queue.Queue()
     stop = threading.Event()
     index = {task.key: i for i, task in enumerate(tasks)}
+    graph = HighLevelGraph.merge(*(task.__dask_graph__() for task in tasks)) if tasks else {}
+    stages = {k for k in graph.keys() if isinstance(k, str) and k.startswith(STAGE_PREFIXES)}
+    if stages:
+        bar.total += len(stages)
+        bar.refresh()
 
     def pretask(key, dsk, state):
         if stop.is_set():
@@ -399,6 +410,8 @@ def _stream_local(tasks, needs, scheduler, workers, bar) -> Iterator[int]:
     def posttask(key, result, dsk, state, worker_id):
         if key in index:
             done_keys.put(index[key])
+        elif key in stages:
+            done_keys.put(-1)  # a stage: the bar moves
 
     def run():
         try:
@@ -424,7 +437,8 @@ def _stream_local(tasks, needs, scheduler, workers, bar) -> Iterator[int]:
                 if item is None:  # the graph ended: everything is done
                     finished[:] = True
                     break
-                finished[item] = True
+                if item >= 0:
+                    finished[item] = True
                 bar.update(1)
             yield j
     finally:
