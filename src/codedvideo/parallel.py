@@ -195,7 +195,7 @@ def _groups_task(store_path: str, block: Tile, firsts: list, D: np.ndarray, sett
     return region, summed, weight[None], time.perf_counter() - t0
 
 
-def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], settings: OmpSettings) -> np.ndarray:
+def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool]) -> np.ndarray:
     """Stage 3: a tile's core from the sums of the blocks that reach it, projected onto its measurements,
     written to every place; its statistics are the first estimate's plus the time of the blocks it owns."""
     from .nonlocal_sc import finish
@@ -217,8 +217,10 @@ def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], s
     return stats
 
 
-def _meets(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
-    return a[0] < b[1] and b[0] < a[1] and a[2] < b[3] and b[2] < a[3]
+def _meeting(boxes: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    """Indices of the boxes (rows ``y0, y1, x0, x1``) that share a pixel with ``box``."""
+    y0, y1, x0, x1 = box
+    return np.flatnonzero((boxes[:, 0] < y1) & (y0 < boxes[:, 1]) & (boxes[:, 2] < x1) & (x0 < boxes[:, 3]))
 
 
 def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run: str) -> list:
@@ -228,23 +230,24 @@ def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run
     first_task = dask.delayed(_first_task, pure=False)
     groups_task = dask.delayed(_groups_task, pure=False)
     combine_task = dask.delayed(_combine_task, pure=False)
-    firsts: dict = {}  # (store, tile index) -> task
-    blocks: dict = {}  # (store, block index) -> (Tile, task)
-    grids: dict = {}
+    firsts: dict = {}  # (store, tile index) -> its stage 1 task
+    blocks: dict = {}  # (store, block index) -> its stage 2 task
+    grids: dict = {}  # store -> (blocks, the default's tiles, their regions and cores as arrays)
     last = len(places) - 1
     out = []
     for i, where in enumerate(places.values()):
         path, tile = where[0]
         if path not in grids:
             store = WorkStore.opened(path)
-            shape, size = store.array("coded").shape, int(store.group.attrs["tile"])
-            reach = (WINDOW, WINDOW + patch - 1)  # what a block's references' candidates cover, before / after
-            grid = plan_tiles(shape, max(size // 2, patch), patch=patch, halo=0)
-            grid = [Tile(b.index, b.core, (max(0, b.core[0] - reach[0]), min(shape[0], b.core[1] + reach[1]),
-                                           max(0, b.core[2] - reach[0]), min(shape[1], b.core[3] + reach[1])))
-                    for b in grid]
-            grids[path] = grid, plan_tiles(shape, size, patch=patch)
-        grid, first_tiles = grids[path]
+            (h, w), size = store.array("coded").shape, int(store.group.attrs["tile"])
+            # a block's region: what its references' candidates cover (window before, window + patch - 1 after)
+            before, after = WINDOW, WINDOW + patch - 1
+            grid = [Tile(b.index, b.core, (max(0, b.core[0] - before), min(h, b.core[1] + after),
+                                           max(0, b.core[2] - before), min(w, b.core[3] + after)))
+                    for b in plan_tiles((h, w), max(size // 2, patch), patch=patch, halo=0)]
+            first_tiles = plan_tiles((h, w), size, patch=patch)
+            grids[path] = (grid, first_tiles, np.array([b.halo for b in grid]), np.array([t.core for t in first_tiles]))
+        grid, first_tiles, regions, cores = grids[path]
 
         def first_of(t: Tile):
             key = (path, t.index)
@@ -254,18 +257,16 @@ def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run
             return firsts[key]
 
         parts, owned = [], []
-        for b in grid:
-            if not _meets(b.halo, tile.core):
-                continue
+        for b in (grid[k] for k in _meeting(regions, tile.core)):
             key = (path, b.index)
             if key not in blocks:
-                needed = [first_of(t) for t in first_tiles if _meets(t.core, b.halo)]
+                needed = [first_of(first_tiles[k]) for k in _meeting(cores, b.halo)]
                 blocks[key] = groups_task(path, b, needed, D_node, settings, patch,
                                           dask_key_name=f"groups-{run}-{last - i:09d}-{b.index}")
             parts.append(blocks[key])
             owned.append(tile.core[0] <= b.core[0] < tile.core[1] and tile.core[2] <= b.core[2] < tile.core[3])
-        own_first = first_of(next(t for t in first_tiles if t.core == tile.core))
-        out.append(combine_task(tuple(where), own_first, parts, owned, settings,
+        own_first = first_of(first_tiles[tile.index])
+        out.append(combine_task(tuple(where), own_first, parts, owned,
                                 dask_key_name=f"tile-{run}-{last - i:09d}"))
     return out
 
