@@ -1,5 +1,6 @@
 """CACTI benchmark .mat files (v5 and v7.3) and the command line on them."""
 import json
+import os
 
 import h5py
 import numpy as np
@@ -8,7 +9,7 @@ import scipy.io
 
 from codedvideo import cacti
 from codedvideo.cli import main
-from codedvideo.errors import InputError
+from codedvideo.errors import InputError, OutputError
 
 H, W, N, Q = 24, 30, 4, 2  # H != W so that a transposed read cannot pass
 
@@ -218,3 +219,29 @@ def test_cli_simulate_writes_a_cacti_file(tmp_path, capsys):
     np.testing.assert_allclose(data.meas[0], np.load(tmp_path / "cap" / "coded.npy"), rtol=1e-6)
     np.testing.assert_allclose(data.orig, np.load(tmp_path / "cap" / "truth.npy"), rtol=1e-6)
     assert scipy.io.loadmat(tmp_path / "sim.mat")["meas"].shape == (H, W, 1)
+
+
+def test_a_mat_volume_written_frame_by_frame_is_the_file_written_at_once(tmp_path):
+    """cacti.mat_writer: parts in, the same ``recon`` (H, W, F) single as write_mat_volume; a short or
+    misshapen stream leaves nothing; a volume past a v5 file's 4 GiB is refused before any work."""
+    rng = np.random.default_rng(3)
+    vol = rng.uniform(0, 255, (11, 9, 13)).astype(np.float32)
+    with cacti.mat_writer(tmp_path / "s.mat", vol.shape) as write:
+        for part in (vol[:4], vol[4:8], vol[8:]):
+            write(part)
+    cacti.write_mat_volume(tmp_path / "w.mat", vol)
+    streamed = scipy.io.loadmat(tmp_path / "s.mat")["recon"]
+    assert streamed.dtype == np.float32 and streamed.shape == (9, 13, 11)
+    np.testing.assert_array_equal(streamed, scipy.io.loadmat(tmp_path / "w.mat")["recon"])
+    np.testing.assert_array_equal(cacti.read_mat_volume(tmp_path / "s.mat"), vol)
+    with pytest.raises(RuntimeError, match="10 of 11 frames"):
+        with cacti.mat_writer(tmp_path / "short.mat", vol.shape) as write:
+            write(vol[:10])
+    with pytest.raises(ValueError, match="part of shape"):
+        with cacti.mat_writer(tmp_path / "odd.mat", vol.shape) as write:
+            write(vol[:, :, :5])
+    assert sorted(os.listdir(tmp_path)) == ["s.mat", "w.mat"]
+    with pytest.raises(OutputError, match="4 GiB"):
+        with cacti.mat_writer(tmp_path / "big.mat", (18 * 60, 2160, 3840)):
+            pass
+    assert not (tmp_path / "big.mat").exists()

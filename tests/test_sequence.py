@@ -68,7 +68,7 @@ def test_a_sequence_equals_its_captures_reconstructed_one_by_one(sequence, tmp_p
     assert len(metrics["quality"]["boundaries"]["pairs"]) == T - 1
 
 
-STREAMED = ("s.tif", "s.mkv", "s.zarr", "s_frames")  # besides .npy: every grey output is written capture by capture
+STREAMED = ("s.tif", "s.mkv", "s.zarr", "s_frames", "s.mat")  # besides .npy: every grey output, capture by capture
 
 
 def test_streamed_output_equals_the_output_written_at_once(sequence, tmp_path, capsys):
@@ -85,6 +85,7 @@ def test_streamed_output_equals_the_output_written_at_once(sequence, tmp_path, c
         write_volume(volume, whole)
         np.testing.assert_array_equal(read_volume(tmp_path / out), read_volume(whole), err_msg=out)
     np.testing.assert_array_equal(read_volume(tmp_path / "s.tif"), volume)  # float32 pages: exact
+    np.testing.assert_array_equal(read_volume(tmp_path / "s.mat"), volume)  # single precision: exact
     np.testing.assert_array_equal(read_volume(tmp_path / "s.zarr"), volume)
     import zarr
 
@@ -102,6 +103,22 @@ def test_a_stream_cut_short_leaves_no_output(tmp_path, out):
                 put(slice(i * N, (i + 1) * N), part)
             raise RuntimeError("capture 2 failed")
     assert os.listdir(tmp_path) == []  # neither the output nor a temporary
+
+
+@pytest.mark.parametrize("out", [*STREAMED])
+def test_a_streamed_output_never_gathers_the_whole_volume(tmp_path, out, monkeypatch):
+    """Every grey output is written part by part: the write-at-once path is never taken."""
+    from codedvideo import volumes
+
+    def whole(*args, **kwargs):
+        raise AssertionError("the whole volume was gathered")
+
+    monkeypatch.setattr(volumes, "write_volume", whole)
+    parts = np.random.default_rng(0).uniform(0, 255, (3, N, H, W)).astype(np.float32)
+    with volumes.volume_writer(tmp_path / out, (3 * N, H, W), part=N) as put:
+        for i, part in enumerate(parts):
+            put(slice(i * N, (i + 1) * N), part)
+    assert (tmp_path / out).exists()
 
 
 def test_mask_per_capture_must_match_the_number_of_captures(sequence, tmp_path, capsys):

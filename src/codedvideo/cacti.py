@@ -24,12 +24,18 @@ arrays are time-first: :class:`CactiData` holds ``mask`` (N, H, W),
 
 Reconstructions written for MATLAB users (:func:`write_mat_volume`) are v5
 files with one variable, ``recon`` (H, W, N) single -- or (H, W, C, N) for
-colour, MATLAB's layout of a colour video.
+colour, MATLAB's layout of a colour video.  A grey sequence is written frame
+by frame as it is reconstructed (:func:`mat_writer`: the same v5 layout,
+compressed as :func:`scipy.io.savemat` does), so memory does not grow with it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+import struct
+import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -320,4 +326,75 @@ def write_mat_volume(path: str | os.PathLike, volume: np.ndarray, *, key: str = 
     volume = np.asarray(volume)
     if volume.ndim not in (3, 4):
         raise InputError(f"mat file {path}: expected a volume (N, H, W) or (C, N, H, W), got shape {volume.shape}")
+    check_mat_size(path, volume.shape)
     return _savemat(Path(path), {key: to_matlab(volume).astype(np.float32)})
+
+
+# MAT-file v5 element types and the single-precision class (MathWorks, "MAT-File Format", the v5 chapter)
+_MI_INT8, _MI_INT32, _MI_UINT32, _MI_SINGLE, _MI_MATRIX, _MI_COMPRESSED = 1, 5, 6, 7, 14, 15
+_MX_SINGLE_CLASS = 7
+
+
+def check_mat_size(path: str | os.PathLike, shape: tuple) -> None:
+    """OutputError when a single-precision volume of ``shape`` is past what a v5 .mat file holds (its
+    elements' lengths are 32-bit: 4 GiB less a header)."""
+    nbytes = 4 * int(np.prod(shape, dtype=np.int64))
+    if nbytes >= 2**32 - 1024:
+        raise OutputError(f"mat file {path}: {nbytes / 2**30:.1f} GiB of frames is past a v5 .mat file's 4 GiB; "
+                          "write .npy, .zarr or .tif instead")
+
+
+def _element(mi_type: int, data: bytes) -> bytes:
+    """A v5 data element: its 8-byte tag, the data, zeros to the next 8-byte boundary."""
+    return struct.pack("<II", mi_type, len(data)) + data + bytes(-len(data) % 8)
+
+
+@contextlib.contextmanager
+def mat_writer(path: str | os.PathLike, shape: tuple[int, int, int], *, key: str = "recon"):
+    """Write a grey volume (F, H, W) into a v5 .mat file part by part, as ``key`` (H, W, F) single.
+
+    Yields ``write(part)`` for consecutive parts (n, H, W) along the first axis.
+    MATLAB's arrays are column-major, so frame ``f`` of ``key`` is one
+    contiguous run of its bytes: each frame is compressed as it comes into
+    one zlib stream (the file's one ``miCOMPRESSED`` element, whose length is
+    filled in at the end), so only a part is ever held.  Written to a
+    temporary that replaces ``path`` only when all ``F`` frames were given;
+    read back by :func:`scipy.io.loadmat` as :func:`write_mat_volume`'s file.
+    """
+    path = Path(path)
+    f_count, h, w = (int(v) for v in shape)
+    data_bytes = 4 * f_count * h * w
+    head = (_element(_MI_UINT32, struct.pack("<II", _MX_SINGLE_CLASS, 0))
+            + _element(_MI_INT32, struct.pack("<iii", h, w, f_count))
+            + _element(_MI_INT8, key.encode("ascii")))
+    matrix_bytes = len(head) + 8 + data_bytes + (-data_bytes % 8)
+    check_mat_size(path, shape)
+    text = f"MATLAB 5.0 MAT-file, Platform: codedvideo, Created on: {time.asctime()}".encode("ascii")
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(text[:116].ljust(116) + bytes(8) + struct.pack("<H", 0x0100) + b"IM")
+            start = fh.tell()
+            fh.write(struct.pack("<II", _MI_COMPRESSED, 0))  # its length once known
+            z = zlib.compressobj()
+            fh.write(z.compress(struct.pack("<II", _MI_MATRIX, matrix_bytes) + head
+                                + struct.pack("<II", _MI_SINGLE, data_bytes)))
+            written = 0
+
+            def write(part):
+                nonlocal written
+                part = np.asarray(part, dtype="<f4")
+                if part.ndim != 3 or part.shape[1:] != (h, w) or written + part.shape[0] > f_count:
+                    raise ValueError(f"mat file {path}: part of shape {part.shape} after {written} of {f_count} "
+                                     f"frames of {h}x{w}")
+                for frame in part:
+                    fh.write(z.compress(np.ascontiguousarray(frame.T).tobytes()))  # column-major (H, W)
+                written += part.shape[0]
+
+            yield write
+            if written != f_count:
+                raise RuntimeError(f"mat file {path}: {written} of {f_count} frames written")
+            fh.write(z.compress(bytes(-data_bytes % 8)) + z.flush())
+            end = fh.tell()
+            fh.seek(start + 4)
+            fh.write(struct.pack("<I", end - start - 8))
+    return path

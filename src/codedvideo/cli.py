@@ -470,6 +470,10 @@ def _cmd_reconstruct(a) -> int:
     white = None if a.trust_saturated or raw else noise.white_level
     h, w = job.codeds[0].shape[-2:]
     shape = (count, n, h, w) if job.kind == "channels" else (3, n, h, w) if job.kind == "bayer" else (count * n, h, w)
+    if Path(a.output).suffix.lower() == ".mat":  # a v5 .mat file's 4 GiB: known before any work
+        from .cacti import check_mat_size
+
+        check_mat_size(a.output, shape)
     options = dict(data_range=units, settings=settings, dictionary=D, dictionary_key=meta.get("sha256", ""),
                    dictionary_name=str(a.dictionary or ""), white_level=white, where=job.source, tile=rc.tile,
                    cache=a.cache, scheduler=rc.scheduler, workers=rc.workers, progress=not a.quiet)

@@ -313,14 +313,15 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0
 
     Parts come in order (``volume[index] = part``, the indices consecutive
     along the first axis).  A grey volume (N, H, W) is written as its parts
-    come, in every format of :func:`write_volume` but ``.mat``, so memory does
-    not grow with the number of captures: ``.npy`` (the header, then each part
+    come, in every format of :func:`write_volume`, so memory does not grow
+    with the number of captures: ``.npy`` (the header, then each part
     appended; a memory map would keep the pages written in the process's
     resident set), videos (encoded part by part), multi-page TIFF (page by
-    page), a folder of frames (file by file) and ``.zarr`` (chunks of ``part``
-    frames: a capture's N).  Each appears under ``output`` only when the
-    block ends complete.  ``.mat`` files and colour volumes gather the parts
-    and go through :func:`write_volume` at the end.
+    page), a folder of frames (file by file), ``.zarr`` (chunks of ``part``
+    frames: a capture's N) and ``.mat`` (frames compressed into the file as
+    they come, :func:`codedvideo.cacti.mat_writer`).  Each appears under
+    ``output`` only when the block ends complete.  Colour volumes gather the
+    parts and go through :func:`write_volume` at the end.
     """
     output = Path(output)
     suffix = output.suffix.lower()
@@ -334,6 +335,10 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0
         streamed = cio.stack_writer(output, shape[0], dtype=np.float32)
     elif grey and suffix in ("", ".d"):
         streamed = cio.frames_writer(output, fmt="tiff16", data_range=data_range)
+    elif grey and suffix == ".mat":
+        from .cacti import mat_writer
+
+        streamed = mat_writer(output, shape)
     if streamed is not None:
         with streamed as write:
             yield lambda index, part: write(part)
