@@ -195,26 +195,15 @@ def small():
     return simulate(video, mask, sigma=2.0, rng=3), mask, dct_dictionary(4)
 
 
-def test_a_tile_killed_between_its_volume_and_its_statistics_is_recomputed(small, tmp_path):
-    """The volume chunk was written (here: garbage), the statistics row not: only that tile runs again."""
-    coded, mask, D = small
-    s = OmpSettings(max_atoms=6, tol_rms=2.0)
-    ref, info = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
-    store = WorkStore(info["work_store"])
-    store.group["volume"][:, 16:32, 0:16] = 1e30  # tile 3's core, as if half-done
-    store.group["stats"][3:4, :] = np.nan
-    again, info2 = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
-    assert info2["tiles_computed"] == 1 and info2["tiles_reused"] == info2["tiles"] - 1
-    np.testing.assert_array_equal(again, ref)
-
-
-def test_a_nonlocal_tile_left_half_done_is_recomputed_alone_from_its_stages(small, tmp_path):
-    """The non-local method's tiles stand on stages that are not stored (first estimates, blocks of
-    groups): a rerun computes them again for the one unfinished tile and gets the same bits."""
+@pytest.mark.parametrize("method", ["omp", "nonlocal"])
+def test_a_tile_killed_between_its_volume_and_its_statistics_is_recomputed(small, tmp_path, method):
+    """The volume chunk was written (here: garbage), the statistics row not: only that tile runs again,
+    with the same bits.  (The non-local method's tiles stand on stages that are not stored -- first
+    estimates, blocks of groups -- and the rerun computes them again for that one tile.)"""
     import dataclasses
 
     coded, mask, D = small
-    s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=2.0), method="nonlocal")
+    s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=2.0), method=method)
     ref, info = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
     store = WorkStore(info["work_store"])
     store.group["volume"][:, 16:32, 0:16] = 1e30  # tile 3's core, as if half-done
