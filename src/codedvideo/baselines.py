@@ -39,8 +39,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import ndimage
-
 from .errors import InputError
 from .physics import adjoint, check_pair, forward, static_estimate
 
@@ -82,6 +80,8 @@ def normalized_fill(
         where no sample exists at all.
     """
     values = np.asarray(values, np.float32)
+    from scipy import ndimage  # lazy: a command that needs none of it starts 0.05 to 0.1 s sooner
+
     weights = np.asarray(weights, np.float32)
     if len(radii) != values.ndim:
         raise InputError(f"normalized_fill: {len(radii)} radii for an array of {values.ndim} axes")

@@ -9,8 +9,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-# only the SSIM module: skimage.metrics' PSNR lives beside an import of scipy.stats (1 s of start-up)
-from skimage.metrics import structural_similarity
 
 from .errors import InputError
 
@@ -42,6 +40,10 @@ def evaluate(recon, truth, *, data_range: float = 255.0) -> dict:
         raise InputError(f"evaluate: reconstruction shape {tuple(recon.shape)} != truth shape {tuple(truth.shape)}")
     if len(recon.shape) != 3:
         raise InputError(f"evaluate: expected (N, H, W) volumes, got shape {tuple(recon.shape)}")
+    # lazy, and only the SSIM module: importing it brings scipy.ndimage (0.1 s of a run's start, paid only when
+    # there is a truth to compare with); skimage.metrics' PSNR lives beside an import of scipy.stats (1 s)
+    from skimage.metrics import structural_similarity
+
     psnr = []
     ssim = []
     win = min(7, *truth.shape[1:])

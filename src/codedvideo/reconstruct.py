@@ -13,7 +13,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from . import patches as P
 from .omp import (GroupedOperator, MaskedOperator, is_binary, masked_operator, omp, periodic_groups, pixel_patterns,
@@ -292,6 +291,8 @@ def reconstruct_region(
     if still is not None and np.any(still):  # patches wholly still: the still answer, no search
         still_rows = P.extract(np.asarray(still, np.uint8), patch).all(1) & valid
         # still patches that no other patch overlaps: their pixels take the still answer below, unsummed
+        from scipy import ndimage  # lazy: only a job of several captures has still maps
+
         near = ndimage.maximum_filter((valid & ~still_rows).reshape(hp, wp), size=2 * patch - 1, mode="constant")
         skip = still_rows & ~near.ravel()
     summed = np.zeros((n, h, w), np.float32)

@@ -24,7 +24,6 @@ import time
 
 import numpy as np
 from numba import njit
-from scipy import ndimage
 
 #: Smallest difference of ``coded / open count`` taken as change, in working units (data range 255).
 STILL_FLOOR = 0.5
@@ -48,6 +47,8 @@ def still_pixels(codeds, masks, i: int, *, sigma: float, patch: int = 7, scale: 
 def erode_to_patches(agree: np.ndarray, patch: int = 7) -> np.ndarray:
     """The pixels of ``agree`` every ``patch x patch`` patch over which lies inside ``agree``."""
     # every patch containing the pixel lies inside the still region (patches lie inside the image)
+    from scipy import ndimage  # lazy: only a job of several captures looks for still pixels
+
     return ndimage.minimum_filter(agree.view(np.uint8), size=2 * patch - 1, mode="nearest").astype(bool)
 
 
@@ -139,6 +140,8 @@ def _flow(frames: np.ndarray, skip: int) -> tuple[np.ndarray, np.ndarray]:
 
     One motion for all ``F - 1`` steps but step ``skip`` (the one across the boundary, not trusted).
     """
+    from scipy import ndimage  # lazy: a run of one capture starts without it (0.05 to 0.1 s)
+
     f = ndimage.gaussian_filter(frames, (0, JOIN_FLOW_SMOOTH, JOIN_FLOW_SMOOTH), mode="nearest")
     gy, gx = np.gradient(f, axis=(1, 2))
     keep = [i for i in range(len(f) - 1) if i != skip]
@@ -313,6 +316,8 @@ def join_captures(
     # motion estimate; the step across the boundary counts too), a line is a poorer guess of the truth
     # than the reconstruction: draw toward it less.  Pooled over one patch.
     moving = np.abs(np.diff(aligned, axis=0)).mean(0)
+    from scipy import ndimage  # lazy (see _flow)
+
     moving = ndimage.uniform_filter(moving, JOIN_MISFIT_WINDOW, mode="nearest") / np.float32(JOIN_MISFIT)
     gain = (JOIN_GAIN_MOVING + (JOIN_GAIN_STILL - JOIN_GAIN_MOVING) / (1 + moving)).astype(np.float32)
     weight = np.zeros(2 * k, np.float32)  # the i-th frame from the boundary, before and after it

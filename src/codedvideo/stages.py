@@ -20,7 +20,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from . import io as cio
 from . import patches as P
@@ -367,6 +366,8 @@ def _finish_sparse(volume: np.ndarray, summary: dict, coded: np.ndarray, mask: n
         if not np.isfinite(frame[~holes]).all():
             raise RuntimeError(f"working store {store_path}: volume has unwritten or non-finite pixels")
     if holes.any():  # no measured patch covers them: the nearest reconstructed pixel
+        from scipy import ndimage  # lazy: holes are rare
+
         _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
         volume[:, holes] = volume[:, iy[holes], ix[holes]]
     residual = physics.forward(volume, mask) - coded

@@ -17,7 +17,6 @@ import functools
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from .errors import InputError
 
@@ -68,6 +67,8 @@ def photo(name: str) -> np.ndarray:
 
 def _affine_frames(img, size, frames, matrix_at, shift_at, order=3):
     """Frame t samples ``img`` at ``centre + matrix_at(t) @ (p - out_centre) + shift_at(t)``."""
+    from scipy import ndimage  # lazy (see baselines.normalized_fill)
+
     h, w = size
     src_c = np.array(img.shape, float) / 2.0
     out_c = np.array([h, w], float) / 2.0
@@ -102,6 +103,8 @@ def zoom(img, *, frames, size, rate=0.01):
 
 def deform(img, *, frames, size, amplitude=2.0, wavelength=40.0, speed=0.15):
     """A smooth non-rigid sinusoidal warp whose phase advances ``speed`` rad per sub-frame."""
+    from scipy import ndimage  # lazy (see baselines.normalized_fill)
+
     h, w = size
     yy, xx = np.mgrid[0:h, 0:w].astype(float)
     y0 = (img.shape[0] - h) / 2.0
