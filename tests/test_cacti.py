@@ -245,3 +245,18 @@ def test_a_mat_volume_written_frame_by_frame_is_the_file_written_at_once(tmp_pat
         with cacti.mat_writer(tmp_path / "big.mat", (18 * 60, 2160, 3840)):
             pass
     assert not (tmp_path / "big.mat").exists()
+
+
+def test_frames_that_do_not_compress_are_kept_within_the_mat_limit(tmp_path, monkeypatch):
+    """Random bits come out of zlib a little longer than they went in: the size check keeps room for
+    that, and were it passed (here: left out), the writer itself refuses by name and leaves nothing."""
+    vol = np.random.default_rng(5).integers(0, 2**32, (6, 16, 16), dtype=np.uint32).view(np.float32)
+    monkeypatch.setattr(cacti, "MAT_ELEMENT_BYTES", vol.nbytes + 1025)  # 1 byte more than the old check needed
+    with pytest.raises(OutputError, match=r"tight\.mat.*4 GiB"):
+        cacti.check_mat_size(tmp_path / "tight.mat", vol.shape)
+    monkeypatch.setattr(cacti, "check_mat_size", lambda path, shape: None)
+    monkeypatch.setattr(cacti, "MAT_ELEMENT_BYTES", vol.nbytes + 8)  # the frames and their header come to more
+    with pytest.raises(OutputError, match=r"tight\.mat: the compressed frames"):
+        with cacti.mat_writer(tmp_path / "tight.mat", vol.shape) as write:
+            write(vol)
+    assert os.listdir(tmp_path) == []

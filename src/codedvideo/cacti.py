@@ -335,11 +335,16 @@ _MI_INT8, _MI_INT32, _MI_UINT32, _MI_SINGLE, _MI_MATRIX, _MI_COMPRESSED = 1, 5, 
 _MX_SINGLE_CLASS = 7
 
 
+#: A v5 .mat element's length is a 32-bit count of bytes.
+MAT_ELEMENT_BYTES = 2**32
+
+
 def check_mat_size(path: str | os.PathLike, shape: tuple) -> None:
-    """OutputError when a single-precision volume of ``shape`` is past what a v5 .mat file holds (its
-    elements' lengths are 32-bit: 4 GiB less a header)."""
+    """OutputError when a single-precision volume of ``shape`` may be past what a v5 .mat file holds (its
+    elements' lengths are 32-bit: 4 GiB): frames zlib cannot shrink come out up to 0.03 % longer
+    (zlib's compressBound), so 0.1 % and a header are kept free."""
     nbytes = 4 * int(np.prod(shape, dtype=np.int64))
-    if nbytes >= 2**32 - 1024:
+    if nbytes + nbytes // 1000 + 1024 >= MAT_ELEMENT_BYTES:
         raise OutputError(f"mat file {path}: {nbytes / 2**30:.1f} GiB of frames is past a v5 .mat file's 4 GiB; "
                           "write .npy, .zarr or .tif instead")
 
@@ -395,6 +400,9 @@ def mat_writer(path: str | os.PathLike, shape: tuple[int, int, int], *, key: str
                 raise RuntimeError(f"mat file {path}: {written} of {f_count} frames written")
             fh.write(z.compress(bytes(-data_bytes % 8)) + z.flush())
             end = fh.tell()
+            if end - start - 8 >= MAT_ELEMENT_BYTES:  # frames zlib could not shrink, just under the limit (checked before)
+                raise OutputError(f"mat file {path}: the compressed frames came to {(end - start) / 2**30:.2f} GiB, "
+                                  "past a v5 .mat file's 4 GiB; write .npy, .zarr or .tif instead")
             fh.seek(start + 4)
             fh.write(struct.pack("<I", end - start - 8))
     return path
