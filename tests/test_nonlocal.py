@@ -285,3 +285,61 @@ def test_the_progress_bar_counts_the_stages_and_ends_full(tmp_path, rng, monkeyp
     (omp_total, omp_n), (nl_total, nl_n) = bars
     assert omp_total == omp_n == 9  # the default: one task a tile
     assert nl_total == nl_n == 9 + 9 + 36  # tiles, their first estimates and blocks of half a tile
+
+
+def test_a_tile_is_keyed_by_everything_its_blocks_read(rng):
+    """Two non-local tiles are the same work only when all their blocks' regions (and the first estimate's
+    patch around them) hold the same inputs: the blocks' distances are running sums from each region's
+    corner, so pixels beyond the tile's halo still decide, in the last bits, which of two equally similar
+    patches joins a group. A pixel beyond what the blocks read leaves the key alone (still regions far
+    away keep being shared)."""
+    from codedvideo.parallel import nonlocal_blocks, nonlocal_reach, plan_tiles, tile_content
+    from codedvideo.reconstruct import tile_halo
+
+    shape, size = (96, 96), 32
+    settings = OmpSettings(method="nonlocal")
+    tiles = plan_tiles(shape, size, halo=tile_halo(settings))
+    blocks = nonlocal_blocks(shape, size, 7)
+    tile = tiles[4]  # the middle one: core rows and columns 32:64
+    reach = nonlocal_reach(tile, blocks, shape, 7)
+    read = [b.halo for b in blocks if b.halo[0] < 64 and 32 < b.halo[1] and b.halo[2] < 64 and 32 < b.halo[3]]
+    assert reach == (max(0, min(r[0] for r in read) - 6), min(96, max(r[1] for r in read) + 6),
+                     max(0, min(r[2] for r in read) - 6), min(96, max(r[3] for r in read) + 6))
+    assert reach[0] < tile.halo[0] and reach[1] > tile.halo[1]  # wider than the halo
+    coded = rng.uniform(0, 255, shape).astype(np.float32)
+    mask = (rng.random((N, *shape)) < 0.5).astype(np.uint8)
+    still = np.zeros(shape, np.uint8)
+
+    def key(c):
+        return tile_content(c, mask, still, tile, stride=3, reach=reach)
+
+    inside, outside = coded.copy(), coded.copy()
+    inside[reach[0], 48] += 1  # beyond the halo, read by a block
+    outside[reach[0] - 1, 48] += 1  # read by none
+    assert key(inside) != key(coded)
+    assert key(outside) == key(coded)
+
+
+def test_captures_of_one_job_come_out_as_each_alone(tmp_path, rng):
+    """Non-local tiles shared between two captures (equal where their blocks read, different beyond)
+    give each capture exactly what it gets alone."""
+    import dataclasses
+
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.stages import reconstruct_volume, sparse_volumes
+
+    video = 100 + np.tile(rng.uniform(0, 3, (N, 4, 4)).astype(np.float32), (1, 24, 24))
+    mask = np.tile((rng.random((N, 8, 8)) < 0.5).astype(np.uint8), (1, 12, 12))
+    mask[0] = 1  # every pixel open once
+    other = video.copy()
+    other[:, :8] = rng.uniform(20, 230, (N, 8, 96))
+    codeds = [(mask * v).sum(0).astype(np.float32) for v in (video, other)]
+    s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=0.5), method="nonlocal")
+    D = dct_dictionary(N)
+    job = list(sparse_volumes(2, lambda i: (codeds[i], mask, None), D, settings=s, tile=32, cache=tmp_path / "j",
+                              progress=False))
+    assert job[0][2]["tile_tasks"] < 2 * 9  # the lower tiles are shared
+    for i, volume, _ in job:
+        alone, _ = reconstruct_volume(codeds[i], mask, D, settings=s, tile=32, cache=tmp_path / f"a{i}",
+                                      progress=False)
+        assert np.array_equal(volume, alone)

@@ -55,8 +55,9 @@ REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
 # ----------------------------------------------------------------------------- keys
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v6"  # v4: per-tile digests in the working store; v5: still patches across captures;
-# v6: the non-local method in three stages (its estimates summed block by block: other roundings)
+RECON_VERSION = "recon-v7"  # v4: per-tile digests in the working store; v5: still patches across captures;
+# v6: the non-local method in three stages (its estimates summed block by block: other roundings);
+# v7: equal non-local tiles told apart by all their blocks read (v6 could share one answer between two)
 
 
 def content_key(*parts) -> str:

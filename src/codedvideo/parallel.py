@@ -150,7 +150,7 @@ STAGE_PREFIXES = ("first-", "groups-")
 def _first_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings, patch: int) -> tuple:
     """Stage 1: a tile's first estimate (the default's), its core and statistics."""
     volume, stats = _estimate(store_path, tile, D, settings, patch)
-    return tile.core, volume, stats
+    return tile.core, volume.copy(), stats  # a copy: the halo around the core is not kept while blocks use it
 
 
 def _paste(region: tuple[int, int, int, int], box: tuple[int, int, int, int], values: np.ndarray, out: np.ndarray,
@@ -223,10 +223,34 @@ def _meeting(boxes: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     return np.flatnonzero((boxes[:, 0] < y1) & (y0 < boxes[:, 1]) & (boxes[:, 2] < x1) & (x0 < boxes[:, 3]))
 
 
-def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run: str) -> list:
-    """The final (stage 3) task of every distinct tile content, with the stages it needs (see above)."""
+def nonlocal_blocks(shape: tuple[int, int], tile: int, patch: int) -> list[Tile]:
+    """The blocks of stage 2 (half a tile each): ``core`` holds their references' corners, ``halo`` is
+    the region their groups are solved over (what the references' candidates cover: the search window
+    before, the window and a patch after), clipped to the image."""
     from .nonlocal_sc import WINDOW
 
+    (h, w), before, after = shape, WINDOW, WINDOW + patch - 1
+    return [Tile(b.index, b.core, (max(0, b.core[0] - before), min(h, b.core[1] + after),
+                                   max(0, b.core[2] - before), min(w, b.core[3] + after)))
+            for b in plan_tiles(shape, max(tile // 2, patch), patch=patch, halo=0)]
+
+
+def nonlocal_reach(tile: Tile, blocks: list[Tile], shape: tuple[int, int], patch: int) -> tuple[int, int, int, int]:
+    """Every pixel a non-local tile's answer reads: the regions of the blocks that reach its core, with
+    the ``patch - 1`` pixels their first estimates read around them, clipped to the image.
+
+    Wider than the tile's halo: a block's sums depend, in their last bits and so in which of two
+    equally similar patches joins a group, on all of the block's region (its distances are running sums
+    from the region's corner), so two tiles are the same work only when all of this is the same.
+    """
+    regions = np.array([b.halo for b in blocks])
+    regions, m = regions[_meeting(regions, tile.core)], patch - 1
+    return (max(0, int(regions[:, 0].min()) - m), min(shape[0], int(regions[:, 1].max()) + m),
+            max(0, int(regions[:, 2].min()) - m), min(shape[1], int(regions[:, 3].max()) + m))
+
+
+def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run: str) -> list:
+    """The final (stage 3) task of every distinct tile content, with the stages it needs (see above)."""
     first_task = dask.delayed(_first_task, pure=False)
     groups_task = dask.delayed(_groups_task, pure=False)
     combine_task = dask.delayed(_combine_task, pure=False)
@@ -239,13 +263,9 @@ def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run
         path, tile = where[0]
         if path not in grids:
             store = WorkStore.opened(path)
-            (h, w), size = store.array("coded").shape, int(store.group.attrs["tile"])
-            # a block's region: what its references' candidates cover (window before, window + patch - 1 after)
-            before, after = WINDOW, WINDOW + patch - 1
-            grid = [Tile(b.index, b.core, (max(0, b.core[0] - before), min(h, b.core[1] + after),
-                                           max(0, b.core[2] - before), min(w, b.core[3] + after)))
-                    for b in plan_tiles((h, w), max(size // 2, patch), patch=patch, halo=0)]
-            first_tiles = plan_tiles((h, w), size, patch=patch)
+            shape, size = store.array("coded").shape, int(store.group.attrs["tile"])
+            grid = nonlocal_blocks(shape, size, patch)
+            first_tiles = plan_tiles(shape, size, patch=patch)
             grids[path] = (grid, first_tiles, np.array([b.halo for b in grid]), np.array([t.core for t in first_tiles]))
         grid, first_tiles, regions, cores = grids[path]
 
@@ -271,8 +291,10 @@ def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run
     return out
 
 
-def tile_content(coded: np.ndarray, mask: np.ndarray, still: np.ndarray, tile: Tile, *, stride: int = 1) -> str:
-    """A digest of what a tile's answer depends on: its halo inputs and where its core lies in the halo.
+def tile_content(coded: np.ndarray, mask: np.ndarray, still: np.ndarray, tile: Tile, *, stride: int = 1,
+                 reach: tuple[int, int, int, int] | None = None) -> str:
+    """A digest of what a tile's answer depends on: its inputs over ``reach`` (default: its halo) and
+    where its core lies in that region.
 
     Two tiles with the same digest have the same answer bit for bit, so one
     is solved and both are written: a still background under a repeating code
@@ -280,7 +302,7 @@ def tile_content(coded: np.ndarray, mask: np.ndarray, still: np.ndarray, tile: T
     patch stride above 1 the patches taken depend on the position in the
     image, which then joins the digest.
     """
-    hy0, hy1, hx0, hx1 = tile.halo
+    hy0, hy1, hx0, hx1 = tile.halo if reach is None else reach
     y0, y1, x0, x1 = tile.core
     h = hashlib.blake2b(digest_size=16)
     h.update(np.asarray([y0 - hy0, y1 - hy0, x0 - hx0, x1 - hx0, hy1 - hy0, hx1 - hx0], np.int64).tobytes())
@@ -401,8 +423,7 @@ def _stream_local(tasks, needs, scheduler, workers, bar) -> Iterator[int]:
     graph = HighLevelGraph.merge(*(task.__dask_graph__() for task in tasks)) if tasks else {}
     stages = {k for k in graph.keys() if isinstance(k, str) and k.startswith(STAGE_PREFIXES)}
     if stages:
-        bar.total += len(stages)
-        bar.refresh()
+        bar.reset(total=bar.total + len(stages))  # (reset: a notebook's bar takes its new length only so)
 
     def pretask(key, dsk, state):
         if stop.is_set():
@@ -496,12 +517,14 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
             log.warning("cache entry %s: tiles %s failed their checksum (damaged); computing them again",
                         store.path, np.flatnonzero(damaged).tolist())
     todo = tuple(t for t in tiles if not ok[t.index])
-    stride = settings.stride
-    if settings.method == "nonlocal":  # its reference patches lie on a grid of the image too
+    stride, reach = settings.stride, [None] * len(todo)
+    if settings.method == "nonlocal":  # its reference patches lie on a grid of the image too; its blocks reach far
         from .nonlocal_sc import STEP
 
         stride = max(stride, STEP)
-    contents = tuple(tile_content(coded, mask, still, t, stride=stride) for t in todo)
+        blocks = nonlocal_blocks(tuple(coded.shape), tile, patch)
+        reach = [nonlocal_reach(t, blocks, tuple(coded.shape), patch) for t in todo]
+    contents = tuple(tile_content(coded, mask, still, t, stride=stride, reach=r) for t, r in zip(todo, reach))
     return StorePlan(tiles, damaged, TileWork(str(store.path), todo, contents))
 
 
