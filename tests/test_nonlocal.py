@@ -343,3 +343,59 @@ def test_captures_of_one_job_come_out_as_each_alone(tmp_path, rng):
         alone, _ = reconstruct_volume(codeds[i], mask, D, settings=s, tile=32, cache=tmp_path / f"a{i}",
                                       progress=False)
         assert np.array_equal(volume, alone)
+
+
+def test_patches_still_across_captures_take_the_still_answer_and_join_no_group(rng):
+    """The still map of a sequence: wholly still patches are neither solved nor members of a group, and the
+    pixels that only they cover keep coded / open count exactly, as the default's tiles do."""
+    from codedvideo.reconstruct import _still_answer
+
+    video = smooth_scene(rng, h=30, w=30)
+    coded, mask = capture(video, rng)
+    s = OmpSettings(max_atoms=6, tol_rms=1.0)
+    D = random_dictionary(rng, N * 49, 96)
+    first, _ = reconstruct_region(coded, mask, D, s)
+    answer = _still_answer(coded, mask, True)
+    volume, stats = nonlocal_region(coded, mask, D, first, s, still=np.ones(coded.shape, bool))
+    assert np.array_equal(volume, np.broadcast_to(answer, volume.shape))
+    assert stats[1] == 0  # no group solved
+    still = np.zeros(coded.shape, bool)
+    still[:, :14] = True  # patches with corners in columns 0..7 are still; pixels 0..6 only they cover
+    part, part_stats = nonlocal_region(coded, mask, D, first, s, still=still)
+    moving, moving_stats = nonlocal_region(coded, mask, D, first, s)
+    assert np.array_equal(part[:, :, :7], np.broadcast_to(answer[:, :7], (N, 30, 7)))
+    assert not np.array_equal(moving[:, :, :7], part[:, :, :7])
+    assert 0 < part_stats[1] < moving_stats[1]
+    assert np.isfinite(part).all()
+
+
+def test_still_tiles_of_a_sequence_are_shared_and_come_out_as_each_capture_alone(tmp_path, rng):
+    """Two captures whose left part is still (a still map on it) and whose right part moves: the tiles
+    that only still patches reach are solved once for both (their answer is the still answer, which
+    their halo decides), and each capture equals its reconstruction alone with the same still map."""
+    import dataclasses
+
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.reconstruct import _still_answer
+    from codedvideo.stages import reconstruct_volume, sparse_volumes
+
+    mask = (rng.random((N, 64, 96)) < 0.5).astype(np.uint8)
+    mask[0] = 1
+    videos = [smooth_scene(rng, h=64, w=96) for _ in range(2)]
+    videos[1][:, :, :48] = videos[0][:, :, :48]
+    codeds = [(mask * v).sum(0).astype(np.float32) for v in videos]
+    still = np.zeros((64, 96), bool)
+    still[:, :44] = True
+    s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=1.0), method="nonlocal")
+    D = dct_dictionary(N)
+    job = list(sparse_volumes(2, lambda i: (codeds[i], mask, still), D, settings=s, tile=32,
+                              cache=tmp_path / "j", progress=False))
+    assert job[0][2]["tile_tasks"] == 2 * 6 - 2  # the two left tiles (columns 0:32) solved once
+    for i, volume, _ in job:
+        assert np.array_equal(volume[:, :, :32], np.broadcast_to(_still_answer(codeds[i], mask, True)[:, :32],
+                                                                 (N, 64, 32)))
+        alone = next(sparse_volumes(1, lambda _: (codeds[i], mask, still), D, settings=s, tile=32,
+                                    cache=tmp_path / f"a{i}", progress=False))[1]
+        assert np.array_equal(volume, alone)
+    moving, _ = reconstruct_volume(codeds[0], mask, D, settings=s, tile=32, cache=tmp_path / "m", progress=False)
+    assert not np.array_equal(moving[:, :, :32], job[0][1][:, :, :32])

@@ -74,7 +74,7 @@ def nonlocal_region(
     atoms: int | None = None, consensus: float = 0.0, similarity: float | None = None,
     aggregate: str = "all", max_distance: float | None = None, project: bool | None = None,
     patch: int = P.PATCH, origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None,
-    refs: tuple[int, int, int, int] | None = None, sums: bool = False,
+    refs: tuple[int, int, int, int] | None = None, sums: bool = False, still: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct a region by simultaneous sparse coding of groups of similar patches.
 
@@ -130,6 +130,12 @@ def nonlocal_region(
         Return ``(summed, weight, stats)`` of the (single) pass: every
         estimate added at its place and the weight each pixel got, not yet
         divided or projected (:func:`finish`); the fallback returns None.
+    still : ndarray of shape (h, w) bool, optional
+        Pixels known to be still across captures (:mod:`codedvideo.sequence`).
+        A patch wholly inside them takes the still answer (``coded / open
+        count`` in every sub-frame) and is neither solved nor a member of any
+        group, and pixels that only such patches cover keep the still answer
+        exactly (:func:`keep_still`), as the default's tiles do.
 
     Returns
     -------
@@ -177,6 +183,9 @@ def nonlocal_region(
     n_open = (n_pix > 0).sum(1).astype(np.float32)
     tol_all = np.ascontiguousarray(n_open * settings.tol_rms**2, dtype=np.float64)
     measured = n_open > 0
+    calm = np.zeros(hp * wp, np.bool_)  # wholly still across captures: the still answer, in no group
+    if still is not None and np.any(still):
+        calm = P.extract(np.asarray(still, np.uint8), patch).all(1) & measured
     # reference patches: the default's stride grid combined with ``step``
     stride = max(settings.stride, step)
     ref = measured.copy()
@@ -195,14 +204,23 @@ def nonlocal_region(
     still_est = np.zeros((0, F), np.float32)
     still_ok = np.zeros(hp * wp, np.bool_)
     if settings.static_atoms > 0:
-        rows = np.flatnonzero(ref)
+        rows = np.flatnonzero(ref & ~calm)
         if rows.size:
             ok, still_est = still_patches(y_all[rows], n_pix[rows], tol_all[rows], settings.static_atoms,
                                           frames=n, patch=patch)
             still_ok[rows[ok]] = True
             stats[4] = ok.sum()
+    if calm.any():  # their still answer, each pixel's value in every sub-frame, after the still test's rows
+        rows = np.flatnonzero(ref & calm)
+        q = y_all[rows] / np.maximum(n_pix[rows], 1e-12).astype(np.float32)
+        still_est = np.concatenate([still_est, np.broadcast_to(q[:, None, :], (rows.size, n, m)).reshape(-1, F)])
+        order = np.concatenate([np.flatnonzero(still_ok), rows])
+        still_ok[rows] = True
+        stats[4] += rows.size
+    else:
+        order = np.flatnonzero(still_ok)
     still_slot = np.full(hp * wp, -1, np.int64)
-    still_slot[still_ok] = np.arange(int(still_ok.sum()))
+    still_slot[order] = np.arange(order.size)
     if atoms is None:
         atoms = settings.max_atoms if group == 1 else ATOMS_FACTOR * settings.max_atoms
     kmax = int(min(atoms, m))
@@ -216,7 +234,7 @@ def nonlocal_region(
             far = dist > (max_distance**2) * F
             far[:, 0] = False
             idx[far] = -1
-        idx[~measured[np.maximum(idx, 0)]] = -1  # members without a measurement have nothing to add
+        idx[~measured[np.maximum(idx, 0)] | calm[np.maximum(idx, 0)]] = -1  # nothing to add: unmeasured or still
         idx[:, 0] = np.arange(hp * wp)
         stats[5] += time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -286,9 +304,36 @@ def nonlocal_region(
             stats[7] = time.perf_counter() - t_start
             return summed, weight, stats
         volume = finish(summed, weight, coded, mask, project=project)
+        if calm.any():
+            keep_still(volume, coded, mask, still, patch)
         current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
     stats[7] = time.perf_counter() - t_start
     return volume, stats
+
+
+def keep_still(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, still: np.ndarray | None, patch: int,
+               rows: slice = slice(None), cols: slice = slice(None)) -> None:
+    """Give the pixels that only wholly still patches cover (``still``: pixels still across captures) the
+    still answer exactly, in place: what a still tile gives, whatever groups reached them.
+
+    ``coded``, ``mask``, ``still`` cover a region; ``volume`` is its ``[rows, cols]`` part, which must lie
+    ``patch - 1`` pixels inside the region wherever the region is not cut by the image's border.
+    """
+    from .reconstruct import _still_answer
+
+    if still is None or not np.any(still):
+        return
+    h, w = coded.shape
+    if h < patch or w < patch:
+        return
+    open_any = mask.any(0) if is_binary(mask) else mask.sum(0) > 0
+    measured = P.extract(open_any.astype(np.uint8), patch).any(1)
+    calm = P.extract(np.asarray(still, np.uint8), patch).all(1) & measured
+    others = P.fold((measured & ~calm).astype(np.float32), (h, w), patch)[0]
+    covered = P.fold(calm.astype(np.float32), (h, w), patch)[0]
+    inner = ((others == 0) & (covered > 0))[rows, cols]
+    if inner.any():
+        volume[:, inner] = _still_answer(coded, mask, is_binary(mask))[rows, cols][inner]
 
 
 def finish(summed: np.ndarray, weight: np.ndarray, coded: np.ndarray, mask: np.ndarray, *, project: bool = True

@@ -179,14 +179,14 @@ def _groups_task(store_path: str, block: Tile, firsts: list, D: np.ndarray, sett
     ey0, ey1, ex0, ex1 = region = block.halo
     by0, by1, bx0, bx1 = block.core
     store = WorkStore.opened(store_path)
-    coded, mask, _ = store.read_inputs(ey0, ey1, ex0, ex1)
+    coded, mask, still = store.read_inputs(ey0, ey1, ex0, ex1)
     first = np.full((mask.shape[0], ey1 - ey0, ex1 - ex0), np.nan, np.float32)
     for core, volume, _ in firsts:
         _paste(region, core, volume, first)
     try:
         out = nonlocal_region(coded, mask, D, first, settings, patch=patch, origin=(ey0, ex0),
                               image_shape=store.array("coded").shape, sums=True,
-                              refs=(by0 - ey0, by1 - ey0, bx0 - ex0, bx1 - ex0))
+                              refs=(by0 - ey0, by1 - ey0, bx0 - ex0, bx1 - ex0), still=still.astype(bool))
     except Exception as exc:
         raise RuntimeError(f"block rows {by0}:{by1}, cols {bx0}:{bx1} of {store_path}: {exc}") from exc
     if out is None:
@@ -195,10 +195,11 @@ def _groups_task(store_path: str, block: Tile, firsts: list, D: np.ndarray, sett
     return region, summed, weight[None], time.perf_counter() - t0
 
 
-def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool]) -> np.ndarray:
-    """Stage 3: a tile's core from the sums of the blocks that reach it, projected onto its measurements,
-    written to every place; its statistics are the first estimate's plus the time of the blocks it owns."""
-    from .nonlocal_sc import finish
+def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], patch: int) -> np.ndarray:
+    """Stage 3: a tile's core from the sums of the blocks that reach it, projected onto its measurements
+    (pixels that only wholly still patches cover: the still answer), written to every place; its
+    statistics are the first estimate's plus the time of the blocks it owns."""
+    from .nonlocal_sc import finish, keep_still
 
     t0 = time.perf_counter()
     core, volume, stats = first
@@ -209,8 +210,13 @@ def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool]) -
         for region, s, w, _ in parts:
             _paste(core, region, s, summed, add=True)
             _paste(core, region, w, weight, add=True)
-        coded, mask, _ = WorkStore.opened(places[0][0]).read_inputs(*core)
-        volume = finish(summed, weight[0], coded, mask)
+        store = WorkStore.opened(places[0][0])
+        (h, w), (y0, y1, x0, x1) = store.array("coded").shape, core
+        around = (max(0, y0 - patch + 1), min(h, y1 + patch - 1), max(0, x0 - patch + 1), min(w, x1 + patch - 1))
+        coded, mask, still = store.read_inputs(*around)  # the core and every patch over it
+        inside = (slice(y0 - around[0], y1 - around[0]), slice(x0 - around[2], x1 - around[2]))
+        volume = finish(summed, weight[0], coded[inside], mask[(slice(None), *inside)])
+        keep_still(volume, coded, mask, still.astype(bool), patch, *inside)
     owned_seconds = sum(part[3] for part, mine in zip(parts, owned) if mine and part is not None)
     stats[STAT_NAMES.index("seconds_total")] += owned_seconds + time.perf_counter() - t0
     write_tiles([(WorkStore.opened(path), tile.index, tile.core) for path, tile in places], volume, stats)
@@ -286,9 +292,17 @@ def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run
             parts.append(blocks[key])
             owned.append(tile.core[0] <= b.core[0] < tile.core[1] and tile.core[2] <= b.core[2] < tile.core[3])
         own_first = first_of(first_tiles[tile.index])
-        out.append(combine_task(tuple(where), own_first, parts, owned,
+        out.append(combine_task(tuple(where), own_first, parts, owned, patch,
                                 dask_key_name=f"tile-{run}-{last - i:09d}"))
     return out
+
+
+def _still_reach(still: np.ndarray, core: tuple[int, int, int, int], patch: int) -> tuple | None:
+    """The core with every patch over it, when all of that is still: the core is then the still answer,
+    which these pixels alone decide (:func:`codedvideo.nonlocal_sc.keep_still`); otherwise None."""
+    (h, w), (y0, y1, x0, x1), m = still.shape, core, patch - 1
+    box = (max(0, y0 - m), min(h, y1 + m), max(0, x0 - m), min(w, x1 + m))
+    return box if still[box[0] : box[1], box[2] : box[3]].all() else None
 
 
 def tile_content(coded: np.ndarray, mask: np.ndarray, still: np.ndarray, tile: Tile, *, stride: int = 1,
@@ -523,7 +537,8 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
 
         stride = max(stride, STEP)
         blocks = nonlocal_blocks(tuple(coded.shape), tile, patch)
-        reach = [nonlocal_reach(t, blocks, tuple(coded.shape), patch) for t in todo]
+        reach = [_still_reach(still, t.core, patch) or nonlocal_reach(t, blocks, tuple(coded.shape), patch)
+                 for t in todo]
     contents = tuple(tile_content(coded, mask, still, t, stride=stride, reach=r) for t, r in zip(todo, reach))
     return StorePlan(tiles, damaged, TileWork(str(store.path), todo, contents))
 
