@@ -450,3 +450,60 @@ def test_simulate_of_a_video_too_short_for_its_captures_leaves_nothing(tmp_path,
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "v.mkv" in err and f"need {3 * N}" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["v.mkv"]
+
+
+def test_a_job_of_more_captures_than_open_files_allows_runs(tmp_path):
+    """A job holds one lock per capture's working store: with the soft limit on open files below the
+    captures' count, the job raises it (up to the hard limit) and runs; where the hard limit is too low
+    the error says so in one line, naming the cache."""
+    import resource
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(0)
+    t = 90
+    np.save(tmp_path / "coded.npy", rng.uniform(0, 255, (t, 8, 8)).astype(np.float32))
+    np.save(tmp_path / "mask.npy", (rng.random((2, 8, 8)) < 0.5).astype(np.uint8))
+    _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+
+    def run(soft, hard_limit, name):
+        limit = (soft, hard_limit)
+        return subprocess.run(
+            [sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),
+             "--mask", str(tmp_path / "mask.npy"), "--method", "dct", "--independent-captures", "--output",
+             str(tmp_path / f"{name}.npy"), "--cache", str(tmp_path / f"cache-{name}")],
+            capture_output=True, text=True, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, limit))
+
+    ok = run(64, hard, "ok")
+    assert ok.returncode == 0, ok.stderr
+    assert np.load(tmp_path / "ok.npy").shape == (t * 2, 8, 8)
+    low = run(64, 64, "low")
+    assert low.returncode != 0
+    assert "open files" in low.stderr and "cache-low" in low.stderr
+    assert "Traceback" not in low.stderr
+    assert not (tmp_path / "low.npy").exists()
+
+
+def test_a_capture_where_nothing_moves_fills_its_never_open_pixels(tmp_path, capsys):
+    """Every measured pixel still: the capture is coded / open count without sparse coding, and pixels
+    the code never opens take their nearest measured neighbour's value (not 0), counted in the metrics."""
+    from codedvideo.synth import make_scene
+
+    rng = np.random.default_rng(4)
+    frame = make_scene("default", frames=1, size=(H, W))[0]
+    mask = (rng.random((N, H, W)) < 0.5).astype(np.uint8)
+    mask[:, 10, 12] = 0  # never open
+    holes = ~mask.any(0)
+    coded = np.stack([(mask * frame).sum(0)] * 2).astype(np.float32)
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    _run(capsys, "reconstruct", "--coded", tmp_path / "coded.npy", "--mask", tmp_path / "mask.npy", "--output",
+         tmp_path / "r.npy", "--cache", tmp_path / "cache", "--method", "dct")
+    out = np.load(tmp_path / "r.npy").reshape(2, N, H, W)
+    assert np.isfinite(out).all()
+    assert np.abs(out[:, :, 10, 12] - frame[10, 12]).max() < 40  # a neighbour's value, not 0
+    np.testing.assert_allclose(out[:, :, ~holes], np.broadcast_to(frame[~holes], (2, N, int((~holes).sum()))),
+                               atol=1e-3)
+    metrics = json.loads((tmp_path / "r.metrics.json").read_text())
+    assert all(e["reconstruction"]["never_open_pixels"] == int(holes.sum()) for e in metrics["captures"])
+    assert all(e["reconstruction"]["method"] == "static" for e in metrics["captures"])

@@ -369,6 +369,13 @@ def joined(results, codeds, mask_of, *, data_range: float | None = None, still_o
     agree): only the box around the rest, with ``margin`` pixels for the
     motion estimate, is joined, and nothing when nothing moves.
     """
+    try:
+        yield from _joined(results, codeds, mask_of, data_range, still_of, margin)
+    finally:  # a join that fails, or a consumer that stops early, closes the job too (its stores' locks)
+        getattr(results, "close", lambda: None)()
+
+
+def _joined(results, codeds, mask_of, data_range, still_of, margin):
     held = None
     for i, volume, info in results:
         if held is not None:

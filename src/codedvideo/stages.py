@@ -28,7 +28,7 @@ from .cache import RECON_VERSION, content_key, dictionary_key
 from .codes import make_code
 from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
-from .errors import InputError
+from .errors import InputError, OutputError
 from .metrics import evaluate
 from .parallel import StorePlan, plan_store, plan_tiles, reconstruct_stores
 from .patches import PATCH
@@ -248,6 +248,23 @@ def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray) -> int:
     return never_open
 
 
+def _allow_open_files(needed: int, cache) -> None:
+    """Raise this process's soft limit on open files to ``needed`` (a job locks one working store per
+    capture until it ends); an OutputError, before any work, where the hard limit is lower."""
+    try:
+        import resource
+    except ImportError:  # not on this platform
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= needed:
+        return
+    if hard != resource.RLIM_INFINITY and hard < needed:
+        raise OutputError(f"cache {cache}: a job of {needed - 64} captures holds a lock per capture, about {needed} "
+                          f"open files, and this process may open {hard} (ulimit -n); raise the limit or "
+                          "reconstruct fewer captures a job")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+
+
 def sparse_volumes(
     count: int,
     capture,
@@ -299,6 +316,7 @@ def sparse_volumes(
     count`` itself (``method: "static"``), computed without tiles.
     """
     dkey = dictionary_key or content_key(D)
+    _allow_open_files(count + 64, cache)  # one lock held per capture's store until the job ends
     plan: list = []  # per capture: None (the caller's), "static", or the index of its store
     stores: list[tuple[WorkStore, StorePlan]] = []  # per sparse-coded capture (equal captures: the same pair)
     opened: dict[str, tuple[WorkStore, StorePlan]] = {}
@@ -492,7 +510,6 @@ def reconstruct_captures(
         raise InputError(f"method {method!r}: unknown; choose one of {', '.join(METHODS)}")
     scale = np.float32(data_range.scale)
     count = len(codeds)
-    stills: dict[int, np.ndarray | None] = {}  # (H, W) bool per capture with still pixels (None: nothing still)
 
     @functools.lru_cache(maxsize=1)  # the finishing step asks twice in a row; one capture's inputs held at most
     def used(i: int):
@@ -507,11 +524,9 @@ def reconstruct_captures(
                                  "nothing is left to reconstruct (--trust-saturated uses them anyway)")
         coded_used = np.asarray(coded_used, np.float32) * scale if scale != 1 else np.asarray(coded_used, np.float32)
         still = None
-        if still_of is not None:
-            if i not in stills:
-                found = still_of(i) & np.asarray(mask_used).any(0)
-                stills[i] = found if found.any() else None
-            still = stills[i]
+        if still_of is not None:  # asked again when the capture is finished (not kept: T maps of H x W)
+            found = still_of(i) & np.asarray(mask_used).any(0)
+            still = found if found.any() else None
         moving = still is None or int(still.sum()) < int(np.asarray(mask_used).any(0).sum())
         return coded_used, mask_used, still, moving, saturated
 
@@ -534,7 +549,7 @@ def reconstruct_captures(
                 volume, info = _static_volume(coded_used, mask_used)
             elif volume is None:
                 volume, info = reconstruct_method(method, coded_used, mask_used)
-            if sparse:
+            if sparse and info.get("method") != "static":  # (the static estimate says so)
                 info = dict(info, method=method, dictionary_atoms=int(dictionary.shape[1]))
             if still is not None and not sparse:  # no patches: the pixels whose every patch would be still
                 inner = erode_to_patches(still, PATCH)
@@ -546,7 +561,6 @@ def reconstruct_captures(
                 if info.get("measurement_residual_rms") is not None:
                     info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(scale)
             info["saturated_pixels"] = saturated
-            stills.pop(i, None)  # capture i is done: its map is not asked for again
             del coded_used, mask_used
             yield i, volume, info
 
@@ -562,14 +576,23 @@ def reconstruct_capture(method: str, coded: np.ndarray, mask: np.ndarray, *, sti
 
 
 def _static_volume(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dict]:
-    """The static estimate of a mask with one pattern for all pixels, with the statistics of :func:`reconstruct_volume`."""
+    """The static estimate (a mask with one pattern for all pixels, or a capture in which nothing moves),
+    pixels never open (or left out as saturated) filled from the nearest open one, with the statistics of
+    :func:`reconstruct_volume`."""
     t0 = time.perf_counter()
     volume = physics.static_estimate(coded, mask)
+    holes = ~(np.asarray(mask) > 0).any(0)
+    if holes.any() and not holes.all():  # no measurement: the nearest measured pixel's still value
+        from scipy import ndimage  # lazy: holes are rare
+
+        _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
+        volume[:, holes] = volume[:, iy[holes], ix[holes]]
     residual = physics.forward(volume, mask) - np.asarray(coded, np.float32)
     seconds = time.perf_counter() - t0
     info = dict(
         {name: 0.0 for name in STAT_NAMES},
-        tiles=0, tiles_computed=0, tiles_reused=0, never_open_pixels=0, filled_pixels=0, atoms_mean=0.0,
+        tiles=0, tiles_computed=0, tiles_reused=0, never_open_pixels=int(holes.sum()),
+        filled_pixels=int(holes.sum()) * (not holes.all()), atoms_mean=0.0,
         static_fraction=1.0, patches_per_second=0.0,
         measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))),
         work_store=None, seconds=dict(store_inputs=0.0, reconstruct=seconds, assemble=0.0), method="static",

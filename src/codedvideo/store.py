@@ -114,7 +114,11 @@ def _acquire(lock: Path, blocking: bool):
     while True:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
-        except OSError:
+        except OSError as exc:
+            if exc.errno in (errno.EMFILE, errno.ENFILE):  # not a read-only cache: a job of too many captures
+                raise OutputError(f"cache {lock}: too many open files to lock one more working store (a job locks "
+                                  "one per capture); raise the limit (ulimit -n) or reconstruct fewer captures a "
+                                  "job") from exc
             try:  # a read-only cache: lock the existing file, or go without
                 fd = os.open(lock, os.O_RDONLY)
             except OSError:
