@@ -229,7 +229,10 @@ def nonlocal_region(
     for _ in range(iterations):
         t0 = time.perf_counter()
         k = min(group, (2 * window + 1) ** 2, hp * wp)
-        idx, dist = match_groups(current, k, window, patch=patch)
+        if (ref & ~still_ok).any():
+            idx, dist = match_groups(current, k, window, patch=patch)
+        else:  # every reference still: no group to match (a still block of a sequence)
+            idx, dist = np.full((hp * wp, k), -1, np.int64), np.full((hp * wp, k), np.inf)
         if max_distance is not None:
             far = dist > (max_distance**2) * F
             far[:, 0] = False
