@@ -78,3 +78,47 @@ def test_a_calibrated_mask_reconstructs_through_the_cli(tmp_path, capsys, clean)
     capsys.readouterr()
     assert main(["codes", "check", str(clean / "mask.npy")]) == 0
     assert json.loads(capsys.readouterr().out)["binary"] is False
+
+
+def test_raw_correction_of_a_stream_holds_one_capture_at_a_time():
+    """--black-level (and the other raw options) on a stream of captures: each capture is corrected when
+    it is read, never the whole stream at once; --detect-bad-pixels reads it once more first, to vote,
+    and the corrections equal the stack's."""
+    import argparse
+
+    from codedvideo import cli, sensor
+    from codedvideo.config import NoiseConfig
+
+    rng = np.random.default_rng(2)
+    t = 6
+    mask = (rng.random((N, 16, 16)) < 0.5).astype(np.uint8)
+    frames = rng.uniform(0, 200, (t, 16, 16)).astype(np.float32) + 16
+    frames[:, 3, 4] = 4000  # a hot pixel in every capture
+    reads = []
+
+    class Stream:  # a lazily read stack that records what is read
+        def __len__(self):
+            return t
+
+        def __getitem__(self, i):
+            reads.append(i)
+            return frames[i]
+
+    def job():
+        return cli._Captures(codeds=Stream(), masks=[mask], truths=None, labels=[{}] * t, kind="captures",
+                             inputs={}, dtype=np.dtype("float32"), source="stream")
+
+    noise = NoiseConfig(black_level=16.0)
+    a = argparse.Namespace(bad_pixels=None, detect_bad_pixels=False, trust_saturated=False)
+    j = job()
+    counts = cli._correct_raw(a, j, noise)
+    assert reads == []  # nothing corrected before it is asked for
+    np.testing.assert_array_equal(j.codeds[4], sensor.correct_raw(frames[4], mask, black_level=16.0).coded)
+    assert reads == [4] and counts[4]["black_level"] == 16.0
+    a.detect_bad_pixels, reads[:] = True, []
+    j = job()
+    counts = cli._correct_raw(a, j, noise)
+    assert reads == list(range(t))  # one pass to vote
+    stack = sensor.detect_bad_pixels(np.stack([frames[i] - 16 for i in range(t)]), mask)
+    assert stack[3, 4] and counts[2]["detected_bad_pixels"] == int(stack.sum())
+    assert j.mask(2)[:, 3, 4].sum() == 0 and j.codeds[2][3, 4] == 0

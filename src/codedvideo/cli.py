@@ -583,27 +583,77 @@ def _cmd_reconstruct(a) -> int:
     return 0
 
 
-def _correct_raw(a, job: _Captures, noise) -> list | None:
+class _RawCorrected:
+    """A job's coded images and masks corrected as raw frames, one capture at a time when asked
+    (:func:`_correct_raw`): ``coded(i)``, ``mask(i)``, ``counts(i)``; the last few are kept, never the stream."""
+
+    def __init__(self, codeds, mask_of, correct, found):
+        self._codeds, self._mask_of, self._correct, self.found = codeds, mask_of, correct, found
+        self._get = functools.lru_cache(maxsize=4)(self._fix)  # the neighbours a still test and a join ask for
+
+    def _fix(self, i: int):
+        from .sensor import drop_pixels
+
+        fixed = self._correct(self._codeds[i], self._mask_of(i))
+        coded, mask, counts = fixed.coded, fixed.mask, fixed.counts()
+        if self.found is not None:
+            coded, mask, counts["detected_bad_pixels"] = drop_pixels(coded, mask, self.found)
+        return coded, mask, counts
+
+    def coded(self, i: int) -> np.ndarray:
+        return self._get(i)[0]
+
+    def mask(self, i: int) -> np.ndarray:
+        return self._get(i)[1]
+
+    def counts(self, i: int) -> dict:
+        return self._get(i)[2]
+
+
+class _Lazy:
+    """``len`` and ``[i]`` over ``get(i)``: a sequence computed item by item."""
+
+    def __init__(self, count: int, get):
+        self._count, self._get = count, get
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __getitem__(self, i: int):
+        if not -self._count <= i < self._count:
+            raise IndexError(i)
+        return self._get(i % self._count)
+
+
+def _correct_raw(a, job: _Captures, noise) -> _Lazy | None:
     """Raw frames to the sum convention (``codedvideo.sensor``): the black level subtracted, pixels at the
     bit depth's white level (or --white-level) and defective pixels (--bad-pixels, --detect-bad-pixels) made
-    missing measurements.  Changes ``job`` in place; returns each image's counts (None: no raw option)."""
+    missing measurements.  Changes ``job`` in place, each capture corrected when it is read (so a stream
+    is not held whole: --detect-bad-pixels reads it once more first, to vote); returns each image's
+    counts (None: no raw option)."""
     if not (noise.black_level or noise.bits is not None or a.bad_pixels or a.detect_bad_pixels):
         return None
-    from .sensor import correct_raw, detect_bad_pixels, drop_pixels, read_bad_pixels
+    from .sensor import correct_raw, detect_bad_pixels, read_bad_pixels, vote_bad_pixels
 
     count = len(job.labels)
-    shape = tuple(job.codeds[0].shape[-2:])
+    shape = tuple(job.mask(0).shape[-2:])
     listed = read_bad_pixels(a.bad_pixels, shape) if a.bad_pixels else None
-    fixed = [correct_raw(job.codeds[i], job.mask(i), black_level=noise.black_level, bits=noise.bits,
-                         white_level=noise.white_level, bad_pixels=listed, trust_saturated=a.trust_saturated,
-                         where=job.source) for i in range(count)]
-    codeds, masks, counts = [f.coded for f in fixed], [f.mask for f in fixed], [f.counts() for f in fixed]
+    correct = functools.partial(correct_raw, black_level=noise.black_level, bits=noise.bits,
+                                white_level=noise.white_level, bad_pixels=listed, trust_saturated=a.trust_saturated,
+                                where=job.source)
+    codeds, masks = job.codeds, job.masks  # as read (job's own accessors are replaced below)
+
+    def mask_of(i: int) -> np.ndarray:
+        return masks[i % len(masks)]
+
+    found = None
     if a.detect_bad_pixels:  # outliers against their neighbourhood, voted across every image
-        found = detect_bad_pixels(np.stack(codeds), np.stack(masks))
-        for i in range(count):
-            codeds[i], masks[i], counts[i]["detected_bad_pixels"] = drop_pixels(codeds[i], masks[i], found)
-    job.codeds, job.masks = codeds, masks
-    return counts
+        fixed = (correct(codeds[i], mask_of(i)) for i in range(count))
+        found = (detect_bad_pixels(*next((f.coded, f.mask) for f in fixed)) if count == 1 else
+                 vote_bad_pixels(((f.coded, f.mask) for f in fixed), count))
+    raw = _RawCorrected(codeds, mask_of, correct, found)
+    job.codeds, job.masks = _Lazy(count, raw.coded), _Lazy(count, raw.mask)
+    return _Lazy(count, raw.counts)
 
 
 def _boundary_steps(entries: list, psnr_per_frame: list, n: int) -> dict:

@@ -487,7 +487,14 @@ def detect_bad_pixels(
     else:
         raise InputError(f"detect_bad_pixels: mask {mask.shape} is neither one (N, H, W) nor one per capture "
                          f"({coded.shape[0]}, N, H, W)")
-    votes = np.zeros(coded.shape[1:], np.int32)
-    for c, m in zip(coded, masks):
-        votes += outlier_scores(c, m, **kw) > threshold
-    return votes > min_fraction * coded.shape[0]
+    return vote_bad_pixels(zip(coded, masks), coded.shape[0], threshold=threshold, min_fraction=min_fraction, **kw)
+
+
+def vote_bad_pixels(captures, count: int, *, threshold: float = 6.0, min_fraction: float = 0.5, **kw) -> np.ndarray:
+    """:func:`detect_bad_pixels` of a stack given one capture at a time: ``captures`` yields ``count``
+    pairs ``(coded (H, W), mask (N, H, W))``, none of them kept (a long stream is never held whole)."""
+    votes = None
+    for c, m in captures:
+        hit = outlier_scores(c, m, **kw) > threshold
+        votes = hit.astype(np.int32) if votes is None else votes + hit
+    return votes > min_fraction * count
