@@ -224,3 +224,53 @@ def test_run_given_a_folder_or_non_utf8_yaml(tmp_path, capsys):
     cfg = tmp_path / "p.yaml"
     cfg.write_bytes(b"frames: 8\n# \xff\xfe\n")
     refused(capsys, ["run", cfg], "p.yaml", "UTF-8", root=tmp_path)
+
+
+# ----------------------------------------------------------------------------- report, run and simulate
+def test_report_refuses_the_users_files_in_its_folder_before_any_work(tmp_path, capsys):
+    """`codedvideo report` writes report.html, report.csv, the video and figures into report.dir: a file
+    there that codedvideo did not write is refused (with --overwrite: replaced), and a report.dir that is
+    a file, or a cache that is a file, is a one-line error, all before any experiment runs."""
+    import yaml
+
+    own = tmp_path / "own"
+    (own / "figures").mkdir(parents=True)
+    (own / "report.html").write_text("my notes")
+    (own / "figures" / "fig7.png").write_bytes(b"my figure")
+    (tmp_path / "file.txt").write_text("mine")
+
+    def config(name, **change):
+        raw = dict(report=dict(dir=str(own), size=[32, 32]), cache=str(tmp_path / "cache"))
+        raw["report"].update(change.pop("report", {}))
+        raw.update(change)
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(yaml.safe_dump(raw))
+        return str(path)
+
+    err = refused(capsys, ["report", config("a")], "report.html", "--overwrite", root=tmp_path)
+    assert "not written by codedvideo" in err
+    (own / "report.html").unlink()
+    refused(capsys, ["report", config("b")], "fig7.png", root=tmp_path)
+    refused(capsys, ["report", config("c", report=dict(dir=str(tmp_path / "file.txt")))], "file.txt", "a file",
+            root=tmp_path)
+    refused(capsys, ["report", config("d", report=dict(dir=str(tmp_path / "new")), cache=str(tmp_path / "file.txt"))],
+            "cache", "file.txt", root=tmp_path)
+
+
+def test_run_refuses_a_cache_that_is_a_file_before_any_work(tmp_path, capsys):
+    """A failed run must not leave files that block the next one: the cache is checked before anything."""
+    import yaml
+
+    (tmp_path / "file.txt").write_text("mine")
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(dict(cache=str(tmp_path / "file.txt"), output=dict(dir=str(tmp_path / "out")))))
+    refused(capsys, ["run", str(path)], "cache", "file.txt", root=tmp_path)
+
+
+def test_simulate_refuses_an_extra_output_on_top_of_its_own(tmp_path, capsys):
+    """--cacti-out where simulate writes its coded image (or any two outputs of one run in one place)."""
+    (tmp_path / "d").mkdir()
+    for name in ("coded.npy", "mask.npy"):
+        refused(capsys, ["simulate", "synth:default", "--size", "16", "16", "--frames", "4", "--output",
+                         str(tmp_path / "d"), "--cacti-out", str(tmp_path / "d" / name)], name, "--cacti-out",
+                root=tmp_path)

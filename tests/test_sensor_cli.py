@@ -122,3 +122,23 @@ def test_raw_correction_of_a_stream_holds_one_capture_at_a_time():
     stack = sensor.detect_bad_pixels(np.stack([frames[i] - 16 for i in range(t)]), mask)
     assert stack[3, 4] and counts[2]["detected_bad_pixels"] == int(stack.sum())
     assert j.mask(2)[:, 3, 4].sum() == 0 and j.codeds[2][3, 4] == 0
+
+
+def test_a_warning_is_one_line_that_says_saturated_pixels_are_left_out(tmp_path, capsys):
+    """Saturated pixels dropped as measurements: one 'codedvideo: warning:' line that names them, not a
+    Python warning with a source path and line."""
+    rng = np.random.default_rng(1)
+    mask = (rng.random((N, 24, 24)) < 0.5).astype(np.uint8)
+    mask[0] = 1
+    coded = np.minimum((mask * rng.uniform(0, 120, (N, 24, 24))).sum(0), 255).astype(np.float32)
+    coded[5:8, 5:8] = 255
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    capsys.readouterr()
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                 "--method", "dct", "--white-level", "255", "--output", str(tmp_path / "r.npy"), "--cache",
+                 str(tmp_path / "cache")]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    warned = [line for line in err if "never open" in line]
+    assert len(warned) == 1 and warned[0].startswith("codedvideo: warning: ") and "saturated" in warned[0]
+    assert not any("UserWarning" in line or ".py:" in line for line in err)

@@ -170,6 +170,8 @@ def _parser() -> argparse.ArgumentParser:
 
     rp = sub.add_parser("report", help="the paper's experiments and error against run time, as HTML + CSV")
     rp.add_argument("config", help="pipeline.yaml (its report: section)")
+    rp.add_argument("--overwrite", action="store_true",
+                    help="replace existing files in report.dir that codedvideo did not write (as output.overwrite: true)")
 
     ca = sub.add_parser("cache", help="check or clean a cache folder (--cache, cache: in pipeline.yaml)")
     casub = ca.add_subparsers(dest="cache_command", required=True, metavar="ACTION")
@@ -709,13 +711,18 @@ def _cmd_evaluate(a) -> int:
     return 0
 
 
-def _cmd_run(a) -> int:
-    from .stages import run_pipeline
-
+def _config(a):
+    """The config file of ``run`` and ``report``, ``--overwrite`` as ``output.overwrite: true``."""
     cfg = load_config(a.config)
     if a.overwrite:
         cfg = cfg.model_copy(update=dict(output=cfg.output.model_copy(update=dict(overwrite=True))))
-    report = run_pipeline(cfg, progress=not a.quiet, config_path=a.config)
+    return cfg
+
+
+def _cmd_run(a) -> int:
+    from .stages import run_pipeline
+
+    report = run_pipeline(_config(a), progress=not a.quiet, config_path=a.config)
     lines = [f"metrics: {report['metrics_path']}"]
     if "outputs" in report:
         lines.insert(0, f"video: {report['outputs']['video']}")
@@ -732,7 +739,7 @@ def _cmd_run(a) -> int:
 def _cmd_report(a) -> int:
     from .report import run_report
 
-    result = run_report(load_config(a.config), progress=not a.quiet)
+    result = run_report(_config(a), progress=not a.quiet, config_path=a.config)
     lines = [f"report: {result['html']}", f"numbers: {result['csv']}", f"video: {result['video']}"]
     lines += [f"{'reproduced' if f['holds'] else 'NOT reproduced'}: {f['claim']} ({f['detail']})" for f in result["findings"]]
     lines.append(f"experiments: {result['computed']} computed, {result['reused']} reused; {result['seconds']:.0f} s")
@@ -767,21 +774,31 @@ COMMANDS = dict(train=_cmd_train, simulate=_cmd_simulate, reconstruct=_cmd_recon
                 run=_cmd_run, report=_cmd_report, codes=_cmd_codes, cache=_cmd_cache)
 
 
+def _one_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as the command line says it: one line, like its errors (not a path and a source line)."""
+    try:
+        (file or sys.stderr).write(f"codedvideo: warning: {message}\n")
+    except (OSError, ValueError):  # a closed or vanished stream: nothing more to say
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
     except SystemExit as exc:  # --help, --version, or a bad option (one line already printed)
         return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(level=logging.WARNING, format="codedvideo: %(message)s")
-    warnings.simplefilter("default")
-    try:
-        return COMMANDS[args.command](args)
-    except CodedVideoError as exc:
-        print(f"codedvideo: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("codedvideo: interrupted", file=sys.stderr)
-        return 130
+    with warnings.catch_warnings():  # (the filters and the way warnings are shown: restored on return)
+        warnings.simplefilter("default")
+        warnings.showwarning = _one_line
+        try:
+            return COMMANDS[args.command](args)
+        except CodedVideoError as exc:
+            print(f"codedvideo: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("codedvideo: interrupted", file=sys.stderr)
+            return 130
 
 
 def console_main() -> None:

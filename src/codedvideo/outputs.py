@@ -4,7 +4,8 @@ Every command names its outputs and its inputs before any work is done, and
 :func:`check_outputs` refuses, with one line naming both:
 
 - an output that is, contains or lies inside one of the run's inputs (the
-  coded image, mask, truth, dictionary, CACTI file, training videos, the cache);
+  coded image, mask, truth, dictionary, CACTI file, training videos, the cache),
+  or is another output of the same run;
 - an existing output that is not a regular file or folder (a device node, a
   FIFO, a socket, a symbolic link), or is read-only;
 - an existing output of the other kind (a file where a folder is written, or
@@ -139,6 +140,11 @@ def check_outputs(outputs: list[Output], inputs: dict[str, object], *, overwrite
     """
     from .io import check_writable
 
+    named: dict[Path, Output] = {}
+    for out in outputs:  # two outputs of one run in one place: the second would replace the first
+        first = named.setdefault(_real(out.path), out)
+        if first is not out and "place" not in (first.kind, out.kind):
+            raise OutputError(f"{out.label} {out.path}: is also where the {first.label} goes; choose another output")
     ins: list[tuple[str, Path]] = []
     for label, value in inputs.items():
         for p in value if isinstance(value, (list, tuple)) else [value]:

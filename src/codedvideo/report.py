@@ -317,21 +317,44 @@ def findings(table: dict, best: dict, fig7: dict, fig4: dict, rc) -> list[dict]:
     return out
 
 
-def run_report(cfg: PipelineConfig, *, progress: bool = False) -> dict:
+def report_outputs(cfg: PipelineConfig) -> list:
+    """What ``codedvideo report`` writes into ``report.dir`` (:class:`codedvideo.outputs.Output` each)."""
+    from .outputs import Output
+    from .report_html import FIGURES
+
+    out = Path(cfg.report.dir)
+    return ([Output(out, "place", "report.dir"), Output(out / "figures", "place", "figures folder")]
+            + [Output(out / name, "file", "report") for name in ("report.html", "report.csv", "side_by_side.mp4")]
+            + [Output(out / "figures" / f"{name}.png", "file", "figure") for name in FIGURES])
+
+
+def run_report(cfg: PipelineConfig, *, progress: bool = False, config_path=None) -> dict:
     """Run (or reuse) every experiment and write report.html, report.csv, figures and video.
+
+    Every output is checked first, as :func:`codedvideo.stages.run_pipeline`'s are: a file in
+    ``report.dir`` that codedvideo did not write is replaced only with ``output.overwrite``.
 
     Returns
     -------
     dict with ``html``, ``csv``, ``video`` (paths), ``computed`` and ``reused``
     (experiments), ``seconds`` and ``findings``.
     """
+    from .io import check_writable
+    from .outputs import check_outputs, mark_written
     from .report_html import write_report
 
+    outputs = report_outputs(cfg)
+    check_outputs(outputs, dict(config=config_path, scene=cfg.scene.video, cache=cfg.cache),
+                  overwrite=cfg.output.overwrite)  # before any work
+    check_writable(Path(cfg.cache) / "entry", what="cache")
     t0 = time.perf_counter()
     runner = Runner(cfg, progress=progress)
     results = run_experiments(runner)
     summary = summarise(results, cfg)
     seconds = time.perf_counter() - t0
     paths = write_report(cfg, runner, results, summary, seconds=seconds)
+    for out in outputs:
+        if out.kind == "file":
+            mark_written(out.path)
     return dict(paths, computed=runner.computed, reused=runner.reused, seconds=time.perf_counter() - t0,
                 findings=summary["findings"])

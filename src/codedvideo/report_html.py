@@ -36,6 +36,10 @@ def _plt():
     return plt
 
 
+#: The figures' names (``figures/NAME.png``).
+FIGURES = ("table1", "fig7", "speed", "fig4", "strips")
+
+
 def _save(fig, folder: Path, name: str) -> str:
     """Write ``folder/name.png`` and return it base64-encoded."""
     buf = io.BytesIO()

@@ -244,7 +244,8 @@ def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray) -> int:
     if never_open == h * w:
         raise InputError("mask: no pixel is ever open; there is nothing to reconstruct")
     if never_open:
-        warnings.warn(f"{never_open} pixels are never open; they are filled from their neighbours", stacklevel=3)
+        warnings.warn(f"{never_open} pixels are never open (or were left out as saturated or defective); they are "
+                      "filled from their neighbours", stacklevel=3)
     return never_open
 
 
@@ -626,6 +627,9 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
                                 dictionary=cfg.dictionary.path, training=list(cfg.dictionary.training), cache=cfg.cache),
                   overwrite=cfg.output.overwrite)  # before any work
     from .config import check_scheduler
+    from .io import check_writable
+
+    check_writable(Path(cfg.cache) / "entry", what="cache")
 
     check_scheduler(cfg.reconstruct.scheduler)
     report: dict = dict(config=cfg.model_dump(mode="json"), seconds={})
