@@ -142,3 +142,23 @@ def test_a_warning_is_one_line_that_says_saturated_pixels_are_left_out(tmp_path,
     warned = [line for line in err if "never open" in line]
     assert len(warned) == 1 and warned[0].startswith("codedvideo: warning: ") and "saturated" in warned[0]
     assert not any("UserWarning" in line or ".py:" in line for line in err)
+
+
+def test_bits_on_a_frame_scaled_after_read_out_is_an_error(tmp_path, capsys):
+    """--bits describes raw counts: a [0, 1] float capture with --bits 8 would find no saturated pixel where
+    the 8-bit capture finds many, so it is refused in one line naming the file, not silently different."""
+    rng = np.random.default_rng(3)
+    mask = (rng.random((N, 16, 16)) < 0.5).astype(np.uint8)
+    counts = np.minimum((mask * rng.integers(0, 120, (N, 16, 16))).sum(0), 255).astype(np.float32)
+    np.save(tmp_path / "u8.npy", counts)
+    np.save(tmp_path / "f01.npy", counts / 255)
+    np.save(tmp_path / "mask.npy", mask)
+    common = ["--mask", str(tmp_path / "mask.npy"), "--method", "dct", "--bits", "8", "--cache", str(tmp_path / "c")]
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "u8.npy"), "--output", str(tmp_path / "a.npy"),
+                 *common]) == 0
+    capsys.readouterr()
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "f01.npy"), "--output", str(tmp_path / "b.npy"),
+                 *common]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "f01.npy" in err and "whole number" in err
+    assert not (tmp_path / "b.npy").exists()

@@ -129,3 +129,28 @@ def test_a_tolerance_that_stops_omp_before_its_first_atom_is_warned(tmp_path, ca
     _reconstruct(tmp_path, capsys, coded.astype(np.float32), truth.astype(np.float32), mask, "dct",
                  ["--tol-rms", "1000"])
     assert any("--tol-rms" in r.getMessage() and "first atom" in r.getMessage() for r in caplog.records)
+
+
+def test_a_video_written_from_unit_floats_evaluates_in_their_units(tmp_path, capsys):
+    """A video holds 8-bit frames (the data range mapped to 255): evaluated against a [0, 1] truth, its
+    frames are taken back to the units they were written in (the metrics JSON beside it), so the PSNR is
+    the 8-bit run's, not a negative number."""
+    import json
+
+    from codedvideo.cli import main
+
+    cap = tmp_path / "cap"
+    assert main(["-q", "simulate", "synth:default", "--frames", "4", "--size", "32", "32", "--output", str(cap)]) == 0
+    coded, truth = np.load(cap / "coded.npy"), np.load(cap / "truth.npy")
+    np.save(tmp_path / "coded01.npy", coded / 255)
+    np.save(tmp_path / "truth01.npy", truth / 255)
+    psnr = {}
+    for name, c, t in (("u8", cap / "coded.npy", cap / "truth.npy"), ("f01", tmp_path / "coded01.npy",
+                                                                      tmp_path / "truth01.npy")):
+        assert main(["-q", "reconstruct", "--coded", str(c), "--mask", str(cap / "mask.npy"), "--method", "dct",
+                     "--output", str(tmp_path / f"{name}.mkv"), "--cache", str(tmp_path / "cache")]) == 0
+        capsys.readouterr()
+        assert main(["-q", "evaluate", "--recon", str(tmp_path / f"{name}.mkv"), "--truth", str(t)]) == 0
+        psnr[name] = json.loads(capsys.readouterr().out)["psnr"]
+    assert psnr["u8"] > 20
+    assert abs(psnr["f01"] - psnr["u8"]) < 0.05

@@ -685,7 +685,18 @@ def _method_dictionary(a, frames: int):
     return D, meta
 
 
+def _written_range(path) -> float | None:
+    """The data range a reconstruction was written with, from the metrics JSON beside it (None: none)."""
+    from .volumes import metrics_path
+
+    try:
+        return float(json.loads(metrics_path(Path(path)).read_text())["data_range"]["value"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
 def _cmd_evaluate(a) -> int:
+    from .io import VIDEO_SUFFIXES
     from .metrics import EVALUATE_BLOCK, evaluate, json_safe
     from .volumes import write_json, read_truth_stack, read_volume
     from .units import infer_data_range
@@ -703,8 +714,14 @@ def _cmd_evaluate(a) -> int:
     peak = max((float(np.max(truth[s : s + EVALUATE_BLOCK], initial=0.0))
                 for s in range(0, truth.shape[0], EVALUATE_BLOCK)), default=0.0)
     units = infer_data_range(peak, given=out.data_range, what="the truth")
+    extra = {}
+    if Path(a.recon).suffix.lower() in VIDEO_SUFFIXES:  # 8-bit frames: 255 was the data range they were written with
+        written = _written_range(a.recon) or units.value
+        if written != 255.0:
+            recon = np.asarray(recon, np.float32) * np.float32(written / 255.0)
+            extra["reconstruction_scaled"] = f"video frames x {written:g} / 255 (the data range they were written with)"
     result = json_safe(dict(evaluate(recon, truth, data_range=units.value),
-                            data_range_source=units.source))
+                            data_range_source=units.source, **extra))
     if a.output:
         mark_written(write_json(Path(a.output), result))
     print(json.dumps(result, allow_nan=False))
