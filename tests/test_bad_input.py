@@ -333,3 +333,11 @@ def test_an_npz_archive_named_npy(files, tmp_path, capsys):
     np.savez(tmp_path / "coded.npz", coded=np.load(files / "coded.npy"))
     os.replace(tmp_path / "coded.npz", tmp_path / "coded.npy")
     fails(capsys, reconstruct_args(files, tmp_path, coded=tmp_path / "coded.npy"), "coded.npy", ".npz", root=tmp_path)
+
+
+def test_options_that_do_not_go_together_are_one_line(files, tmp_path, capsys):
+    """A dictionary for a method that has none, and --code file without its file: one line each, naming
+    the options as the command line spells them, before any work."""
+    fails(capsys, [*reconstruct_args(files, tmp_path), "--method", "gaptv"], "--dictionary", "gaptv", root=tmp_path)
+    fails(capsys, ["simulate", "synth:default", "--size", 16, 16, "--frames", 4, "--code", "file", "--output",
+                   tmp_path / "s"], "--code-file", root=tmp_path)

@@ -296,6 +296,9 @@ def _reconstruct_options(a):
         raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
     if a.measurement is not None and not a.cacti:
         raise InputError("reconstruct: --measurement applies to --cacti only")
+    if a.dictionary and a.method not in ("omp", "nonlocal"):
+        raise ConfigError(f"option --dictionary {a.dictionary}: used by --method omp and nonlocal only "
+                          f"(--method {a.method} {'has its own DCT atoms' if a.method == 'dct' else 'has no dictionary'})")
     if a.cacti and (a.coded or a.mask or a.truth):
         raise InputError(f"reconstruct --cacti {a.cacti}: takes coded images, mask and truth from the file "
                          "(drop --coded, --mask and --truth)")

@@ -7,6 +7,7 @@ error names the file and the key.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -365,7 +366,11 @@ def validated(model: type[BaseModel], values: dict, options: dict[str, str] | No
         return model.model_validate(values)
     except ValidationError as exc:
         msg, err = _first_error(exc)
-        field = str(err["loc"][0]) if err["loc"] else ""
+        if not err["loc"]:  # a rule between fields: its message names them as pipeline.yaml keys
+            for field, option in (options or {}).items():
+                msg = re.sub(rf"\b[a-z_]+\.{field}\b", option, msg)
+            raise ConfigError(f"options: {msg.removeprefix('Value error, ')}") from exc
+        field = str(err["loc"][0])
         option = (options or {}).get(field, "--" + field.replace("_", "-"))
         raise ConfigError(f"option {option} {values.get(field)!r}: {msg}") from exc
 
