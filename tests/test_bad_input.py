@@ -341,3 +341,15 @@ def test_options_that_do_not_go_together_are_one_line(files, tmp_path, capsys):
     fails(capsys, [*reconstruct_args(files, tmp_path), "--method", "gaptv"], "--dictionary", "gaptv", root=tmp_path)
     fails(capsys, ["simulate", "synth:default", "--size", 16, 16, "--frames", 4, "--code", "file", "--output",
                    tmp_path / "s"], "--code-file", root=tmp_path)
+
+
+def test_a_synthetic_sequence_past_the_free_memory_is_refused_before_any_work(tmp_path, capsys):
+    """A synthetic scene is made whole in memory: asking for more captures than fit is one line, at once."""
+    fails(capsys, ["simulate", "synth:default", "--size", 2048, 2048, "--frames", 32, "--captures", 100000,
+                   "--output", tmp_path / "s"], "--captures", "GiB", root=tmp_path)
+
+
+def test_a_config_with_no_stage_is_refused(tmp_path, capsys):
+    """stages: [] would run nothing and write an empty metrics file: the key is named, nothing written."""
+    (tmp_path / "p.yaml").write_text(f"stages: []\noutput: {{dir: {tmp_path / 'out'}}}\n")
+    fails(capsys, ["run", tmp_path / "p.yaml"], "stages", root=tmp_path)

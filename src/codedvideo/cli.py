@@ -204,6 +204,22 @@ def _cmd_train(a) -> int:
     return 0
 
 
+def _check_in_memory(video: str, frames: int, size) -> None:
+    """A synthetic scene (or footage clip) is made whole in memory, with the capture: refuse one that would not
+    fit, before any work (a video file is simulated capture by capture instead)."""
+    if size is None:
+        return
+    need = 3 * 4 * frames * size[0] * size[1]  # the float32 frames, the truth and the coded work (measured ~2.9x)
+    try:
+        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # not on this platform
+        return
+    if need > 0.75 * free:  # (a quarter kept for the rest of the process and the machine)
+        raise ConfigError(f"option --captures: {video} is made whole in memory, {frames} frames of {size[0]}x{size[1]} "
+                          f"need about {need / 2**30:.1f} GiB, {free / 2**30:.1f} GiB are free; give fewer captures "
+                          "(a video file is simulated capture by capture)")
+
+
 def _cmd_simulate(a) -> int:
     from .volumes import CAPTURE_FILES, write_capture
     from .scenes import load_video
@@ -264,6 +280,7 @@ def _cmd_simulate(a) -> int:
                              a.bayer, where=f"video {a.video}", **options)
         paths = write_capture(cap, a.output)
     else:
+        _check_in_memory(a.video, a.frames * captures, size)
         video = load_video(a.video, frames=a.frames * captures, size=size, seed=a.seed, start=a.start)
         cap = simulate_capture(video, captures=captures, new_code_per_capture=a.new_code_per_capture, **options)
         paths = write_capture(cap, a.output)

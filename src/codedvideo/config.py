@@ -260,6 +260,8 @@ class PipelineConfig(_Strict):
     @field_validator("stages")
     @classmethod
     def _known_order(cls, v: list[str]) -> list[str]:
+        if not v:  # a run that would do nothing and write an empty metrics file
+            raise ValueError(f"no stage to run; give one or more of {', '.join(STAGES)}")
         return [s for s in STAGES if s in v]
 
 
