@@ -353,3 +353,16 @@ def test_a_config_with_no_stage_is_refused(tmp_path, capsys):
     """stages: [] would run nothing and write an empty metrics file: the key is named, nothing written."""
     (tmp_path / "p.yaml").write_text(f"stages: []\noutput: {{dir: {tmp_path / 'out'}}}\n")
     fails(capsys, ["run", tmp_path / "p.yaml"], "stages", root=tmp_path)
+
+
+def test_outputs_named_for_another_format_and_captures_with_no_positive_value(files, tmp_path, capsys):
+    """A dictionary named .npy (it is a Zarr store), scores named .npy (they are JSON), and a coded image
+    with no value above 0 (a sum of frames never is): one line each, nothing written."""
+    fails(capsys, ["train", "--kind", "dct", "--frames", N, "--output", tmp_path / "d.npy"], "d.npy", ".zarr",
+          root=tmp_path)
+    np.save(tmp_path / "t.npy", np.zeros((N, H, W), np.float32))
+    fails(capsys, ["evaluate", "--recon", tmp_path / "t.npy", "--truth", tmp_path / "t.npy", "--output",
+                   tmp_path / "s.npy"], "s.npy", "JSON", root=tmp_path)
+    np.save(tmp_path / "neg.npy", -np.abs(np.load(files / "coded.npy")) - 1)
+    fails(capsys, reconstruct_args(files, tmp_path, coded=tmp_path / "neg.npy"), "neg.npy", "above 0",
+          root=tmp_path)

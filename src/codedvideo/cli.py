@@ -195,7 +195,11 @@ def _cmd_train(a) -> int:
         kind=a.kind, atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
         max_speed=a.max_speed, training=list(a.videos) or ["synth:train"]), {"training": "VIDEO"})
     cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary))
-    kind = "file" if Path(a.output).suffix.lower() == ".zip" else "folder"  # a zipped store is one file
+    suffix = Path(a.output).suffix.lower()
+    if suffix not in ("", ".zarr", ".zip"):
+        raise ConfigError(f"dictionary output {a.output}: a dictionary is a Zarr store (a folder, .zarr) or a zipped "
+                          f"one (.zip), not {suffix}")
+    kind = "file" if suffix == ".zip" else "folder"  # a zipped store is one file
     check_outputs([Output(Path(a.output), kind, "dictionary")],  # before training
                   dict(video=list(a.videos), cache=a.cache), overwrite=a.overwrite)
     path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet, retrain=a.retrain)
@@ -482,8 +486,11 @@ def _cmd_reconstruct(a) -> int:
     if a.dictionary:
         job.inputs["dictionary"] = str(a.dictionary)
     t_read = time.perf_counter() - t0
-    units = infer_data_range(max(static_peak(job.codeds[i], job.mask(i)) for i in range(count)), dtype=job.dtype,
-                             given=out.data_range)
+    peak = max(static_peak(job.codeds[i], job.mask(i)) for i in range(count))
+    if peak <= 0:  # a sum of frames is never negative: the wrong file, or a black level taken off twice
+        raise InputError(f"{job.source}: no coded value above 0 where the code is open; nothing to reconstruct "
+                         "(check the file and the black level)")
+    units = infer_data_range(peak, dtype=job.dtype, given=out.data_range)
     settings = omp_settings(rc, noise.sigma, scale=units.scale)
     if a.method in ("omp", "nonlocal", "dct"):
         message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
@@ -724,6 +731,8 @@ def _cmd_evaluate(a) -> int:
     out = validated(OutputConfig, dict(data_range=a.data_range))
     if a.output:
         check_outputs([Output(Path(a.output), "file")], dict(recon=a.recon, truth=a.truth), overwrite=a.overwrite)
+        if Path(a.output).suffix.lower() != ".json":
+            raise ConfigError(f"evaluate --output {a.output}: the scores are written as JSON; name it .json")
     # long (T*N, H, W) .npy videos are compared a block of frames at a time, never held whole
     recon = read_truth_stack(a.recon, EVALUATE_BLOCK, what="reconstruction")
     truth = read_truth_stack(a.truth, EVALUATE_BLOCK)
