@@ -366,3 +366,14 @@ def test_outputs_named_for_another_format_and_captures_with_no_positive_value(fi
     np.save(tmp_path / "neg.npy", -np.abs(np.load(files / "coded.npy")) - 1)
     fails(capsys, reconstruct_args(files, tmp_path, coded=tmp_path / "neg.npy"), "neg.npy", "above 0",
           root=tmp_path)
+
+
+def test_dotted_dictionary_folders_and_dark_captures_with_a_data_range_still_work(tmp_path, capsys):
+    """The checks above refuse file formats, not folder names with dots; and a capture dark everywhere is
+    reconstructed when its data range is given."""
+    assert main(["-q", "train", "--kind", "dct", "--frames", "4", "--output", str(tmp_path / "dict-v1.5")]) == 0
+    np.save(tmp_path / "dark.npy", np.zeros((16, 16), np.float32))
+    np.save(tmp_path / "m.npy", np.ones((4, 16, 16), np.uint8))
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "dark.npy"), "--mask", str(tmp_path / "m.npy"),
+                 "--method", "dct", "--data-range", "255", "--output", str(tmp_path / "r.npy"), "--cache",
+                 str(tmp_path / "cache")]) == 0

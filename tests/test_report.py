@@ -99,3 +99,25 @@ def test_report_config_rejects_training_scenes_and_unknown_keys(tmp_path):
     path.write_text(yaml.safe_dump(dict(report=dict(frames=4, table_bumps=[1, 5]))))
     with pytest.raises(ConfigError, match="bump"):
         load_config(path)
+
+
+def test_a_report_that_fails_midway_marks_what_it_wrote(mini, tmp_path, monkeypatch):
+    """The figures written before a failure are codedvideo's: the rerun replaces them rather than
+    refusing them as the user's."""
+    from codedvideo import report_html
+    from codedvideo.outputs import written_by_codedvideo
+
+    root, _, _ = mini
+    cfg = load_config(root / "mini.yaml")
+    cfg = cfg.model_copy(update=dict(report=cfg.report.model_copy(update=dict(dir=str(tmp_path / "r")))))
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("encoder gone")
+
+    monkeypatch.setattr(report_html, "side_by_side", broken)
+    with pytest.raises(RuntimeError, match="encoder gone"):
+        run_report(cfg)
+    figures = sorted((tmp_path / "r" / "figures").glob("*.png"))
+    assert figures and all(written_by_codedvideo(p) for p in figures)
+    monkeypatch.undo()
+    assert run_report(cfg)["html"].exists()

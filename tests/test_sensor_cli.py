@@ -134,11 +134,15 @@ def test_a_warning_is_one_line_that_says_saturated_pixels_are_left_out(tmp_path,
     coded[5:8, 5:8] = 255
     np.save(tmp_path / "coded.npy", coded)
     np.save(tmp_path / "mask.npy", mask)
-    capsys.readouterr()
-    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
-                 "--method", "dct", "--white-level", "255", "--output", str(tmp_path / "r.npy"), "--cache",
-                 str(tmp_path / "cache")]) == 0
-    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded",
+                           str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"), "--method", "dct",
+                           "--white-level", "255", "--output", str(tmp_path / "r.npy"), "--cache",
+                           str(tmp_path / "cache")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    err = [line for line in proc.stderr.splitlines() if line.strip()]
     warned = [line for line in err if "never open" in line]
     assert len(warned) == 1 and warned[0].startswith("codedvideo: warning: ") and "saturated" in warned[0]
     assert not any("UserWarning" in line or ".py:" in line for line in err)
@@ -162,3 +166,18 @@ def test_bits_on_a_frame_scaled_after_read_out_is_an_error(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "f01.npy" in err and "whole number" in err
     assert not (tmp_path / "b.npy").exists()
+
+
+def test_bits_with_a_white_level_takes_frames_in_the_white_levels_units(tmp_path, capsys):
+    """simulate --bits 12 --white-level 400 quantises to steps of 400 / 4095 (not whole numbers): the
+    same options to reconstruct take them."""
+    rng = np.random.default_rng(5)
+    mask = (rng.random((N, 16, 16)) < 0.5).astype(np.uint8)
+    mask[0] = 1
+    step = 400 / 4095
+    coded = np.round(np.minimum((mask * rng.uniform(0, 90, (N, 16, 16))).sum(0), 400) / step) * step
+    np.save(tmp_path / "c.npy", coded.astype(np.float32))
+    np.save(tmp_path / "m.npy", mask)
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "c.npy"), "--mask", str(tmp_path / "m.npy"),
+                 "--method", "dct", "--bits", "12", "--white-level", "400", "--output", str(tmp_path / "r.npy"),
+                 "--cache", str(tmp_path / "cache")]) == 0

@@ -196,7 +196,7 @@ def _cmd_train(a) -> int:
         max_speed=a.max_speed, training=list(a.videos) or ["synth:train"]), {"training": "VIDEO"})
     cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary))
     suffix = Path(a.output).suffix.lower()
-    if suffix not in ("", ".zarr", ".zip"):
+    if suffix in (".npy", ".npz", ".mat", ".json", ".h5", ".hdf5", ".tif", ".tiff", ".txt", ".csv"):
         raise ConfigError(f"dictionary output {a.output}: a dictionary is a Zarr store (a folder, .zarr) or a zipped "
                           f"one (.zip), not {suffix}")
     kind = "file" if suffix == ".zip" else "folder"  # a zipped store is one file
@@ -208,15 +208,29 @@ def _cmd_train(a) -> int:
     return 0
 
 
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux: MemAvailable, page cache included), or None."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # not on this platform
+        return None
+
+
 def _check_in_memory(video: str, frames: int, size) -> None:
     """A synthetic scene (or footage clip) is made whole in memory, with the capture: refuse one that would not
     fit, before any work (a video file is simulated capture by capture instead)."""
     if size is None:
         return
     need = 3 * 4 * frames * size[0] * size[1]  # the float32 frames, the truth and the coded work (measured ~2.9x)
-    try:
-        free = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # not on this platform
+    free = _available_memory()
+    if free is None:
         return
     if need > 0.75 * free:  # (a quarter kept for the rest of the process and the machine)
         raise ConfigError(f"option --captures: {video} is made whole in memory, {frames} frames of {size[0]}x{size[1]} "
@@ -487,7 +501,7 @@ def _cmd_reconstruct(a) -> int:
         job.inputs["dictionary"] = str(a.dictionary)
     t_read = time.perf_counter() - t0
     peak = max(static_peak(job.codeds[i], job.mask(i)) for i in range(count))
-    if peak <= 0:  # a sum of frames is never negative: the wrong file, or a black level taken off twice
+    if peak <= 0 and out.data_range is None:  # a sum of frames is never negative: the wrong file, or a black level taken off twice
         raise InputError(f"{job.source}: no coded value above 0 where the code is open; nothing to reconstruct "
                          "(check the file and the black level)")
     units = infer_data_range(peak, dtype=job.dtype, given=out.data_range)
@@ -662,7 +676,7 @@ def _correct_raw(a, job: _Captures, noise) -> _Lazy | None:
     counts (None: no raw option)."""
     if not (noise.black_level or noise.bits is not None or a.bad_pixels or a.detect_bad_pixels):
         return None
-    from .sensor import correct_raw, detect_bad_pixels, read_bad_pixels, vote_bad_pixels
+    from .sensor import correct_raw, read_bad_pixels, vote_bad_pixels
 
     count = len(job.labels)
     shape = tuple(job.mask(0).shape[-2:])
@@ -678,8 +692,7 @@ def _correct_raw(a, job: _Captures, noise) -> _Lazy | None:
     found = None
     if a.detect_bad_pixels:  # outliers against their neighbourhood, voted across every image
         fixed = (correct(codeds[i], mask_of(i)) for i in range(count))
-        found = (detect_bad_pixels(*next((f.coded, f.mask) for f in fixed)) if count == 1 else
-                 vote_bad_pixels(((f.coded, f.mask) for f in fixed), count))
+        found = vote_bad_pixels(((f.coded, f.mask) for f in fixed), count)  # (one capture: a vote of one, as ever)
     raw = _RawCorrected(codeds, mask_of, correct, found)
     job.codeds, job.masks = _Lazy(count, raw.coded), _Lazy(count, raw.mask)
     return _Lazy(count, raw.counts)
@@ -820,12 +833,9 @@ COMMANDS = dict(train=_cmd_train, simulate=_cmd_simulate, reconstruct=_cmd_recon
                 run=_cmd_run, report=_cmd_report, codes=_cmd_codes, cache=_cmd_cache)
 
 
-def _one_line(message, category, filename, lineno, file=None, line=None) -> None:
+def _one_line(message, category, filename, lineno, line=None) -> str:
     """A warning as the command line says it: one line, like its errors (not a path and a source line)."""
-    try:
-        (file or sys.stderr).write(f"codedvideo: warning: {message}\n")
-    except (OSError, ValueError):  # a closed or vanished stream: nothing more to say
-        pass
+    return f"codedvideo: warning: {message}\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -834,17 +844,21 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, or a bad option (one line already printed)
         return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(level=logging.WARNING, format="codedvideo: %(message)s")
-    with warnings.catch_warnings():  # (the filters and the way warnings are shown: restored on return)
-        warnings.simplefilter("default")
-        warnings.showwarning = _one_line
-        try:
+    # warnings as one line (their format only: a caller that records them, as pytest.warns does, still
+    # gets them); the filters and the format are restored on return
+    previous, warnings.formatwarning = warnings.formatwarning, _one_line
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
             return COMMANDS[args.command](args)
-        except CodedVideoError as exc:
-            print(f"codedvideo: error: {exc}", file=sys.stderr)
-            return 2
-        except KeyboardInterrupt:
-            print("codedvideo: interrupted", file=sys.stderr)
-            return 130
+    except CodedVideoError as exc:
+        print(f"codedvideo: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("codedvideo: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        warnings.formatwarning = previous
 
 
 def console_main() -> None:

@@ -352,9 +352,12 @@ def run_report(cfg: PipelineConfig, *, progress: bool = False, config_path=None)
     results = run_experiments(runner)
     summary = summarise(results, cfg)
     seconds = time.perf_counter() - t0
-    paths = write_report(cfg, runner, results, summary, seconds=seconds)
-    for out in outputs:
-        if out.kind == "file":
-            mark_written(out.path)
+    t_write = time.time_ns()
+    try:
+        paths = write_report(cfg, runner, results, summary, seconds=seconds)
+    finally:  # what was written is codedvideo's, even when a later file failed (a rerun replaces it)
+        for out in outputs:
+            if out.kind == "file" and out.path.is_file() and out.path.stat().st_mtime_ns >= t_write:
+                mark_written(out.path)
     return dict(paths, computed=runner.computed, reused=runner.reused, seconds=time.perf_counter() - t0,
                 findings=summary["findings"])

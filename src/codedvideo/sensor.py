@@ -169,8 +169,8 @@ def correct_raw(
         if peak > top:
             raise InputError(f"{where}: value {peak:g} is above {top:g}, the largest {bits}-bit value "
                              "(wrong --bits, or the frame was scaled after read-out)")
-        fraction = raw != np.round(raw)
-        if fraction.any():  # e.g. [0, 1] floats: their white level is not 2**bits - 1
+        fraction = raw != np.round(raw) if white_level is None else np.zeros(raw.shape, bool)
+        if fraction.any():  # e.g. [0, 1] floats: their white level is not 2**bits - 1 (a given one: its own scale)
             raise InputError(f"{where}: value {float(raw[fraction][0]):g} is not a whole number, as {bits}-bit raw "
                              "counts are (the frame was scaled after read-out?); give --white-level in its units "
                              "instead of --bits")

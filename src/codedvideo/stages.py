@@ -250,8 +250,9 @@ def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray) -> int:
 
 
 def _allow_open_files(needed: int, cache) -> None:
-    """Raise this process's soft limit on open files to ``needed`` (a job locks one working store per
-    capture until it ends); an OutputError, before any work, where the hard limit is lower."""
+    """Make room for ``needed`` open files (a job locks each working store it plans until it ends, 64
+    kept for the rest): the soft limit raised toward the hard one (doubled, so that this is rare), or
+    an OutputError, while planning and before any tile, where that is not allowed."""
     try:
         import resource
     except ImportError:  # not on this platform
@@ -259,11 +260,15 @@ def _allow_open_files(needed: int, cache) -> None:
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if soft == resource.RLIM_INFINITY or soft >= needed:
         return
-    if hard != resource.RLIM_INFINITY and hard < needed:
-        raise OutputError(f"cache {cache}: a job of {needed - 64} captures holds a lock per capture, about {needed} "
-                          f"open files, and this process may open {hard} (ulimit -n); raise the limit or "
-                          "reconstruct fewer captures a job")
-    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+    target = max(needed, 2 * soft) if hard == resource.RLIM_INFINITY else min(hard, max(needed, 2 * soft))
+    try:
+        if target < needed:
+            raise ValueError(f"the hard limit is {hard}")
+        resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+    except (ValueError, OSError) as exc:
+        raise OutputError(f"cache {cache}: this job locks a working store per capture, {needed - 64} so far, and "
+                          f"cannot have more open files ({exc}; ulimit -n); raise the limit or reconstruct fewer "
+                          "captures a job") from exc
 
 
 def sparse_volumes(
@@ -317,7 +322,6 @@ def sparse_volumes(
     count`` itself (``method: "static"``), computed without tiles.
     """
     dkey = dictionary_key or content_key(D)
-    _allow_open_files(count + 64, cache)  # one lock held per capture's store until the job ends
     plan: list = []  # per capture: None (the caller's), "static", or the index of its store
     stores: list[tuple[WorkStore, StorePlan]] = []  # per sparse-coded capture (equal captures: the same pair)
     opened: dict[str, tuple[WorkStore, StorePlan]] = {}
@@ -337,6 +341,7 @@ def sparse_volumes(
                     key = content_key(RECON_VERSION, coded, mask, dkey, settings.__dict__, tile,
                                       *(() if still is None else (np.asarray(still, np.uint8),)))
                     if key not in opened:
+                        _allow_open_files(len(opened) + 65, cache)  # a lock held per store until the job ends
                         entry = Path(cache) / f"recon-{key}.zarr"
                         # One run at a time per entry (processes, threads, clients of one dask cluster): a
                         # second run waits here, then reuses the tiles the first one finished.
