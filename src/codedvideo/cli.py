@@ -31,7 +31,7 @@ from .config import (
     CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig, ReconstructConfig, SceneConfig,
     check_scheduler, load_config, omp_settings, validated,
 )
-from .errors import CodedVideoError, ConfigError, InputError
+from .errors import CodedVideoError, ConfigError, InputError, OutputError
 from .outputs import Output, check_outputs, mark_written
 
 log = logging.getLogger("codedvideo")
@@ -354,8 +354,24 @@ def _reconstruct_options(a):
                        bad_pixels=a.bad_pixels, shipped_dictionaries=shipped.DATA),
                   overwrite=a.overwrite)
     check_writable(Path(a.cache) / "entry", what="cache")
+    _check_metrics_owner(output)
     check_scheduler(rc.scheduler)
     return rc, noise, out
+
+
+def _check_metrics_owner(output: Path) -> None:
+    """Two outputs of one stem (``v.mkv``, ``v.gif``) share ``v.metrics.json``: refuse to replace the
+    metrics of another output that is still there (the rerun of the same output replaces its own)."""
+    from .volumes import metrics_path
+
+    path = metrics_path(output)
+    try:
+        owner = Path(json.loads(path.read_text())["output"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return  # none, or not a metrics file of codedvideo's (check_outputs has judged it)
+    if owner.absolute() != output.absolute() and os.path.lexists(owner):
+        raise OutputError(f"metrics {path}: holds the metrics of {owner}, another output with the same stem; "
+                          "choose another output name")
 
 
 @dataclasses.dataclass
@@ -501,7 +517,8 @@ def _cmd_reconstruct(a) -> int:
         job.inputs["dictionary"] = str(a.dictionary)
     t_read = time.perf_counter() - t0
     peak = max(static_peak(job.codeds[i], job.mask(i)) for i in range(count))
-    if peak <= 0 and out.data_range is None:  # a sum of frames is never negative: the wrong file, or a black level taken off twice
+    # a sum of frames is never negative: the wrong file, or a black level taken off twice
+    if peak <= 0 and out.data_range is None:
         raise InputError(f"{job.source}: no coded value above 0 where the code is open; nothing to reconstruct "
                          "(check the file and the black level)")
     units = infer_data_range(peak, dtype=job.dtype, given=out.data_range)
