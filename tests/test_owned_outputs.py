@@ -274,13 +274,3 @@ def test_simulate_refuses_an_extra_output_on_top_of_its_own(tmp_path, capsys):
         refused(capsys, ["simulate", "synth:default", "--size", "16", "16", "--frames", "4", "--output",
                          str(tmp_path / "d"), "--cacti-out", str(tmp_path / "d" / name)], name, "--cacti-out",
                 root=tmp_path)
-
-
-def test_two_outputs_of_one_stem_do_not_share_their_metrics(files, tmp_path, capsys):
-    """v.mkv then v.gif would both write v.metrics.json: the second is refused while v.mkv is there; a rerun
-    of v.mkv replaces its own metrics."""
-    args = ["reconstruct", "--coded", files / "coded.npy", "--mask", files / "mask.npy", "--method", "thinout",
-            "--cache", tmp_path / "cache", "--output"]
-    assert main(["-q", *map(str, args), str(tmp_path / "v.mkv")]) == 0
-    assert main(["-q", *map(str, args), str(tmp_path / "v.mkv")]) == 0
-    refused(capsys, [*args, tmp_path / "v.gif"], "v.metrics.json", "v.mkv", root=tmp_path)

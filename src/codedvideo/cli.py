@@ -31,7 +31,7 @@ from .config import (
     CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig, ReconstructConfig, SceneConfig,
     check_scheduler, load_config, omp_settings, validated,
 )
-from .errors import CodedVideoError, ConfigError, InputError, OutputError
+from .errors import CodedVideoError, ConfigError, InputError
 from .outputs import Output, check_outputs, mark_written
 
 log = logging.getLogger("codedvideo")
@@ -354,24 +354,8 @@ def _reconstruct_options(a):
                        bad_pixels=a.bad_pixels, shipped_dictionaries=shipped.DATA),
                   overwrite=a.overwrite)
     check_writable(Path(a.cache) / "entry", what="cache")
-    _check_metrics_owner(output)
     check_scheduler(rc.scheduler)
     return rc, noise, out
-
-
-def _check_metrics_owner(output: Path) -> None:
-    """Two outputs of one stem (``v.mkv``, ``v.gif``) share ``v.metrics.json``: refuse to replace the
-    metrics of another output that is still there (the rerun of the same output replaces its own)."""
-    from .volumes import metrics_path
-
-    path = metrics_path(output)
-    try:
-        owner = Path(json.loads(path.read_text())["output"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return  # none, or not a metrics file of codedvideo's (check_outputs has judged it)
-    if owner.absolute() != output.absolute() and os.path.lexists(owner):
-        raise OutputError(f"metrics {path}: holds the metrics of {owner}, another output with the same stem; "
-                          "choose another output name")
 
 
 @dataclasses.dataclass
