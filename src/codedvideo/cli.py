@@ -324,7 +324,7 @@ def _reconstruct_options(a):
     model (sigma, white level) and the output model (fps, data range).
     """
     from . import shipped
-    from .io import check_writable
+    from .io import check_cache
     from .volumes import metrics_path, output_kind
 
     if not a.cacti and not (a.coded and a.mask):
@@ -353,7 +353,7 @@ def _reconstruct_options(a):
                   dict(coded=a.coded, mask=a.mask, truth=a.truth, dictionary=a.dictionary, cacti=a.cacti, cache=a.cache,
                        bad_pixels=a.bad_pixels, shipped_dictionaries=shipped.DATA),
                   overwrite=a.overwrite)
-    check_writable(Path(a.cache) / "entry", what="cache")
+    check_cache(a.cache)
     check_scheduler(rc.scheduler)
     return rc, noise, out
 

@@ -153,6 +153,11 @@ def check_writable(path: str | os.PathLike, *, what: str = "") -> Path:
     return path
 
 
+def check_cache(cache: str | os.PathLike) -> None:
+    """Raise :class:`OutputError` unless the cache folder could hold a new entry (before any work)."""
+    check_writable(Path(cache) / "entry", what="cache")
+
+
 # ----------------------------------------------------------------------------- reading
 def _finite(arr: np.ndarray, path, what: str = "image") -> np.ndarray:
     if not np.isfinite(arr).all():

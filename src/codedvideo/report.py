@@ -339,14 +339,14 @@ def run_report(cfg: PipelineConfig, *, progress: bool = False, config_path=None)
     dict with ``html``, ``csv``, ``video`` (paths), ``computed`` and ``reused``
     (experiments), ``seconds`` and ``findings``.
     """
-    from .io import check_writable
+    from .io import check_cache
     from .outputs import check_outputs, mark_written
     from .report_html import write_report
 
     outputs = report_outputs(cfg)
     check_outputs(outputs, dict(config=config_path, scene=cfg.scene.video, cache=cfg.cache),
                   overwrite=cfg.output.overwrite)  # before any work
-    check_writable(Path(cfg.cache) / "entry", what="cache")
+    check_cache(cfg.cache)
     t0 = time.perf_counter()
     runner = Runner(cfg, progress=progress)
     results = run_experiments(runner)

@@ -276,6 +276,8 @@ def join_captures(
     pixels at N = 8); about 0.025 s for a whole 256 x 256 frame.  Where the
     scene is still the join leaves the pixels exactly as they were.
     """
+    from scipy import ndimage  # lazy (see _flow)
+
     from .units import static_peak
 
     b = np.array(before, np.float32)
@@ -316,8 +318,6 @@ def join_captures(
     # motion estimate; the step across the boundary counts too), a line is a poorer guess of the truth
     # than the reconstruction: draw toward it less.  Pooled over one patch.
     moving = np.abs(np.diff(aligned, axis=0)).mean(0)
-    from scipy import ndimage  # lazy (see _flow)
-
     moving = ndimage.uniform_filter(moving, JOIN_MISFIT_WINDOW, mode="nearest") / np.float32(JOIN_MISFIT)
     gain = (JOIN_GAIN_MOVING + (JOIN_GAIN_STILL - JOIN_GAIN_MOVING) / (1 + moving)).astype(np.float32)
     weight = np.zeros(2 * k, np.float32)  # the i-th frame from the boundary, before and after it

@@ -378,6 +378,14 @@ def sparse_volumes(
             t_wait = time.perf_counter()
 
 
+def _fill_nearest(volume: np.ndarray, holes: np.ndarray) -> None:
+    """Every frame's pixels at ``holes`` (H, W) take the value of the nearest pixel that is not one, in place."""
+    from scipy import ndimage  # lazy: holes are rare
+
+    _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
+    volume[:, holes] = volume[:, iy[holes], ix[holes]]
+
+
 def _finish_sparse(volume: np.ndarray, summary: dict, coded: np.ndarray, mask: np.ndarray, settings: OmpSettings,
                    store_path) -> tuple[np.ndarray, dict]:
     """A capture's solved tiles -> its volume: pixels no patch covers filled from the nearest; the statistics."""
@@ -390,10 +398,7 @@ def _finish_sparse(volume: np.ndarray, summary: dict, coded: np.ndarray, mask: n
         if not np.isfinite(frame[~holes]).all():
             raise RuntimeError(f"working store {store_path}: volume has unwritten or non-finite pixels")
     if holes.any():  # no measured patch covers them: the nearest reconstructed pixel
-        from scipy import ndimage  # lazy: holes are rare
-
-        _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
-        volume[:, holes] = volume[:, iy[holes], ix[holes]]
+        _fill_nearest(volume, holes)
     residual = physics.forward(volume, mask) - coded
     never_open = int((~mask.astype(bool).any(0)).sum())
     info = dict(
@@ -589,10 +594,7 @@ def _static_volume(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, dic
     volume = physics.static_estimate(coded, mask)
     holes = ~(np.asarray(mask) > 0).any(0)
     if holes.any() and not holes.all():  # no measurement: the nearest measured pixel's still value
-        from scipy import ndimage  # lazy: holes are rare
-
-        _, (iy, ix) = ndimage.distance_transform_edt(holes, return_indices=True)
-        volume[:, holes] = volume[:, iy[holes], ix[holes]]
+        _fill_nearest(volume, holes)
     residual = physics.forward(volume, mask) - np.asarray(coded, np.float32)
     seconds = time.perf_counter() - t0
     info = dict(
@@ -632,10 +634,8 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
                                 dictionary=cfg.dictionary.path, training=list(cfg.dictionary.training), cache=cfg.cache),
                   overwrite=cfg.output.overwrite)  # before any work
     from .config import check_scheduler
-    from .io import check_writable
 
-    check_writable(Path(cfg.cache) / "entry", what="cache")
-
+    cio.check_cache(cfg.cache)
     check_scheduler(cfg.reconstruct.scheduler)
     report: dict = dict(config=cfg.model_dump(mode="json"), seconds={})
     dict_path = None
