@@ -335,6 +335,16 @@ def test_an_npz_archive_named_npy(files, tmp_path, capsys):
     fails(capsys, reconstruct_args(files, tmp_path, coded=tmp_path / "coded.npy"), "coded.npy", ".npz", root=tmp_path)
 
 
+@pytest.mark.parametrize("which,shape", [("coded", (0, H, W)), ("coded", (H, 0)), ("coded", (3, 0, W)),
+                                         ("mask", (N, H, 0)), ("truth", (0, H, W))])
+def test_an_empty_array_is_one_line_naming_it(files, tmp_path, capsys, which, shape):
+    empty = tmp_path / f"empty-{which}.npy"
+    np.save(empty, np.zeros(shape, np.uint8 if which == "mask" else np.float32))
+    fails(capsys, reconstruct_args(files, tmp_path, **{which: empty}), empty.name, "holds no values", root=tmp_path)
+    if which == "truth":
+        fails(capsys, ["evaluate", "--recon", empty, "--truth", empty], empty.name, "holds no values", root=tmp_path)
+
+
 def test_options_that_do_not_go_together_are_one_line(files, tmp_path, capsys):
     """A dictionary for a method that has none, and --code file without its file: one line each, naming
     the options as the command line spells them, before any work."""
@@ -377,3 +387,12 @@ def test_dotted_dictionary_folders_and_dark_captures_with_a_data_range_still_wor
     assert main(["-q", "reconstruct", "--coded", str(tmp_path / "dark.npy"), "--mask", str(tmp_path / "m.npy"),
                  "--method", "dct", "--data-range", "255", "--output", str(tmp_path / "r.npy"), "--cache",
                  str(tmp_path / "cache")]) == 0
+
+
+def test_a_colour_npy_is_read_as_its_luma_like_a_colour_image(files, tmp_path, capsys):
+    """(H, W, 3) in a .npy is a colour image (a stack of images 3 pixels wide is narrower than any patch)."""
+    coded = np.load(files / "coded.npy")
+    np.save(tmp_path / "colour-coded.npy", np.stack([coded, coded, coded], axis=-1))
+    for name, c in (("grey", files / "coded.npy"), ("colour", tmp_path / "colour-coded.npy")):
+        assert main(["-q", *map(str, reconstruct_args(files, tmp_path, coded=c, output=tmp_path / f"{name}.npy"))]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "grey.npy"), np.load(tmp_path / "colour.npy"))

@@ -43,6 +43,15 @@ def test_video_round_trip(tmp_path, smooth, suffix, tol):
     assert np.abs(back - np.round(smooth)).mean() <= tol
 
 
+@pytest.mark.parametrize("frames,fps", [(24, 30), (27, 30), (40, 60)])
+def test_a_long_gif_at_a_rate_hundredths_of_a_second_cannot_hold_reads_back_whole(tmp_path, frames, fps):
+    """GIF delays are whole hundredths of a second (30 fps is stored as 3/100 s): the duration x rate of
+    the header is not the frame count, and a complete file must not read as truncated."""
+    video = np.random.default_rng(frames).uniform(0, 255, (frames, 16, 24)).astype(np.float32)
+    back = cio.read_video(cio.write_video(tmp_path / "v.gif", video, fps=fps))
+    assert back.shape == video.shape
+
+
 def test_bad_files_name_the_file(tmp_path):
     with pytest.raises(InputError, match="nothere.png"):
         cio.read_image(tmp_path / "nothere.png")

@@ -53,6 +53,17 @@ def test_output_that_is_contains_or_lies_inside_an_input_is_refused(files, tmp_p
     assert "input" in err or "folder" in err
 
 
+@pytest.mark.parametrize("which", ["coded", "mask"])
+def test_an_input_given_through_a_symbolic_link_is_still_that_input(files, tmp_path, capsys, which):
+    """The link is what the run reads, but the file it points to is what an output there would replace."""
+    link = tmp_path / f"link-{which}.npy"
+    link.symlink_to(files / f"{which}.npy")
+    args = reconstruct_args(files, tmp_path, output=files / f"{which}.npy", **{which: link})
+    for overwrite in ([], ["--overwrite"]):
+        err = refused(capsys, [*args, *overwrite], f"{which}.npy", root=tmp_path)
+        assert "is the input" in err
+
+
 def test_cacti_file_and_training_video_are_inputs_too(files, tmp_path, capsys):
     from codedvideo.cacti import write_cacti
 

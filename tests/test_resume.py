@@ -188,6 +188,35 @@ def test_sigkill_midway_then_rerun_resumes_and_equals_a_clean_run(big_capture, t
                                                              "r.metrics.json", "r.npy"]
 
 
+@pytest.mark.slow
+def test_sigterm_midway_leaves_no_partial_output_and_says_so(tmp_path):
+    """``kill``, ``timeout`` or a batch scheduler stop a run with SIGTERM: it unwinds as Ctrl-C does."""
+    video = make_scene("default", frames=8 * 8, size=(48, 64))
+    mask = make_code("hitomi", (48, 64), frames=8, bump=2, rng=1)
+    coded = np.stack([simulate(video[8 * t:8 * t + 8], mask, sigma=2.0, rng=t) for t in range(8)])
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    save_dictionary(tmp_path / "d.zarr", dct_dictionary(8), dict(patch=7, frames=8))
+    out = tmp_path / "out" / "r.npy"
+    proc = subprocess.Popen([*CLI, "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask",
+                             str(tmp_path / "mask.npy"), "--dictionary", str(tmp_path / "d.zarr"), "--output", str(out),
+                             "--cache", str(tmp_path / "cache"), "--tile", "8", "--workers", "1", "--static-atoms", "0",
+                             "--independent-captures"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    try:  # the stream's temporary exists from the first capture written to the last
+        while proc.poll() is None and time.monotonic() - t0 < 120 and not list(out.parent.glob(".r.tmp-*")):
+            time.sleep(0.01)
+        assert proc.poll() is None, "the run finished before it could be stopped; make the sequence longer"
+        os.kill(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM
+    assert err.strip().splitlines()[-1] == "codedvideo: terminated"
+    assert list(out.parent.iterdir()) == []  # no temporary, no output, no metrics
+
+
 @pytest.fixture(scope="module")
 def small():
     video = make_scene("default", frames=4, size=(32, 40))

@@ -154,3 +154,29 @@ def test_a_video_written_from_unit_floats_evaluates_in_their_units(tmp_path, cap
         psnr[name] = json.loads(capsys.readouterr().out)["psnr"]
     assert psnr["u8"] > 20
     assert abs(psnr["f01"] - psnr["u8"]) < 0.05
+
+
+def test_a_metrics_file_that_another_output_of_the_stem_replaced_is_not_taken_for_the_video(tmp_path, capsys):
+    """``v.mkv`` then ``v.npy`` both write ``v.metrics.json``: evaluating ``v.mkv`` must not take the
+    second run's data range (255) for the range it was written with (1), and says why it leaves it out."""
+    import json
+
+    from codedvideo.cli import main
+
+    cap = tmp_path / "cap"
+    assert main(["-q", "simulate", "synth:default", "--frames", "4", "--size", "32", "32", "--output", str(cap)]) == 0
+    np.save(tmp_path / "coded01.npy", np.load(cap / "coded.npy") / 255)
+    np.save(tmp_path / "truth01.npy", np.load(cap / "truth.npy") / 255)
+    common = ["--mask", str(cap / "mask.npy"), "--method", "dct", "--cache", str(tmp_path / "cache")]
+    evaluate = ["-q", "evaluate", "--recon", str(tmp_path / "v.mkv"), "--truth", str(tmp_path / "truth01.npy")]
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded01.npy"), "--output", str(tmp_path / "v.mkv"),
+                 *common]) == 0
+    capsys.readouterr()
+    assert main(evaluate) == 0
+    alone = json.loads(capsys.readouterr().out)["psnr"]
+    assert main(["-q", "reconstruct", "--coded", str(cap / "coded.npy"), "--output", str(tmp_path / "v.npy"),
+                 *common]) == 0
+    capsys.readouterr()
+    with pytest.warns(UserWarning, match="v.metrics.json describes .*v.npy, not .*v.mkv"):
+        assert main(evaluate) == 0
+    assert alone > 20 and abs(json.loads(capsys.readouterr().out)["psnr"] - alone) < 0.05

@@ -16,7 +16,9 @@ import itertools
 import json
 import logging
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -727,13 +729,26 @@ def _method_dictionary(a, frames: int):
 
 
 def _written_range(path) -> float | None:
-    """The data range a reconstruction was written with, from the metrics JSON beside it (None: none)."""
+    """The data range a reconstruction was written with, from the metrics JSON beside it (None: none).
+
+    Outputs of one stem share that file (``v.mkv`` and ``v.npy`` both write ``v.metrics.json``), so it
+    counts only when it names ``path`` as its output (``reconstruct``) or one of its outputs (``run``);
+    one that describes another file is said in a warning and left out.
+    """
     from .volumes import metrics_path
 
+    where = metrics_path(Path(path))
     try:
-        return float(json.loads(metrics_path(Path(path)).read_text())["data_range"]["value"])
-    except (OSError, ValueError, KeyError, TypeError):
+        metrics = json.loads(where.read_text())
+        named = [metrics.get("output"), *(metrics.get("outputs") or {}).values()]
+        value = float(metrics["data_range"]["value"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
+    if Path(path).name not in {Path(str(p)).name for p in named if p}:
+        warnings.warn(f"{where} describes {' and '.join(str(p) for p in named if p)}, not {path}: the data range "
+                      f"{Path(path).name} was written with is not known; taken as the truth's (--data-range sets it)")
+        return None
+    return value
 
 
 def _cmd_evaluate(a) -> int:
@@ -839,6 +854,15 @@ def _one_line(message, category, filename, lineno, line=None) -> str:
     return f"codedvideo: warning: {message}\n"
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``, a batch scheduler ending a job), unwound as Ctrl-C is: every
+    temporary removed, every lock released, one line, exit status 143."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
@@ -848,6 +872,9 @@ def main(argv: list[str] | None = None) -> int:
     # warnings as one line (their format only: a caller that records them, as pytest.warns does, still
     # gets them); the filters and the format are restored on return
     previous, warnings.formatwarning = warnings.formatwarning, _one_line
+    # SIGTERM's default ends the process where it stands, leaving partial outputs behind
+    on_term = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() \
+        else None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
@@ -855,11 +882,16 @@ def main(argv: list[str] | None = None) -> int:
     except CodedVideoError as exc:
         print(f"codedvideo: error: {exc}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("codedvideo: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("codedvideo: interrupted", file=sys.stderr)
         return 130
     finally:
         warnings.formatwarning = previous
+        if on_term is not None:
+            signal.signal(signal.SIGTERM, on_term)
 
 
 def console_main() -> None:

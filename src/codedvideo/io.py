@@ -291,6 +291,8 @@ def _read_npy(path: Path) -> np.ndarray:
         raise InputError(f"array {path}: is a .npz archive, not a .npy array (save it with numpy.save)")
     if arr.dtype.kind not in "biuf":
         raise InputError(f"array {path}: unsupported dtype {arr.dtype}")
+    if arr.size == 0:
+        raise InputError(f"array {path}: holds no values (shape {arr.shape})")
     return arr
 
 
@@ -490,7 +492,9 @@ def iter_video(path: str | os.PathLike, *, color: str = "luma", start: int = 0):
             if not container.streams.video:
                 raise InputError(f"video {path}: has no video stream")
             stream = container.streams.video[0]
-            expected = _expected_frames(container, stream)
+            # a GIF's frame delays are whole hundredths of a second (30 fps is stored as 3/100 s), so its
+            # duration x rate misses the frame count; its trailer, checked above, tells a truncated one
+            expected = None if path.suffix.lower() == ".gif" else _expected_frames(container, stream)
             size = _tagged_size(container)
             for i, frame in enumerate(container.decode(video=0)):
                 decoded = i + 1
@@ -524,9 +528,9 @@ def _tagged_size(container) -> tuple[int, int] | None:
 def _expected_frames(container, stream) -> int | None:
     """Frame count from the container's header (duration x rate), or None when unknown.
 
-    Streaming formats (Matroska, GIF) decode a truncated file without error;
+    Streaming formats (Matroska) decode a truncated file without error;
     the duration recorded in the header tells how many frames there were
-    (to within one frame).
+    (to within one frame).  Not for GIF (see :func:`iter_video`).
     """
     rate = stream.average_rate
     if container.duration and rate:
@@ -925,7 +929,7 @@ def npy_layout(path: str | os.PathLike) -> tuple[tuple[int, ...], np.dtype, int]
             offset = fh.tell()
     except (OSError, ValueError, EOFError):
         return None
-    if fortran or dtype.kind not in "biuf" or dtype.hasobject:
+    if fortran or dtype.kind not in "biuf" or dtype.hasobject or 0 in shape:
         return None
     if os.path.getsize(path) != offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize:
         return None

@@ -149,7 +149,9 @@ def check_outputs(outputs: list[Output], inputs: dict[str, object], *, overwrite
     for label, value in inputs.items():
         for p in value if isinstance(value, (list, tuple)) else [value]:
             if p and not str(p).startswith(("synth:", "footage:", "manifest:", "skimage:")):
-                ins.append((label, _real(Path(str(p)))))
+                # an input is what it points to: a link to a file is that file (replacing that file loses
+                # the input the link gave), whereas an output named by a link is refused as a link below
+                ins.append((label, Path(os.path.realpath(Path(str(p)).absolute()))))
     for out in outputs:
         real = _real(out.path)
         for label, inp in ins:

@@ -247,10 +247,14 @@ def read_truth_stack(path: str | Path, frames: int, *, what: str = "truth") -> n
 
 def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack | VideoStack:
     """Coded images (T, H, W) float32: a .npy (H, W) or (T, H, W), a (multi-page) image, a folder or
-    printf pattern of images, or a lossless video (one coded image per video frame)."""
+    printf pattern of images, or a lossless video (one coded image per video frame).  A .npy (H, W, 3) or
+    (H, W, 4) is a colour image, taken as its luma like a colour PNG or TIFF (as a stack it would be images
+    3 or 4 pixels wide, narrower than a patch)."""
     path = Path(path)
     suffix = path.suffix.lower()
     layout = cio.npy_layout(path) if suffix == ".npy" else None
+    if layout is not None and len(layout[0]) == 3 and layout[0][-1] in (3, 4) and layout[0][-1] < PATCH:
+        return cio.read_image(path, color="luma")[None]
     if layout is not None and len(layout[0]) == 3 and layout[0][0] > 1:  # a stream: read capture by capture
         stack = NpyStack(path, *layout)
         stack.check()  # before any work, one capture at a time
