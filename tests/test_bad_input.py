@@ -236,6 +236,10 @@ def test_truncated_mask_tiff_through_the_cli(files, tmp_path, capsys, frac):
     ("stages: [train, recontruct]\n", ["stages", "reconstruct"]),
     ("frames: [8\n", ["not valid YAML"]),                                       # broken YAML
     ("- frames\n- 8\n", ["mapping"]),                                           # not a mapping
+    ("stages: [simulate, evaluate]\n", ["stages", "add reconstruct"]),          # evaluate without a reconstruction
+    ("cache: ''\n", ["cache", "name a folder"]),                                 # entries among the user's files
+    ("dictionary: {atoms: 1000, samples: 500}\n", ["atoms 1000", "samples 500", "608"]),
+    ("report: {speed_atoms: [5000], dictionary: {samples: 2000}}\n", ["report.speed_atoms", "4608", "2000"]),
 ])
 def test_bad_pipeline_yaml(tmp_path, capsys, text, names):
     cfg = tmp_path / "p.yaml"
@@ -343,6 +347,38 @@ def test_an_empty_array_is_one_line_naming_it(files, tmp_path, capsys, which, sh
     fails(capsys, reconstruct_args(files, tmp_path, **{which: empty}), empty.name, "holds no values", root=tmp_path)
     if which == "truth":
         fails(capsys, ["evaluate", "--recon", empty, "--truth", empty], empty.name, "holds no values", root=tmp_path)
+
+
+def test_a_gif_faster_than_its_hundredths_of_a_second_is_refused_before_any_work(files, tmp_path, capsys):
+    fails(capsys, [*reconstruct_args(files, tmp_path, output=tmp_path / "v.gif"), "--fps", 200], "--fps 200",
+          "v.gif", "hundredths", root=tmp_path)
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(f"cache: {tmp_path / 'cache'}\noutput: {{dir: {tmp_path / 'out'}, video: r.gif, fps: 120}}\n")
+    fails(capsys, ["run", cfg], "p.yaml", "fps 120", "hundredths", root=tmp_path)
+
+
+def test_a_dictionary_with_more_atoms_than_its_samples_can_give_is_refused_before_training(tmp_path, capsys):
+    fails(capsys, ["train", "--frames", 8, "--atoms", 1000, "--samples", 500, "--output", tmp_path / "d.zarr",
+                   "--cache", tmp_path / "cache"], "atoms 1000", "samples 500", root=tmp_path)
+    fails(capsys, ["train", "--kind", "dct", "--frames", 8, "--output", tmp_path / "d.zarr", "--cache", ""], "--cache",
+          root=tmp_path)
+
+
+def test_training_options_given_to_a_dct_dictionary_are_refused_not_ignored(tmp_path, capsys):
+    fails(capsys, ["train", "--kind", "dct", "--frames", 8, "--atoms", 5, "--output", tmp_path / "d.zarr"],
+          "--kind dct", "--atoms is for learned", root=tmp_path)
+    assert main(["-q", "train", "--kind", "dct", "--frames", "4", "--output", str(tmp_path / "d.zarr"), "--cache",
+                 str(tmp_path / "cache")]) == 0
+
+
+def test_learning_more_atoms_than_its_samples_can_give_is_one_line_from_the_api_too():
+    """(The report's dictionaries, and any caller that builds its settings without the config model.)"""
+    from codedvideo.dictionaries import learn_dictionary
+    from codedvideo.errors import InputError
+
+    video = np.random.default_rng(0).uniform(0, 255, (4, 16, 16)).astype(np.float32)
+    with pytest.raises(InputError, match="other 300 among the training patches, but only 200 were drawn"):
+        learn_dictionary([video], frames=4, atoms=4 * 49 + 300, samples=200, iterations=1)
 
 
 def test_options_that_do_not_go_together_are_one_line(files, tmp_path, capsys):

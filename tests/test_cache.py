@@ -249,7 +249,9 @@ def test_verify_reports_a_damaged_entry_and_clean_removes_only_that_one(scene, r
     dictionary, _ = train_dictionary(PipelineConfig.model_validate(dict(frames=4, cache=str(cache),
                                                                         dictionary=dict(kind="dct"))), progress=False)
     (cache / "report").mkdir()
-    (cache / "report" / "0123456789abcdef.json").write_text('{"psnr": 30.0}')
+    (cache / "report" / "0123456789abcdef.json").write_text(json.dumps(dict(
+        key="0123456789abcdef", scene="default", frames=8, code="hitomi", bump=2, sigma=0.0, method="omp", psnr=30.0,
+        ssim=0.9, seconds=1.0)))
     # the user's own things in the cache folder, some named like entries: never reported, never removed
     mine = [cache / "notes.txt", cache / "mine", cache / "recon-0123456789abcdef.zarr", cache / "dict-0123456789abcdef.zarr"]
     mine[0].write_text("mine")
@@ -313,3 +315,30 @@ def test_tile_tasks_share_an_opened_store_until_the_entry_is_rebuilt(scene, tmp_
     assert again is small and again is not made
     assert again.read_inputs(0, 40, 0, 40)[0].shape == (40, 40)
     np.testing.assert_array_equal(again.read_inputs(0, 40, 0, 40)[1], mask[:, :40, :40])
+
+
+def test_a_dictionary_trained_on_a_video_is_keyed_by_what_the_video_holds(tmp_path):
+    """The same name with other frames trains again; the same frames under another name reuse the entry."""
+    from codedvideo import io as cio
+    from codedvideo.config import PipelineConfig
+    from codedvideo.stages import train_dictionary
+    from codedvideo.store import load_dictionary
+    from codedvideo.synth import make_scene
+
+    def train(video):
+        cfg = PipelineConfig.model_validate(dict(frames=4, cache=str(tmp_path / "cache"), dictionary=dict(
+            kind="learned", atoms=40, samples=800, iterations=1, sparsity=3, training=[str(video)])))
+        path, meta = train_dictionary(cfg, progress=False)
+        return load_dictionary(path)[0], meta["reused"]
+
+    first, second = make_scene("default", frames=24, size=(40, 40)), make_scene("coins-translate", frames=24,
+                                                                                 size=(40, 40))
+    clip = cio.write_video(tmp_path / "clip.mkv", first)
+    d1, reused = train(clip)
+    assert not reused
+    cio.write_video(clip, second)  # new frames, same name
+    d2, reused = train(clip)
+    assert not reused and not np.array_equal(d1, d2)
+    (tmp_path / "elsewhere").mkdir()
+    d3, reused = train(shutil.copy(clip, tmp_path / "elsewhere" / "renamed.mkv"))
+    assert reused and np.array_equal(d2, d3)

@@ -35,7 +35,7 @@ def test_stacks_multipage_folder_and_pattern(tmp_path, smooth):
     np.testing.assert_array_equal(cio.read_stack(tmp_path / "exr"), smooth)
 
 
-@pytest.mark.parametrize("suffix,tol", [(".mp4", 3.0), (".mkv", 0.0), (".gif", 0.0)])
+@pytest.mark.parametrize("suffix,tol", [(".mp4", 3.0), (".mov", 3.0), (".mkv", 0.0), (".gif", 0.0)])
 def test_video_round_trip(tmp_path, smooth, suffix, tol):
     path = cio.write_video(tmp_path / f"v{suffix}", smooth)
     back = cio.read_video(path)

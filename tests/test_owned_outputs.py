@@ -285,3 +285,26 @@ def test_simulate_refuses_an_extra_output_on_top_of_its_own(tmp_path, capsys):
         refused(capsys, ["simulate", "synth:default", "--size", "16", "16", "--frames", "4", "--output",
                          str(tmp_path / "d"), "--cacti-out", str(tmp_path / "d" / name)], name, "--cacti-out",
                 root=tmp_path)
+
+
+def test_a_run_stopped_after_its_capture_is_written_does_not_block_the_next(tmp_path, capsys, monkeypatch):
+    """Each output is codedvideo's as soon as it is in place: a run interrupted (or failing) after writing
+    its capture files leaves files that the next run replaces, not the user's files to refuse."""
+    import yaml
+
+    from codedvideo import stages
+
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(yaml.safe_dump(dict(cache=str(tmp_path / "cache"), scene=dict(size=[32, 32]),
+                                       output=dict(dir=str(tmp_path / "out"), frames="none"))))
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(stages, "write_volume", interrupted)
+        assert main(["-q", "run", str(cfg)]) == 130
+    assert (tmp_path / "out" / "capture" / "coded.npy").exists()
+    capsys.readouterr()
+    assert main(["-q", "run", str(cfg)]) == 0, capsys.readouterr().err
+    assert written_by_codedvideo(tmp_path / "out" / "recon.npy")

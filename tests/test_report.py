@@ -2,6 +2,7 @@
 import base64
 import csv
 import math
+from pathlib import Path
 
 import pytest
 import yaml
@@ -121,3 +122,29 @@ def test_a_report_that_fails_midway_marks_what_it_wrote(mini, tmp_path, monkeypa
     assert figures and all(written_by_codedvideo(p) for p in figures)
     monkeypatch.undo()
     assert run_report(cfg)["html"].exists()
+
+
+def test_damaged_records_and_volumes_are_computed_again(mini, tmp_path):
+    """A record that parses but is not one (``{}``), or a cut volume, is reported broken by ``cache verify``
+    and computed again by the next report, as a damaged tile is (it was a traceback)."""
+    import json
+    import shutil
+
+    from codedvideo.cache import verify_cache
+
+    root, first, _ = mini
+    shutil.copytree(root / "cache", tmp_path / "cache")
+    folder = tmp_path / "cache" / "report"
+    volume = sorted(folder.glob("*.npy"))[0]
+    volume.write_bytes(volume.read_bytes()[:100])
+    record = next(p for p in sorted(folder.glob("*.json")) if p.stem != volume.stem)
+    record.write_text("{}")
+    broken = {Path(r["entry"]).stem for r in verify_cache(tmp_path / "cache") if r["status"] == "broken"}
+    assert broken == {volume.stem, record.stem}
+    raw = dict(MINI, cache=str(tmp_path / "cache"))
+    raw["report"] = dict(MINI["report"], dir=str(tmp_path / "out"))
+    (tmp_path / "mini.yaml").write_text(yaml.safe_dump(raw))
+    again = run_report(load_config(tmp_path / "mini.yaml"))
+    assert again["computed"] == 2 and again["reused"] == first["computed"] + first["reused"] - 2
+    assert json.loads(record.read_text())["key"] == record.stem
+    assert not [r for r in verify_cache(tmp_path / "cache") if r["status"] != "ok"]

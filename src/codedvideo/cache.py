@@ -9,7 +9,7 @@ contents; nothing else in the folder is ever reported or removed:
   current layout, its inputs match their recorded digest, every finished
   tile matches its blake2b digest);
 * ``report/KEY.json`` (and ``report/KEY.npy``) -- an experiment record of
-  ``codedvideo report`` (checked: the JSON parses, the array loads).
+  ``codedvideo report`` (checked: the JSON parses and holds a record's fields, the array loads).
 
 Besides, ``.NAME.tmp-*`` temporaries that killed runs left behind, and
 ``dict-KEY.lock`` / ``recon-KEY.lock`` lock files.  Each entry is examined
@@ -73,9 +73,37 @@ def content_key(*parts) -> str:
 
 
 def dictionary_key(cfg: PipelineConfig) -> str:
-    """The key of the training settings of ``cfg`` (cache entries and shipped dictionaries carry it)."""
+    """The key of the training settings of ``cfg`` (cache entries and shipped dictionaries carry it).
+
+    The user's training videos count by what they hold, not by their names: a video replaced under
+    the same name trains again, and the same file under another name or folder reuses the entry.
+    """
     settings = dict(cfg.dictionary.model_dump(exclude={"path"}), frames=cfg.frames, seed=cfg.seed, patch=PATCH)
+    settings["training"] = [_source_digest(spec) for spec in cfg.dictionary.training]
     return content_key("dictionary-v1", settings)
+
+
+def _source_digest(spec: str) -> str:
+    """A training source by its content: a video file's bytes, or a folder's or printf pattern's frames
+    in order (their bytes).  Named sources (``synth:train``; ``manifest:ID``, checked against the
+    sha256 its manifest lists) and paths that do not exist (training names them) stay as they are."""
+    from . import io as cio
+
+    if spec.startswith(("synth:", "manifest:", "footage:", "skimage:")):
+        return spec
+    path = Path(spec)
+    try:
+        files = [path] if path.is_file() else cio.frame_files(path) or []
+    except InputError:
+        return spec
+    h = hashlib.sha256()
+    for file in files:
+        try:
+            with open(file, "rb") as fh:
+                h.update(hashlib.file_digest(fh, "sha256").digest())
+        except OSError:
+            return spec  # unreadable: training says so
+    return "sha256:" + h.hexdigest() if files else spec
 
 
 def verify_cache(root: str | os.PathLike) -> list[dict]:
@@ -238,6 +266,22 @@ def _check_reconstruction(path: Path) -> tuple[str, str]:
     return "ok", f"{n} tiles, every one matches its checksum"
 
 
+#: Fields of every report record (its settings and scores: the report's tables and figures read them).
+REPORT_FIELDS = ("key", "scene", "frames", "code", "bump", "sigma", "method", "psnr", "ssim", "seconds")
+
+
+def report_record_problem(record, key: str) -> str | None:
+    """What makes a parsed ``report/KEY.json`` record unusable (None: nothing)."""
+    if not isinstance(record, dict):
+        return "not a JSON object"
+    missing = [name for name in REPORT_FIELDS if name not in record]
+    if missing:
+        return f"no {', '.join(missing)}"
+    if record["key"] != key:
+        return f"its key {record['key']!r} is not its file's"
+    return None
+
+
 def _scan_report(folder: Path, remove) -> list[dict]:
     """``report/KEY.json`` records (and their ``KEY.npy`` volumes); written atomically, so no lock."""
     if not folder.is_dir():
@@ -252,9 +296,9 @@ def _scan_report(folder: Path, remove) -> list[dict]:
         status, detail = "ok", "record parses"
         if "json" in files:
             try:
-                record = json.loads(files["json"].read_text())
-                if not isinstance(record, dict):
-                    raise ValueError("not a JSON object")
+                problem = report_record_problem(json.loads(files["json"].read_text()), key)
+                if problem:
+                    status, detail = "broken", f"record is not a report record ({problem})"
             except (OSError, ValueError) as exc:
                 status, detail = "broken", f"record does not parse ({exc})"
         else:

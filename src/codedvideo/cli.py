@@ -56,12 +56,13 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("videos", nargs="*", metavar="VIDEO", help="training videos (default: the embedded synthetic set)")
     t.add_argument("--frames", "-N", type=int, required=True, help="sub-frames N per coded image")
     t.add_argument("--output", "-o", required=True, help="dictionary store (.zarr)")
-    t.add_argument("--atoms", type=int, default=PipelineConfig().dictionary.atoms)
-    t.add_argument("--iterations", type=int, default=PipelineConfig().dictionary.iterations)
-    t.add_argument("--samples", type=int, default=PipelineConfig().dictionary.samples)
-    t.add_argument("--sparsity", type=int, default=PipelineConfig().dictionary.sparsity)
-    t.add_argument("--max-speed", type=float, default=PipelineConfig().dictionary.max_speed,
-                   help="fastest synthetic training motion, pixels per sub-frame")
+    learned = PipelineConfig().dictionary  # (None: the default, so that --kind dct can tell a value given)
+    t.add_argument("--atoms", type=int, default=None, help=f"(default {learned.atoms})")
+    t.add_argument("--iterations", type=int, default=None, help=f"(default {learned.iterations})")
+    t.add_argument("--samples", type=int, default=None, help=f"(default {learned.samples})")
+    t.add_argument("--sparsity", type=int, default=None, help=f"(default {learned.sparsity})")
+    t.add_argument("--max-speed", type=float, default=None,
+                   help=f"fastest synthetic training motion, pixels per sub-frame (default {learned.max_speed:g})")
     t.add_argument("--kind", choices=("learned", "dct"), default="learned")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--cache", default="cache")
@@ -193,9 +194,14 @@ def _parser() -> argparse.ArgumentParser:
 def _cmd_train(a) -> int:
     from .stages import train_dictionary
 
-    dictionary = validated(DictionaryConfig, dict(
-        kind=a.kind, atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
-        max_speed=a.max_speed, training=list(a.videos) or ["synth:train"]), {"training": "VIDEO"})
+    given = {k: v for k, v in dict(atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
+                                   max_speed=a.max_speed).items() if v is not None}
+    if a.kind == "dct" and (given or a.videos):
+        named = [f"--{k.replace('_', '-')}" for k in given] + (["VIDEO"] if a.videos else [])
+        raise ConfigError(f"train --kind dct: {', '.join(named)} {'is' if len(named) == 1 else 'are'} for learned "
+                          "dictionaries only (a 3D DCT one has N x 49 atoms and is not trained)")
+    dictionary = validated(DictionaryConfig, dict(kind=a.kind, training=list(a.videos) or ["synth:train"], **given),
+                           {"training": "VIDEO"})
     cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary))
     suffix = Path(a.output).suffix.lower()
     if suffix in (".npy", ".npz", ".mat", ".json", ".h5", ".hdf5", ".tif", ".tiff", ".txt", ".csv"):
@@ -326,7 +332,7 @@ def _reconstruct_options(a):
     model (sigma, white level) and the output model (fps, data range).
     """
     from . import shipped
-    from .io import check_cache
+    from .io import check_cache, gif_rate_problem
     from .volumes import metrics_path, output_kind
 
     if not a.cacti and not (a.coded and a.mask):
@@ -351,6 +357,8 @@ def _reconstruct_options(a):
                                         black_level=a.black_level), _RECONSTRUCT_OPTIONS)
     out = validated(OutputConfig, dict(fps=a.fps, data_range=a.data_range), _RECONSTRUCT_OPTIONS)
     output = Path(a.output)
+    if output.suffix.lower() == ".gif" and gif_rate_problem(out.fps):
+        raise ConfigError(f"reconstruct --fps {out.fps} with --output {output}: {gif_rate_problem(out.fps)}")
     check_outputs([Output(output, output_kind(output)), Output(metrics_path(output), "file", "metrics")],
                   dict(coded=a.coded, mask=a.mask, truth=a.truth, dictionary=a.dictionary, cacti=a.cacti, cache=a.cache,
                        bad_pixels=a.bad_pixels, shipped_dictionaries=shipped.DATA),

@@ -153,6 +153,14 @@ class OutputConfig(_Strict):
             raise ValueError(f"video {v!r}: a file name in output.dir ending in .mp4, .mkv, .avi, .mov or .gif")
         return v
 
+    @model_validator(mode="after")
+    def _gif_rate(self) -> "OutputConfig":
+        from .io import gif_rate_problem
+
+        if Path(self.video).suffix.lower() == ".gif" and gif_rate_problem(self.fps):
+            raise ValueError(f"fps {self.fps} with video {self.video}: {gif_rate_problem(self.fps)}")
+        return self
+
 
 class ReportDictionaryConfig(_Strict):
     """Overrides of ``dictionary:`` for the report's learned dictionaries (null: the pipeline's value).
@@ -262,7 +270,35 @@ class PipelineConfig(_Strict):
     def _known_order(cls, v: list[str]) -> list[str]:
         if not v:  # a run that would do nothing and write an empty metrics file
             raise ValueError(f"no stage to run; give one or more of {', '.join(STAGES)}")
+        if "evaluate" in v and "reconstruct" not in v:  # it scores this run's reconstruction, in memory
+            raise ValueError(f"stages {v}: evaluate scores the reconstruction the run makes; add reconstruct "
+                             "(codedvideo evaluate scores a reconstruction already written)")
         return [s for s in STAGES if s in v]
+
+    @field_validator("cache")
+    @classmethod
+    def _cache_named(cls, v: str) -> str:
+        if not v.strip():  # "" would put cache entries among the files of the current folder
+            raise ValueError("cache '': name a folder for the cache (for example cache)")
+        return v
+
+    @model_validator(mode="after")
+    def _atoms_from_samples(self) -> "PipelineConfig":
+        d = self.dictionary
+        beyond = d.atoms - self.frames * 49  # K-SVD starts from the DCT atoms, then draws the rest among the samples
+        if d.kind == "learned" and d.path is None and beyond > d.samples:
+            raise ValueError(f"dictionary atoms {d.atoms} with samples {d.samples}: K-SVD starts from the "
+                             f"{self.frames * 49} DCT atoms and draws the other {beyond} among the training samples; "
+                             f"give at least {beyond} samples or fewer atoms")
+        r = self.report  # its dictionaries: the main one at every N it sweeps, and one per size of the speed study
+        samples, main = r.dictionary.samples or d.samples, r.dictionary.atoms or d.atoms
+        for frames, atoms, key in ([(n, main, "report.dictionary.atoms") for n in (*r.fig7_frames, r.frames)]
+                                   + [(r.frames, a, "report.speed_atoms") for a in r.speed_atoms]):
+            if atoms - frames * 49 > samples:
+                raise ValueError(f"{key}: {atoms} atoms at N = {frames} start from {frames * 49} DCT atoms and draw "
+                                 f"the other {atoms - frames * 49} among the {samples} training samples "
+                                 "(report.dictionary.samples); give more samples or fewer atoms")
+        return self
 
 
 def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
@@ -353,8 +389,10 @@ def load_config(path: str | Path) -> PipelineConfig:
         msg, err = _first_error(exc)
         # the location without pydantic's names of union branches ("constrained-float", ...)
         where = ".".join(str(p) for p in err["loc"] if isinstance(p, int) or str(p).isidentifier()) or "(top level)"
-        value = "" if err["type"] == "extra_forbidden" else f" = {err.get('input')!r}"
-        raise ConfigError(f"config {path}: {where}{value}: {msg}") from exc
+        # (a rule between keys names them itself: the whole section it was given is no help on one line)
+        value = "" if err["type"] == "extra_forbidden" or isinstance(err.get("input"), dict) \
+            else f" = {err.get('input')!r}"
+        raise ConfigError(f"config {path}: {where}{value}: {msg.removeprefix('Value error, ')}") from exc
 
 
 def validated(model: type[BaseModel], values: dict, options: dict[str, str] | None = None):

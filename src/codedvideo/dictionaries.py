@@ -221,6 +221,10 @@ def learn_dictionary(
     t0 = time.perf_counter()
     X = training_patches(videos, frames=frames, samples=samples, rng=rng, patch=patch)
     D0 = dct_dictionary(frames, patch=patch)
+    if atoms - D0.shape[1] > X.shape[0]:  # (a config checks samples; short videos can give fewer patches)
+        raise InputError(f"dictionary of {atoms} atoms: K-SVD starts from the {D0.shape[1]} DCT atoms and draws the "
+                         f"other {atoms - D0.shape[1]} among the training patches, but only {X.shape[0]} were drawn; "
+                         "give more training samples or video, or fewer atoms")
     if atoms > D0.shape[1]:
         extra = X[rng.choice(X.shape[0], atoms - D0.shape[1], replace=False)].T
         D0 = np.concatenate([D0, extra], axis=1)

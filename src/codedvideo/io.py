@@ -585,6 +585,18 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
     return path
 
 
+#: A GIF stores each frame's delay in whole hundredths of a second: no faster rate can be written.
+GIF_MAX_FPS = 100
+
+
+def gif_rate_problem(fps: int) -> str | None:
+    """Why a GIF cannot be written at ``fps`` frames a second (None: it can)."""
+    if fps > GIF_MAX_FPS:
+        return (f"a GIF holds at most {GIF_MAX_FPS} frames a second (its frame delays are whole hundredths of a "
+                f"second), not {fps}; choose a lower rate or another format")
+    return None
+
+
 @contextlib.contextmanager
 def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool = False, data_range: float = 255.0,
                  fps: int = 30):
@@ -600,7 +612,7 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
     suffix = path.suffix.lower()
     height, width = size
     pad = (0, 0)
-    if suffix == ".mp4":
+    if suffix in (".mp4", ".mov"):
         codec, pix_fmt, options = "libx264", "yuv420p", {"crf": "17", "preset": "medium"}
         pad = (height % 2, width % 2)
     elif suffix in (".mkv", ".avi"):
@@ -608,7 +620,9 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
     elif suffix == ".gif":
         codec, pix_fmt, options = "gif", "rgb8" if colour else "gray", {}
     else:
-        raise InputError(f"video {path}: unsupported container {suffix!r} (use .mp4, .mkv, .avi or .gif)")
+        raise InputError(f"video {path}: unsupported container {suffix!r} (use .mp4, .mov, .mkv, .avi or .gif)")
+    if suffix == ".gif" and fps > GIF_MAX_FPS:
+        raise InputError(f"video {path}: {gif_rate_problem(fps)}")
     in_fmt = "rgb24" if colour else "gray"
     with atomic_output(path) as tmp:
         try:

@@ -46,7 +46,8 @@ from . import baselines
 from . import io as cio
 from .config import PipelineConfig, auto_tolerance, omp_settings
 from .metrics import evaluate
-from .cache import RECON_VERSION, content_key
+from .errors import InputError
+from .cache import RECON_VERSION, content_key, report_record_problem
 from .volumes import write_json
 from .scenes import load_video
 from .stages import SPARSE_METHODS, simulate_capture, train_dictionary
@@ -162,12 +163,15 @@ class Runner:
         path = self.folder / f"{key}.json"
         vol_path = self.folder / f"{key}.npy"
         if path.exists() and (not keep or vol_path.exists()):
-            try:
+            try:  # a damaged record or volume is computed again, as a damaged tile is
                 record = json.loads(path.read_text())
-                self.reused += 1
-                return record
-            except (OSError, ValueError):
-                pass  # unreadable: compute again
+                if report_record_problem(record, key) is None:
+                    if keep:
+                        cio.read_array(vol_path)
+                    self.reused += 1
+                    return record
+            except (OSError, ValueError, InputError):
+                pass
         if self.progress:
             print(f"report: {method} {code} L={bump} sigma={sigma:g} N={frames} {scene}"
                   + (f" max_atoms={omp.max_atoms} tol={omp.tol_rms:g} K={settings['dictionary_atoms']}" if omp else ""),

@@ -646,14 +646,16 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         report["dictionary"] = dict(path=str(dict_path), reused=dmeta["reused"], atoms=dmeta["atoms"],
                                     method=dmeta.get("method"), final_rmse=dmeta.get("final_rmse"))
     capture = None
-    written: list[Path] = []
+    # each output is recorded as codedvideo's as soon as it is in place, so that a run that fails or is
+    # stopped later does not leave files that the next run must refuse as the user's
     if "simulate" in cfg.stages or "reconstruct" in cfg.stages:
         t0 = time.perf_counter()
         video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
         capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed,
                                    p=cfg.code.p, code_path=cfg.code.path, sensor=sensor_model(cfg.noise))
         capture_paths = write_capture(capture, out / "capture")
-        written += capture_paths.values()
+        for path in capture_paths.values():
+            mark_written(path)
         report["capture"] = {k: str(v) for k, v in capture_paths.items()}
         report["seconds"]["simulate"] = time.perf_counter() - t0
     if "reconstruct" in cfg.stages:
@@ -678,12 +680,12 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         report["reconstruction"] = info
         t0 = time.perf_counter()
         video_path = write_volume(volume, out / cfg.output.video, fps=cfg.output.fps, data_range=units.value)
-        written.append(video_path)
+        mark_written(video_path)
         report["outputs"] = dict(video=str(video_path))
         if cfg.output.frames != "none":
             report["outputs"]["frames"] = str(out / "frames")
             cio.write_frames(out / "frames", volume, fmt=cfg.output.frames, data_range=units.value)
-        written.append(cio.write_array(out / "recon.npy", volume))
+        mark_written(cio.write_array(out / "recon.npy", volume))
         report["outputs"]["volume"] = str(out / "recon.npy")
         report["seconds"]["write"] = time.perf_counter() - t0
         if "evaluate" in cfg.stages:
@@ -693,9 +695,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
                                          data_range=units.value)
             report["seconds"]["evaluate"] = time.perf_counter() - t0
     report["seconds"]["total"] = sum(report["seconds"].values())
-    written.append(write_json(metrics_path(out / cfg.output.video), report))
-    for path in written:
-        mark_written(path)
+    mark_written(write_json(metrics_path(out / cfg.output.video), report))
     report["metrics_path"] = str(metrics_path(out / cfg.output.video))
     return report
 

@@ -398,12 +398,12 @@ def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 
         cio.write_frames(output, volume, fmt="tiff16", data_range=data_range)
     else:
         raise InputError(f"output {output}: unknown format {suffix!r} "
-                         "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .gif or a folder)")
+                         "(use .npy, .zarr, .mat, .tif, .mp4, .mov, .mkv, .avi, .gif or a folder)")
     return output
 
 
 #: Suffixes :func:`write_volume` writes ("" and ".d": a folder of 16-bit TIFF frames).
-OUTPUT_SUFFIXES = (".npy", ".zarr", ".mat", ".tif", ".tiff", ".mp4", ".mkv", ".avi", ".gif", "", ".d")
+OUTPUT_SUFFIXES = (".npy", ".zarr", ".mat", ".tif", ".tiff", ".mp4", ".mov", ".mkv", ".avi", ".gif", "", ".d")
 
 
 def output_kind(output: str | Path) -> str:
@@ -413,7 +413,7 @@ def output_kind(output: str | Path) -> str:
     suffix = Path(output).suffix.lower()
     if suffix not in OUTPUT_SUFFIXES:
         raise InputError(f"output {output}: unknown format {suffix!r} "
-                         "(use .npy, .zarr, .mat, .tif, .mp4, .mkv, .avi, .gif or a folder)")
+                         "(use .npy, .zarr, .mat, .tif, .mp4, .mov, .mkv, .avi, .gif or a folder)")
     return "folder" if suffix in (".zarr", "", ".d") else "file"
 
 
