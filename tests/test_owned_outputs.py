@@ -171,7 +171,7 @@ def test_a_file_never_replaces_a_folder_inside_the_writer_either(tmp_path):
 
 # ----------------------------------------------------------------------------- every option checked before any work
 BAD_RECONSTRUCT_OPTIONS = [
-    ("--tol-rms", "inf"), ("--tol-rms", "nan"), ("--tol-rms", "-1"), ("--noise-sigma", "inf"), ("--noise-sigma", "-1"),
+    ("--tol-rms", "inf"), ("--tol-rms", "nan"), ("--tol-rms", "-1"), ("--tol-rms", "1e30"), ("--noise-sigma", "inf"), ("--noise-sigma", "-1"),
     ("--noise-sigma", "nan"), ("--max-atoms", "0"), ("--max-atoms", "-1"), ("--static-atoms", "1000"),
     ("--stride", "0"), ("--stride", "9"), ("--batch", "0"), ("--batch", "-1"), ("--workers", "0"), ("--workers", "-1"),
     ("--data-range", "0"), ("--data-range", "-1"), ("--data-range", "nan"), ("--fps", "0"), ("--fps", "-1"),

@@ -107,7 +107,7 @@ class DictionaryConfig(_Strict):
 class ReconstructConfig(_Strict):
     max_atoms: int = Field(8, ge=1, le=49)
     #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
-    tol_rms: Annotated[float, Field(ge=0)] | Literal["auto"] = "auto"
+    tol_rms: Annotated[float, Field(ge=0, le=1e9)] | Literal["auto"] = "auto"  # (its square must fit a float32)
     #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
     static_atoms: int = Field(8, ge=0, le=49)
     #: Patch stride: 1 solves every overlapping patch (the paper); s solves 1 in s**2 (faster).
