@@ -399,3 +399,25 @@ def test_still_tiles_of_a_sequence_are_shared_and_come_out_as_each_capture_alone
         assert np.array_equal(volume, alone)
     moving, _ = reconstruct_volume(codeds[0], mask, D, settings=s, tile=32, cache=tmp_path / "m", progress=False)
     assert not np.array_equal(moving[:, :, :32], job[0][1][:, :, :32])
+
+
+@pytest.mark.parametrize("max_atoms", [32, 49])
+def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms):
+    """Every member fits its own 49 measurements: a group support as large as them fitted the noise and the
+    code (max_atoms 49, tolerance 0: values -220..496 for 0..255, 21 dB against the default's 30.6)."""
+    from codedvideo import shipped
+    from codedvideo.metrics import evaluate
+    from codedvideo.nonlocal_sc import group_atoms
+    from codedvideo.stages import simulate_capture
+    from codedvideo.store import load_dictionary
+    from codedvideo.synth import make_scene
+
+    assert group_atoms(8) == 16 and group_atoms(16) == 24 and group_atoms(32) == 32 and group_atoms(49) == 39
+    D, _ = load_dictionary(shipped.verified(8))
+    video = make_scene("default", frames=8, size=(48, 48))
+    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0)
+    s = OmpSettings(max_atoms=max_atoms, tol_rms=0.0)
+    first, _ = reconstruct_region(cap["coded"], cap["mask"], D, s)
+    vol, _ = nonlocal_region(cap["coded"], cap["mask"], D, first, s)
+    assert np.isfinite(vol).all() and -64 < vol.min() and vol.max() < 320
+    assert evaluate(vol, video)["psnr"] > evaluate(first, video)["psnr"] - 0.5

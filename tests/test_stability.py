@@ -134,10 +134,6 @@ def _scene(kind):
         return np.zeros((8, H, W), np.float32)
     if kind == "saturated":
         return np.full((8, H, W), 255.0, np.float32)
-    if kind == "pixel":
-        v = np.zeros((8, H, W), np.float32)
-        v[:, 15, 20] = 255.0
-        return v
     if kind == "checkerboard":
         return np.repeat(((yy + xx) % 2 * 255.0)[None], 8, 0).astype(np.float32)
     raise ValueError(kind)
@@ -149,6 +145,20 @@ def test_all_dark_is_exactly_dark(scene8, tmp_path):
     assert (vol == 0).all() and info["measurement_residual_rms"] == 0
 
 
+@pytest.mark.parametrize("static_atoms", [8, 0])
+def test_a_scene_darker_than_the_tolerance_takes_its_still_answer_not_zero(scene8, tmp_path, static_atoms):
+    """Patches whose coded values are within the tolerance get no atom: they were 0 (84 % of a scene that
+    peaks at 2 grey levels, 6 dB below the trivial estimate); they take coded / open count."""
+    video, mask = scene8
+    dark = (video * (3.0 / 255.0)).astype(np.float32)
+    vol, _ = recon(forward(dark, mask), mask, dct_dictionary(8), tmp_path,
+                   settings=OmpSettings(max_atoms=8, tol_rms=2.0, static_atoms=static_atoms))
+    lit = dark > 0.5
+    assert (vol[lit] == 0).mean() < 0.01
+    trivial = evaluate(static_estimate(forward(dark, mask), mask), dark, data_range=255.0)["psnr"]
+    assert evaluate(vol, dark, data_range=255.0)["psnr"] > trivial - 0.5
+
+
 def test_all_saturated_is_flat_white(scene8, tmp_path):
     """Every frame at 255 (without --white-level): the flat answer, to float32 roundoff."""
     _, mask = scene8
@@ -156,20 +166,23 @@ def test_all_saturated_is_flat_white(scene8, tmp_path):
     assert np.abs(vol - 255.0).max() < 0.01
 
 
-def test_single_bright_pixel_stays_local_and_bounded(scene8, tmp_path):
-    """A lone 255 pixel in black: a delta is not sparse in the DCT, so its own value flickers in time, but
-
-    the error is zero outside the 13x13 patches that see it, nothing exceeds the pixel's value by more than 5 %,
-    and the measurement is reproduced within the tolerance.
+@pytest.mark.parametrize("where", [(15, 20), (12, 9), (20, 27), (9, 16)])
+def test_single_bright_pixel_stays_local_and_bounded(scene8, tmp_path, where):
+    """A lone 255 pixel in black: a delta is not sparse in the DCT, so its own value flickers in time (measured
+    over 64 positions and three codes: up to 2.8 times its value with the 3D DCT, 1.5 times with the learned
+    dictionary; at (15, 20) alone it stayed within 5 %), but the error is zero outside the 13x13 patches that
+    see it, bounded, and the measurement is reproduced within the tolerance.
     """
-    video = _scene("pixel")
+    y, x = where
+    video = np.zeros((8, H, W), np.float32)
+    video[:, y, x] = 255.0
     _, mask = scene8
     vol, info = recon(forward(video, mask), mask, dct_dictionary(8), tmp_path)
     assert np.isfinite(vol).all()
     far = np.ones((H, W), bool)
-    far[15 - 6 : 15 + 7, 20 - 6 : 20 + 7] = False
+    far[y - 6 : y + 7, x - 6 : x + 7] = False
     assert np.abs(vol[:, far]).max() < 1e-3
-    assert np.abs(vol).max() <= 1.05 * 255
+    assert np.abs(vol).max() <= 3 * 255
     assert info["measurement_residual_rms"] <= 2.0
 
 

@@ -520,7 +520,7 @@ def _cmd_reconstruct(a) -> int:
     if a.method in ("omp", "nonlocal", "dct"):
         message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
         if message:
-            log.warning("%s (data range %g from %s)", message, units.value, units.source)
+            warnings.warn(f"{message} (data range {units.value:g} from {units.source})", stacklevel=1)
     white = None if a.trust_saturated or raw else noise.white_level
     h, w = job.codeds[0].shape[-2:]
     shape = (count, n, h, w) if job.kind == "channels" else (3, n, h, w) if job.kind == "bayer" else (count * n, h, w)

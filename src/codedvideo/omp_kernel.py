@@ -305,7 +305,8 @@ def still_kernel(y, n_pix, C, tol, atoms, ok, frame):
     ``frame[p]`` (zeros on entry) gets the still image of every passing patch
     ``ok[p]``: the fewest of its largest 2D DCT coefficients (columns of ``C``,
     ties to the lower frequency) whose weighted residual
-    ``||n * (y / n - s_k)||^2`` is within ``tol[p]``, at most ``atoms``.
+    ``||n * (y / n - s_k)||^2`` is within ``tol[p]``, at most ``atoms``; a patch
+    whose coded values are themselves within ``tol[p]`` gets ``y / n``.
     """
     P, m = y.shape
     k_max = min(atoms, m)
@@ -330,8 +331,10 @@ def still_kernel(y, n_pix, C, tol, atoms, ok, frame):
             ss += s[i] * s[i]
         if nmin <= 0:  # a pixel never open: left to the full dictionary
             continue
-        if yy <= tol[p]:
-            ok[p] = True  # zero atoms suffice
+        if yy <= tol[p]:  # a patch as dark as the tolerance: its still answer (zero atoms would give 0)
+            ok[p] = True
+            for i in range(m):
+                frame[p, i] = s[i]
             continue
         c[:] = 0.0
         for i in range(m):

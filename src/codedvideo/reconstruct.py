@@ -330,6 +330,10 @@ def reconstruct_region(
                 op = MaskedOperator(S_all()[sl][rows], D) if grouped is None else grouped.subset(s + rows)
                 res = omp(y[rows], op, max_atoms=settings.max_atoms, tol=tol[rows])
             est[rows] = synthesize(res, D)
+            dark = res.count == 0  # coded values within the tolerance: the still answer, not 0
+            if dark.any():
+                q = y[rows[dark]] / np.maximum(n_pix[sl][rows[dark]], 1e-12).astype(np.float32)
+                est[rows[dark]] = np.broadcast_to(q[:, None, :], (q.shape[0], n, m)).reshape(q.shape[0], n * m)
             atoms += int(res.count.sum())
             hit += int((res.count >= settings.max_atoms).sum())
             dep += int(res.dependent.sum())

@@ -86,7 +86,7 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str 
 
     ``coded`` and ``tol_rms`` in the same (working) units.  OMP's residual
     starts as the patch's coded values, so a patch whose coded RMS is within
-    the tolerance gets no atom at all: an almost empty video.
+    the tolerance gets no atom at all (it takes its still answer, coded / open count: no motion).
     """
     from scipy import ndimage
 
@@ -97,4 +97,5 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str 
     if share <= 0.5:
         return None
     return (f"the residual tolerance (--tol-rms / --noise-sigma) is met before the first atom on {share:.0%} of "
-            "the patches: the result will be nearly flat; check the data range (--data-range) and the tolerance")
+            "the patches: they take their still answer (coded / open count), with no motion recovered; check the "
+            "data range (--data-range) and the tolerance")
