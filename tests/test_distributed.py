@@ -31,6 +31,20 @@ def test_distributed_equals_local(cluster, tmp_path):
     np.testing.assert_allclose(remote, local, rtol=1e-5, atol=1e-3)
 
 
+def test_a_relative_cache_reaches_workers_started_in_another_folder(cluster, tmp_path, monkeypatch):
+    """The cache is the default relative `cache`: workers whose folder is not the client's still find it."""
+    coded, mask, D = _scene()
+    s = OmpSettings(max_atoms=6, tol_rms=0.5)
+    local, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "a", progress=False)
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")  # the workers stay where they were started
+    remote, info = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache="relcache", progress=False,
+                                      scheduler=cluster.scheduler_address)
+    assert info["tiles_computed"] == info["tiles"]
+    np.testing.assert_array_equal(remote, local)
+    assert (tmp_path / "elsewhere" / "relcache").is_dir()
+
+
 def _scene(size=(40, 52)):
     video = make_scene("default", frames=4, size=size)
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)

@@ -421,3 +421,23 @@ def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms
     vol, _ = nonlocal_region(cap["coded"], cap["mask"], D, first, s)
     assert np.isfinite(vol).all() and -64 < vol.min() and vol.max() < 320
     assert evaluate(vol, video)["psnr"] > evaluate(first, video)["psnr"] - 0.5
+
+
+def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
+    """N = 16 Bernoulli: more pixel patterns than the groups' table holds; the tiles give the default's answer,
+    and the metrics and a warning say so (it was silent, with method: nonlocal)."""
+    from codedvideo.stages import reconstruct_capture
+    from codedvideo.units import infer_data_range
+
+    rng = np.random.default_rng(3)
+    mask = (rng.random((16, 40, 40)) < 0.5).astype(np.uint8)
+    video = smooth_scene(rng, 40, 40, 16)
+    coded = (mask * video).sum(0).astype(np.float32)
+    D = random_dictionary(rng, 16 * M, 512)
+    s = OmpSettings(max_atoms=6, tol_rms=1.0)
+    common = dict(data_range=infer_data_range(255.0), settings=s, dictionary=D, tile=16, progress=False)
+    plain, _ = reconstruct_capture("omp", coded, mask, cache=tmp_path / "a", **common)
+    with pytest.warns(UserWarning, match="--method nonlocal .* distinct pixel shutter patterns"):
+        vol, info = reconstruct_capture("nonlocal", coded, mask, cache=tmp_path / "b", **common)
+    assert info["method"] == "omp" and "patterns" in info["nonlocal_unavailable"]
+    np.testing.assert_array_equal(vol, plain)

@@ -78,6 +78,21 @@ def test_every_writer_renames_a_finished_temporary_into_place(tmp_path, monkeypa
     assert left == [], left
 
 
+@pytest.mark.parametrize("name", [w for w in WRITERS if w != "capture"])
+def test_a_killed_writers_temporary_is_removed_by_the_next_write(tmp_path, frames, name):
+    """SIGKILL leaves the hidden temporary; the next write of that output removes it (a .zarr's was never)."""
+    target = tmp_path / name
+    stem, suffix = (target.name.split(".", 1)[0], "." + target.name.split(".", 1)[1]) if "." in name else (name, "")
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    left = [tmp_path / f".{stem}.tmp-{int(dead.stdout)}-0123abcd{suffix}",  # atomic_output's name
+            tmp_path / f".{name}.tmp-{int(dead.stdout)}-4567cdef"]  # the Zarr stores' name
+    for tmp in left:
+        tmp.mkdir()
+        (tmp / "chunk").write_bytes(b"partial")
+    _write(name, target, frames)
+    assert target.exists() and not any(tmp.exists() for tmp in left)
+
+
 def test_no_module_writes_files_outside_the_atomic_writers():
     """Static check: every file write in the package sits inside a ``with ...atomic_output(...)`` block.
 

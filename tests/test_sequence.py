@@ -184,8 +184,14 @@ def test_the_still_path_is_exact_for_a_still_scene(tmp_path, capsys, new_code):
     for name in ("coded", "mask", "truth"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     _run(capsys, "reconstruct", "--coded", tmp_path / "coded.npy", "--mask", tmp_path / "mask.npy", "--output",
-         tmp_path / "r.npy", "--cache", tmp_path / "cache", "--method", "dct")
+         tmp_path / "r.npy", "--cache", tmp_path / "cache", "--method", "dct", "--truth", tmp_path / "truth.npy")
     np.testing.assert_allclose(np.load(tmp_path / "r.npy"), still, atol=1e-3)
+
+    def strict(name):
+        raise AssertionError(f"{name} is not JSON")
+
+    printed = json.loads(capsys.readouterr().out, parse_constant=strict)  # exact frames: null, not Infinity
+    assert printed["psnr"] is None or printed["psnr"] > 60
     metrics = json.loads((tmp_path / "r.metrics.json").read_text())
     assert all(e["reconstruction"]["still_pixels"] == H * W for e in metrics["captures"])
     assert all(e["reconstruction"]["patches"] == 0 for e in metrics["captures"])

@@ -127,6 +127,17 @@ def test_ksvd_on_all_zero_training_data_stays_finite(rng):
     np.testing.assert_allclose(np.linalg.norm(D, axis=0), 1.0, rtol=1e-4)
 
 
+def test_training_on_a_flat_video_is_refused_not_a_dictionary_of_one_atom():
+    """(It trained, silently, a dictionary whose every atom was the flat one: 21 dB against 23.6 trivial.)"""
+    from codedvideo.dictionaries import learn_dictionary
+
+    with pytest.raises(InputError, match="training patches drawn is flat"):
+        learn_dictionary([np.full((24, 32, 32), 128.0, np.float32)], frames=4, atoms=40, samples=500, iterations=1)
+    video = make_scene("default", frames=24, size=(32, 32))  # the same call on a moving scene trains
+    D, _ = learn_dictionary([video], frames=4, atoms=40, samples=500, iterations=1)
+    assert np.linalg.matrix_rank(D) > 30
+
+
 # ----------------------------------------------------------------------------- extreme coded images
 def _scene(kind):
     yy, xx = np.mgrid[0:H, 0:W]

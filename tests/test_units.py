@@ -117,6 +117,8 @@ def test_data_range_inference_rules():
     assert infer_data_range(200.0, dtype=np.uint16).value == 255.0
     assert infer_data_range(0.5, dtype=np.uint16).value == 255.0  # integers are never [0, 1]
     assert infer_data_range(3000.0).value == 4095.0
+    assert infer_data_range(268.0).value == 4095.0  # past 8 bits with 5 % room ...
+    assert infer_data_range(268.0, noise=30.0).value == 255.0  # ... but within the known read noise's peaks
     assert infer_data_range(60000.0, dtype=np.uint16).value == 65535.0
     assert infer_data_range(3e5).value == 2 ** 19 - 1
     assert infer_data_range(3.0, dtype=np.uint8).value == 255.0
@@ -180,3 +182,22 @@ def test_a_metrics_file_that_another_output_of_the_stem_replaced_is_not_taken_fo
     with pytest.warns(UserWarning, match="v.metrics.json describes .*v.npy, not .*v.mkv"):
         assert main(evaluate) == 0
     assert alone > 20 and abs(json.loads(capsys.readouterr().out)["psnr"] - alone) < 0.05
+
+
+def test_a_noisy_8_bit_capture_keeps_its_range_and_one_just_past_8_bits_is_warned(tmp_path, capsys):
+    """Read noise sigma 30 lifts coded / open count to 268: with --noise-sigma the range stays 255 (it was
+    taken as 4095, which scored the same result 24 dB higher); without, a warning says why it is 4095."""
+    import json
+
+    from codedvideo.cli import main
+
+    cap = tmp_path / "cap"
+    assert main(["-q", "simulate", "synth:default", "--frames", "8", "--size", "64", "64", "--noise-sigma", "40",
+                 "--seed", "0", "--output", str(cap)]) == 0
+    args = ["-q", "reconstruct", "--coded", str(cap / "coded.npy"), "--mask", str(cap / "mask.npy"), "--method",
+            "dct", "--cache", str(tmp_path / "cache")]
+    capsys.readouterr()
+    assert main([*args, "--output", str(tmp_path / "a.npy"), "--noise-sigma", "40"]) == 0
+    assert json.loads(capsys.readouterr().out)["data_range"] == 255.0
+    with pytest.warns(UserWarning, match="data range 4095 found from a peak of .* just above 8-bit"):
+        assert main([*args, "--output", str(tmp_path / "b.npy")]) == 0

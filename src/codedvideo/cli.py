@@ -496,7 +496,7 @@ def _cmd_reconstruct(a) -> int:
     a CACTI file's measurements (concatenated time-first, (T*N, H, W)) or a colour image's channels
     (stacked first, (C, N, H, W)).  Each result is written as soon as it is done (streamed for .npy);
     one metrics JSON with an entry per coded image and the totals."""
-    from .metrics import evaluate
+    from .metrics import evaluate, json_safe
     from .volumes import write_json, metrics_path, volume_writer
     from .stages import reconstruct_captures, trivial_estimate
     from .units import infer_data_range, static_peak, tolerance_warning
@@ -515,7 +515,10 @@ def _cmd_reconstruct(a) -> int:
     if peak <= 0 and out.data_range is None:
         raise InputError(f"{job.source}: no coded value above 0 where the code is open; nothing to reconstruct "
                          "(check the file and the black level)")
-    units = infer_data_range(peak, dtype=job.dtype, given=out.data_range)
+    units = infer_data_range(peak, dtype=job.dtype, given=out.data_range, noise=noise.sigma)
+    if out.data_range is None and units.value > 255 and peak <= 2 * 255:  # just past 8 bits: noise, or a dark frame?
+        warnings.warn(f"{job.source}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
+                      "just above 8-bit; if the frames are 8-bit with noise, give --noise-sigma or --data-range 255")
     settings = omp_settings(rc, noise.sigma, scale=units.scale)
     if a.method in ("omp", "nonlocal", "dct"):
         message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
@@ -633,7 +636,7 @@ def _cmd_reconstruct(a) -> int:
     mark_written(mpath)
     summary.update(metrics=str(mpath), seconds=round(seconds, 2), patches_per_second=round(patches_per_second),
                    data_range=units.value)
-    print(json.dumps(summary))
+    print(json.dumps(json_safe(summary), allow_nan=False))  # strict JSON, as the metrics file: an exact PSNR is null
     return 0
 
 

@@ -220,6 +220,11 @@ def learn_dictionary(
     n_feat = frames * patch * patch
     t0 = time.perf_counter()
     X = training_patches(videos, frames=frames, samples=samples, rng=rng, patch=patch)
+    spread = np.ptp(X, axis=1) if X.size else np.zeros(0)
+    if not (spread > 1e-3 * max(1.0, float(np.abs(X).max(initial=0.0)))).any():
+        raise InputError(f"training videos: every one of the {X.shape[0]} training patches drawn is flat (no change "
+                         "in space or time), so K-SVD has nothing to learn (a dictionary of one flat atom); train on "
+                         "videos with texture and motion")
     D0 = dct_dictionary(frames, patch=patch)
     if atoms - D0.shape[1] > X.shape[0]:  # (a config checks samples; short videos can give fewer patches)
         raise InputError(f"dictionary of {atoms} atoms: K-SVD starts from the {D0.shape[1]} DCT atoms and draws the "

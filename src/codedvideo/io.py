@@ -28,6 +28,7 @@ import json
 import os
 import re
 import shutil
+import time
 import uuid
 from pathlib import Path
 
@@ -87,25 +88,34 @@ def atomic_output(path: str | os.PathLike):
         _rename_into_place(tmp, path)
     except BaseException:
         if tmp.is_dir():
-            shutil.rmtree(tmp, ignore_errors=True)
+            # a chunk write of zarr's I/O thread still in flight when Ctrl-C came can land after the removal
+            for _ in range(5):
+                shutil.rmtree(tmp, ignore_errors=True)
+                if not tmp.exists():
+                    break
+                time.sleep(0.02)
         else:
             tmp.unlink(missing_ok=True)
         raise
 
 
 def _remove_dead_temporaries(path: Path) -> None:
-    """Remove temporaries of ``path`` that a killed process left (its pid, in the name, no longer runs)."""
-    pattern = re.compile(rf"^\.{re.escape(path.stem)}\.tmp-(\d+)-[0-9a-f]{{8}}{re.escape(path.suffix)}$")
+    """Remove temporaries of ``path`` that a killed process left (its pid, in the name, no longer runs):
+    ``.STEM.tmp-PID-HEX.SUFFIX`` (:func:`atomic_output`) and ``.NAME.tmp-PID-HEX`` (the Zarr stores of
+    :mod:`codedvideo.store`)."""
+    pattern = re.compile(rf"^\.(?:{re.escape(path.stem)}\.tmp-(\d+)-[0-9a-f]{{8}}{re.escape(path.suffix)}|"
+                         rf"{re.escape(path.name)}\.tmp-(\d+)-[0-9a-f]{{8}})$")
     try:
         siblings = list(path.parent.iterdir())
     except OSError:
         return
     for sib in siblings:
         m = pattern.match(sib.name)
-        if not m or int(m.group(1)) == os.getpid():
+        pid = int(m.group(1) or m.group(2)) if m else None
+        if pid is None or pid == os.getpid():
             continue
         try:
-            os.kill(int(m.group(1)), 0)
+            os.kill(pid, 0)
             continue  # still running: its own temporary
         except ProcessLookupError:
             pass

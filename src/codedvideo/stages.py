@@ -342,7 +342,8 @@ def sparse_volumes(
                                       *(() if still is None else (np.asarray(still, np.uint8),)))
                     if key not in opened:
                         _allow_open_files(len(opened) + 65, cache)  # a lock held per store until the job ends
-                        entry = Path(cache) / f"recon-{key}.zarr"
+                        # absolute: a dask.distributed worker started in another folder opens it too
+                        entry = Path(cache).absolute() / f"recon-{key}.zarr"
                         # One run at a time per entry (processes, threads, clients of one dask cluster): a
                         # second run waits here, then reuses the tiles the first one finished.
                         locks.enter_context(entry_lock(entry))
@@ -553,6 +554,7 @@ def reconstruct_captures(
     results = (sparse_volumes(count, for_sparse, dictionary, settings=settings, tile=tile, cache=cache,
                               scheduler=scheduler, workers=workers, progress=progress, dictionary_key=dictionary_key)
                if sparse else ((i, None, None) for i in range(count)))
+    warned_nonlocal = False
     with contextlib.closing(results) if sparse else contextlib.nullcontext():
         for i, volume, info in results:
             coded_used, mask_used, still, moving, saturated = used(i)
@@ -562,6 +564,13 @@ def reconstruct_captures(
                 volume, info = reconstruct_method(method, coded_used, mask_used)
             if sparse and info.get("method") != "static":  # (the static estimate says so)
                 info = dict(info, method=method, dictionary_atoms=int(dictionary.shape[1]))
+                problem = _nonlocal_unavailable(mask_used, dictionary) if method == "nonlocal" else None
+                if problem:  # its tiles gave the default's answer: said, not hidden
+                    info.update(method="omp", nonlocal_unavailable=problem)
+                    if not warned_nonlocal:
+                        warnings.warn(f"--method nonlocal ({where}): {problem}; the result is the default per-patch "
+                                      "OMP's (for every capture with such a code: nonlocal_unavailable in the metrics)")
+                        warned_nonlocal = True
             if still is not None and not sparse:  # no patches: the pixels whose every patch would be still
                 inner = erode_to_patches(still, PATCH)
                 q = normalised(codeds[i], mask_of(i))[0] * scale
@@ -574,6 +583,19 @@ def reconstruct_captures(
             info["saturated_pixels"] = saturated
             del coded_used, mask_used
             yield i, volume, info
+
+
+def _nonlocal_unavailable(mask: np.ndarray, D: np.ndarray) -> str | None:
+    """Why the non-local method cannot solve a capture with this mask (it then gives the default's answer,
+    :func:`codedvideo.nonlocal_sc.nonlocal_region`), or None."""
+    from .omp import pixel_patterns
+    from .omp_kernel import table_fits
+
+    patterns, _ = pixel_patterns(mask)
+    if table_fits(len(patterns), D, PATCH * PATCH):
+        return None
+    return (f"the code has {len(patterns)} distinct pixel shutter patterns, more than the table its groups are "
+            "solved through holds")
 
 
 def reconstruct_capture(method: str, coded: np.ndarray, mask: np.ndarray, *, still: np.ndarray | None = None,
@@ -667,7 +689,8 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         sensor = sensor_model(cfg.noise)
         # with shot noise / quantisation: the RMS noise at the mean coded level
         sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
-        units = infer_data_range(static_peak(capture["coded"], capture["mask"]), given=cfg.output.data_range)
+        units = infer_data_range(static_peak(capture["coded"], capture["mask"]), given=cfg.output.data_range,
+                                 noise=cfg.noise.sigma)
         report["data_range"] = units.as_dict()
         t0 = time.perf_counter()
         # saturated pixels (noise.white_level) are missing measurements

@@ -217,10 +217,13 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
         atoms=int(D.shape[1]),
         sha256=hashlib.sha256(D.tobytes()).hexdigest(),
     )
+    from .io import _remove_dead_temporaries
+
     tmp = _tmp_sibling(path)
     zipped = path.suffix.lower() == ".zip"  # one file (the shipped dictionaries): a zipped Zarr store
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        _remove_dead_temporaries(path)  # what a killed run left
         store = zarr.storage.ZipStore(tmp, mode="w") if zipped else str(tmp)
         group = zarr.open_group(store, mode="w", attributes=json.loads(json.dumps(attrs)))
         arr = group.create_array("atoms", shape=D.shape, chunks=D.shape, dtype="float32")
@@ -231,8 +234,11 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
         else:
             _replace_dir(tmp, path)
     except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink(missing_ok=True)
+        _discard(tmp)
         raise OutputError(f"dictionary {path}: cannot write ({exc.strerror or exc})") from exc
+    except BaseException:  # Ctrl-C, SIGTERM: no temporary left
+        _discard(tmp)
+        raise
     return path
 
 
@@ -685,21 +691,17 @@ def array_writer(path: str | os.PathLike, shape: tuple, dtype, *, chunks=None, a
     without an error do its attributes (with the format version) go in and
     the store appear under ``path``, so a reader never sees it half-written.
     """
+    from .io import atomic_output  # (its temporaries' names, so a killed run's is found and removed)
+
     path = Path(path)
-    tmp = _tmp_sibling(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        arr = zarr.create_array(str(tmp), shape=tuple(shape), chunks=chunks or tuple(shape), dtype=dtype)
-        yield arr
-        if attrs:
-            arr.update_attributes(json.loads(json.dumps(dict(attrs, format_version=FORMAT_VERSION))))
-        _replace_dir(tmp, path)
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise OutputError(f"{path}: cannot write Zarr array ({exc.strerror or exc})") from exc
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with atomic_output(path) as tmp:
+        try:
+            arr = zarr.create_array(str(tmp), shape=tuple(shape), chunks=chunks or tuple(shape), dtype=dtype)
+            yield arr
+            if attrs:
+                arr.update_attributes(json.loads(json.dumps(dict(attrs, format_version=FORMAT_VERSION))))
+        except OSError as exc:
+            raise OutputError(f"{path}: cannot write Zarr array ({exc.strerror or exc})") from exc
 
 
 def load_array(path: str | os.PathLike) -> np.ndarray:
