@@ -1,4 +1,6 @@
 """The same graph on a real dask.distributed scheduler with two workers on loopback."""
+import os
+
 import numpy as np
 import pytest
 
@@ -159,3 +161,59 @@ def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_pa
     assert len(remote) == 4
     for got, want in zip(remote, local):
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.slow
+def test_a_scheduler_lost_mid_run_is_one_line_and_the_rerun_resumes(tmp_path):
+    """The scheduler process dies while tiles run: one line naming it (it was ~80 lines of tracebacks),
+    exit 2, no output; the finished tiles are in the cache and a local rerun gives the local result."""
+    import subprocess
+    import sys
+    import time
+
+    pytest.importorskip("distributed")
+    coded, mask, D = _scene((96, 128))
+    from codedvideo.store import save_dictionary
+
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    save_dictionary(tmp_path / "d.zarr", D, dict(patch=7, frames=4))
+    bin_dir = os.path.dirname(sys.executable)
+    scheduler = subprocess.Popen([os.path.join(bin_dir, "dask"), "scheduler", "--host", "127.0.0.1", "--port", "0",
+                                  "--no-dashboard"], stderr=subprocess.PIPE, text=True)
+    worker = None
+    try:
+        address = None
+        t0 = time.monotonic()
+        while address is None and time.monotonic() - t0 < 60:
+            line = scheduler.stderr.readline()
+            if "Scheduler at:" in line:
+                address = line.split("Scheduler at:")[1].strip()
+        assert address, "the scheduler did not start"
+        worker = subprocess.Popen([os.path.join(bin_dir, "dask"), "worker", address, "--nthreads", "1",
+                                   "--no-dashboard"], stderr=subprocess.DEVNULL)
+        args = [sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),
+                "--mask", str(tmp_path / "mask.npy"), "--dictionary", str(tmp_path / "d.zarr"), "--tile", "8",
+                "--static-atoms", "0", "--tol-rms", "0.5", "--cache", str(tmp_path / "cache")]
+        run = subprocess.Popen([*args, "--output", str(tmp_path / "out" / "r.npy"), "--scheduler", address],
+                               stderr=subprocess.PIPE, text=True)
+        t0 = time.monotonic()
+        while run.poll() is None and time.monotonic() - t0 < 120 and _finished_tiles(tmp_path / "cache") < 10:
+            time.sleep(0.02)
+        assert run.poll() is None, "finished before the scheduler could be stopped"
+        scheduler.kill()
+        _, err = run.communicate(timeout=120)
+    finally:
+        for proc in (scheduler, worker):
+            if proc is not None:
+                proc.kill()
+                proc.wait()
+    lines = err.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1, err
+    assert "scheduler" in lines[0] and "lost" in lines[0] and "resume" in lines[0]
+    assert not (tmp_path / "out" / "r.npy").exists()
+    rerun = subprocess.run([*args, "--output", str(tmp_path / "out" / "r.npy")], capture_output=True, text=True)
+    assert rerun.returncode == 0, rerun.stderr
+    local, _ = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0),
+                                  tile=8, cache=tmp_path / "local", progress=False)
+    np.testing.assert_array_equal(np.load(tmp_path / "out" / "r.npy"), local)

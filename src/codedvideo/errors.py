@@ -23,3 +23,7 @@ class ConfigError(CodedVideoError, ValueError):
 
 class OutputError(CodedVideoError, OSError):
     """An output cannot be written."""
+
+
+class SchedulerError(CodedVideoError, RuntimeError):
+    """A dask.distributed scheduler cannot be reached, or was lost during a run."""

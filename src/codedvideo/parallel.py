@@ -38,6 +38,7 @@ import dask.threaded
 import numpy as np
 from dask.highlevelgraph import HighLevelGraph
 
+from .errors import CodedVideoError, SchedulerError
 from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
 from .store import WorkStore, write_tiles
 
@@ -483,22 +484,45 @@ def _stream_local(tasks, needs, scheduler, workers, bar) -> Iterator[int]:
 
 
 def _stream_distributed(tasks, needs, address, bar) -> Iterator[int]:
-    from distributed import Client, wait
+    import asyncio
+    import concurrent.futures
 
-    with Client(address) as client:
-        futures = client.compute(tasks)
-        counted = 0
-        try:
-            for j, need in enumerate(needs):
-                wait([futures[i] for i in need])
-                for i in need:
-                    futures[i].result()  # raises the task's error
-                done = sum(f.done() for f in futures)
-                bar.update(done - counted)
-                counted = done
-                yield j
-        finally:
-            client.cancel([f for f in futures if not f.done()])
+    from distributed import Client, wait
+    from distributed.comm.core import CommClosedError
+
+    # (not OSError at large: a task's own error, a full disk on a worker say, is raised as it is)
+    lost = (CommClosedError, asyncio.CancelledError, concurrent.futures.CancelledError, ConnectionError)
+    # the client's own log of a lost connection is pages of tracebacks: the one line below says it
+    quiet = [logging.getLogger(name) for name in ("distributed", "tornado", "asyncio")]
+    quiet += [logging.getLogger(name) for name in list(logging.root.manager.loggerDict)
+              if name.startswith(("distributed.", "tornado."))]
+    levels = [q.level for q in quiet]
+    for q in quiet:
+        q.setLevel(logging.CRITICAL)
+    try:
+        with Client(address) as client:
+            futures = client.compute(tasks)
+            counted = 0
+            try:
+                for j, need in enumerate(needs):
+                    wait([futures[i] for i in need])
+                    for i in need:
+                        futures[i].result()  # raises the task's error
+                    done = sum(f.done() for f in futures)
+                    bar.update(done - counted)
+                    counted = done
+                    yield j
+            finally:
+                with contextlib.suppress(Exception):  # (a scheduler that is gone cancels nothing)
+                    client.cancel([f for f in futures if not f.done()])
+    except CodedVideoError:
+        raise
+    except lost as exc:  # the scheduler went away: the finished tiles are in the cache
+        raise SchedulerError(f"scheduler {address}: the connection was lost mid-run ({type(exc).__name__}); "
+                             "the tiles finished are kept: run again to resume from the cache") from exc
+    finally:
+        for q, level in zip(quiet, levels):
+            q.setLevel(level)
 
 
 @dataclass(frozen=True)
