@@ -235,6 +235,37 @@ def test_cli_reconstruct_treats_saturated_pixels_as_missing(tmp_path, capsys):
     assert json.loads((tmp_path / "r2.metrics.json").read_text())["reconstruction"]["saturated_pixels"] == 0
 
 
+@pytest.mark.parametrize("code", ["hitomi", "bernoulli"])
+def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_path, code):
+    """A saturated pixel's value is a lower bound: after the reconstruction that left it out, its frames are
+    raised (along its own shutter weights) wherever they record less than the white level; that is never
+    worse than leaving them out alone (measured +0.03 to +0.83 dB)."""
+    import warnings
+
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.metrics import evaluate
+    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.stages import drop_saturated, reconstruct_capture
+    from codedvideo.synth import make_scene
+    from codedvideo.units import infer_data_range
+
+    video = make_scene("default", frames=8, size=(48, 48))
+    mask = make_code(code, (48, 48), frames=8, bump=2, rng=1)
+    W = 380.0
+    coded = np.minimum(simulate(video, mask), W).astype(np.float32)
+    common = dict(data_range=infer_data_range(255.0), settings=OmpSettings(max_atoms=8, tol_rms=2.0),
+                  dictionary=dct_dictionary(8), tile=48, progress=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # (the never-open notice)
+        vol, info = reconstruct_capture("omp", coded, mask, white_level=W, cache=tmp_path / "a", **common)
+        left_out, _ = reconstruct_capture("omp", *drop_saturated(coded, mask, W)[:2], cache=tmp_path / "b", **common)
+    saturated = coded >= W
+    assert saturated.mean() > 0.01 and info["saturated_raised"] > 0
+    assert ((mask * vol).sum(0)[saturated] >= W - 1e-2).all()
+    np.testing.assert_array_equal(vol[:, ~saturated], left_out[:, ~saturated])
+    assert evaluate(vol, video)["psnr"] > evaluate(left_out, video)["psnr"]
+
+
 def test_pipeline_white_level_and_shot_noise(tmp_path):
     from codedvideo.config import PipelineConfig
     from codedvideo.stages import run_pipeline

@@ -571,6 +571,9 @@ def reconstruct_captures(
                         warnings.warn(f"--method nonlocal ({where}): {problem}; the result is the default per-patch "
                                       "OMP's (for every capture with such a code: nonlocal_unavailable in the metrics)")
                         warned_nonlocal = True
+            if saturated:  # a saturated pixel recorded at least the white level: no frame sum below it
+                info["saturated_raised"] = physics.raise_to_white(volume, np.asarray(codeds[i]) >= np.float32(white_level),
+                                                                  mask_of(i), float(white_level) * float(scale))
             if still is not None and not sparse:  # no patches: the pixels whose every patch would be still
                 inner = erode_to_patches(still, PATCH)
                 q = normalised(codeds[i], mask_of(i))[0] * scale
