@@ -53,7 +53,7 @@ import numpy as np
 from . import patches as P
 from .omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, is_binary, pixel_patterns, synthesize
 from .omp_kernel import TableOMP, block_match, scatter_patches, somp_kernel, table_fits
-from .reconstruct import OmpSettings, still_patches
+from .reconstruct import OmpSettings, still_answers, still_patches
 
 #: Names of the statistics, in the order of the stats vector.
 STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_static", "seconds_match",
@@ -223,8 +223,7 @@ def nonlocal_region(
             stats[4] = ok.sum()
     if calm.any():  # their still answer, each pixel's value in every sub-frame, after the still test's rows
         rows = np.flatnonzero(ref & calm)
-        q = y_all[rows] / np.maximum(n_pix[rows], 1e-12).astype(np.float32)
-        still_est = np.concatenate([still_est, np.broadcast_to(q[:, None, :], (rows.size, n, m)).reshape(-1, F)])
+        still_est = np.concatenate([still_est, still_answers(y_all[rows], n_pix[rows], n)])
         order = np.concatenate([np.flatnonzero(still_ok), rows])
         still_ok[rows] = True
         stats[4] += rows.size

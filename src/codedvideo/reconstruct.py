@@ -113,6 +113,13 @@ def _still_basis(patch: int) -> np.ndarray:
     return C
 
 
+def still_answers(y: np.ndarray, n_pix: np.ndarray, frames: int) -> np.ndarray:
+    """The still answer of patches ``y`` (P, m): ``coded / open count`` of every pixel in each of the
+    ``frames`` sub-frames, as rows of ``frames * m`` (a pixel never open: 0)."""
+    q = y / np.maximum(n_pix, 1e-12).astype(np.float32)
+    return np.broadcast_to(q[:, None, :], (q.shape[0], frames, q.shape[1])).reshape(q.shape[0], -1)
+
+
 def still_patches(
     y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, atoms: int, *, frames: int, patch: int = P.PATCH
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -311,8 +318,7 @@ def reconstruct_region(
         if still_rows is not None and rows.size:
             calm = still_rows[sl][rows]
             if calm.any():
-                q = y[rows[calm]] / np.maximum(n_pix[sl][rows[calm]], 1e-12).astype(np.float32)
-                est[rows[calm]] = np.broadcast_to(q[:, None, :], (q.shape[0], n, m)).reshape(q.shape[0], n * m)
+                est[rows[calm]] = still_answers(y[rows[calm]], n_pix[sl][rows[calm]], n)
                 n_static += int(calm.sum())
                 rows = rows[~calm]
         if settings.static_atoms > 0 and rows.size:
@@ -332,8 +338,7 @@ def reconstruct_region(
             est[rows] = synthesize(res, D)
             dark = res.count == 0  # coded values within the tolerance: the still answer, not 0
             if dark.any():
-                q = y[rows[dark]] / np.maximum(n_pix[sl][rows[dark]], 1e-12).astype(np.float32)
-                est[rows[dark]] = np.broadcast_to(q[:, None, :], (q.shape[0], n, m)).reshape(q.shape[0], n * m)
+                est[rows[dark]] = still_answers(y[rows[dark]], n_pix[sl][rows[dark]], n)
             atoms += int(res.count.sum())
             hit += int((res.count >= settings.max_atoms).sum())
             dep += int(res.dependent.sum())
