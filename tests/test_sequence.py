@@ -513,3 +513,25 @@ def test_a_capture_where_nothing_moves_fills_its_never_open_pixels(tmp_path, cap
     metrics = json.loads((tmp_path / "r.metrics.json").read_text())
     assert all(e["reconstruction"]["never_open_pixels"] == int(holes.sum()) for e in metrics["captures"])
     assert all(e["reconstruction"]["method"] == "static" for e in metrics["captures"])
+
+
+def test_pixels_never_open_in_several_captures_are_one_warning(tmp_path, capsys):
+    """A Bernoulli code new each capture leaves a few pixels of every capture never open: one warning for
+    the job (it was one line per capture)."""
+    import warnings
+
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+
+    video = make_scene("default", frames=4 * N, size=(H, W))
+    cap = simulate_capture(video, code="bernoulli", bump=2, sigma=0, seed=2, captures=4, new_code_per_capture=True)
+    closed = [int((~cap["mask"][t].any(0)).sum()) for t in range(4)]
+    assert sum(c > 0 for c in closed) >= 2, closed
+    for name in ("coded", "mask"):
+        np.save(tmp_path / f"{name}.npy", cap[name])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _run(capsys, "reconstruct", "--coded", tmp_path / "coded.npy", "--mask", tmp_path / "mask.npy", "--output",
+             tmp_path / "r.npy", "--cache", tmp_path / "cache", "--method", "dct", "--independent-captures")
+    said = [str(w.message) for w in caught if "never open" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith(f"{sum(closed)} pixels are never open in"), said

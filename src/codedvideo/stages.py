@@ -243,9 +243,6 @@ def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray) -> int:
     never_open = int((~mask.astype(bool).any(0)).sum())
     if never_open == h * w:
         raise InputError("mask: no pixel is ever open; there is nothing to reconstruct")
-    if never_open:
-        warnings.warn(f"{never_open} pixels are never open (or were left out as saturated or defective); they are "
-                      "filled from their neighbours", stacklevel=3)
     return never_open
 
 
@@ -326,6 +323,7 @@ def sparse_volumes(
     stores: list[tuple[WorkStore, StorePlan]] = []  # per sparse-coded capture (equal captures: the same pair)
     opened: dict[str, tuple[WorkStore, StorePlan]] = {}
     seconds_plan = []
+    unopened: list[int] = []  # never-open pixels of each capture that has some: one warning for the job
     with contextlib.ExitStack() as locks:
         for i in range(count):
             t0 = time.perf_counter()
@@ -334,7 +332,9 @@ def sparse_volumes(
                 plan.append(None)
             else:
                 coded, mask, still = pair
-                _check_capture(coded, mask, D)
+                never_open = _check_capture(coded, mask, D)
+                if never_open:
+                    unopened.append(never_open)
                 if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
                     plan.append("static")
                 else:
@@ -358,6 +358,11 @@ def sparse_volumes(
                     stores.append(opened[key])
                 del pair
             seconds_plan.append(time.perf_counter() - t0)
+        if unopened:
+            where = "" if count == 1 else (f" in {len(unopened)} of {count} captures ({min(unopened)} to "
+                                           f"{max(unopened)} each)")
+            warnings.warn(f"{sum(unopened)} pixels are never open{where} (or were left out as saturated or defective); "
+                          "they are filled from their neighbours", stacklevel=2)
         solved = reconstruct_stores([store for store, _ in stores], [p for _, p in stores], D, settings, patch=PATCH,
                                     scheduler=scheduler, workers=workers, progress=progress)
         t_wait = time.perf_counter()
