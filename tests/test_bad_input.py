@@ -381,6 +381,25 @@ def test_learning_more_atoms_than_its_samples_can_give_is_one_line_from_the_api_
         learn_dictionary([video], frames=4, atoms=4 * 49 + 300, samples=200, iterations=1)
 
 
+def test_a_calibrated_code_for_a_cacti_file_is_refused_before_anything_is_written(tmp_path, capsys):
+    """(The capture files were written, then the CACTI file refused the mask.)"""
+    np.save(tmp_path / "cal.npy", np.random.default_rng(0).uniform(0, 1, (N, H, W)).astype(np.float32))
+    fails(capsys, ["simulate", "synth:default", "--frames", N, "--size", H, W, "--code", "file", "--code-file",
+                   tmp_path / "cal.npy", "--cacti-out", tmp_path / "c.mat", "--output", tmp_path / "cap"],
+          "c.mat", "cal.npy", "calibrated", root=tmp_path)
+
+
+@pytest.mark.parametrize("raw", [False, True])
+def test_one_saturated_capture_of_a_stack_is_named_not_all_of_them(files, tmp_path, capsys, raw):
+    """A flash in capture 3 of 4: the error said every pixel of the coded image was saturated."""
+    coded = np.rint(np.load(files / "coded.npy"))  # (raw counts are whole numbers)
+    stack = np.stack([coded, coded, np.full_like(coded, 4095.0), coded])
+    np.save(tmp_path / "stack.npy", stack)
+    options = ["--bits", 12] if raw else ["--white-level", 3000]
+    fails(capsys, [*reconstruct_args(files, tmp_path, coded=tmp_path / "stack.npy"), *options],
+          "stack.npy, capture 3 of 4", root=tmp_path)
+
+
 def test_options_that_do_not_go_together_are_one_line(files, tmp_path, capsys):
     """A dictionary for a method that has none, and --code file without its file: one line each, naming
     the options as the command line spells them, before any work."""

@@ -284,3 +284,24 @@ def test_pipeline_white_level_and_shot_noise(tmp_path):
     written = json.loads((tmp_path / "o" / "recon.metrics.json").read_text())
     assert written["reconstruction"]["saturated_pixels"] == n_sat
     assert written["config"]["noise"]["bits"] == 10
+
+
+def test_shot_noise_far_past_the_full_well_saturates_instead_of_failing():
+    """numpy's Poisson sampler refuses means past ~1e19 (gain 1e17, or values near 1e30): it was a traceback."""
+    out = add_shot_noise(np.array([[1.0, 128.0], [1e30, 0.0]], np.float32), gain=1e17, full_well=20000.0, rng=0)
+    np.testing.assert_array_equal(out, np.float32(20000.0 / 1e17) * np.array([[1, 1], [1, 0]], np.float32))
+
+
+def test_a_capture_at_the_sensors_ceiling_everywhere_is_warned(tmp_path, capsys):
+    """A 16-bit video through the default sensor (ceiling 2000 grey levels) came out one flat value, silently."""
+    y, x = np.mgrid[0:32, 0:32]
+    video = np.stack([128 + 100 * np.sin((x + 2 * t) / 6) * np.cos(y / 9) for t in range(8)]) * 128
+    np.save(tmp_path / "v16.npy", video.astype(np.uint16))
+    np.save(tmp_path / "v8.npy", (video / 128).astype(np.float32))
+    with pytest.warns(UserWarning, match="100% of the pixels of capture 1 are at the sensor's ceiling"):
+        assert _cli("simulate", tmp_path / "v16.npy", "--frames", 8, "--shot-noise", "--output", tmp_path / "a") == 0
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the same sensor on the 8-bit video: nothing to say
+        assert _cli("simulate", tmp_path / "v8.npy", "--frames", 8, "--shot-noise", "--output", tmp_path / "b") == 0

@@ -217,9 +217,18 @@ def test_bad_pixel_npy_lists_and_missing_files(tmp_path):
     np.save(tmp_path / "out.npy", np.array([[1, 2], [5, 99]]))
     with pytest.raises(InputError, match=rf"bad-pixel list {tmp_path / 'out.npy'}: row 2 \(y=5, x=99\) is outside"):
         sensor.read_bad_pixels(tmp_path / "out.npy", (H, W))
-    np.save(tmp_path / "shape.npy", np.zeros((3, 3), np.int64))
+    np.save(tmp_path / "shape.npy", np.full((3, 3), 7, np.int64))
     with pytest.raises(InputError, match=r"shape.npy: expected an array of shape \(K, 2\)"):
         sensor.read_bad_pixels(tmp_path / "shape.npy", (H, W))
+    np.save(tmp_path / "small-map.npy", np.zeros((32, 32), bool))  # a map of the wrong size says so
+    with pytest.raises(InputError, match=r"small-map.npy: a map of 32x32 pixels, the image has 64x64"):
+        sensor.read_bad_pixels(tmp_path / "small-map.npy", (H, W))
+    ones = np.zeros((H, W), np.uint8)  # a map of 0 and 1 (uint8, as image tools save it), and a list with a BOM
+    ones[3, 5] = 1
+    np.save(tmp_path / "map-u8.npy", ones)
+    np.testing.assert_array_equal(sensor.read_bad_pixels(tmp_path / "map-u8.npy", (H, W)), [[3, 5]])
+    (tmp_path / "bom.txt").write_text("\ufeff3 5\n", encoding="utf-8")
+    np.testing.assert_array_equal(sensor.read_bad_pixels(tmp_path / "bom.txt", (H, W)), [[3, 5]])
     np.save(tmp_path / "frac.npy", np.array([[1.5, 2.0]]))
     with pytest.raises(InputError, match=r"frac.npy: row 1 \(1.5 2\) is not two integers"):
         sensor.read_bad_pixels(tmp_path / "frac.npy", (H, W))

@@ -276,6 +276,13 @@ def _cmd_simulate(a) -> int:
         raise ConfigError(f"option --captures all: only for a video file (give a number for {a.video})")
     if a.cacti_out and a.new_code_per_capture:
         raise ConfigError("option --cacti-out: a CACTI file has one mask; it does not go with --new-code-per-capture")
+    if a.cacti_out and code_cfg.path:  # a CACTI file holds a binary mask: a calibrated one is refused before any work
+        from .omp import is_binary
+        from .volumes import read_mask
+
+        if not is_binary(read_mask(code_cfg.path)):
+            raise ConfigError(f"option --cacti-out {a.cacti_out}: a CACTI file holds a binary mask, and the code "
+                              f"file {code_cfg.path} is calibrated (values other than 0 and 1)")
     if a.bayer:
         from .bayer import check_even
 
@@ -651,7 +658,7 @@ class _RawCorrected:
     def _fix(self, i: int):
         from .sensor import drop_pixels
 
-        fixed = self._correct(self._codeds[i], self._mask_of(i))
+        fixed = self._correct(self._codeds[i], self._mask_of(i), i)
         coded, mask, counts = fixed.coded, fixed.mask, fixed.counts()
         if self.found is not None:
             coded, mask, counts["detected_bad_pixels"] = drop_pixels(coded, mask, self.found)
@@ -695,9 +702,11 @@ def _correct_raw(a, job: _Captures, noise) -> _Lazy | None:
     count = len(job.labels)
     shape = tuple(job.mask(0).shape[-2:])
     listed = read_bad_pixels(a.bad_pixels, shape) if a.bad_pixels else None
-    correct = functools.partial(correct_raw, black_level=noise.black_level, bits=noise.bits,
-                                white_level=noise.white_level, bad_pixels=listed, trust_saturated=a.trust_saturated,
-                                where=job.source)
+    def correct(coded, mask, i):  # (an error names the capture of a stack: one flash must not read as all)
+        return correct_raw(coded, mask, black_level=noise.black_level, bits=noise.bits, white_level=noise.white_level,
+                           bad_pixels=listed, trust_saturated=a.trust_saturated,
+                           where=job.source if count == 1 else f"{job.source}, capture {i + 1} of {count}")
+
     codeds, masks = job.codeds, job.masks  # as read (job's own accessors are replaced below)
 
     def mask_of(i: int) -> np.ndarray:
@@ -705,7 +714,7 @@ def _correct_raw(a, job: _Captures, noise) -> _Lazy | None:
 
     found = None
     if a.detect_bad_pixels:  # outliers against their neighbourhood, voted across every image
-        fixed = (correct(codeds[i], mask_of(i)) for i in range(count))
+        fixed = (correct(codeds[i], mask_of(i), i) for i in range(count))
         found = vote_bad_pixels(((f.coded, f.mask) for f in fixed), count)  # (one capture: a vote of one, as ever)
     raw = _RawCorrected(codeds, mask_of, correct, found)
     job.codeds, job.masks = _Lazy(count, raw.coded), _Lazy(count, raw.mask)

@@ -198,6 +198,8 @@ def add_shot_noise(
     """
     rng = np.random.default_rng(rng)
     electrons = np.clip(np.asarray(coded, dtype=np.float64), 0.0, None) * gain
+    # a mean far above the full well saturates whatever is drawn (numpy refuses means past about 1e19)
+    electrons = np.minimum(electrons, 4.0 * full_well + 1e3)
     counts = np.minimum(rng.poisson(electrons), full_well)
     return (counts / gain).astype(np.float32)
 

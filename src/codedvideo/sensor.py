@@ -303,7 +303,12 @@ def read_bad_pixels(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarr
             raise InputError(f"{where}: cannot read ({exc})") from None
         if arr.size == 0:
             return np.zeros((0, 2), np.int64)
-        if arr.dtype == np.bool_ and arr.shape == tuple(shape):  # a map of the defects
+        is_map = arr.dtype == np.bool_ or (arr.ndim == 2 and arr.shape[1] != 2 and arr.dtype.kind in "iuf"
+                                            and np.isin(arr, (0, 1)).all())
+        if is_map:  # a map of the defects (bool, or 0 and 1)
+            if arr.shape != tuple(shape):
+                raise InputError(f"{where}: a map of {arr.shape[0]}x{arr.shape[1] if arr.ndim > 1 else 1} pixels, "
+                                 f"the image has {shape[0]}x{shape[1]}")
             return np.argwhere(arr).astype(np.int64)
         if arr.ndim != 2 or arr.shape[1] != 2:
             raise InputError(f"{where}: expected an array of shape (K, 2) of (y, x) rows, got {arr.shape}")
@@ -311,7 +316,7 @@ def read_bad_pixels(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarr
             raise InputError(f"{where}: expected integer (y, x) rows, got dtype {arr.dtype}")
         return check_bad_rows(arr, shape, where=where)
     try:
-        with open(p, encoding="utf-8") as fh:
+        with open(p, encoding="utf-8-sig") as fh:  # (a byte-order mark, as some editors write, is no row)
             text = fh.read()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{where}: cannot read as text ({exc})") from None

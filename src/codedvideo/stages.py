@@ -201,14 +201,23 @@ def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: 
     if sensor is not None:
         sensor = dataclasses.replace(sensor, read_sigma=sigma)
     masks = None
+    warned = False
     for t, clip in enumerate(clips):
         if masks is None:  # every code is drawn first, from its own stream
             masks = [make_code(code, clip.shape[1:], frames=clip.shape[0], bump=bump, p=p, rng=code_rng,
                                path=code_path) for _ in range(captures if new_code_per_capture else 1)]
         mask = masks[t % len(masks)]
         # one noise stream, drawn capture after capture
-        yield (physics.simulate(clip, mask, sigma=sigma, rng=noise_rng) if sensor is None
-               else physics.simulate(clip, mask, rng=noise_rng, sensor=sensor)), mask, clip
+        coded = (physics.simulate(clip, mask, sigma=sigma, rng=noise_rng) if sensor is None
+                 else physics.simulate(clip, mask, rng=noise_rng, sensor=sensor))
+        top = float(coded.max(initial=0.0))
+        share = float(np.mean(coded >= top)) if sensor is not None and top > 0 else 0.0
+        if share > 0.5 and not warned:  # the sensor's ceiling (full well / gain, white level, ADC) everywhere
+            warnings.warn(f"{share:.0%} of the pixels of capture {t + 1} are at the sensor's ceiling ({top:g}: the "
+                          "full well over the gain, --white-level or --bits): the capture is saturated; give the "
+                          "sensor settings in the video's units (a 16-bit video needs --gain, --full-well, --bits)")
+            warned = True
+        yield coded, mask, clip
 
 
 def sensor_model(noise) -> physics.SensorModel | None:
@@ -537,7 +546,8 @@ def reconstruct_captures(
         if white_level is not None:
             coded_used, mask_used, saturated = drop_saturated(coded, mask, white_level)
             if saturated and not mask_used.any():
-                raise InputError(f"{where}: every measured pixel is at or above --white-level {white_level}; "
+                which = "" if count == 1 else f", capture {i + 1} of {count}"
+                raise InputError(f"{where}{which}: every measured pixel is at or above --white-level {white_level}; "
                                  "nothing is left to reconstruct (--trust-saturated uses them anyway)")
         coded_used = np.asarray(coded_used, np.float32) * scale if scale != 1 else np.asarray(coded_used, np.float32)
         still = None
