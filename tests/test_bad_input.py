@@ -400,6 +400,12 @@ def test_one_saturated_capture_of_a_stack_is_named_not_all_of_them(files, tmp_pa
           "stack.npy, capture 3 of 4", root=tmp_path)
 
 
+def test_a_code_that_opens_nothing_is_refused_before_anything_is_written(tmp_path, capsys):
+    """(--p 1e-9 wrote an all-zero mask that codes check and reconstruct then refused.)"""
+    fails(capsys, ["simulate", "synth:default", "--frames", N, "--size", H, W, "--code", "bernoulli", "--p", 1e-9,
+                   "--output", tmp_path / "cap"], "bernoulli", "opens no pixel", root=tmp_path)
+
+
 def test_options_that_do_not_go_together_are_one_line(files, tmp_path, capsys):
     """A dictionary for a method that has none, and --code file without its file: one line each, naming
     the options as the command line spells them, before any work."""

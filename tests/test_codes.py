@@ -262,3 +262,20 @@ def test_names_are_selectable_everywhere():
         CodeConfig(name="file")
     with pytest.raises(ValueError, match="only used with name: file"):
         CodeConfig(name="grid", path="m.npy")
+
+
+def test_codes_check_reads_the_per_capture_masks_simulate_writes(tmp_path, capsys):
+    """simulate --new-code-per-capture writes (T, N, H, W): codes check reports every capture (it refused it)."""
+    import json
+
+    from codedvideo.cli import main
+
+    assert main(["-q", "simulate", "synth:default", "--frames", "8", "--size", "32", "32", "--captures", "3",
+                 "--new-code-per-capture", "--output", str(tmp_path / "cap")]) == 0
+    capsys.readouterr()
+    assert main(["codes", "check", str(tmp_path / "cap" / "mask.npy")]) == 0
+    report = json.loads(capsys.readouterr().out)
+    masks = np.load(tmp_path / "cap" / "mask.npy")
+    assert report["captures"] == 3 and len(report["per_capture"]) == 3
+    assert report["single_bump"] and report["fixed_bump"] and report["window_coverage"]
+    assert [r["open_fraction"] for r in report["per_capture"]] == [float(m.mean()) for m in masks]

@@ -206,6 +206,9 @@ def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: 
         if masks is None:  # every code is drawn first, from its own stream
             masks = [make_code(code, clip.shape[1:], frames=clip.shape[0], bump=bump, p=p, rng=code_rng,
                                path=code_path) for _ in range(captures if new_code_per_capture else 1)]
+            if not all(np.any(m) for m in masks):  # (a Bernoulli p of 1e-9, say): nothing would be measured
+                raise InputError(f"code {code}{f' (p = {p:g})' if code == 'bernoulli' else ''}: opens no pixel in any "
+                                 "sub-frame; nothing would be measured")
         mask = masks[t % len(masks)]
         # one noise stream, drawn capture after capture
         coded = (physics.simulate(clip, mask, sigma=sigma, rng=noise_rng) if sensor is None
