@@ -406,6 +406,16 @@ def test_a_code_that_opens_nothing_is_refused_before_anything_is_written(tmp_pat
                    "--output", tmp_path / "cap"], "bernoulli", "opens no pixel", root=tmp_path)
 
 
+@pytest.mark.parametrize("options,names", [
+    (["--code", "bernoulli", "--bump", 3], ["--bump 3", "bernoulli"]),   # bernoulli has no bump
+    (["--p", 0.3], ["--p 0.3", "hitomi"]),                                # hitomi has no open probability
+    (["--gain", 3], ["--gain", "--shot-noise"]),                          # the sensor of the shot noise only
+])
+def test_simulate_options_its_code_or_sensor_would_ignore_are_refused(tmp_path, capsys, options, names):
+    fails(capsys, ["simulate", "synth:default", "--frames", N, "--size", H, W, *options, "--output", tmp_path / "c"],
+          *names, root=tmp_path)
+
+
 def test_options_that_do_not_go_together_are_one_line(files, tmp_path, capsys):
     """A dictionary for a method that has none, and --code file without its file: one line each, naming
     the options as the command line spells them, before any work."""

@@ -73,15 +73,19 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="simulate a coded capture of a video")
     s.add_argument("video", help="synth:NAME or a video / frame-sequence path")
     s.add_argument("--frames", "-N", type=int, required=True)
-    s.add_argument("--bump", "-L", type=int, default=2)
+    s.add_argument("--bump", "-L", type=int, default=None,
+                   help=f"bump length of hitomi, hitomi-tiled and rowwise (default {PipelineConfig().code.bump})")
     s.add_argument("--code", default=None, choices=CODE_NAMES,
                    help="shutter code (default: hitomi, or file with --code-file); see README")
     s.add_argument("--code-file", default=None, metavar="PATH", help="mask of --code file: .npy (N, H, W) or multi-page TIFF")
-    s.add_argument("--p", type=float, default=PipelineConfig().code.p, help="open probability of bernoulli / shifting")
+    s.add_argument("--p", type=float, default=None,
+                   help=f"open probability of bernoulli / shifting (default {PipelineConfig().code.p:g})")
     s.add_argument("--noise-sigma", type=float, default=0.0, help="read noise, grey levels")
     s.add_argument("--shot-noise", action="store_true", help="Poisson photon noise (see --full-well, --gain)")
-    s.add_argument("--full-well", type=float, default=PipelineConfig().noise.full_well, help="full-well capacity, electrons")
-    s.add_argument("--gain", type=float, default=PipelineConfig().noise.gain, help="electrons per grey level")
+    s.add_argument("--full-well", type=float, default=None,
+                   help=f"full-well capacity, electrons, with --shot-noise (default {PipelineConfig().noise.full_well:g})")
+    s.add_argument("--gain", type=float, default=None,
+                   help=f"electrons per grey level, with --shot-noise (default {PipelineConfig().noise.gain:g})")
     s.add_argument("--bits", type=int, default=None, help="quantise the coded image to this bit depth")
     s.add_argument("--white-level", type=float, default=None, help="clip the coded image at this grey level (saturation)")
     s.add_argument("--black-level", type=float, default=0.0,
@@ -255,10 +259,20 @@ def _cmd_simulate(a) -> int:
     if a.code_file and code != "file":
         raise InputError(f"--code-file {a.code_file}: only used with --code file (got --code {code})")
     validated(PipelineConfig, dict(frames=a.frames, seed=a.seed), {"frames": "--frames"})
-    code_cfg = validated(CodeConfig, dict(name=code, bump=a.bump, p=a.p, path=a.code_file), {"path": "--code-file"})
-    noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, shot_noise=a.shot_noise, full_well=a.full_well, gain=a.gain,
-                                        bits=a.bits, white_level=a.white_level, black_level=a.black_level),
-                      {"sigma": "--noise-sigma"})
+    # an option the code or the sensor would ignore is refused, not dropped in silence
+    unused = ([f"--bump {a.bump}"] if a.bump is not None and code not in ("hitomi", "hitomi-tiled", "rowwise") else []) \
+        + ([f"--p {a.p:g}"] if a.p is not None and code not in ("bernoulli", "shifting") else [])
+    if unused:
+        raise ConfigError(f"option {' and '.join(unused)}: --code {code} does not use it (--bump: hitomi, "
+                          "hitomi-tiled, rowwise; --p: bernoulli, shifting)")
+    if not a.shot_noise and (a.full_well is not None or a.gain is not None):
+        raise ConfigError("options --full-well and --gain describe the shot noise: give --shot-noise with them")
+    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}  # noqa: E731 (the model's default otherwise)
+    code_cfg = validated(CodeConfig, dict(name=code, path=a.code_file, **given(bump=a.bump, p=a.p)),
+                         {"path": "--code-file"})
+    noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, shot_noise=a.shot_noise, bits=a.bits,
+                                        white_level=a.white_level, black_level=a.black_level,
+                                        **given(full_well=a.full_well, gain=a.gain)), {"sigma": "--noise-sigma"})
     size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
     if size is not None:
         validated(SceneConfig, dict(size=size, start=a.start))
