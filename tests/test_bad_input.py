@@ -389,15 +389,28 @@ def test_a_calibrated_code_for_a_cacti_file_is_refused_before_anything_is_writte
           "c.mat", "cal.npy", "calibrated", root=tmp_path)
 
 
-@pytest.mark.parametrize("raw", [False, True])
-def test_one_saturated_capture_of_a_stack_is_named_not_all_of_them(files, tmp_path, capsys, raw):
+def test_one_saturated_capture_of_a_raw_stack_is_named_not_all_of_them(files, tmp_path, capsys):
     """A flash in capture 3 of 4: the error said every pixel of the coded image was saturated."""
     coded = np.rint(np.load(files / "coded.npy"))  # (raw counts are whole numbers)
-    stack = np.stack([coded, coded, np.full_like(coded, 4095.0), coded])
-    np.save(tmp_path / "stack.npy", stack)
-    options = ["--bits", 12] if raw else ["--white-level", 3000]
-    fails(capsys, [*reconstruct_args(files, tmp_path, coded=tmp_path / "stack.npy"), *options],
+    np.save(tmp_path / "stack.npy", np.stack([coded, coded, np.full_like(coded, 4095.0), coded]))
+    fails(capsys, [*reconstruct_args(files, tmp_path, coded=tmp_path / "stack.npy"), "--bits", 12],
           "stack.npy, capture 3 of 4", root=tmp_path)
+
+
+def test_one_blown_out_capture_of_a_stream_is_said_and_the_rest_go_on(files, tmp_path, capsys):
+    """With --white-level a capture saturated everywhere stopped the whole stack; it is now its clipped values."""
+    coded = np.load(files / "coded.npy")
+    np.save(tmp_path / "stack.npy", np.stack([coded, coded, np.full_like(coded, 4000.0), coded]))
+    out = tmp_path / "out" / "r.npy"
+    with pytest.warns(UserWarning, match="stack.npy, capture 3 of 4: every measured pixel is at or above"):
+        assert main(["-q", *map(str, reconstruct_args(files, tmp_path, coded=tmp_path / "stack.npy", output=out)),
+                     "--white-level", "3000", "--data-range", "255", "--independent-captures"]) == 0
+    video = np.load(out)
+    assert video.shape[0] == 4 * N and np.isfinite(video).all()
+    alone = tmp_path / "alone.npy"
+    assert main(["-q", *map(str, reconstruct_args(files, tmp_path, output=alone)), "--white-level", "3000",
+                 "--data-range", "255"]) == 0
+    np.testing.assert_array_equal(video[:N], np.load(alone))  # the other captures as they are alone
 
 
 def test_a_code_that_opens_nothing_is_refused_before_anything_is_written(tmp_path, capsys):

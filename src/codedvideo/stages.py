@@ -540,6 +540,8 @@ def reconstruct_captures(
     scale = np.float32(data_range.scale)
     count = len(codeds)
 
+    blown: set[int] = set()  # captures saturated everywhere (warned once each)
+
     @functools.lru_cache(maxsize=1)  # the finishing step asks twice in a row; one capture's inputs held at most
     def used(i: int):
         """Capture i as reconstructed: working units, saturated pixels left out; its agreeing pixels (None:
@@ -549,9 +551,15 @@ def reconstruct_captures(
         if white_level is not None:
             coded_used, mask_used, saturated = drop_saturated(coded, mask, white_level)
             if saturated and not mask_used.any():
-                which = "" if count == 1 else f", capture {i + 1} of {count}"
-                raise InputError(f"{where}{which}: every measured pixel is at or above --white-level {white_level}; "
-                                 "nothing is left to reconstruct (--trust-saturated uses them anyway)")
+                if count == 1:
+                    raise InputError(f"{where}: every measured pixel is at or above --white-level {white_level}; "
+                                     "nothing is left to reconstruct (--trust-saturated uses them anyway)")
+                # one blown-out capture of a stream (a flash, the sun): its clipped values, said, and the rest go on
+                if i not in blown:
+                    blown.add(i)
+                    warnings.warn(f"{where}, capture {i + 1} of {count}: every measured pixel is at or above "
+                                  f"--white-level {white_level}; it is reconstructed from its clipped values")
+                coded_used, mask_used, saturated = coded, mask, 0
         coded_used = np.asarray(coded_used, np.float32) * scale if scale != 1 else np.asarray(coded_used, np.float32)
         still = None
         if still_of is not None:  # asked again when the capture is finished (not kept: T maps of H x W)
