@@ -195,11 +195,16 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _given(**options) -> dict:
+    """The options given on the command line (None: not given, so the config model's default applies)."""
+    return {k: v for k, v in options.items() if v is not None}
+
+
 def _cmd_train(a) -> int:
     from .stages import train_dictionary
 
-    given = {k: v for k, v in dict(atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
-                                   max_speed=a.max_speed).items() if v is not None}
+    given = _given(atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
+                   max_speed=a.max_speed)
     if a.kind == "dct" and (given or a.videos):
         named = [f"--{k.replace('_', '-')}" for k in given] + (["VIDEO"] if a.videos else [])
         raise ConfigError(f"train --kind dct: {', '.join(named)} {'is' if len(named) == 1 else 'are'} for learned "
@@ -267,12 +272,11 @@ def _cmd_simulate(a) -> int:
                           "hitomi-tiled, rowwise; --p: bernoulli, shifting)")
     if not a.shot_noise and (a.full_well is not None or a.gain is not None):
         raise ConfigError("options --full-well and --gain describe the shot noise: give --shot-noise with them")
-    given = lambda **kw: {k: v for k, v in kw.items() if v is not None}  # noqa: E731 (the model's default otherwise)
-    code_cfg = validated(CodeConfig, dict(name=code, path=a.code_file, **given(bump=a.bump, p=a.p)),
+    code_cfg = validated(CodeConfig, dict(name=code, path=a.code_file, **_given(bump=a.bump, p=a.p)),
                          {"path": "--code-file"})
     noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, shot_noise=a.shot_noise, bits=a.bits,
                                         white_level=a.white_level, black_level=a.black_level,
-                                        **given(full_well=a.full_well, gain=a.gain)), {"sigma": "--noise-sigma"})
+                                        **_given(full_well=a.full_well, gain=a.gain)), {"sigma": "--noise-sigma"})
     size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
     if size is not None:
         validated(SceneConfig, dict(size=size, start=a.start))
