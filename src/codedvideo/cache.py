@@ -80,7 +80,10 @@ def dictionary_key(cfg: PipelineConfig) -> str:
     the same name trains again, and the same file under another name or folder reuses the entry.
     """
     settings = dict(cfg.dictionary.model_dump(exclude={"path"}), frames=cfg.frames, seed=cfg.seed, patch=PATCH)
-    settings["training"] = [_source_digest(spec) for spec in cfg.dictionary.training]
+    # a user's video counted with how it is read: "working-units" since its values are scaled to its data range
+    # (a [0, 1] video trained on its raw values before); the named sources, and so the shipped keys, unchanged
+    settings["training"] = [digest if digest == spec else f"working-units:{digest}"
+                            for spec, digest in ((s, _source_digest(s)) for s in cfg.dictionary.training)]
     return content_key("dictionary-v1", settings)
 
 

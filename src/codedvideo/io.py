@@ -469,6 +469,12 @@ def read_video(
     """
     check_color(color)
     path = Path(path)
+    if path.suffix.lower() == ".npy":
+        layout = npy_layout(path)
+        if layout is not None and len(layout[0]) == 4:  # a colour video: (F, H, W, C) or (C, F, H, W)
+            stack = _npy_colour_video(read_array(path), path, color)
+            sl = slice(start, None if max_frames is None else start + max_frames)
+            return stack[:, sl] if color == "channels" else stack[sl]
     if path.suffix.lower() not in VIDEO_SUFFIXES:
         stack = read_stack(path, color=color)
         sl = slice(start, None if max_frames is None else start + max_frames)
@@ -481,6 +487,26 @@ def read_video(
     if not frames:
         raise InputError(f"video {path}: no frames decoded (from frame {start})")
     return np.stack(frames, axis=1 if color == "channels" else 0).astype(np.float32)
+
+
+def _npy_colour_video(arr: np.ndarray, path: Path, color: str) -> np.ndarray:
+    """A 4-D .npy video, (F, H, W, C) with C in (3, 4) or (C, F, H, W) with C in (1, 3, 4) (as ``simulate
+    --bayer`` writes its truth): (F, H, W) luma, or (C, F, H, W) for ``color="channels"``."""
+    if arr.shape[-1] in (3, 4):  # (a grey video 3 or 4 pixels wide could not be used anyway)
+        arr = np.moveaxis(arr, -1, 0)
+    elif arr.shape[0] not in (1, 3, 4):
+        raise InputError(f"video {path}: expected shape (F, H, W), (F, H, W, 3) or (3, F, H, W), got {arr.shape}")
+    arr = _finite(arr.astype(np.float32), path, "video")
+    channels = arr[:1] if arr.shape[0] == 1 else arr[:3]  # (an alpha channel dropped)
+    if color == "channels":
+        return np.ascontiguousarray(channels)
+    if channels.shape[0] == 1:
+        return channels[0]
+    if color == "error":
+        raise InputError(f"video {path}: has {channels.shape[0]} channels; a single-channel video is required")
+    if (channels[0] == channels[1]).all() and (channels[1] == channels[2]).all():
+        return channels[0]
+    return np.tensordot(LUMA, channels, axes=([0], [0]))
 
 
 def iter_video(path: str | os.PathLike, *, color: str = "luma", start: int = 0):

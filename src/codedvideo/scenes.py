@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import logging
+import warnings
+from pathlib import Path
+
 import numpy as np
 
 from . import io as cio
 from . import manifest, synth
 from .errors import InputError
+
+log = logging.getLogger(__name__)
 
 
 def load_video(spec: str, *, frames: int, size: tuple[int, int] | None, seed: int = 0, start: int = 0) -> np.ndarray:
@@ -83,16 +89,60 @@ def count_frames(spec: str, *, start: int = 0) -> int:
     return cio.read_video(path, start=start).shape[0]
 
 
-def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max_speed: float = synth.MAX_SPEED) -> list[np.ndarray]:
-    """Training clips: ``synth:train`` (generated) and/or user video paths."""
+#: Pixels of a user's training video read at most (512 MB as float32): its first frames up to this.
+TRAINING_PIXELS = 2**27
+
+
+def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max_speed: float = synth.MAX_SPEED,
+                    patch: int = 7) -> tuple[list[np.ndarray], list[str]]:
+    """Training clips: ``synth:train`` (generated) and/or user video paths; and the sources used.
+
+    A user's video is taken in working units (:mod:`codedvideo.units`: its data range, found from its
+    values, scaled to 255), so that [0, 1] floats, 8-bit, 12-bit and 16-bit videos train alike and can
+    be mixed.  Its frames are read up to :data:`TRAINING_PIXELS` (said when that cuts it short).  A
+    video with fewer than ``frames`` frames, or smaller than a patch, is left out with a warning; none
+    usable is an :class:`InputError` that names each and why.
+    """
+    from .units import infer_data_range
+
     videos: list[np.ndarray] = []
+    used: list[str] = []
+    problems: list[str] = []
     for spec in specs:
         if spec == "synth:train":
             manifest.verify_ids(synth.TRAIN_PHOTOS)
             videos.extend(synth.training_videos(frames=frames, count=clips, seed=seed, max_speed=max_speed))
-        else:
-            videos.append(cio.read_video(resolve_data(spec), max_frames=max(frames * 16, 64)))
-    return videos
+            used.append(spec)
+            continue
+        path = resolve_data(spec)
+        if Path(path).suffix.lower() in cio.VIDEO_SUFFIXES:  # decoded frame by frame: no more than the limit
+            first = cio.read_video(path, max_frames=1)
+            limit = max(frames, TRAINING_PIXELS // max(first.shape[-2] * first.shape[-1], 1))
+            video = cio.read_video(path, max_frames=limit + 1)
+        else:  # a stack is read whole
+            video = cio.read_video(path)
+            limit = max(frames, TRAINING_PIXELS // max(video.shape[-2] * video.shape[-1], 1))
+        if video.shape[0] > limit:
+            video = video[:limit]
+            warnings.warn(f"training video {spec}: only its first {limit} frames are used (at most "
+                          f"{TRAINING_PIXELS // 2**20} M pixels a video)", stacklevel=2)
+        f, h, w = video.shape
+        if f < frames or min(h, w) < patch:
+            problems.append(f"{spec} ({f} frames of {h}x{w})")
+            continue
+        units = infer_data_range(float(video.max()), what="frame values")
+        if units.scale != 1:
+            video *= np.float32(units.scale)
+        log.info("training video %s: data range %g (%s)", spec, units.value, units.source)
+        videos.append(video)
+        used.append(spec)
+    need = f"{frames} frames (N) of at least {patch}x{patch} pixels"
+    if not videos:
+        raise InputError(f"training: no video is usable, each needs {need}: " + "; ".join(problems)
+                         if problems else "training: no training video given")
+    if problems:
+        warnings.warn(f"training videos left out, each needs {need}: " + "; ".join(problems), stacklevel=2)
+    return videos, used
 
 
 def resolve_data(spec: str) -> str:

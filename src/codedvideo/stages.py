@@ -66,9 +66,10 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
     # One trainer at a time per entry: a second process with the same settings waits, then reuses
     # the dictionary the first one saved (whole, renamed into place, checked by its sha256 on load).
     found = _cached_dictionary(cached, key)  # a finished entry needs no lock: it appeared by a rename
-    videos = None
+    videos = used = None
     if found is None and dc.kind != "dct":  # read (and so check) the training videos before touching the cache
-        videos = training_videos(dc.training, frames=cfg.frames, clips=dc.clips, seed=cfg.seed, max_speed=dc.max_speed)
+        videos, used = training_videos(dc.training, frames=cfg.frames, clips=dc.clips, seed=cfg.seed,
+                                       max_speed=dc.max_speed)
     if found is None:
         with entry_lock(cached):
             found = _cached_dictionary(cached, key, warn=True)  # another run may have saved it meanwhile
@@ -90,7 +91,7 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
                     )
                     if bar:
                         bar.close()
-                    meta["training_set"] = list(dc.training)
+                    meta["training_set"] = used  # (videos too short or too small were left out, with a warning)
                     meta["clips"] = dc.clips
                 meta["settings_key"] = key
                 save_dictionary(cached, D, meta)
