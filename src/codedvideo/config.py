@@ -33,7 +33,8 @@ class _Strict(BaseModel):
 class SceneConfig(_Strict):
     #: ``synth:NAME`` for a generated scene, or a path to a video / frame sequence.
     video: str = "synth:default"
-    size: tuple[Annotated[int, Field(ge=7, le=65536)], Annotated[int, Field(ge=7, le=65536)]] = (256, 256)
+    #: The centre crop taken; None: a synthetic scene or footage clip 256x256, a video file its whole frame.
+    size: tuple[Annotated[int, Field(ge=7, le=65536)], Annotated[int, Field(ge=7, le=65536)]] | None = None
     #: First frame taken from a video file.
     start: int = Field(0, ge=0)
 

@@ -695,26 +695,31 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     cio.check_cache(cfg.cache)
     check_scheduler(cfg.reconstruct.scheduler)
     report: dict = dict(config=cfg.model_dump(mode="json"), seconds={})
-    dict_path = None
+    dict_path = capture = None
+    if "simulate" in cfg.stages or "reconstruct" in cfg.stages:
+        # the scene and the code read (and so checked) and the capture simulated before any training: a missing,
+        # short or too small video, or a code file that does not fit, ends the run in a second, not after K-SVD
+        t0 = time.perf_counter()
+        video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
+        capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed,
+                                   p=cfg.code.p, code_path=cfg.code.path, sensor=sensor_model(cfg.noise))
+        del video
+        report["seconds"]["simulate"] = time.perf_counter() - t0
     if "train" in cfg.stages or "reconstruct" in cfg.stages:
         t0 = time.perf_counter()
         dict_path, dmeta = train_dictionary(cfg, progress=progress)
         report["seconds"]["train"] = time.perf_counter() - t0
         report["dictionary"] = dict(path=str(dict_path), reused=dmeta["reused"], atoms=dmeta["atoms"],
                                     method=dmeta.get("method"), final_rmse=dmeta.get("final_rmse"))
-    capture = None
     # each output is recorded as codedvideo's as soon as it is in place, so that a run that fails or is
     # stopped later does not leave files that the next run must refuse as the user's
-    if "simulate" in cfg.stages or "reconstruct" in cfg.stages:
+    if capture is not None:
         t0 = time.perf_counter()
-        video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
-        capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed,
-                                   p=cfg.code.p, code_path=cfg.code.path, sensor=sensor_model(cfg.noise))
         capture_paths = write_capture(capture, out / "capture")
         for path in capture_paths.values():
             mark_written(path)
         report["capture"] = {k: str(v) for k, v in capture_paths.items()}
-        report["seconds"]["simulate"] = time.perf_counter() - t0
+        report["seconds"]["simulate"] += time.perf_counter() - t0
     if "reconstruct" in cfg.stages:
         D, dmeta = load_dictionary(dict_path)
         check_dictionary(dmeta, cfg.frames, dict_path)

@@ -1,0 +1,50 @@
+"""`codedvideo run CONFIG` with a user's own files: every input checked before training, a user's video
+taken whole unless a crop is asked for, and config keys a setting would ignore refused."""
+import json
+
+import numpy as np
+import pytest
+
+from codedvideo.cli import main
+from codedvideo.synth import make_scene
+
+
+@pytest.fixture
+def user_video(tmp_path):
+    path = tmp_path / "mine.npy"
+    np.save(path, make_scene("coins-translate", frames=12, size=(30, 41)))
+    return path
+
+
+def run(tmp_path, capsys, text: str):
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(text)
+    capsys.readouterr()
+    rc = main(["-q", "run", str(cfg)])
+    return rc, capsys.readouterr().err.strip()
+
+
+def test_a_missing_scene_or_code_file_ends_the_run_before_training(tmp_path, capsys, user_video):
+    common = (f"frames: 4\ncache: {tmp_path / 'cache'}\noutput: {{dir: {tmp_path / 'out'}, frames: none}}\n"
+              f"dictionary: {{atoms: 64, samples: 3000, iterations: 2, training: [{user_video}]}}\n")
+    for extra, name in ((f"scene: {{video: {tmp_path / 'nothere.npy'}}}\n", "nothere.npy"),
+                        (f"scene: {{video: {user_video}}}\ncode: {{name: file, path: {tmp_path / 'nomask.npy'}}}\n",
+                         "nomask.npy")):
+        rc, err = run(tmp_path, capsys, common + extra)
+        assert rc == 2 and name in err and len(err.splitlines()) == 1, err
+        # before: K-SVD ran to the end (and its dictionary was cached) before the file was found missing
+        assert not list((tmp_path / "cache").glob("dict-*")), list((tmp_path / "cache").iterdir())
+
+
+def test_a_user_video_is_taken_whole_unless_a_size_is_given(tmp_path, capsys, user_video):
+    base = (f"frames: 4\ncache: {tmp_path / 'cache'}\ndictionary: {{kind: dct}}\nreconstruct: {{tile: 32}}\n")
+    rc, err = run(tmp_path, capsys, base + f"scene: {{video: {user_video}}}\n"
+                                          f"output: {{dir: {tmp_path / 'whole'}, frames: none}}\n")
+    assert rc == 0, err
+    assert np.load(tmp_path / "whole" / "recon.npy").shape == (4, 30, 41)  # before: cropped to 256x256 (or refused)
+    rc, err = run(tmp_path, capsys, base + f"scene: {{video: {user_video}, size: [24, 24]}}\n"
+                                          f"output: {{dir: {tmp_path / 'crop'}, frames: none}}\n")
+    assert rc == 0, err
+    assert np.load(tmp_path / "crop" / "recon.npy").shape == (4, 24, 24)
+    metrics = json.loads((tmp_path / "crop" / "recon.metrics.json").read_text())
+    assert metrics["config"]["scene"]["size"] == [24, 24]
