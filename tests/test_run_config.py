@@ -48,3 +48,38 @@ def test_a_user_video_is_taken_whole_unless_a_size_is_given(tmp_path, capsys, us
     assert np.load(tmp_path / "crop" / "recon.npy").shape == (4, 24, 24)
     metrics = json.loads((tmp_path / "crop" / "recon.metrics.json").read_text())
     assert metrics["config"]["scene"]["size"] == [24, 24]
+
+
+@pytest.mark.parametrize("section, names", [
+    ("code: {name: hitomi, p: 0.3}", ["code.p", "hitomi"]),
+    ("code: {name: bernoulli, bump: 3}", ["code.bump", "bernoulli"]),
+    ("noise: {gain: 0.01, full_well: 10}", ["noise.full_well", "noise.gain", "shot_noise"]),
+    ("dictionary: {path: mine.zarr, atoms: 1024}", ["dictionary.path", "dictionary.atoms"]),
+    ("dictionary: {training: [mine.npy], max_speed: 8.0}", ["dictionary.max_speed", "synth:train"]),
+])
+def test_config_values_the_run_would_ignore_are_refused(tmp_path, capsys, section, names):
+    """Before: each ran to the end exactly as with the defaults (the command line already refused them)."""
+    rc, err = run(tmp_path, capsys, f"frames: 4\n{section}\noutput: {{dir: {tmp_path / 'out'}}}\n")
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    for name in names:
+        assert name in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_defaults_listed_beside_a_setting_that_ignores_them_are_accepted(tmp_path):
+    """pipeline.yaml lists every key with its default: switching the code or the training set alone runs."""
+    from codedvideo.config import PipelineConfig
+
+    cfg = PipelineConfig.model_validate(dict(code=dict(name="bernoulli", bump=2, p=0.3),
+                                             noise=dict(full_well=20000.0, gain=10.0),
+                                             dictionary=dict(training=["mine.npy"], clips=144, max_speed=4.0)))
+    assert cfg.code.p == 0.3 and cfg.dictionary.training == ["mine.npy"]
+
+
+def test_train_refuses_max_speed_for_user_videos(tmp_path, capsys, user_video):
+    capsys.readouterr()
+    rc = main(["-q", "train", "--frames", "4", "--max-speed", "1", "--output", str(tmp_path / "d.zarr"),
+               "--cache", str(tmp_path / "cache"), str(user_video)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--max-speed" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "cache").exists() or not list((tmp_path / "cache").glob("dict-*"))

@@ -30,8 +30,8 @@ from .baselines import METHODS
 from .bayer import PATTERNS as BAYER_PATTERNS
 from .codes import CODE_NAMES
 from .config import (
-    CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig, ReconstructConfig, SceneConfig,
-    check_scheduler, load_config, omp_settings, validated,
+    BUMP_CODES, P_CODES, CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig, ReconstructConfig,
+    SceneConfig, check_scheduler, load_config, omp_settings, validated,
 )
 from .errors import CodedVideoError, ConfigError, InputError
 from .outputs import Output, check_outputs, mark_written
@@ -210,8 +210,9 @@ def _cmd_train(a) -> int:
         raise ConfigError(f"train --kind dct: {', '.join(named)} {'is' if len(named) == 1 else 'are'} for learned "
                           "dictionaries only (a 3D DCT one has N x 49 atoms and is not trained)")
     dictionary = validated(DictionaryConfig, dict(kind=a.kind, training=list(a.videos) or ["synth:train"], **given),
-                           {"training": "VIDEO"})
-    cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary))
+                           {"training": "VIDEO", "max_speed": "--max-speed"})
+    cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary),
+                    {"atoms": "--atoms", "samples": "--samples"})
     suffix = Path(a.output).suffix.lower()
     if suffix in (".npy", ".npz", ".mat", ".json", ".h5", ".hdf5", ".tif", ".tiff", ".txt", ".csv"):
         raise ConfigError(f"dictionary output {a.output}: a dictionary is a Zarr store (a folder, .zarr) or a zipped "
@@ -265,11 +266,11 @@ def _cmd_simulate(a) -> int:
         raise InputError(f"--code-file {a.code_file}: only used with --code file (got --code {code})")
     validated(PipelineConfig, dict(frames=a.frames, seed=a.seed), {"frames": "--frames"})
     # an option the code or the sensor would ignore is refused, not dropped in silence
-    unused = ([f"--bump {a.bump}"] if a.bump is not None and code not in ("hitomi", "hitomi-tiled", "rowwise") else []) \
-        + ([f"--p {a.p:g}"] if a.p is not None and code not in ("bernoulli", "shifting") else [])
+    unused = ([f"--bump {a.bump}"] if a.bump is not None and code not in BUMP_CODES else []) \
+        + ([f"--p {a.p:g}"] if a.p is not None and code not in P_CODES else [])
     if unused:
-        raise ConfigError(f"option {' and '.join(unused)}: --code {code} does not use it (--bump: hitomi, "
-                          "hitomi-tiled, rowwise; --p: bernoulli, shifting)")
+        raise ConfigError(f"option {' and '.join(unused)}: --code {code} does not use it (--bump: "
+                          f"{', '.join(BUMP_CODES)}; --p: {', '.join(P_CODES)})")
     if not a.shot_noise and (a.full_well is not None or a.gain is not None):
         raise ConfigError("options --full-well and --gain describe the shot noise: give --shot-noise with them")
     code_cfg = validated(CodeConfig, dict(name=code, path=a.code_file, **_given(bump=a.bump, p=a.p)),

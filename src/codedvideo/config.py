@@ -29,6 +29,16 @@ class _Strict(BaseModel):
     # strict: no coercion ("8" or true for an int is an error); no inf or NaN for any number
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
 
+    def _changed(self, *names: str) -> list[str]:
+        """Those of ``names`` set to other than their defaults (a value the run would ignore is refused only
+        when changed: pipeline.yaml lists every key with its default)."""
+        return [n for n in names if getattr(self, n) != type(self).model_fields[n].default]
+
+
+#: The codes that take a bump length, and those that take an open probability (:func:`codedvideo.codes.make_code`).
+BUMP_CODES = ("hitomi", "hitomi-tiled", "rowwise")
+P_CODES = ("bernoulli", "shifting")
+
 
 class SceneConfig(_Strict):
     #: ``synth:NAME`` for a generated scene, or a path to a video / frame sequence.
@@ -64,6 +74,11 @@ class CodeConfig(_Strict):
             raise ValueError("code 'file' needs code.path (a .npy or multi-page TIFF mask)")
         if self.name != "file" and self.path:
             raise ValueError(f"code.path is only used with name: file (name is {self.name!r})")
+        unused = [f"code.{k}" for k, codes in (("bump", BUMP_CODES), ("p", P_CODES))
+                  if self.name not in codes and k in self._changed(k)]
+        if unused:
+            raise ValueError(f"{' and '.join(unused)}: code {self.name!r} does not use it (code.bump: "
+                             f"{', '.join(BUMP_CODES)}; code.p: {', '.join(P_CODES)})")
         return self
 
 
@@ -89,6 +104,14 @@ class NoiseConfig(_Strict):
     #: Raw black level: an offset added once per read-out (before clipping and quantising).
     black_level: float = Field(0.0, ge=0)
 
+    @model_validator(mode="after")
+    def _shot_noise_settings(self) -> "NoiseConfig":
+        unused = self._changed("full_well", "gain")
+        if unused and not self.shot_noise:
+            raise ValueError(f"{' and '.join('noise.' + k for k in unused)} describe the shot noise, which is off: "
+                             "set noise.shot_noise: true, or leave them at their defaults")
+        return self
+
 
 class DictionaryConfig(_Strict):
     kind: Literal["learned", "dct"] = "learned"
@@ -103,6 +126,22 @@ class DictionaryConfig(_Strict):
     max_speed: float = Field(4.0, gt=0.2, le=16.0)
     #: An existing dictionary to use instead of training one.
     path: str | None = None
+
+    @model_validator(mode="after")
+    def _settings_used(self) -> "DictionaryConfig":
+        if self.path is not None:
+            unused = self._changed("kind", "atoms", "samples", "iterations", "sparsity", "training", "clips",
+                                   "max_speed")
+            if unused:
+                raise ValueError(f"dictionary.path is used as it is, so {', '.join('dictionary.' + k for k in unused)} "
+                                 "would be ignored: leave them at their defaults, or drop dictionary.path")
+        elif "synth:train" not in self.training:
+            unused = self._changed("clips", "max_speed")
+            if unused:
+                raise ValueError(f"{' and '.join('dictionary.' + k for k in unused)} "
+                                 f"{'describes' if len(unused) == 1 else 'describe'} the synthetic training clips, "
+                                 "and dictionary.training names no synth:train")
+        return self
 
 
 class ReconstructConfig(_Strict):
@@ -288,7 +327,7 @@ class PipelineConfig(_Strict):
         d = self.dictionary
         beyond = d.atoms - self.frames * 49  # K-SVD starts from the DCT atoms, then draws the rest among the samples
         if d.kind == "learned" and d.path is None and beyond > d.samples:
-            raise ValueError(f"dictionary atoms {d.atoms} with samples {d.samples}: K-SVD starts from the "
+            raise ValueError(f"dictionary.atoms {d.atoms} with dictionary.samples {d.samples}: K-SVD starts from the "
                              f"{self.frames * 49} DCT atoms and draws the other {beyond} among the training samples; "
                              f"give at least {beyond} samples or fewer atoms")
         r = self.report  # its dictionaries: the main one at every N it sweeps, and one per size of the speed study
