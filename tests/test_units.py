@@ -201,3 +201,36 @@ def test_a_noisy_8_bit_capture_keeps_its_range_and_one_just_past_8_bits_is_warne
     assert json.loads(capsys.readouterr().out)["data_range"] == 255.0
     with pytest.warns(UserWarning, match="data range 4095 found from a peak of .* just above 8-bit"):
         assert main([*args, "--output", str(tmp_path / "b.npy")]) == 0
+
+
+def test_a_hot_pixel_in_a_unit_float_capture_keeps_its_range_and_is_warned(tmp_path, capsys, capture):
+    """Reported: one pixel at 2.5 in a [0, 1] capture made it 8-bit (a black video, PSNR 71 dB, 15 dB true)."""
+    truth, mask, coded = capture
+    clean = (coded / 255).astype(np.float32)
+    _, m0 = _reconstruct(tmp_path / "clean", capsys, clean, (truth / 255).astype(np.float32), mask, "dct")
+    hot = clean.copy()
+    hot[10, 20] = 2.5
+    with pytest.warns(UserWarning, match=r"lie above the data range 1 .*clipped"):
+        _, m = _reconstruct(tmp_path / "hot", capsys, hot, (truth / 255).astype(np.float32), mask, "dct")
+    assert m["data_range"]["value"] == 1.0 and "outliers" in m["data_range"]["source"]
+    # (one hot pixel spoils its 13x13 neighbourhood, an eighth of this small frame); before: +40 dB, unreal
+    assert abs(m["quality"]["psnr"] - m0["quality"]["psnr"]) < 3.0
+
+
+def test_data_range_outlier_rule_leaves_integers_and_8_bit_floats_alone():
+    typical = lambda: 0.9  # noqa: E731
+    assert infer_data_range(2.5, quantile=typical).value == 1.0
+    assert infer_data_range(2.5, quantile=lambda: 1.2).value == 255.0  # more than 1 % above 1: not outliers
+    assert infer_data_range(2.5, dtype=np.uint16, quantile=typical).value == 255.0  # integers are never [0, 1]
+    assert infer_data_range(9.0, quantile=typical).value == 255.0  # far above: a dark 8-bit frame with a light
+    assert infer_data_range(200.0, quantile=typical).value == 255.0
+    asked = []
+    infer_data_range(200.0, quantile=lambda: asked.append(1) or 0.9)
+    assert not asked  # the quantile is computed only where the peak leaves a doubt
+
+
+def test_a_data_range_given_below_the_values_is_warned(tmp_path, capsys, capture):
+    truth, mask, coded = capture
+    with pytest.warns(UserWarning, match=r"% of the pixels .* lie above the data range 1 \(given"):
+        _reconstruct(tmp_path, capsys, coded.astype(np.float32), truth.astype(np.float32), mask, "dct",
+                     extra=("--data-range", "1"))

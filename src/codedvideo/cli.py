@@ -151,8 +151,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--scheduler", default=None, help="dask.distributed scheduler address (default: local, both cores)")
     r.add_argument("--workers", type=int, default=None, help="local worker threads")
     r.add_argument("--data-range", type=float, default=None,
-                   help="peak value of the frames, for PSNR and video scaling (default: found from the capture; "
-                        "see README, Data formats)")
+                   help="peak value of the frames: the PSNR peak, the full scale of videos, and the working "
+                        "scale, so the default tolerance is 2/255 of it (default: found from the capture; see "
+                        "README, Units)")
     r.add_argument("--fps", type=int, default=30)
     r.add_argument("--cache", default="cache")
     r.add_argument("--overwrite", action="store_true",
@@ -525,7 +526,8 @@ def _cmd_reconstruct(a) -> int:
     from .metrics import evaluate, json_safe
     from .volumes import write_json, metrics_path, volume_writer
     from .stages import reconstruct_captures, trivial_estimate
-    from .units import infer_data_range, static_peak, tolerance_warning
+    from .units import NOISE_ROOM, NOISE_SIGMAS, OUTLIER_SHARE, infer_data_range, share_above, static_peak, \
+        static_quantile, tolerance_warning
 
     rc, noise, out = _reconstruct_options(a)  # before any work
     t_all = t0 = time.perf_counter()
@@ -541,7 +543,13 @@ def _cmd_reconstruct(a) -> int:
     if peak <= 0 and out.data_range is None:
         raise InputError(f"{job.source}: no coded value above 0 where the code is open; nothing to reconstruct "
                          "(check the file and the black level)")
-    units = infer_data_range(peak, dtype=job.dtype, given=out.data_range, noise=noise.sigma)
+    units = infer_data_range(peak, dtype=job.dtype, given=out.data_range, noise=noise.sigma, quantile=lambda: max(
+        static_quantile(job.codeds[i], job.mask(i), 1 - OUTLIER_SHARE) for i in range(count)))
+    level = units.value * NOISE_ROOM + NOISE_SIGMAS * noise.sigma
+    if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
+        share = max(share_above(job.codeds[i], job.mask(i), level) for i in range(count))
+        warnings.warn(f"{job.source}: {share:.2%} of the pixels (coded / open count, up to {peak:.4g}) lie above the "
+                      f"data range {units.value:g} ({units.source}); they are clipped in videos and frames")
     if out.data_range is None and units.value > 255 and peak <= 2 * 255:  # just past 8 bits: noise, or a dark frame?
         warnings.warn(f"{job.source}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
                       "just above 8-bit; if the frames are 8-bit with noise, give --noise-sigma or --data-range 255")

@@ -723,14 +723,15 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     if "reconstruct" in cfg.stages:
         D, dmeta = load_dictionary(dict_path)
         check_dictionary(dmeta, cfg.frames, dict_path)
-        from .units import infer_data_range, static_peak
+        from .units import OUTLIER_SHARE, infer_data_range, static_peak, static_quantile
 
         rc = cfg.reconstruct
         sensor = sensor_model(cfg.noise)
         # with shot noise / quantisation: the RMS noise at the mean coded level
         sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
         units = infer_data_range(static_peak(capture["coded"], capture["mask"]), given=cfg.output.data_range,
-                                 noise=cfg.noise.sigma)
+                                 noise=cfg.noise.sigma, quantile=lambda: static_quantile(
+                                     capture["coded"], capture["mask"], 1 - OUTLIER_SHARE))
         report["data_range"] = units.as_dict()
         t0 = time.perf_counter()
         # saturated pixels (noise.white_level) are missing measurements

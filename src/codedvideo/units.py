@@ -63,16 +63,45 @@ def static_peak(coded: np.ndarray, mask: np.ndarray) -> float:
     return float(np.max(ratio))
 
 
+def static_quantile(coded: np.ndarray, mask: np.ndarray, q: float = 0.99, step: int = 3) -> float:
+    """The ``q`` quantile of ``coded / open count`` over the pixels ever open (every ``step``-th row and
+    column: a percentile of a 4K frame in milliseconds); 0 when none is."""
+    counts = np.asarray(mask[..., ::step, ::step], np.float32).sum(-3)
+    coded = np.asarray(coded[..., ::step, ::step], np.float32)
+    if counts.shape != coded.shape[-2:]:
+        counts = np.broadcast_to(counts, coded.shape)
+    open_ = counts > 0
+    return float(np.quantile(coded[open_] / counts[open_], q)) if open_.any() else 0.0
+
+
+def share_above(coded: np.ndarray, mask: np.ndarray, level: float) -> float:
+    """The share of the pixels ever open whose ``coded / open count`` lies above ``level``."""
+    counts = np.asarray(mask, np.float32).sum(-3)
+    coded = np.asarray(coded, np.float32)
+    if counts.shape != coded.shape[-2:]:
+        counts = np.broadcast_to(counts, coded.shape)
+    open_ = counts > 0
+    return float(np.mean(coded[open_] > level * counts[open_])) if open_.any() else 0.0
+
+
 #: Standard deviations of read noise (``noise``, the capture's units) also allowed above a range.
 NOISE_SIGMAS = 5.0
+#: A float capture whose values lie in [0, 1] but for a few (``OUTLIER_SHARE`` at most, up to
+#: ``OUTLIER_PEAK``: hot pixels, noise on white) is a [0, 1] capture, not an 8-bit one.
+OUTLIER_SHARE = 0.01
+OUTLIER_PEAK = 8.0
 
 
 def infer_data_range(peak: float, *, dtype=None, given: float | None = None, what: str = "coded / open count",
-                     noise: float = 0.0) -> DataRange:
+                     noise: float = 0.0, quantile=None) -> DataRange:
     """The data range of a capture whose frames peak at ``peak`` (:func:`static_peak`; module docstring).
 
     ``noise``: the read noise the capture is known to have (``--noise-sigma``), whose peaks may lie above
     the range by more than the 5 % room (sigma 30 on 8-bit frames peaked at 268 and was taken as 12-bit).
+    ``quantile``: a function giving the ``1 - OUTLIER_SHARE`` quantile of the same values
+    (:func:`static_quantile`), asked only for float values that peak just above 1: when that quantile is
+    within [0, 1] the few above are outliers and the range is 1 (one hot pixel at 2.5 made a [0, 1]
+    capture 8-bit: a black video, its PSNR 50 dB too high).
     """
     peak = float(peak)
     if given is not None:
@@ -81,10 +110,16 @@ def infer_data_range(peak: float, *, dtype=None, given: float | None = None, wha
     if kind is not None and kind.kind in "iu" and kind.itemsize == 1:
         return DataRange(255.0, f"dtype {kind.name}", peak)
     integer = kind is not None and kind.kind in "iub"
+    room = NOISE_SIGMAS * max(float(noise), 0.0)
+    if not integer and quantile is not None and NOISE_ROOM + room < peak <= OUTLIER_PEAK:
+        typical = float(quantile())
+        if typical <= NOISE_ROOM + room:
+            return DataRange(1.0, f"values ({1 - OUTLIER_SHARE:.0%} of {what} at most {typical:.4g}; its peak "
+                                  f"{peak:.4g} taken as outliers)", peak)
     for value in COMMON_RANGES:
         if integer and value == 1.0:
             continue
-        if peak <= value * NOISE_ROOM + NOISE_SIGMAS * max(float(noise), 0.0):
+        if peak <= value * NOISE_ROOM + room:
             return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
     value = float(2 ** math.ceil(math.log2(peak + 1)) - 1)
     return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
