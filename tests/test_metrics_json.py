@@ -68,3 +68,16 @@ def test_evaluate_of_a_real_reconstruction_is_unchanged():
     truth = (rng.random((2, 12, 12)) * 255).astype(np.float32)
     metrics = evaluate(truth + rng.normal(0, 3, truth.shape).astype(np.float32), truth)
     assert json_safe(metrics) == metrics
+
+
+def test_an_exact_frame_leaves_the_mean_psnr_finite():
+    """Reported: one still, exactly reconstructed frame made a capture's PSNR (and the run's) null."""
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 255, (3, 16, 16))
+    recon = truth.copy()
+    recon[1] += rng.normal(0, 4, (16, 16))
+    recon[2] += rng.normal(0, 8, (16, 16))
+    m = evaluate(recon, truth)
+    assert m["exact_frames"] == 1 and np.isinf(m["psnr_per_frame"][0])
+    assert m["psnr"] == pytest.approx(np.mean(m["psnr_per_frame"][1:]))
+    assert np.isinf(evaluate(truth, truth)["psnr"])  # every frame exact: infinite (null in JSON)

@@ -523,7 +523,7 @@ def _cmd_reconstruct(a) -> int:
     a CACTI file's measurements (concatenated time-first, (T*N, H, W)) or a colour image's channels
     (stacked first, (C, N, H, W)).  Each result is written as soon as it is done (streamed for .npy);
     one metrics JSON with an entry per coded image and the totals."""
-    from .metrics import evaluate, json_safe
+    from .metrics import evaluate, json_safe, mean_psnr
     from .volumes import write_json, metrics_path, volume_writer
     from .stages import reconstruct_captures, trivial_estimate
     from .units import NOISE_ROOM, NOISE_SIGMAS, OUTLIER_SHARE, infer_data_range, share_above, static_peak, \
@@ -647,9 +647,10 @@ def _cmd_reconstruct(a) -> int:
         metrics[job.kind] = entries
     if per_frame["psnr"]:
         # the mean over all frames (every coded image has N frames: the mean of their means)
-        quality = dict(psnr=float(np.mean(per_frame["psnr"])), ssim=float(np.mean(per_frame["ssim"])),
+        quality = dict(psnr=mean_psnr(per_frame["psnr"]), ssim=float(np.mean(per_frame["ssim"])),
+                       exact_frames=int(np.sum(np.isinf(per_frame["psnr"]))),
                        psnr_per_frame=per_frame["psnr"], ssim_per_frame=per_frame["ssim"], data_range=units.value)
-        metrics["trivial"] = dict(psnr=float(np.mean(trivial_frames["psnr"])), ssim=float(np.mean(trivial_frames["ssim"])),
+        metrics["trivial"] = dict(psnr=mean_psnr(trivial_frames["psnr"]), ssim=float(np.mean(trivial_frames["ssim"])),
                                   psnr_per_frame=trivial_frames["psnr"], ssim_per_frame=trivial_frames["ssim"],
                                   data_range=units.value)
         summary.update(psnr=round(quality["psnr"], 2), ssim=round(quality["ssim"], 4))

@@ -18,6 +18,15 @@ from .errors import InputError
 EVALUATE_BLOCK = 16
 
 
+def mean_psnr(per_frame) -> float:
+    """The mean PSNR over frames, frames reconstructed exactly left out (their PSNR is infinite: with them the
+    mean of a capture with one still, exact frame was infinite, reported as null, hiding every other frame's
+    error); infinite only when every frame is exact."""
+    values = np.asarray(per_frame, dtype=np.float64)
+    finite = values[np.isfinite(values)]
+    return float(np.mean(finite)) if finite.size else float("inf")
+
+
 def evaluate(recon, truth, *, data_range: float = 255.0) -> dict:
     """Per-frame and mean PSNR/SSIM of a reconstruction.
 
@@ -31,7 +40,8 @@ def evaluate(recon, truth, *, data_range: float = 255.0) -> dict:
 
     Returns
     -------
-    dict with ``psnr``, ``ssim`` (means over frames), ``psnr_per_frame``,
+    dict with ``psnr``, ``ssim`` (means over frames; the PSNR's over the frames not
+    reconstructed exactly, :func:`mean_psnr`), ``exact_frames``, ``psnr_per_frame``,
     ``ssim_per_frame`` and ``data_range``.
     """
     recon = recon if hasattr(recon, "shape") else np.asarray(recon)
@@ -59,8 +69,9 @@ def evaluate(recon, truth, *, data_range: float = 255.0) -> dict:
             ssim.append(float(structural_similarity(t, r, data_range=data_range, win_size=max(win, 3)))
                         if win >= 3 else float("nan"))
     return dict(
-        psnr=float(np.mean(psnr)),
+        psnr=mean_psnr(psnr),
         ssim=float(np.mean(ssim)),
+        exact_frames=int(np.sum(np.isinf(psnr))),
         psnr_per_frame=psnr,
         ssim_per_frame=ssim,
         data_range=float(data_range),
