@@ -640,7 +640,10 @@ def _cmd_reconstruct(a) -> int:
         patches = sum(e["reconstruction"]["patches"] for e in entries)
         t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
         seconds = time.perf_counter() - t_all
-        patches_per_second = patches / max(t_rec, 1e-9)
+        # the patches of the tiles computed in this run (a rerun from the cache counted every patch: 1.3 M/s)
+        solved = sum(r["patches"] * r.get("tiles_computed", r.get("tiles", 1)) / max(r.get("tiles", 1), 1)
+                     for r in (e["reconstruction"] for e in entries))
+        patches_per_second = solved / max(t_rec, 1e-9)
         metrics["layout"] = "(C, N, H, W)" if job.kind == "channels" else "(T*N, H, W)"
         metrics["reconstruction"] = dict(patches=patches, patches_per_second=patches_per_second,
                                          seconds=dict(read=t_read, reconstruct=t_rec, write=t_write, total=seconds))
