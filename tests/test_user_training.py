@@ -85,3 +85,28 @@ def test_a_video_textured_only_after_its_first_frames_trains(tmp_path, capsys, v
     np.save(d / "late.npy", late)
     rc, r, err = train(tmp_path, capsys, d / "late.npy")
     assert rc == 0, err  # before: only the first 64 frames were read, all flat: "every patch drawn is flat"
+
+
+def test_samples_that_would_not_fit_in_memory_are_refused_in_one_line(tmp_path, capsys, video8):
+    """Reported: 10 M samples at N = 64 passed the checks and ended in a MemoryError traceback after 50 s."""
+    d, v = video8
+    np.save(d / "ok.npy", v)
+    capsys.readouterr()
+    rc = main(["-q", "train", "--frames", "64", "--samples", "10000000", "--iterations", "1",
+               "--cache", str(tmp_path / "cache"), "--output", str(tmp_path / "d.zarr"), str(d / "ok.npy")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "--samples" in err and "GiB" in err, err
+    assert not (tmp_path / "d.zarr").exists()
+
+
+def test_an_allocation_that_fails_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch, video8):
+    from codedvideo import dictionaries
+
+    def no_memory(*args, **kwargs):
+        raise MemoryError("Unable to allocate 350. GiB")
+
+    monkeypatch.setattr(dictionaries, "training_patches", no_memory)
+    d, v = video8
+    np.save(d / "ok.npy", v)
+    rc, _, err = train(tmp_path, capsys, d / "ok.npy")
+    assert rc == 2 and err.strip().startswith("codedvideo: error: out of memory") and len(err.strip().splitlines()) == 1

@@ -227,28 +227,15 @@ def _cmd_train(a) -> int:
     return 0
 
 
-def _available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (Linux: MemAvailable, page cache included), or None."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # not on this platform
-        return None
-
-
 def _check_in_memory(video: str, frames: int, size) -> None:
     """A synthetic scene (or footage clip) is made whole in memory, with the capture: refuse one that would not
     fit, before any work (a video file is simulated capture by capture instead)."""
     if size is None:
         return
+    from .io import available_memory
+
     need = 3 * 4 * frames * size[0] * size[1]  # the float32 frames, the truth and the coded work (measured ~2.9x)
-    free = _available_memory()
+    free = available_memory()
     if free is None:
         return
     if need > 0.75 * free:  # (a quarter kept for the rest of the process and the machine)
@@ -939,6 +926,10 @@ def main(argv: list[str] | None = None) -> int:
             return COMMANDS[args.command](args)
     except CodedVideoError as exc:
         print(f"codedvideo: error: {exc}", file=sys.stderr)
+        return 2
+    except MemoryError as exc:  # an allocation no check foresaw: one line, the temporaries already unwound
+        print(f"codedvideo: error: out of memory ({exc or 'an allocation failed'}); give smaller settings "
+              "(--samples, --tile, --captures) or free memory", file=sys.stderr)
         return 2
     except Terminated:
         print("codedvideo: terminated", file=sys.stderr)

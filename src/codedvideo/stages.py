@@ -28,7 +28,7 @@ from .cache import RECON_VERSION, content_key, dictionary_key
 from .codes import make_code
 from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
-from .errors import InputError, OutputError
+from .errors import ConfigError, InputError, OutputError
 from .metrics import evaluate
 from .parallel import StorePlan, plan_store, plan_tiles, reconstruct_stores
 from .patches import PATCH
@@ -68,6 +68,7 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
     found = _cached_dictionary(cached, key)  # a finished entry needs no lock: it appeared by a rename
     videos = used = None
     if found is None and dc.kind != "dct":  # read (and so check) the training videos before touching the cache
+        _check_training_memory(dc.samples, cfg.frames)
         videos, used = training_videos(dc.training, frames=cfg.frames, clips=dc.clips, seed=cfg.seed,
                                        max_speed=dc.max_speed)
     if found is None:
@@ -231,6 +232,17 @@ def sensor_model(noise) -> physics.SensorModel | None:
     return physics.SensorModel(shot_noise=noise.shot_noise, full_well=noise.full_well, gain=noise.gain,
                                read_sigma=noise.sigma, bits=noise.bits, white_level=noise.white_level,
                                black_level=noise.black_level)
+
+
+def _check_training_memory(samples: int, frames: int) -> None:
+    """Refuse, before any work, a number of training samples whose patches would not fit in memory: K-SVD
+    draws three candidate blocks a sample and keeps the samples and their residuals, float32 (10 M samples
+    at N = 64 ended in a MemoryError traceback after 50 s)."""
+    need = 5 * 4 * samples * frames * PATCH * PATCH
+    free = cio.available_memory()
+    if free is not None and need > 0.75 * free:
+        raise ConfigError(f"dictionary.samples {samples} (--samples): {samples} training patches of 7x7x{frames} "
+                          f"need about {need / 2**30:.1f} GiB, {free / 2**30:.1f} GiB are free; give fewer samples")
 
 
 def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> tuple[np.ndarray, np.ndarray, int]:
