@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)  ## create .venv and install the project
 
 run: $(STAMP)  ## run the whole pipeline on the embedded default scene
-	$(CLI) run $(CONFIG)
+	$(CLI) run "$(CONFIG)"
 
 test: $(STAMP)  ## run the test suite
 	$(BIN)/python -m pytest -q
@@ -29,22 +29,22 @@ bench: $(STAMP)  ## time reconstruction against GAP-TV and a matrix multiply
 	$(BIN)/python tasks/bench.py
 
 report: $(STAMP)  ## the paper's experiments and error against run time: out/report/report.html (+ .csv)
-	$(CLI) report $(CONFIG)
+	$(CLI) report "$(CONFIG)"
 
 train: $(STAMP)  ## regenerate the shipped dictionaries (src/codedvideo/data) and their data_manifest rows
 	$(BIN)/python tasks/train.py --shipped
 
 train-config: $(STAMP)  ## train (or reuse) the dictionary pipeline.yaml describes
-	$(BIN)/python tasks/train.py $(CONFIG)
+	$(BIN)/python tasks/train.py "$(CONFIG)"
 
 simulate: $(STAMP)  ## simulate the coded capture pipeline.yaml describes
-	$(BIN)/python tasks/simulate.py $(CONFIG)
+	$(BIN)/python tasks/simulate.py "$(CONFIG)"
 
 reconstruct: $(STAMP)  ## reconstruct (trains/simulates first if needed)
-	$(BIN)/python tasks/reconstruct.py $(CONFIG)
+	$(BIN)/python tasks/reconstruct.py "$(CONFIG)"
 
 submit: $(STAMP)  ## run pipeline.yaml on a dask.distributed scheduler: make submit SCHEDULER=tcp://host:8786
-	$(BIN)/python tasks/submit.py $(CONFIG) $(SCHEDULER)
+	$(BIN)/python tasks/submit.py "$(CONFIG)" $(SCHEDULER)
 
 clean:  ## remove outputs and caches (not .venv)
 	rm -rf out cache

@@ -4,7 +4,6 @@ from __future__ import annotations
 import sys
 
 from codedvideo.config import load_config
-from codedvideo.errors import CodedVideoError
 
 
 def config_path(default: str = "pipeline.yaml") -> str:
@@ -17,10 +16,8 @@ def config_from_argv(default: str = "pipeline.yaml"):
 
 
 def guarded(fn) -> int:
-    """Run a stage; a CodedVideoError becomes one line on stderr and exit 2."""
-    try:
-        fn()
-    except CodedVideoError as exc:
-        print(f"codedvideo: error: {exc}", file=sys.stderr)
-        return 2
-    return 0
+    """Run a stage as the command line runs a command (:func:`codedvideo.cli.guarded`): an error, Ctrl-C or
+    SIGTERM is one line on stderr and its exit status (2, 130, 143)."""
+    from codedvideo.cli import guarded as as_command
+
+    return as_command(fn)

@@ -83,3 +83,29 @@ def test_train_refuses_max_speed_for_user_videos(tmp_path, capsys, user_video):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "--max-speed" in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "cache").exists() or not list((tmp_path / "cache").glob("dict-*"))
+
+
+def test_make_targets_take_a_config_path_with_a_space(tmp_path):
+    """Reported: `make run CONFIG="my config.yaml"` split the path ("unrecognized arguments: config.yaml")."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    folder = tmp_path / "my configs"
+    folder.mkdir()
+    cfg = folder / "my config.yaml"
+    cfg.write_text(f"frames: 4\nscene: {{video: synth:default, size: [24, 24]}}\n"
+                   f"output: {{dir: '{tmp_path / 'out dir'}'}}\n")
+    proc = subprocess.run(["make", "-s", "simulate", f"CONFIG={cfg}"], cwd=root, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "out dir" / "capture" / "coded.npy").exists()
+
+
+def test_a_stage_script_interrupted_says_so_in_one_line(capsys):
+    from codedvideo.cli import guarded
+
+    def stopped():
+        raise KeyboardInterrupt
+
+    assert guarded(stopped) == 130
+    assert capsys.readouterr().err == "codedvideo: interrupted\n"  # before: a KeyboardInterrupt traceback

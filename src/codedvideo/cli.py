@@ -43,7 +43,8 @@ class _Parser(argparse.ArgumentParser):
     """argparse with the project's error form: one line, ``codedvideo: error: ...``, exit status 2."""
 
     def error(self, message: str):
-        self.exit(2, f"codedvideo: error: {self.prog.removeprefix('codedvideo').strip() or 'codedvideo'}: {message}\n")
+        command = self.prog.removeprefix("codedvideo").strip()  # a subcommand's parser names it; the top one does not
+        self.exit(2, f"codedvideo: error: {command + ': ' if command else ''}{message}\n")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -913,9 +914,18 @@ def main(argv: list[str] | None = None) -> int:
         args = _parser().parse_args(argv)
     except SystemExit as exc:  # --help, --version, or a bad option (one line already printed)
         return exc.code if isinstance(exc.code, int) else 2
+    return guarded(lambda: COMMANDS[args.command](args))
+
+
+def guarded(fn) -> int:
+    """Run ``fn()`` as a command: its exit status, or an error, Ctrl-C or SIGTERM as one line and its status.
+
+    Warnings are one line each (their format only: a caller that records them,
+    as pytest.warns does, still gets them); SIGTERM unwinds as Ctrl-C does.
+    The filters, the format and the SIGTERM handler are restored on return.
+    The stage scripts of ``tasks/`` run through it too.
+    """
     logging.basicConfig(level=logging.WARNING, format="codedvideo: %(message)s")
-    # warnings as one line (their format only: a caller that records them, as pytest.warns does, still
-    # gets them); the filters and the format are restored on return
     previous, warnings.formatwarning = warnings.formatwarning, _one_line
     # SIGTERM's default ends the process where it stands, leaving partial outputs behind
     on_term = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() \
@@ -923,7 +933,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("default")
-            return COMMANDS[args.command](args)
+            return fn() or 0
     except CodedVideoError as exc:
         print(f"codedvideo: error: {exc}", file=sys.stderr)
         return 2
