@@ -32,7 +32,10 @@ def test_stacks_multipage_folder_and_pattern(tmp_path, smooth):
     np.testing.assert_allclose(pat, np.round(smooth), atol=0.5)
     exr = cio.write_frames(tmp_path / "exr", smooth, fmt="exr")
     assert len(exr) == 5
-    np.testing.assert_array_equal(cio.read_stack(tmp_path / "exr"), smooth)
+    # EXR: the data range at 1.0 (white), not clipped; the sidecar takes it back to frame units
+    np.testing.assert_allclose(cio.read_stack(tmp_path / "exr"), smooth / 255, rtol=1e-6)
+    np.testing.assert_allclose(cio.read_stack(tmp_path / "exr") * cio.read_frames_scale(tmp_path / "exr"), smooth,
+                               rtol=1e-5)
 
 
 @pytest.mark.parametrize("suffix,tol", [(".mp4", 3.0), (".mov", 3.0), (".mkv", 0.0), (".gif", 0.0)])
@@ -318,3 +321,12 @@ def test_a_stack_written_part_by_part_refuses_a_page_of_another_size_and_leaves_
             write(np.zeros((2, 8, 8), np.float32))
             write(np.zeros((1, 8, 9), np.float32))
     assert list(tmp_path.iterdir()) == []
+
+
+def test_frame_names_sort_in_frame_order_past_ten_thousand_frames(tmp_path):
+    """Reported: frame_%04d names misordered by name after 9999 frames (frame_1000 before frame_10000)."""
+    frames = np.zeros((2, 8, 8), np.float32)
+    with cio.frames_writer(tmp_path / "f", fmt="png", total=10001) as write:
+        names = write(frames)
+    assert [p.name for p in names] == ["frame_00000.png", "frame_00001.png"]
+    assert [p.name for p in cio.write_frames(tmp_path / "g", frames, fmt="png")] == ["frame_0000.png", "frame_0001.png"]

@@ -863,37 +863,41 @@ def write_frames(
     ----------
     frames : ndarray of shape (N, H, W), or (C, N, H, W) for colour (RGB files)
     fmt : {"tiff16", "exr", "png", "png16", "dpx"}
-        "tiff16" (uint16, ``data_range`` -> 65535), "exr" (float32, raw
-        values), "png" (8-bit, ``data_range`` -> 255), "png16" and "dpx"
-        (16-bit, ``data_range`` -> 65535).
+        "tiff16" (uint16, ``data_range`` -> 65535), "exr" (float32,
+        ``data_range`` -> 1.0, the EXR convention for white; not clipped),
+        "png" (8-bit, ``data_range`` -> 255), "png16" and "dpx" (16-bit,
+        ``data_range`` -> 65535).  Files are numbered with at least 4 digits,
+        as many as the last number needs (names sort in frame order).
     """
     frames = np.asarray(frames)
     if frames.ndim == 4:
         frames = np.moveaxis(frames, 0, 1)  # (N, C, H, W): one colour file per frame
     elif frames.ndim != 3:
         raise InputError(f"frames {directory}: expected shape (N, H, W) or (C, N, H, W), got {frames.shape}")
-    with frames_writer(directory, fmt=fmt, data_range=data_range, prefix=prefix) as write:
+    with frames_writer(directory, fmt=fmt, data_range=data_range, prefix=prefix, total=frames.shape[0]) as write:
         return write(frames)
 
 
-#: Frame formats of :func:`write_frames`: name -> (file extension, OpenImageIO type, full scale or None for raw values)
-_FRAME_FORMATS = {"tiff16": ("tif", "uint16", 65535.0), "exr": ("exr", "float", None), "png": ("png", "uint8", 255.0),
+#: Frame formats of :func:`write_frames`: name -> (file extension, OpenImageIO type, the full scale data_range maps to)
+_FRAME_FORMATS = {"tiff16": ("tif", "uint16", 65535.0), "exr": ("exr", "float", 1.0), "png": ("png", "uint8", 255.0),
                   "png16": ("png", "uint16", 65535.0), "dpx": ("dpx", "uint16", 65535.0)}
 
 
 @contextlib.contextmanager
 def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_range: float = 255.0,
-                  prefix: str = "frame"):
+                  prefix: str = "frame", total: int | None = None):
     """Write a folder of frames (:func:`write_frames`) part by part: yields ``write(frames)`` -> their paths.
 
     Parts of (n, H, W) (or (n, C, H, W) colour) frames come in order and are
-    numbered on; the folder appears under ``directory`` only when the block
-    ends without an error.
+    numbered on, with as many digits as ``total`` frames need (at least 4; 6
+    when it is not known), so that the names sort in frame order; the folder
+    appears under ``directory`` only when the block ends without an error.
     """
     directory = Path(directory)
     if fmt not in _FRAME_FORMATS:
         raise InputError(f"frames {directory}: unknown frame format {fmt!r}")
     ext, ofmt, full = _FRAME_FORMATS[fmt]
+    digits = max(4, len(str(max(total - 1, 0)))) if total is not None else 6
     with atomic_output(directory) as tmp:
         tmp.mkdir()
         count = 0
@@ -902,13 +906,13 @@ def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_ran
             nonlocal count
             names = []
             for frame in np.asarray(frames):
-                if full is None:
-                    arr = frame.astype(np.float32)
+                if ofmt == "float":
+                    arr = (frame * np.float32(full / data_range)).astype(np.float32)
                 elif full == 255.0:
                     arr = _to_uint8(frame, data_range)
                 else:
                     arr = np.clip(np.rint(frame * (full / data_range)), 0, full).astype(np.uint16)
-                name = f"{prefix}_{count:04d}.{ext}"
+                name = f"{prefix}_{count:0{digits}d}.{ext}"
                 _oiio_write(tmp / name, [arr], ofmt)
                 names.append(directory / name)
                 count += 1
@@ -921,7 +925,8 @@ def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_ran
 
 
 def read_frames_scale(directory: str | os.PathLike) -> float:
-    """Factor from a frame folder's stored values to frame units (1.0 without a sidecar or for EXR)."""
+    """Factor from a frame folder's stored values to frame units (1.0 without a sidecar, or for EXR frames
+    written raw before they were scaled to 1.0: ``full_scale`` null)."""
     side = Path(directory) / FRAMES_SIDECAR
     if not side.is_file():
         return 1.0

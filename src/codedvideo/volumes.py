@@ -338,7 +338,7 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0
     elif grey and suffix in (".tif", ".tiff"):
         streamed = cio.stack_writer(output, shape[0], dtype=np.float32)
     elif grey and suffix in ("", ".d"):
-        streamed = cio.frames_writer(output, fmt="tiff16", data_range=data_range)
+        streamed = cio.frames_writer(output, fmt="tiff16", data_range=data_range, total=shape[0])
     elif grey and suffix == ".mat":
         from .cacti import mat_writer
 
