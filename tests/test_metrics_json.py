@@ -101,3 +101,21 @@ def test_a_rerun_from_the_cache_reports_no_patches_solved(tmp_path, capsys):
         rates.append(json.loads((tmp_path / out).with_suffix(".metrics.json").read_text())
                      ["reconstruction"]["patches_per_second"])
     assert rates[0] > 0 and rates[1] == 0
+
+
+def test_the_metrics_say_the_quality_is_the_volumes_and_when_the_file_is_lossy(tmp_path, capsys):
+    from codedvideo.cli import main
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+
+    video = make_scene("default", frames=4, size=(24, 24))
+    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0, seed=0)
+    for name in ("coded", "mask", "truth"):
+        np.save(tmp_path / f"{name}.npy", cap[name])
+    said = {}
+    for out in ("r.npy", "r.mp4"):
+        assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                     "--truth", str(tmp_path / "truth.npy"), "--method", "dct", "--output", str(tmp_path / out),
+                     "--cache", str(tmp_path / "cache"), "--overwrite"]) == 0
+        said[out] = json.loads((tmp_path / "r.metrics.json").read_text())["quality"]["measured_on"]
+    assert said["r.npy"] == "volume before encoding" and "lossy (H.264)" in said["r.mp4"]

@@ -657,6 +657,11 @@ def _cmd_reconstruct(a) -> int:
             summary.update({k: [round(v, 2 if k.startswith("psnr") else 4) for v in vals] for k, vals in per.items()})
             if job.kind in ("captures", "measurements") and count > 1:
                 quality["boundaries"] = dict(_boundary_steps(entries, per_frame["psnr"], n), **steps.summary())
+        # of the volume as reconstructed (float32); a lossy output file holds it less exactly (evaluate the file)
+        suffix = Path(a.output).suffix.lower()
+        lossy = "H.264" if suffix in (".mp4", ".mov") else "GIF palette (3-3-2)" if suffix == ".gif" and len(shape) == 4 \
+            else None
+        quality["measured_on"] = "volume before encoding" + (f"; the output is lossy ({lossy})" if lossy else "")
         metrics["quality"] = quality
     mpath = write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
