@@ -109,3 +109,24 @@ def test_a_stage_script_interrupted_says_so_in_one_line(capsys):
 
     assert guarded(stopped) == 130
     assert capsys.readouterr().err == "codedvideo: interrupted\n"  # before: a KeyboardInterrupt traceback
+
+
+def test_simulating_again_keeps_the_last_reconstructions_record_and_says_it_is_stale(tmp_path, capsys):
+    """Reported: `make simulate` after `run` rewrote recon.metrics.json without its PSNR, beside a recon.mp4
+    that was no longer of the capture in capture/."""
+    from codedvideo.config import load_config
+    from codedvideo.stages import run_pipeline
+
+    out = tmp_path / "out"
+    cfg_text = (f"frames: 4\ncache: {tmp_path / 'cache'}\nscene: {{video: synth:default, size: [24, 24]}}\n"
+                f"dictionary: {{kind: dct}}\nreconstruct: {{tile: 32}}\noutput: {{dir: {out}, frames: none}}\n")
+    rc, err = run(tmp_path, capsys, cfg_text)
+    assert rc == 0, err
+    record = (out / "recon.metrics.json").read_text()
+    assert "psnr" in record
+    cfg = load_config(tmp_path / "p.yaml")
+    with pytest.warns(UserWarning, match="from an earlier run"):
+        report = run_pipeline(cfg.model_copy(update=dict(stages=["simulate"], seed=1)), progress=False)
+    assert (out / "recon.metrics.json").read_text() == record
+    assert report["metrics_path"] == str(out / "capture" / "metrics.json")
+    assert json.loads((out / "capture" / "metrics.json").read_text())["capture"]

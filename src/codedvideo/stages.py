@@ -696,7 +696,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     outputs = [Output(out, "place", "output.dir"), Output(out / cfg.output.video, "file", "output.video"),
                Output(out / "recon.npy", "file"), Output(metrics_path(out / cfg.output.video), "file", "metrics"),
                Output(out / "capture", "place", "capture folder")]
-    outputs += [Output(out / "capture" / name, "file") for name in CAPTURE_FILES]
+    outputs += [Output(out / "capture" / name, "file") for name in (*CAPTURE_FILES, "metrics.json")]
     if cfg.output.frames != "none":
         outputs.append(Output(out / "frames", "folder", "frames folder"))
     check_outputs(outputs, dict(config=config_path, scene=cfg.scene.video, code=cfg.code.path,
@@ -771,7 +771,15 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
                                          data_range=units.value)
             report["seconds"]["evaluate"] = time.perf_counter() - t0
     report["seconds"]["total"] = sum(report["seconds"].values())
-    mark_written(write_json(metrics_path(out / cfg.output.video), report))
-    report["metrics_path"] = str(metrics_path(out / cfg.output.video))
+    # a run that reconstructs nothing (`make simulate`) keeps its record beside the capture: it replaced the last
+    # reconstruction's record (and its PSNR), and says that reconstruction is not of this capture
+    mpath = metrics_path(out / cfg.output.video) if "reconstruct" in cfg.stages else out / "capture" / "metrics.json"
+    if "simulate" in cfg.stages and "reconstruct" not in cfg.stages:
+        earlier = [p for p in (out / cfg.output.video, out / "recon.npy") if p.exists()]
+        if earlier:
+            warnings.warn(f"{', '.join(map(str, earlier))}: from an earlier run, not reconstructed from this capture "
+                          "(run the reconstruct stage to replace them)", stacklevel=2)
+    mark_written(write_json(mpath, report))
+    report["metrics_path"] = str(mpath)
     return report
 
