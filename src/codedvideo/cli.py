@@ -108,8 +108,12 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--overwrite", action="store_true", help="replace existing output files that codedvideo did not write")
 
     r = sub.add_parser("reconstruct", help="recover the video from a coded image and its mask")
-    r.add_argument("--coded", default=None, help="coded image: .npy, .tif, .exr, .dpx or .png (H, W); required unless --cacti")
-    r.add_argument("--mask", default=None, help="mask: .npy (N, H, W), a multi-page TIFF or frames; required unless --cacti")
+    r.add_argument("--coded", default=None,
+                   help="coded image (H, W) or a stream of them: .npy (T, H, W), .tif (multi-page), .exr, .dpx, .png, "
+                        "a folder or printf pattern of images, a lossless video; required unless --cacti")
+    r.add_argument("--mask", default=None,
+                   help="mask: .npy (N, H, W) or one per capture (T, N, H, W), a multi-page TIFF or frames; "
+                        "required unless --cacti")
     r.add_argument("--cacti", default=None, metavar="FILE.mat",
                    help="instead of --coded/--mask: a CACTI .mat (mask, meas, orig); every measurement is reconstructed")
     r.add_argument("--measurement", type=int, default=None, metavar="Q",
@@ -125,9 +129,12 @@ def _parser() -> argparse.ArgumentParser:
                         "similar patches solved together under their own codes (better, about 4x the time); "
                         "dct: 3D DCT dictionary, same OMP; thinout, interp, gaptv: baselines (see README)")
     r.add_argument("--output", "-o", required=True,
-                   help=".npy, .zarr, .mat, .tif, .mp4/.mkv/.gif or a folder of frames (--cacti: all measurements, time-first)")
-    r.add_argument("--truth", default=None, help="ground truth (N, H, W) for PSNR/SSIM in the metrics")
-    r.add_argument("--max-atoms", type=int, default=PipelineConfig().reconstruct.max_atoms)
+                   help=".npy, .zarr, .mat, .tif/.tiff, .mp4/.mov (H.264), .mkv/.avi (FFV1), .gif, or a name without "
+                        "suffix (or ending .d): a folder of 16-bit TIFF frames (--cacti: all measurements, time-first)")
+    r.add_argument("--truth", default=None,
+                   help="ground truth for PSNR/SSIM in the metrics: (T*N, H, W) frames, (3, N, H, W) for colour")
+    r.add_argument("--max-atoms", type=int, default=PipelineConfig().reconstruct.max_atoms,
+                   help=f"OMP's atoms per patch at most (default {PipelineConfig().reconstruct.max_atoms})")
     r.add_argument("--tol-rms", type=float, default=None, help="residual tolerance, RMS per pixel (default: from --noise-sigma)")
     r.add_argument("--noise-sigma", type=float, default=0.0, help="read noise of the capture, grey levels")
     r.add_argument("--white-level", type=float, default=None,
@@ -147,16 +154,19 @@ def _parser() -> argparse.ArgumentParser:
                    help="average of overlapping estimates: uniform (the paper) or weighted by each patch's misfit")
     r.add_argument("--static-atoms", type=int, default=PipelineConfig().reconstruct.static_atoms,
                    help="still-scene test: 2D DCT atoms before full OMP (0: off)")
-    r.add_argument("--tile", type=int, default=PipelineConfig().reconstruct.tile)
-    r.add_argument("--batch", type=int, default=PipelineConfig().reconstruct.batch)
+    r.add_argument("--tile", type=int, default=PipelineConfig().reconstruct.tile,
+                   help=f"tile side in pixels, a task each (default {PipelineConfig().reconstruct.tile})")
+    r.add_argument("--batch", type=int, default=PipelineConfig().reconstruct.batch,
+                   help=f"patches solved together in a tile (default {PipelineConfig().reconstruct.batch})")
     r.add_argument("--scheduler", default=None, help="dask.distributed scheduler address (default: local, both cores)")
     r.add_argument("--workers", type=int, default=None, help="local worker threads")
     r.add_argument("--data-range", type=float, default=None,
                    help="peak value of the frames: the PSNR peak, the full scale of videos, and the working "
                         "scale, so the default tolerance is 2/255 of it (default: found from the capture; see "
                         "README, Units)")
-    r.add_argument("--fps", type=int, default=30)
-    r.add_argument("--cache", default="cache")
+    r.add_argument("--fps", type=int, default=30, help="frame rate of a video output (default 30)")
+    r.add_argument("--cache", default="cache",
+                   help="working stores and dictionaries, reused by later runs (default: cache)")
     r.add_argument("--overwrite", action="store_true",
                    help="replace an existing output file that codedvideo did not write (folders: never)")
     r.add_argument("--independent-captures", action="store_true",
