@@ -317,9 +317,13 @@ def _cmd_simulate(a) -> int:
     if captures == "all":  # as many whole captures as the video holds from --start
         from .scenes import count_frames
 
-        captures = count_frames(a.video, start=a.start) // a.frames
+        total = count_frames(a.video, start=a.start)
+        captures, left = divmod(total, a.frames)
         if captures < 1:
             raise InputError(f"video {a.video}: fewer than N = {a.frames} frames from frame {a.start}")
+        if left:
+            warnings.warn(f"video {a.video}: {total} frames from frame {a.start} make {captures} captures of N = "
+                          f"{a.frames}; its last {left} frames are left out")
     options = dict(code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed, p=code_cfg.p,
                    code_path=code_cfg.path, sensor=sensor_model(noise))
     if not (a.bayer or a.cacti_out or a.video.startswith(("synth:", "footage:"))):
