@@ -148,3 +148,20 @@ def test_damaged_records_and_volumes_are_computed_again(mini, tmp_path):
     assert again["computed"] == 2 and again["reused"] == first["computed"] + first["reused"] - 2
     assert json.loads(record.read_text())["key"] == record.stem
     assert not [r for r in verify_cache(tmp_path / "cache") if r["status"] != "ok"]
+
+
+def test_a_claim_one_noise_level_cannot_test_is_not_tested_not_refuted():
+    """Reported: with table_sigmas [0] the report said "NOT reproduced: longer bumps win as noise grows"."""
+    from types import SimpleNamespace
+
+    from codedvideo.report import findings, verdict
+
+    rc = SimpleNamespace(table_sigmas=[0.0], table_bumps=[1, 2], bump=2, frames=4)
+    table = {(1, 0.0): 20.0, (2, 0.0): 21.0}
+    fig7 = {(a, 4): dict(psnr=p) for a, p in (("learned + OMP (hitomi)", 4), ("3D DCT + OMP (hitomi)", 3),
+                                              ("3D interpolation (grid code)", 2), ("thin-out (thinout code)", 1))}
+    fig4 = {"hitomi (L = 2)": dict(psnr=2.0, ssim=0.5), "rowwise (L = 2)": dict(psnr=1.0, ssim=0.4)}
+    found = {f["claim"]: f["holds"] for f in findings(table, {0.0: 2}, fig7, fig4, rc)}
+    assert found["Table 1: longer bumps win as noise grows"] is None
+    assert verdict(None).startswith("not tested") and verdict(False) == "NOT reproduced"
+    assert all(v is True for k, v in found.items() if "noise grows" not in k)

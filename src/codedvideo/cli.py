@@ -870,11 +870,11 @@ def _cmd_run(a) -> int:
 
 
 def _cmd_report(a) -> int:
-    from .report import run_report
+    from .report import run_report, verdict
 
     result = run_report(_config(a), progress=not a.quiet, config_path=a.config)
     lines = [f"report: {result['html']}", f"numbers: {result['csv']}", f"video: {result['video']}"]
-    lines += [f"{'reproduced' if f['holds'] else 'NOT reproduced'}: {f['claim']} ({f['detail']})" for f in result["findings"]]
+    lines += [f"{verdict(f['holds'])}: {f['claim']} ({f['detail']})" for f in result["findings"]]
     lines.append(f"experiments: {result['computed']} computed, {result['reused']} reused; {result['seconds']:.0f} s")
     print("\n".join(lines))
     return 0

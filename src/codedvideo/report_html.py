@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from . import io as cio
+from .report import verdict
 from .stages import simulate_capture
 
 CSV_FIELDS = ("experiment", "label", "scene", "frames", "code", "bump", "sigma", "method", "max_atoms", "tol_rms",
@@ -213,7 +214,7 @@ def write_report(cfg, runner, results: dict, summary: dict, *, seconds: float) -
                 "yes" if v["pareto_psnr"] else "", "yes" if v["pareto_ssim"] else ""]
                for k, v in sorted(summary["speed"].items(), key=lambda kv: kv[1]["seconds"])]
     find = "".join(
-        f"<li><b>{'REPRODUCED' if f['holds'] else 'NOT REPRODUCED'}</b>: {html.escape(f['claim'])}. "
+        f"<li><b>{verdict(f['holds']).upper()}</b>: {html.escape(f['claim'])}. "
         f"{html.escape(f['detail'])}</li>" for f in summary["findings"])
     d = runner.dictionary_config(rc.frames)
     dict_desc = (f"K-SVD, {runner.main_atoms()} atoms, {d.dictionary.samples} samples, {d.dictionary.iterations} "
