@@ -110,3 +110,8 @@ def test_an_allocation_that_fails_is_one_line_not_a_traceback(tmp_path, capsys, 
     np.save(d / "ok.npy", v)
     rc, _, err = train(tmp_path, capsys, d / "ok.npy")
     assert rc == 2 and err.strip().startswith("codedvideo: error: out of memory") and len(err.strip().splitlines()) == 1
+
+
+def test_a_test_scene_named_for_training_says_what_to_name(tmp_path, capsys):
+    rc, _, err = train(tmp_path, capsys, "synth:default")
+    assert rc == 2 and "synth:train" in err and "test scene" in err, err  # before: "image synth:default: no such file"

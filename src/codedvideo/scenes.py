@@ -114,6 +114,9 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max
             videos.extend(synth.training_videos(frames=frames, count=clips, seed=seed, max_speed=max_speed))
             used.append(spec)
             continue
+        if spec.startswith(("synth:", "footage:")):  # test scenes and held-out clips: never trained on
+            raise InputError(f"training video {spec}: a test scene, never trained on; the synthetic training set is "
+                             "synth:train, or give your own video files")
         path = resolve_data(spec)
         if Path(path).suffix.lower() in cio.VIDEO_SUFFIXES:  # decoded frame by frame: no more than the limit
             first = cio.read_video(path, max_frames=1)
