@@ -441,3 +441,22 @@ def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
         vol, info = reconstruct_capture("nonlocal", coded, mask, cache=tmp_path / "b", **common)
     assert info["method"] == "omp" and "patterns" in info["nonlocal_unavailable"]
     np.testing.assert_array_equal(vol, plain)
+
+
+def test_a_noisy_stream_whose_blocks_have_no_still_reference_runs(tmp_path, capsys):
+    """Reported: a 2-capture noisy stack at tile 32 ended in a traceback ("cannot reshape array of size 0 into
+    shape (0, newaxis)"): a block without a calm reference asked for the still answers of no patch."""
+    from codedvideo.cli import main
+    from codedvideo.reconstruct import still_answers
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+
+    assert still_answers(np.zeros((0, 49), np.float32), np.ones((0, 49), np.float32), 8).shape == (0, 8 * 49)
+    video = make_scene("default", frames=16, size=(256, 256))[:, 96:160, 96:160]
+    cap = simulate_capture(video, code="hitomi", bump=2, sigma=2.0, seed=0, captures=2)
+    for name in ("coded", "mask", "truth"):
+        np.save(tmp_path / f"{name}.npy", cap[name])
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                 "--truth", str(tmp_path / "truth.npy"), "--noise-sigma", "2", "--method", "nonlocal", "--tile", "32",
+                 "--output", str(tmp_path / "r.npy"), "--cache", str(tmp_path / "cache")]) == 0
+    assert np.isfinite(np.load(tmp_path / "r.npy")).all()

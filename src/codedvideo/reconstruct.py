@@ -117,7 +117,8 @@ def still_answers(y: np.ndarray, n_pix: np.ndarray, frames: int) -> np.ndarray:
     """The still answer of patches ``y`` (P, m): ``coded / open count`` of every pixel in each of the
     ``frames`` sub-frames, as rows of ``frames * m`` (a pixel never open: 0)."""
     q = y / np.maximum(n_pix, 1e-12).astype(np.float32)
-    return np.broadcast_to(q[:, None, :], (q.shape[0], frames, q.shape[1])).reshape(q.shape[0], -1)
+    # (the row length spelled out: none of them, 0 x -1, is ambiguous to numpy)
+    return np.broadcast_to(q[:, None, :], (q.shape[0], frames, q.shape[1])).reshape(q.shape[0], frames * q.shape[1])
 
 
 def still_patches(
