@@ -812,7 +812,7 @@ def _written_range(path) -> float | None:
 def _cmd_evaluate(a) -> int:
     from .io import VIDEO_SUFFIXES
     from .metrics import EVALUATE_BLOCK, evaluate, json_safe
-    from .volumes import write_json, read_truth_stack, read_volume
+    from .volumes import write_json
     from .units import infer_data_range
 
     out = validated(OutputConfig, dict(data_range=a.data_range))
@@ -821,14 +821,22 @@ def _cmd_evaluate(a) -> int:
         if Path(a.output).suffix.lower() != ".json":
             raise ConfigError(f"evaluate --output {a.output}: the scores are written as JSON; name it .json")
     # long (T*N, H, W) .npy videos are compared a block of frames at a time, never held whole
-    recon = read_truth_stack(a.recon, EVALUATE_BLOCK, what="reconstruction")
-    truth = read_truth_stack(a.truth, EVALUATE_BLOCK)
-    if len(truth.shape) == 4 and len(recon.shape) == 3:  # a colour truth: a video's or frame folder's channels
-        recon = read_volume(a.recon, color="channels")
+    recon = _scored_volume(a.recon, "reconstruction")
+    truth = _scored_volume(a.truth, "truth")
+    if len(truth.shape) != len(recon.shape):  # colour against grey: their luma, said
+        from .io import LUMA
+
+        warnings.warn(f"evaluate: {a.truth if len(truth.shape) == 4 else a.recon} is colour and "
+                      f"{a.recon if len(truth.shape) == 4 else a.truth} grey; compared as luma")
+        recon, truth = (np.tensordot(LUMA, v, axes=([0], [0])) if len(v.shape) == 4 else v for v in (recon, truth))
     if len(truth.shape) == 4 and recon.shape == truth.shape:  # colour (C, N, H, W): every channel's frames
         recon, truth = recon.reshape(-1, *recon.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])
-    peak = max((float(np.max(truth[s : s + EVALUATE_BLOCK], initial=0.0))
-                for s in range(0, truth.shape[0], EVALUATE_BLOCK)), default=0.0)
+
+    def peak_of(v) -> float:
+        return max((float(np.max(v[s : s + EVALUATE_BLOCK], initial=0.0)) for s in range(0, v.shape[0], EVALUATE_BLOCK)),
+                   default=0.0)
+
+    peak = peak_of(truth)
     units = infer_data_range(peak, given=out.data_range, what="the truth")
     extra = {}
     if Path(a.recon).suffix.lower() in VIDEO_SUFFIXES:  # 8-bit frames: 255 was the data range they were written with
@@ -836,12 +844,33 @@ def _cmd_evaluate(a) -> int:
         if written != 255.0:
             recon = np.asarray(recon, np.float32) * np.float32(written / 255.0)
             extra["reconstruction_scaled"] = f"video frames x {written:g} / 255 (the data range they were written with)"
+    recon_peak = peak_of(recon)
+    if peak > 0 and not units.value / 16 <= recon_peak <= 4 * units.value:  # another unit: a score that means nothing
+        warnings.warn(f"evaluate: {a.recon} peaks at {recon_peak:.4g} and {a.truth}'s data range is {units.value:g} "
+                      f"({units.source}); are they in the same units? (a [0, 1] reconstruction against 8-bit truth "
+                      "scores about 10 dB)")
     result = json_safe(dict(evaluate(recon, truth, data_range=units.value),
                             data_range_source=units.source, **extra))
     if a.output:
         mark_written(write_json(Path(a.output), result))
     print(json.dumps(result, allow_nan=False))
     return 0
+
+
+def _scored_volume(path: str, what: str):
+    """A reconstruction or truth to score: a long .npy read a block at a time; a file that may hold colour
+    (a video, TIFF, images) read with its channels when it does ((3, N, H, W); it was read as luma, so that
+    a colour truth's score depended on its container)."""
+    from .metrics import EVALUATE_BLOCK
+    from .volumes import read_truth_stack, read_volume
+
+    volume = read_truth_stack(path, EVALUATE_BLOCK, what=what)
+    if len(volume.shape) == 3 and Path(path).suffix.lower() not in (".npy", ".zarr", ".mat"):
+        channels = read_volume(path, color="channels")
+        if channels.ndim == 4 and channels.shape[0] == 3 and not (
+                (channels[0] == channels[1]).all() and (channels[1] == channels[2]).all()):  # (grey stored as RGB)
+            return channels
+    return volume
 
 
 def _config(a):
