@@ -30,3 +30,22 @@ def test_verify_reports_a_damaged_entry_and_clean_removes_only_it(files, tmp_pat
     first = np.load(tmp_path / "out" / "r.npy")
     assert main(["-q", *map(str, reconstruct_args(files, tmp_path))]) == 0
     np.testing.assert_array_equal(np.load(tmp_path / "out" / "r.npy"), first)
+
+
+def test_clean_leaves_user_files_that_only_look_like_entries(tmp_path, capsys):
+    """Reported: a user's JSON named like a report record, a folder named like an entry holding a user's file,
+    and a user's Zarr store named like a dictionary entry were all removed by `cache clean`."""
+    cache = tmp_path / "cache"
+    (cache / "report").mkdir(parents=True)
+    (cache / "report" / "0123456789abcdef.json").write_text('{"my": "results"}')
+    (cache / "recon-0123456789abcdef.zarr").mkdir()
+    (cache / "recon-0123456789abcdef.zarr" / "coded").write_text("my coded image")
+    (cache / "dict-00000000000000ff.zarr").mkdir()
+    (cache / "dict-00000000000000ff.zarr" / "zarr.json").write_text('{"note": 1}')
+    (cache / "recon-00000000000000aa.zarr").mkdir()  # an entry emptied by hand: codedvideo's, removed
+    for broken in ([], ["--broken"]):
+        assert main(["-q", "cache", "clean", str(cache), *broken]) == 0
+    assert (cache / "report" / "0123456789abcdef.json").read_text() == '{"my": "results"}'
+    assert (cache / "recon-0123456789abcdef.zarr" / "coded").read_text() == "my coded image"
+    assert (cache / "dict-00000000000000ff.zarr" / "zarr.json").exists()
+    assert not (cache / "recon-00000000000000aa.zarr").exists()

@@ -199,13 +199,18 @@ def _looks_like_entry(path: Path, prefix: str) -> bool:
     if path.is_symlink() or not path.is_dir():
         return False
     try:
-        attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
-        if attrs.get("kind") == {"dict": "codedvideo-dictionary", "recon": "codedvideo-reconstruction"}[prefix]:
-            return True
-    except (OSError, ValueError, AttributeError):
-        pass
-    members = {p.name for p in path.iterdir()}
-    return bool(members) and members <= _MEMBERS[prefix]
+        meta = json.loads((path / "zarr.json").read_text())
+    except (OSError, ValueError):
+        meta = None  # none, or damaged: the members decide
+    if isinstance(meta, dict):  # metadata that reads: its kind decides (a user's own store, or a file, is not ours)
+        attrs = meta.get("attributes")
+        return isinstance(attrs, dict) and attrs.get("kind") == {
+            "dict": "codedvideo-dictionary", "recon": "codedvideo-reconstruction"}[prefix]
+    # damaged or missing metadata: only the members of an entry, each a folder (an array), or nothing at all
+    # (an entry emptied by hand)
+    members = list(path.iterdir())
+    return all(p.name in _MEMBERS[prefix] and (p.name == "zarr.json" or (p.is_dir() and not p.is_symlink()))
+               for p in members)
 
 
 def _remove_entry(path: Path, removed: list, *, lock: bool = True) -> None:
@@ -300,7 +305,10 @@ def _scan_report(folder: Path, remove) -> list[dict]:
         status, detail = "ok", "record parses"
         if "json" in files:
             try:
-                problem = report_record_problem(json.loads(files["json"].read_text()), key)
+                record = json.loads(files["json"].read_text())
+                if isinstance(record, dict) and record and not set(record) & set(REPORT_FIELDS):
+                    continue  # an object with none of a record's fields: someone else's file, left alone
+                problem = report_record_problem(record, key)
                 if problem:
                     status, detail = "broken", f"record is not a report record ({problem})"
             except (OSError, ValueError) as exc:
