@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
@@ -279,3 +281,26 @@ def test_codes_check_reads_the_per_capture_masks_simulate_writes(tmp_path, capsy
     assert report["captures"] == 3 and len(report["per_capture"]) == 3
     assert report["single_bump"] and report["fixed_bump"] and report["window_coverage"]
     assert [r["open_fraction"] for r in report["per_capture"]] == [float(m.mean()) for m in masks]
+
+
+def test_codes_check_reads_a_calibrated_mask_with_leakage_by_its_openings(tmp_path, capsys):
+    """Reported: a hitomi L = 2 mask measured with 2 % leakage was called a global shutter (bump length 8)."""
+    from codedvideo.cli import main
+
+    code = make_code("hitomi", (32, 32), frames=8, bump=2, rng=0).astype(np.float32)
+    rep = check_code(code * 0.9 + 0.02)
+    assert not rep.binary and rep.single_bump and rep.fixed_bump and rep.bump_length == 2
+    assert rep.window_coverage and rep.never_open_pixels == 0 and rep.open_threshold == pytest.approx(0.46)
+    # one code per capture with different bump lengths: not one fixed bump
+    np.save(tmp_path / "m.npy", np.stack([make_code("hitomi", (32, 32), frames=8, bump=2, rng=0),
+                                         make_code("hitomi", (32, 32), frames=8, bump=3, rng=1)]))
+    capsys.readouterr()
+    assert main(["codes", "check", str(tmp_path / "m.npy")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [c["bump_length"] for c in out["per_capture"]] == [2, 3]
+    assert out["fixed_bump"] is False and out["bump_length"] is None and out["single_bump"] is True
+
+
+def test_codes_check_has_no_coverage_verdict_for_a_mask_smaller_than_a_window():
+    rep = check_code(make_code("hitomi", (7, 3), frames=8, bump=2, rng=0))
+    assert rep.window_coverage is None and rep.uncovered_windows is None  # it said "true" (and "false" for 1x1)

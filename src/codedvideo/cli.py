@@ -934,7 +934,12 @@ def _cmd_codes(a) -> int:
         return 0
     # one code per capture (simulate --new-code-per-capture): each capture's report, and whether all meet each rule
     reports = [check_code(m).as_dict() for m in masks]
-    met = {k: all(r[k] for r in reports) for k in ("binary", "single_bump", "fixed_bump", "window_coverage")}
+    met = {k: all(r[k] for r in reports) for k in ("binary", "single_bump", "fixed_bump")}
+    lengths = {r["bump_length"] for r in reports}
+    met["fixed_bump"] = met["fixed_bump"] and len(lengths) == 1  # one bump length for every pixel of every capture
+    met["bump_length"] = lengths.pop() if met["fixed_bump"] else None
+    coverage = [r["window_coverage"] for r in reports]
+    met["window_coverage"] = None if None in coverage else all(coverage)
     print(json.dumps(dict(met, captures=len(reports), per_capture=reports)))
     return 0
 

@@ -422,20 +422,23 @@ class CodeReport:
     binary : bool
         Every value is 0 or 1.  False for a calibrated mask (fractional
         weights, e.g. a DMD pattern measured through the optics); the other
-        constraints then count every non-zero weight as open.
+        constraints then count as open the weights of at least
+        ``open_threshold`` (half the largest: leakage of a closed shutter,
+        a few per cent, is not an opening).
     single_bump : bool
         Every pixel is open for at most one contiguous run of sub-frames.
     fixed_bump : bool
         Single bump and every pixel that opens is open for the same length.
     bump_length : int or None
         That length, when fixed.
-    window_coverage : bool
+    window_coverage : bool or None
         Every ``patch x patch`` window has an open pixel in every sub-frame
-        (for images smaller than a window: the whole image does).
-    uncovered_windows : int
+        (None for images smaller than a window: there is none, and
+        reconstruction refuses them).
+    uncovered_windows : int or None
         Number of windows that miss at least one sub-frame.
     never_open_pixels : int
-        Pixels closed in every sub-frame (no measurement).
+        Pixels whose every weight is 0 (no measurement at all).
     open_fraction : float
         Share of (sub-frame, pixel) entries that are open (non-zero): the mean
         of a binary mask.
@@ -453,14 +456,15 @@ class CodeReport:
     single_bump: bool
     fixed_bump: bool
     bump_length: int | None
-    window_coverage: bool
+    window_coverage: bool | None
     never_open_pixels: int
     open_fraction: float
-    uncovered_windows: int = 0
+    uncovered_windows: int | None = 0
     patch: int = PATCH
     mean_weight: float = 0.0
     weight_min: float = 0.0
     weight_max: float = 0.0
+    open_threshold: float = 1.0
 
     def as_dict(self) -> dict:
         return dict(self.__dict__)
@@ -485,30 +489,32 @@ def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
         raise InputError(f"mask: expected shape (N, H, W), got {mask.shape}")
     binary = bool(np.isin(mask, (0, 1)).all())
     nonzero = mask[mask != 0]
-    m = (mask != 0).astype(np.int8)
+    # a calibrated mask's leakage (a closed shutter passing a few per cent) is not an opening
+    threshold = 1.0 if binary else 0.5 * float(mask.max(initial=0.0))
+    m = ((mask >= threshold) & (mask != 0)).astype(np.int8)
     counts = m.sum(0)
     # a single contiguous bump <=> at most one rising edge (0 -> 1) along time
     rises = (np.diff(np.concatenate([np.zeros_like(m[:1]), m]), axis=0) == 1).sum(0)
     single = bool((rises <= 1).all())
     open_counts = counts[counts > 0]
     fixed = single and open_counts.size > 0 and bool((open_counts == open_counts[0]).all())
+    uncovered = None  # no window in an image smaller than one
     if min(mask.shape[1:]) >= patch:
         missing = (window_coverage(m, patch) == 0).any(0)
         uncovered = int(missing.sum())
-    else:
-        uncovered = int(not (m.reshape(m.shape[0], -1).max(1) > 0).all())
     return CodeReport(
         frames=int(mask.shape[0]),
         binary=binary,
         single_bump=single,
         fixed_bump=fixed,
         bump_length=int(open_counts[0]) if fixed else None,
-        window_coverage=uncovered == 0,
-        never_open_pixels=int((counts == 0).sum()),
+        window_coverage=None if uncovered is None else uncovered == 0,
+        never_open_pixels=int((~(mask != 0).any(0)).sum()),  # no light at all (leakage is a measurement)
         open_fraction=float(m.mean()),
         uncovered_windows=uncovered,
         patch=patch,
         mean_weight=float(np.mean(mask, dtype=np.float64)) if mask.size else 0.0,
         weight_min=float(nonzero.min()) if nonzero.size else 0.0,
         weight_max=float(mask.max()) if mask.size else 0.0,
+        open_threshold=threshold,
     )
