@@ -49,3 +49,9 @@ def test_clean_leaves_user_files_that_only_look_like_entries(tmp_path, capsys):
     assert (cache / "recon-0123456789abcdef.zarr" / "coded").read_text() == "my coded image"
     assert (cache / "dict-00000000000000ff.zarr" / "zarr.json").exists()
     assert not (cache / "recon-00000000000000aa.zarr").exists()
+
+
+def test_an_empty_cache_name_is_refused_not_the_current_folder(capsys):
+    for command in ("verify", "clean"):
+        assert main(["-q", "cache", command, ""]) == 2
+        assert "name the cache folder" in capsys.readouterr().err

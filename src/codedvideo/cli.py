@@ -912,6 +912,8 @@ def _cmd_report(a) -> int:
 def _cmd_cache(a) -> int:
     from .cache import clean_cache, verify_cache
 
+    if not str(a.cache).strip():  # (Path("") is the current folder)
+        raise ConfigError("cache '': name the cache folder (default: cache)")
     if a.cache_command == "verify":
         records = verify_cache(a.cache)
         for r in records:
