@@ -115,3 +115,41 @@ def test_an_allocation_that_fails_is_one_line_not_a_traceback(tmp_path, capsys, 
 def test_a_test_scene_named_for_training_says_what_to_name(tmp_path, capsys):
     rc, _, err = train(tmp_path, capsys, "synth:default")
     assert rc == 2 and "synth:train" in err and "test scene" in err, err  # before: "image synth:default: no such file"
+
+
+def test_a_dictionary_adapted_to_a_scene_starts_from_the_one_given(tmp_path, capsys, video8):
+    """train --init shipped --no-augment: K-SVD from the shipped N = 8 dictionary, on the patches as they are."""
+    from codedvideo import shipped
+    from codedvideo.cache import dictionary_key
+    from codedvideo.config import PipelineConfig
+
+    d, v = video8
+    np.save(d / "scene.npy", v)
+    capsys.readouterr()
+    assert main(["-q", "train", "--frames", "8", "--init", "shipped", "--no-augment", "--iterations", "1",
+                 "--samples", "2000", "--cache", str(tmp_path / "cache"), "--output", str(tmp_path / "a.zarr"),
+                 str(d / "scene.npy")]) == 0
+    D, meta = load_dictionary(tmp_path / "a.zarr")
+    D0, _ = load_dictionary(shipped.verified(8))
+    assert D.shape == D0.shape and meta["init"] == "shipped" and meta["augment"] is False
+    dots = np.sum(D * D0, 0)
+    assert np.abs(D - D0).max() > 0.1 and dots.max() > 0.999  # moved from where it started, some atoms kept
+    # the keys of dictionaries trained without these settings (the shipped ones among them) are unchanged
+    assert dictionary_key(PipelineConfig(frames=8)) == shipped.settings_key(8)
+
+
+@pytest.mark.parametrize("extra, named", [(["--atoms", "256"], "--atoms"), (["--kind", "dct"], "--init"),
+                                          (["--frames", "5"], "no dictionary is shipped for N = 5")])
+def test_init_options_that_do_not_apply_are_refused(tmp_path, capsys, video8, extra, named):
+    d, v = video8
+    np.save(d / "scene.npy", v)
+    args = ["-q", "train", "--frames", "8", "--init", "shipped", "--iterations", "1", "--samples", "2000",
+            "--cache", str(tmp_path / "cache"), "--output", str(tmp_path / "a.zarr")]
+    if extra[0] == "--frames":
+        args[3] = "5"
+    else:
+        args += extra
+    capsys.readouterr()
+    rc = main([*args, *([] if extra == ["--kind", "dct"] else [str(d / "scene.npy")])])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and named in err and len(err.splitlines()) == 1, err

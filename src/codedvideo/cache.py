@@ -79,12 +79,24 @@ def dictionary_key(cfg: PipelineConfig) -> str:
     The user's training videos count by what they hold, not by their names: a video replaced under
     the same name trains again, and the same file under another name or folder reuses the entry.
     """
-    settings = dict(cfg.dictionary.model_dump(exclude={"path"}), frames=cfg.frames, seed=cfg.seed, patch=PATCH)
+    settings = dict(cfg.dictionary.model_dump(exclude={"path", "init", "augment"}), frames=cfg.frames, seed=cfg.seed,
+                    patch=PATCH)
+    if cfg.dictionary.init is not None:  # (only when given: every key made before they existed stays the same)
+        settings["init"] = init_dictionary_digest(cfg.dictionary.init, cfg.frames)
+    if not cfg.dictionary.augment:
+        settings["augment"] = False
     # a user's video counted with how it is read: "working-units" since its values are scaled to its data range
     # (a [0, 1] video trained on its raw values before); the named sources, and so the shipped keys, unchanged
     settings["training"] = [digest if digest == spec else f"working-units:{digest}"
                             for spec, digest in ((s, _source_digest(s)) for s in cfg.dictionary.training)]
     return content_key("dictionary-v1", settings)
+
+
+def init_dictionary_digest(init: str, frames: int) -> str:
+    """The dictionary a K-SVD starts from, by its content (its sha256, checked on load)."""
+    from .stages import init_dictionary
+
+    return str(init_dictionary(init, frames)[1]["sha256"])
 
 
 def _source_digest(spec: str) -> str:

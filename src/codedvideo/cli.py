@@ -64,6 +64,11 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--sparsity", type=int, default=None, help=f"(default {learned.sparsity})")
     t.add_argument("--max-speed", type=float, default=None,
                    help=f"fastest synthetic training motion, pixels per sub-frame (default {learned.max_speed:g})")
+    t.add_argument("--init", default=None, metavar="DICT",
+                   help="start K-SVD from this dictionary store ('shipped': the one shipped for N) and keep its atoms: "
+                        "adapt it to your scene, e.g. with --no-augment --iterations 1 on a reconstruction (README)")
+    t.add_argument("--no-augment", dest="augment", action="store_false",
+                   help="take the training patches as they are (default: rotated, flipped and reversed at random)")
     t.add_argument("--kind", choices=("learned", "dct"), default="learned")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--cache", default="cache")
@@ -217,12 +222,15 @@ def _cmd_train(a) -> int:
 
     given = _given(atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
                    max_speed=a.max_speed)
-    if a.kind == "dct" and (given or a.videos):
-        named = [f"--{k.replace('_', '-')}" for k in given] + (["VIDEO"] if a.videos else [])
+    if a.kind == "dct" and (given or a.videos or a.init or not a.augment):
+        named = [f"--{k.replace('_', '-')}" for k in given] + (["VIDEO"] if a.videos else []) \
+            + (["--init"] if a.init else []) + ([] if a.augment else ["--no-augment"])
         raise ConfigError(f"train --kind dct: {', '.join(named)} {'is' if len(named) == 1 else 'are'} for learned "
                           "dictionaries only (a 3D DCT one has N x 49 atoms and is not trained)")
-    dictionary = validated(DictionaryConfig, dict(kind=a.kind, training=list(a.videos) or ["synth:train"], **given),
-                           {"training": "VIDEO", "max_speed": "--max-speed"})
+    dictionary = validated(DictionaryConfig, dict(kind=a.kind, training=list(a.videos) or ["synth:train"],
+                                                  init=a.init, augment=a.augment, **given),
+                           {"training": "VIDEO", "max_speed": "--max-speed", "init": "--init", "kind": "--kind",
+                            "atoms": "--atoms"})
     cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary),
                     {"atoms": "--atoms", "samples": "--samples"})
     suffix = Path(a.output).suffix.lower()
@@ -231,7 +239,8 @@ def _cmd_train(a) -> int:
                           f"one (.zip), not {suffix}")
     kind = "file" if suffix == ".zip" else "folder"  # a zipped store is one file
     check_outputs([Output(Path(a.output), kind, "dictionary")],  # before training
-                  dict(video=list(a.videos), cache=a.cache), overwrite=a.overwrite)
+                  dict(video=list(a.videos), cache=a.cache, init=a.init if a.init != "shipped" else None),
+                  overwrite=a.overwrite)
     path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet, retrain=a.retrain)
     print(json.dumps(dict(dictionary=str(path), atoms=meta["atoms"], frames=meta["frames"], method=meta.get("method"),
                           final_rmse=meta.get("final_rmse"), reused=meta["reused"], seconds=round(meta["seconds"], 2))))

@@ -126,12 +126,20 @@ class DictionaryConfig(_Strict):
     max_speed: float = Field(4.0, gt=0.2, le=16.0)
     #: An existing dictionary to use instead of training one.
     path: str | None = None
+    #: Start K-SVD from this dictionary ("shipped": the one shipped for N; a store path) instead of the
+    #: 3D DCT topped up with samples: adapt it to a scene (train on its reconstruction; README).
+    init: str | None = None
+    #: Rotate, flip and reverse the training patches (the paper's augmentation); off to fit one scene.
+    augment: bool = True
 
     @model_validator(mode="after")
     def _settings_used(self) -> "DictionaryConfig":
+        if self.init is not None and (self.kind == "dct" or "atoms" in self._changed("atoms")):
+            raise ValueError("dictionary.init starts K-SVD from a dictionary, with its atoms: dictionary.kind dct "
+                             "and dictionary.atoms do not apply")
         if self.path is not None:
             unused = self._changed("kind", "atoms", "samples", "iterations", "sparsity", "training", "clips",
-                                   "max_speed")
+                                   "max_speed", "init", "augment")
             if unused:
                 raise ValueError(f"dictionary.path is used as it is, so {', '.join('dictionary.' + k for k in unused)} "
                                  "would be ignored: leave them at their defaults, or drop dictionary.path")
@@ -326,7 +334,7 @@ class PipelineConfig(_Strict):
     def _atoms_from_samples(self) -> "PipelineConfig":
         d = self.dictionary
         beyond = d.atoms - self.frames * 49  # K-SVD starts from the DCT atoms, then draws the rest among the samples
-        if d.kind == "learned" and d.path is None and beyond > d.samples:
+        if d.kind == "learned" and d.path is None and d.init is None and beyond > d.samples:
             raise ValueError(f"dictionary.atoms {d.atoms} with dictionary.samples {d.samples}: K-SVD starts from the "
                              f"{self.frames * 49} DCT atoms and draws the other {beyond} among the training samples; "
                              f"give at least {beyond} samples or fewer atoms")

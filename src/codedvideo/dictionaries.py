@@ -191,6 +191,23 @@ def training_patches(
     return X[rng.permutation(X.shape[0])]
 
 
+def _initial_dictionary(X: np.ndarray, frames: int, atoms: int, patch: int, rng: np.random.Generator) -> np.ndarray:
+    """The complete 3D DCT basis topped up with random training patches up to ``atoms`` columns (or its
+    lowest-frequency ``atoms`` atoms)."""
+    D0 = dct_dictionary(frames, patch=patch)
+    if atoms - D0.shape[1] > X.shape[0]:  # (a config checks samples; short videos can give fewer patches)
+        raise InputError(f"dictionary of {atoms} atoms: K-SVD starts from the {D0.shape[1]} DCT atoms and draws the "
+                         f"other {atoms - D0.shape[1]} among the training patches, but only {X.shape[0]} were drawn; "
+                         "give more training samples or video, or fewer atoms")
+    if atoms > D0.shape[1]:
+        extra = X[rng.choice(X.shape[0], atoms - D0.shape[1], replace=False)].T
+        return np.concatenate([D0, extra], axis=1)
+    # keep the lowest-frequency DCT atoms (ordered by total frequency)
+    ft, fy, fx = np.meshgrid(np.arange(frames), np.arange(patch), np.arange(patch), indexing="ij")
+    order = np.argsort((ft + fy + fx).ravel(), kind="stable")
+    return D0[:, order[:atoms]]
+
+
 def learn_dictionary(
     videos: list[np.ndarray],
     *,
@@ -203,12 +220,17 @@ def learn_dictionary(
     seed: int = 0,
     patch: int = PATCH,
     progress=None,
+    init: np.ndarray | None = None,
+    augment: bool = True,
 ) -> tuple[np.ndarray, dict]:
-    """Learn a dictionary with K-SVD, initialised from the 3D DCT.
+    """Learn a dictionary with K-SVD, initialised from the 3D DCT (or from ``init``).
 
     The initial dictionary is the complete 3D DCT basis, topped up with random
-    training patches up to ``atoms`` columns.  ``tol_rms`` stops the coding of
-    a sample once its RMS residual (grey levels per entry) is below it.
+    training patches up to ``atoms`` columns; or ``init`` (N * patch**2, K), whose
+    K atoms it keeps (``atoms`` does not apply): a dictionary adapted to the
+    training videos, such as one scene's reconstruction.  ``tol_rms`` stops the
+    coding of a sample once its RMS residual (grey levels per entry) is below it.
+    ``augment``: rotations, flips and time reversal of the patches (off to fit a scene).
 
     Returns
     -------
@@ -219,25 +241,18 @@ def learn_dictionary(
     rng = np.random.default_rng(seed)
     n_feat = frames * patch * patch
     t0 = time.perf_counter()
-    X = training_patches(videos, frames=frames, samples=samples, rng=rng, patch=patch)
+    X = training_patches(videos, frames=frames, samples=samples, rng=rng, patch=patch, augment=augment)
     spread = np.ptp(X, axis=1) if X.size else np.zeros(0)
     if not (spread > 1e-3 * max(1.0, float(np.abs(X).max(initial=0.0)))).any():
         raise InputError(f"training videos: every one of the {X.shape[0]} training patches drawn is flat (no change "
                          "in space or time), so K-SVD has nothing to learn (a dictionary of one flat atom); train on "
                          "videos with texture and motion")
-    D0 = dct_dictionary(frames, patch=patch)
-    if atoms - D0.shape[1] > X.shape[0]:  # (a config checks samples; short videos can give fewer patches)
-        raise InputError(f"dictionary of {atoms} atoms: K-SVD starts from the {D0.shape[1]} DCT atoms and draws the "
-                         f"other {atoms - D0.shape[1]} among the training patches, but only {X.shape[0]} were drawn; "
-                         "give more training samples or video, or fewer atoms")
-    if atoms > D0.shape[1]:
-        extra = X[rng.choice(X.shape[0], atoms - D0.shape[1], replace=False)].T
-        D0 = np.concatenate([D0, extra], axis=1)
+    if init is not None:
+        if init.shape[0] != n_feat:
+            raise InputError(f"initial dictionary: {init.shape[0]} rows, patches of N = {frames} have {n_feat}")
+        D0 = np.asarray(init, np.float32)
     else:
-        # keep the lowest-frequency DCT atoms (ordered by total frequency)
-        ft, fy, fx = np.meshgrid(np.arange(frames), np.arange(patch), np.arange(patch), indexing="ij")
-        order = np.argsort((ft + fy + fx).ravel(), kind="stable")
-        D0 = D0[:, order[:atoms]]
+        D0 = _initial_dictionary(X, frames, atoms, patch, rng)
     D, hist = ksvd(
         X, D0, sparsity=sparsity, iterations=iterations, tol=n_feat * tol_rms**2, rng=rng, progress=progress
     )
@@ -250,7 +265,8 @@ def learn_dictionary(
         samples=int(X.shape[0]),
         sparsity=sparsity,
         tol_rms=tol_rms,
-        init="dct3d+samples",
+        init="dct3d+samples" if init is None else "given",
+        augment=augment,
         final_rmse=hist.rmse[-1] if hist.rmse else None,
         rmse_history=hist.rmse,
         replaced_history=hist.replaced,

@@ -89,7 +89,11 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
                         sparsity=dc.sparsity,
                         seed=cfg.seed,
                         progress=(lambda it, rmse: (bar.update(1), bar.set_postfix(rmse=f"{rmse:.2f}"))) if bar else None,
+                        init=None if dc.init is None else init_dictionary(dc.init, cfg.frames)[0],
+                        augment=dc.augment,
                     )
+                    if dc.init is not None:
+                        meta["init"] = dc.init
                     if bar:
                         bar.close()
                     meta["training_set"] = used  # (videos too short or too small were left out, with a warning)
@@ -232,6 +236,20 @@ def sensor_model(noise) -> physics.SensorModel | None:
     return physics.SensorModel(shot_noise=noise.shot_noise, full_well=noise.full_well, gain=noise.gain,
                                read_sigma=noise.sigma, bits=noise.bits, white_level=noise.white_level,
                                black_level=noise.black_level)
+
+
+def init_dictionary(init: str, frames: int) -> tuple[np.ndarray, dict]:
+    """The dictionary a K-SVD starts from (``dictionary.init``): ``shipped`` (the one shipped for N) or a
+    store, checked against N."""
+    from . import shipped
+
+    path = shipped.verified(frames) if init == "shipped" else Path(init)
+    if path is None:
+        raise ConfigError(f"dictionary.init shipped (--init): no dictionary is shipped for N = {frames} "
+                          f"(N = {', '.join(map(str, shipped.available()))} are)")
+    D, meta = load_dictionary(path)
+    check_dictionary(meta, frames, path)
+    return D, meta
 
 
 def _check_training_memory(samples: int, frames: int) -> None:
