@@ -17,6 +17,8 @@ Cases (issue "Fast reconstruction"):
            peak memory at T = 1, 10, 100
   nonlocal the non-local method (issue 16) beside the default, GAP-TV and the DCT on the quality
            case's scenes and codes (tasks/bench_nonlocal.py)
+  adapt    the dictionary adapted to one capture (train --init shipped --no-augment on its non-local
+           reconstruction, then the non-local method with it), whole CLI processes
   video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
            peak resident memory)
 
@@ -466,6 +468,42 @@ def case_nonlocal(quick: bool) -> dict:
     return run(quick)
 
 
+def case_adapt(quick: bool) -> dict:
+    """The dictionary adapted to one capture (README: train --init shipped --no-augment on the capture's
+    non-local reconstruction, then the non-local method with it): whole CLI processes, beside the default
+    and the non-local method alone, on held-out real footage (hitomi L = 2 and Bernoulli, sigma 0)."""
+    import tempfile
+
+    from codedvideo.stages import simulate_capture
+    from codedvideo.scenes import load_video
+
+    size = (96, 96) if quick else (256, 256)
+    rows = []
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
+        tmp = Path(tmp)
+        for scene in (("footage:bikes-a",) if quick else ("footage:bikes-a", "footage:carphone")):
+            video = load_video(scene, frames=8, size=size)
+            for code in ("hitomi", "bernoulli"):
+                cap = simulate_capture(video, code=code, bump=2, sigma=0.0, seed=0)
+                for key in ("coded", "mask"):
+                    np.save(tmp / f"{key}.npy", cap[key])
+                inputs = ("--coded", tmp / "coded.npy", "--mask", tmp / "mask.npy", "--cache", tmp / "c", "--overwrite")
+                row = dict(scene=scene, code=code)
+                for label, extra in (("default", ()), ("nonlocal", ("--method", "nonlocal"))):
+                    seconds, _ = _cli("reconstruct", *inputs, *extra, "--output", tmp / f"{label}.npy", cwd=ROOT)
+                    row[label] = dict(seconds=seconds, psnr=_psnr(np.load(tmp / f"{label}.npy"), video))
+                seconds, _ = _cli("train", "--frames", 8, "--init", "shipped", "--no-augment", "--iterations", 1,
+                                  "--samples", 7000, "--cache", tmp / "c", "--overwrite", "--output", tmp / "scene.zarr",
+                                  tmp / "nonlocal.npy", cwd=ROOT)
+                row["train_seconds"] = seconds
+                seconds, _ = _cli("reconstruct", *inputs, "--method", "nonlocal", "--dictionary", tmp / "scene.zarr",
+                                  "--output", tmp / "adapted.npy", cwd=ROOT)
+                row["adapted"] = dict(seconds=seconds, psnr=_psnr(np.load(tmp / "adapted.npy"), video))
+                rows.append(row)
+                shutil.rmtree(tmp / "c", ignore_errors=True)
+    return dict(case="adapt", size=list(size), frames=8, rows=rows, sgemm_gflops=sgemm_gflops())
+
+
 def case_startup(quick: bool) -> dict:
     """Issue 14: a 256x256 N = 8 reconstruct timed as a whole process against its own in-process time
     (the metrics' total: reading, reconstructing, writing), median of 3, each into a fresh cache."""
@@ -537,6 +575,7 @@ def case_calibrated(quick: bool) -> dict:
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
              sequence=case_sequence, video=case_video, calibrated=case_calibrated, startup=case_startup, units=case_units)
 CASES["nonlocal"] = case_nonlocal  # a keyword: not a dict() argument
+CASES["adapt"] = case_adapt
 
 
 def run_child(name: str, quick: bool) -> dict:
@@ -575,6 +614,12 @@ def table(results: dict) -> str:
         if name == "units":
             rows.append("  units: " + ", ".join(f"{k} {v['psnr']:.2f} dB (range {v['data_range']:g}) {v['seconds']:.1f} s"
                                                 for k, v in r.items() if isinstance(v, dict)))
+        if name == "adapt":
+            for x in r["rows"]:
+                rows.append(f"  adapted dictionary, {x['scene']} {x['code']}: default {x['default']['psnr']:.2f} dB "
+                            f"{x['default']['seconds']:.1f} s, nonlocal {x['nonlocal']['psnr']:.2f} dB "
+                            f"{x['nonlocal']['seconds']:.1f} s, train {x['train_seconds']:.1f} s, nonlocal with the "
+                            f"adapted dictionary {x['adapted']['psnr']:.2f} dB {x['adapted']['seconds']:.1f} s")
         if name == "startup":
             rows.append(f"  start-up: reconstruct {r['size']} as a whole process {r['process_seconds']:.2f} s, in-process "
                         f"{r['in_process_seconds']:.2f} s: {r['ratio']:.2f}x (target 1.5x)")
@@ -635,7 +680,7 @@ def table(results: dict) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", default="a,static,b,b1,c,quality,nonlocal,bayer,sequence,video,calibrated,startup,units")
+    ap.add_argument("--cases", default="a,static,b,b1,c,quality,nonlocal,adapt,bayer,sequence,video,calibrated,startup,units")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
