@@ -155,3 +155,20 @@ def test_a_reconstruction_in_other_units_than_its_truth_is_warned(tmp_path, caps
     np.save(tmp_path / "r01.npy", t / 255)
     with pytest.warns(UserWarning, match="same units"):
         _evaluate(capsys, tmp_path / "r01.npy", tmp_path / "t.npy")
+
+
+def test_an_output_sharing_a_stem_with_another_says_it_replaces_its_record(tmp_path, capsys):
+    """Reported: rec.npy and rec.mp4 share rec.metrics.json; the second run replaced the first's figures in
+    silence."""
+    from codedvideo.cli import main
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+
+    cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code="hitomi", bump=2, sigma=0, seed=0)
+    for name in ("coded", "mask"):
+        np.save(tmp_path / f"{name}.npy", cap[name])
+    args = ["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+            "--method", "dct", "--cache", str(tmp_path / "cache")]
+    assert main([*args, "--output", str(tmp_path / "rec.npy")]) == 0
+    with pytest.warns(UserWarning, match="held the record of .*rec.npy"):
+        assert main([*args, "--output", str(tmp_path / "rec.mp4")]) == 0

@@ -686,12 +686,25 @@ def _cmd_reconstruct(a) -> int:
             else None
         quality["measured_on"] = "volume before encoding" + (f"; the output is lossy ({lossy})" if lossy else "")
         metrics["quality"] = quality
+    _warn_replaced_record(metrics_path(a.output), a.output)
     mpath = write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
     summary.update(metrics=str(mpath), seconds=round(seconds, 2), patches_per_second=round(patches_per_second),
                    data_range=units.value)
     print(json.dumps(json_safe(summary), allow_nan=False))  # strict JSON, as the metrics file: an exact PSNR is null
     return 0
+
+
+def _warn_replaced_record(mpath: Path, output) -> None:
+    """Say so when a metrics file about to be written holds the record of another output of the same stem that
+    is still there (``rec.npy`` and ``rec.mp4`` share ``rec.metrics.json``): its figures are replaced."""
+    try:
+        earlier = json.loads(Path(mpath).read_text()).get("output")
+    except (OSError, ValueError, AttributeError):
+        return
+    if earlier and Path(earlier) != Path(output) and Path(earlier).exists():
+        warnings.warn(f"{mpath}: held the record of {earlier}, which shares its name; it now describes {output} "
+                      "(give the outputs different names to keep both)")
 
 
 class _RawCorrected:
