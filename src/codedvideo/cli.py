@@ -652,7 +652,7 @@ def _cmd_reconstruct(a) -> int:
         t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
         seconds = time.perf_counter() - t_all
         # the patches of the tiles computed in this run (a rerun from the cache counted every patch: 1.3 M/s)
-        solved = sum(r["patches"] * r.get("tiles_computed", r.get("tiles", 1)) / max(r.get("tiles", 1), 1)
+        solved = sum(r["patches"] * r.get("tiles_computed", 0) / max(r.get("tiles", 1), 1)
                      for r in (e["reconstruction"] for e in entries))
         patches_per_second = solved / max(t_rec, 1e-9)
         metrics["layout"] = "(C, N, H, W)" if job.kind == "channels" else "(T*N, H, W)"
@@ -880,19 +880,19 @@ def _cmd_evaluate(a) -> int:
 
 
 def _scored_volume(path: str, what: str):
-    """A reconstruction or truth to score: a long .npy read a block at a time; a file that may hold colour
-    (a video, TIFF, images) read with its channels when it does ((3, N, H, W); it was read as luma, so that
-    a colour truth's score depended on its container)."""
+    """A reconstruction or truth to score: a .npy, .zarr or .mat as stored (a long .npy read a block at a
+    time); any other file with its channels, (3, N, H, W) when it holds colour (it was read as luma, so
+    that a colour truth's score depended on its container), else (N, H, W)."""
     from .metrics import EVALUATE_BLOCK
     from .volumes import read_truth_stack, read_volume
 
-    volume = read_truth_stack(path, EVALUATE_BLOCK, what=what)
-    if len(volume.shape) == 3 and Path(path).suffix.lower() not in (".npy", ".zarr", ".mat"):
-        channels = read_volume(path, color="channels")
-        if channels.ndim == 4 and channels.shape[0] == 3 and not (
-                (channels[0] == channels[1]).all() and (channels[1] == channels[2]).all()):  # (grey stored as RGB)
-            return channels
-    return volume
+    if Path(path).suffix.lower() in (".npy", ".zarr", ".mat"):
+        return read_truth_stack(path, EVALUATE_BLOCK, what=what)
+    channels = read_volume(path, color="channels")
+    if channels.ndim == 4 and (channels.shape[0] == 1 or ((channels[0] == channels[1]).all()
+                                                          and (channels[1] == channels[2]).all())):
+        return channels[0]  # grey (or grey stored as RGB)
+    return channels
 
 
 def _config(a):

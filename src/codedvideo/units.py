@@ -50,38 +50,32 @@ class DataRange:
         return dict(value=self.value, source=self.source, peak=self.peak, working_scale=self.scale)
 
 
-def static_peak(coded: np.ndarray, mask: np.ndarray) -> float:
-    """Largest ``coded / open count`` over the pixels that are ever open (0 when none is)."""
-    counts = np.asarray(mask, np.float32).sum(-3)
-    coded = np.asarray(coded, np.float32)
-    if counts.shape != coded.shape[-2:]:
-        counts = np.broadcast_to(counts, coded.shape)
-    open_ = counts > 0
-    if not open_.any():
-        return 0.0
-    ratio = np.where(open_, coded / np.where(open_, counts, 1), 0)
-    return float(np.max(ratio))
-
-
-def static_quantile(coded: np.ndarray, mask: np.ndarray, q: float = 0.99, step: int = 3) -> float:
-    """The ``q`` quantile of ``coded / open count`` over the pixels ever open (every ``step``-th row and
-    column: a percentile of a 4K frame in milliseconds); 0 when none is."""
+def open_ratios(coded: np.ndarray, mask: np.ndarray, step: int = 1) -> np.ndarray:
+    """``coded / open count`` of every pixel ever open (every ``step``-th row and column), flat."""
     counts = np.asarray(mask[..., ::step, ::step], np.float32).sum(-3)
     coded = np.asarray(coded[..., ::step, ::step], np.float32)
     if counts.shape != coded.shape[-2:]:
         counts = np.broadcast_to(counts, coded.shape)
     open_ = counts > 0
-    return float(np.quantile(coded[open_] / counts[open_], q)) if open_.any() else 0.0
+    return coded[open_] / counts[open_]
+
+
+def static_peak(coded: np.ndarray, mask: np.ndarray) -> float:
+    """Largest ``coded / open count`` over the pixels that are ever open (0 when none is)."""
+    return float(open_ratios(coded, mask).max(initial=0.0))
+
+
+def static_quantile(coded: np.ndarray, mask: np.ndarray, q: float = 0.99, step: int = 3) -> float:
+    """The ``q`` quantile of ``coded / open count`` over the pixels ever open (every ``step``-th row and
+    column: a percentile of a 4K frame in milliseconds); 0 when none is."""
+    ratios = open_ratios(coded, mask, step)
+    return float(np.quantile(ratios, q)) if ratios.size else 0.0
 
 
 def share_above(coded: np.ndarray, mask: np.ndarray, level: float) -> float:
     """The share of the pixels ever open whose ``coded / open count`` lies above ``level``."""
-    counts = np.asarray(mask, np.float32).sum(-3)
-    coded = np.asarray(coded, np.float32)
-    if counts.shape != coded.shape[-2:]:
-        counts = np.broadcast_to(counts, coded.shape)
-    open_ = counts > 0
-    return float(np.mean(coded[open_] > level * counts[open_])) if open_.any() else 0.0
+    ratios = open_ratios(coded, mask)
+    return float(np.mean(ratios > level)) if ratios.size else 0.0
 
 
 #: Standard deviations of read noise (``noise``, the capture's units) also allowed above a range.
