@@ -165,3 +165,40 @@ def test_a_claim_one_noise_level_cannot_test_is_not_tested_not_refuted():
     assert found["Table 1: longer bumps win as noise grows"] is None
     assert verdict(None).startswith("not tested") and verdict(False) == "NOT reproduced"
     assert all(v is True for k, v in found.items() if "noise grows" not in k)
+
+
+@pytest.mark.parametrize("change, named", [(dict(fig7_frames=[6]), "report.frames 4 must be one of"),
+                                           (dict(video_scene="nosuch"), "nosuch")])
+def test_report_settings_it_cannot_use_are_refused_before_any_work(tmp_path, change, named):
+    """Reported: fig7_frames without report.frames ran every experiment, then a StopIteration traceback left a
+    half-written report; an unknown video_scene trained the dictionary and ran Table 1 before its error."""
+    from codedvideo.errors import CodedVideoError
+
+    raw = dict(MINI, cache=str(tmp_path / "cache"))
+    raw["report"] = dict(MINI["report"], dir=str(tmp_path / "out"), **change)
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(CodedVideoError, match=named):
+        run_report(load_config(path))
+    assert not (tmp_path / "cache").exists() or not any((tmp_path / "cache").rglob("*.json"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_noise_trend_reads_the_sigmas_in_order_and_needs_two_bumps():
+    from types import SimpleNamespace
+
+    from codedvideo.report import findings
+
+    table = {(2, 0): 30, (3, 0): 29, (5, 0): 28, (2, 8): 27, (3, 8): 28, (5, 8): 26, (2, 40): 20, (3, 40): 21,
+             (5, 40): 22}
+    fig7 = {(a, 8): dict(psnr=p) for a, p in (("learned + OMP (hitomi)", 30), ("3D DCT + OMP (hitomi)", 29),
+                                              ("3D interpolation (grid code)", 28), ("thin-out (thinout code)", 27))}
+    fig4 = {"hitomi (L = 2)": dict(psnr=30, ssim=0.9), "rowwise (L = 2)": dict(psnr=29, ssim=0.8)}
+
+    def trend(sigmas, bumps):
+        rc = SimpleNamespace(table_sigmas=sigmas, table_bumps=bumps, frames=8, bump=2)
+        best = {s: max(bumps, key=lambda b: table[(b, s)]) for s in sigmas}
+        return findings(table, best, fig7, fig4, rc)[1]["holds"]
+
+    assert trend([40, 0, 8], [2, 3, 5]) is True and trend([0, 8, 40], [2, 3, 5]) is True  # config order: False
+    assert trend([0, 8, 40], [2]) is None  # one bump length: not tested ("NOT reproduced" before)

@@ -297,6 +297,9 @@ class ReportConfig(_Strict):
             raise ValueError(f"fig7_frames {self.fig7_frames}: need N <= 64 and N <= 49 * bump")
         if min(self.fig7_frames) < self.bump:
             raise ValueError(f"fig7_frames {self.fig7_frames}: every N must be >= bump = {self.bump}")
+        if self.frames not in self.fig7_frames:  # its Fig. 7 runs give the video, the strips and the speed baselines
+            raise ValueError(f"report.frames {self.frames} must be one of report.fig7_frames {self.fig7_frames} "
+                             "(the side-by-side video, the strips and the speed study use its Fig. 7 runs)")
         return self
 
 
