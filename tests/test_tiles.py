@@ -163,6 +163,12 @@ def test_patch_stride_covers_every_pixel_and_chunking_does_not_matter(capture, s
     assert np.isfinite(whole).all()  # every pixel covered
     solved = lambda st: dict(zip(STAT_NAMES, st))["atoms_total"]
     assert solved(st_whole) < solved(st_full) / (0.8 * stride**2 if stride < 7 else 10)
+    # the patches counted are those taken: atoms per patch stay what they are (they read a quarter at stride 2)
+    counted = lambda st: dict(zip(STAT_NAMES, st))["patches"]
+    on_grid = len(range(0, coded.shape[0] - 6, stride)) * len(range(0, coded.shape[1] - 6, stride))
+    assert counted(st_whole) <= on_grid + coded.shape[0] + coded.shape[1]  # (the last row and column are kept too)
+    per_patch = lambda st: solved(st) / counted(st)
+    assert per_patch(st_whole) > 0.5 * per_patch(st_full)
     for tile in (9, 16):
         vol, _ = reconstruct_volume(coded, mask, D, settings=s, tile=tile, cache=tmp_path / str(tile), progress=False)
         np.testing.assert_allclose(vol, whole, rtol=1e-4, atol=1e-3)
