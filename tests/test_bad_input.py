@@ -480,3 +480,9 @@ def test_a_colour_npy_is_read_as_its_luma_like_a_colour_image(files, tmp_path, c
     for name, c in (("grey", files / "coded.npy"), ("colour", tmp_path / "colour-coded.npy")):
         assert main(["-q", *map(str, reconstruct_args(files, tmp_path, coded=c, output=tmp_path / f"{name}.npy"))]) == 0
     np.testing.assert_array_equal(np.load(tmp_path / "grey.npy"), np.load(tmp_path / "colour.npy"))
+
+
+def test_color_channels_on_a_grey_coded_image_is_refused(files, tmp_path, capsys):
+    """Reported: it wrote a one-channel "colour" result (1, N, H, W) without a word."""
+    fails(capsys, [*reconstruct_args(files, tmp_path), "--color", "channels"], "coded.npy", "one channel",
+          root=tmp_path / "out")

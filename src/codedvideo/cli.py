@@ -475,6 +475,9 @@ def _read_captures(a) -> _Captures:
                          dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
     color = a.color == "channels"
     coded = read_coded(a.coded, color="channels") if color else read_coded_stack(a.coded)
+    if color and coded.shape[0] == 1:  # a grey image: a "colour" result of one channel would mislead
+        raise InputError(f"coded image {a.coded}: has one channel; --color channels is for a colour coded image "
+                         "(leave it out for a grey one)")
     check_size(coded.shape, a.coded)
     mask = read_masks(a.mask)
     masks = list(mask) if mask.ndim == 4 else [mask]
