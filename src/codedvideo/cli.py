@@ -133,6 +133,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="omp: learned dictionary, every patch on its own (default); nonlocal: then groups of "
                         "similar patches solved together under their own codes (better, about 4x the time); "
                         "dct: 3D DCT dictionary, same OMP; thinout, interp, gaptv: baselines (see README)")
+    r.add_argument("--adapt", action="store_true",
+                   help="adapt the dictionary to each capture: reconstruct, one K-SVD iteration on that result, "
+                        "reconstruct again with it (omp, nonlocal, dct; about twice the time, better on real footage)")
     r.add_argument("--output", "-o", required=True,
                    help=".npy, .zarr, .mat, .tif/.tiff, .mp4/.mov (H.264), .mkv/.avi (FFV1), .gif, or a name without "
                         "suffix (or ending .d): a folder of 16-bit TIFF frames (--cacti: all measurements, time-first)")
@@ -385,12 +388,19 @@ def _reconstruct_options(a):
                          "(drop --coded, --mask and --truth)")
     if a.cacti and a.color != "luma":
         raise InputError(f"reconstruct --cacti {a.cacti}: CACTI files are grey; --color channels does not apply")
+    if a.adapt and a.method not in ("omp", "nonlocal", "dct"):
+        raise ConfigError(f"option --adapt: adapts the dictionary of --method omp, nonlocal or dct (--method {a.method} "
+                          "has none)")
+    if a.adapt and a.bayer:
+        raise ConfigError(f"option --adapt: not available with --bayer {a.bayer} (its colour dictionary is lifted from "
+                          "the grey one)")
     if a.bayer and (a.cacti or a.color != "luma"):
         raise InputError(f"reconstruct --bayer {a.bayer}: reads one single-channel mosaic (--coded); "
                          f"{'--cacti' if a.cacti else '--color channels'} does not apply")
     rc = validated(ReconstructConfig, dict(
         max_atoms=a.max_atoms, tol_rms="auto" if a.tol_rms is None else a.tol_rms, static_atoms=a.static_atoms,
-        stride=a.stride, weighting=a.weighting, tile=a.tile, batch=a.batch, scheduler=a.scheduler, workers=a.workers))
+        stride=a.stride, weighting=a.weighting, tile=a.tile, batch=a.batch, scheduler=a.scheduler, workers=a.workers,
+        adapt=a.adapt))
     noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, white_level=a.white_level, bits=a.bits,
                                         black_level=a.black_level), _RECONSTRUCT_OPTIONS)
     out = validated(OutputConfig, dict(fps=a.fps, data_range=a.data_range), _RECONSTRUCT_OPTIONS)
@@ -596,7 +606,7 @@ def _cmd_reconstruct(a) -> int:
             # what did not change since the capture before or until the one after (asked again by the join)
             still_of = functools.lru_cache(maxsize=4)(
                 lambda i: agreeing_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale))
-        results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, **options)
+        results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, adapt=rc.adapt, **options)
         if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
             from .sequence import joined
 
@@ -636,9 +646,9 @@ def _cmd_reconstruct(a) -> int:
     mark_written(a.output)
     metrics = dict(
         output=str(a.output), inputs=job.inputs,
-        settings=dict(settings.__dict__, tol_rms=settings.tol_rms / units.scale, method=a.method, tile=rc.tile,
-                      scheduler=rc.scheduler, workers=rc.workers, dictionary_atoms=entries[0]["reconstruction"].get(
-                          "dictionary_atoms")),
+        settings=dict(settings.__dict__, tol_rms=settings.tol_rms / units.scale, method=a.method, adapt=rc.adapt,
+                      tile=rc.tile, scheduler=rc.scheduler, workers=rc.workers,
+                      dictionary_atoms=entries[0]["reconstruction"].get("dictionary_atoms")),
         data_range=units.as_dict(),
     )
     summary = dict(output=str(a.output))

@@ -256,8 +256,10 @@ def nonlocal_reach(tile: Tile, blocks: list[Tile], shape: tuple[int, int], patch
             max(0, int(regions[:, 2].min()) - m), min(shape[1], int(regions[:, 3].max()) + m))
 
 
-def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run: str) -> list:
-    """The final (stage 3) task of every distinct tile content, with the stages it needs (see above)."""
+def _nonlocal_tasks(places: dict, d_nodes: dict, settings: OmpSettings, patch: int, run: str) -> list:
+    """The final (stage 3) task of every distinct tile content, with the stages it needs (see above).
+
+    ``places`` maps ``(dictionary token, content)`` to the (store, tile) pairs, ``d_nodes`` a token to its node."""
     first_task = dask.delayed(_first_task, pure=False)
     groups_task = dask.delayed(_groups_task, pure=False)
     combine_task = dask.delayed(_combine_task, pure=False)
@@ -266,7 +268,8 @@ def _nonlocal_tasks(places: dict, D_node, settings: OmpSettings, patch: int, run
     grids: dict = {}  # store -> (blocks, the default's tiles, their regions and cores as arrays)
     last = len(places) - 1
     out = []
-    for i, where in enumerate(places.values()):
+    for i, ((token, _), where) in enumerate(places.items()):
+        D_node = d_nodes[token]
         path, tile = where[0]
         if path not in grids:
             store = WorkStore.opened(path)
@@ -340,34 +343,44 @@ class TileWork:
     contents: tuple[str, ...]
 
 
-def build_graph(works: list[TileWork], D: np.ndarray, settings: OmpSettings, *, patch: int = 7):
-    """One delayed task per distinct tile content over every store, sharing a single dictionary node.
+def build_graph(works: list[TileWork], D: np.ndarray | list[np.ndarray], settings: OmpSettings, *, patch: int = 7):
+    """One delayed task per distinct tile content over every store, one node per distinct dictionary.
 
-    Returns ``(tasks, needs)``: ``needs[j]`` lists the tasks that store ``j``
-    waits for.  Task names are unique to this graph: a distributed scheduler
-    shared by several runs (or by two rounds of one run) never takes one
-    run's tile for another's.
+    ``D`` is the dictionary of every store, or a list of one per work (a
+    dictionary adapted to each capture): tiles are shared only between stores
+    with equal contents and the same dictionary.  Returns ``(tasks, needs)``:
+    ``needs[j]`` lists the tasks that store ``j`` waits for.  Task names are
+    unique to this graph: a distributed scheduler shared by several runs (or
+    by two rounds of one run) never takes one run's tile for another's.
     """
-    d_node = dask.delayed(D, pure=True, name="dictionary-" + dask.base.tokenize(D))
+    dictionaries = D if isinstance(D, list) else [D] * len(works)
+    d_nodes: dict[str, object] = {}
+    token_of: dict[int, str] = {}  # (a job's one dictionary is hashed once)
+    tokens = []
+    for Dw in dictionaries:
+        if id(Dw) not in token_of:
+            token_of[id(Dw)] = token = dask.base.tokenize(Dw)
+            d_nodes.setdefault(token, dask.delayed(Dw, pure=True, name="dictionary-" + token))
+        tokens.append(token_of[id(Dw)])
     task = dask.delayed(_tile_task, pure=False)
     run = uuid.uuid4().hex[:12]
-    places: dict[str, list] = {}
+    places: dict[tuple[str, str], list] = {}
     seen = set()  # (store, tile): a store listed twice (equal captures) is written once
-    for work in works:
+    for work, token in zip(works, tokens):
         for tile, content in zip(work.tiles, work.contents):
             if (work.store, tile.index) not in seen:
                 seen.add((work.store, tile.index))
-                places.setdefault(content, []).append((work.store, tile))
-    order = {content: i for i, content in enumerate(places)}
+                places.setdefault((token, content), []).append((work.store, tile))
+    order = {key: i for i, key in enumerate(places)}
     # dask's local scheduler runs sibling tasks in descending order of their names: named so that the first
     # captures' tiles run first and the captures complete in order (the test of streaming checks it)
     last = len(places) - 1
     if settings.method == "nonlocal":
-        tasks = _nonlocal_tasks(places, d_node, settings, patch, run)
+        tasks = _nonlocal_tasks(places, d_nodes, settings, patch, run)
     else:
-        tasks = [task(tuple(where), d_node, settings, patch, dask_key_name=f"tile-{run}-{last - i:09d}")
-                 for i, where in enumerate(places.values())]
-    needs = [sorted({order[c] for c in work.contents}) for work in works]
+        tasks = [task(tuple(where), d_nodes[token], settings, patch, dask_key_name=f"tile-{run}-{last - i:09d}")
+                 for i, ((token, _), where) in enumerate(places.items())]
+    needs = [sorted({order[token, c] for c in work.contents}) for work, token in zip(works, tokens)]
     return tasks, needs
 
 
@@ -570,18 +583,20 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
 def reconstruct_stores(
     stores: list[WorkStore],
     plans: list[StorePlan],
-    D: np.ndarray,
+    D: np.ndarray | list[np.ndarray],
     settings: OmpSettings,
     *,
     patch: int = 7,
     scheduler: str | None = None,
     workers: int | None = None,
     progress: bool = True,
+    desc: str = "reconstruct",
 ) -> Iterator[tuple[int, np.ndarray, dict]]:
     """Reconstruct every tile of every working store that is not done yet, as one graph; yield the volumes in order.
 
     The stores are a job's captures (one store may appear more than once:
-    captures with equal inputs), each with its :func:`plan_store`.  The tiles
+    captures with equal inputs), each with its :func:`plan_store`; ``D`` is
+    their dictionary, or a list of one per store.  The tiles
     left of all stores form one graph (:func:`build_graph`: a task per
     distinct tile content), so both cores, or a cluster, stay busy across
     captures.  As soon as the tiles of store ``j`` are done, its tiles are
@@ -600,10 +615,11 @@ def reconstruct_stores(
     """
     works = [plan.work for plan in plans]
     tasks, needs = build_graph(works, D, settings, patch=patch)
-    for j in stream_graph(tasks, needs, scheduler=scheduler, workers=workers, progress=progress):
+    for j in stream_graph(tasks, needs, scheduler=scheduler, workers=workers, progress=progress, desc=desc):
         plan = plans[j]
-        volume, summary = _verified_volume(stores[j], list(plan.tiles), {t.index for t in plan.work.tiles}, D,
-                                           settings, patch=patch, scheduler=scheduler, workers=workers)
+        volume, summary = _verified_volume(stores[j], list(plan.tiles), {t.index for t in plan.work.tiles},
+                                           D[j] if isinstance(D, list) else D, settings, patch=patch,
+                                           scheduler=scheduler, workers=workers)
         yield j, volume, dict(summary, tiles_damaged=int(plan.damaged.sum()), tile_tasks=len(tasks))
 
 
