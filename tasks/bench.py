@@ -17,8 +17,8 @@ Cases (issue "Fast reconstruction"):
            peak memory at T = 1, 10, 100
   nonlocal the non-local method (issue 16) beside the default, GAP-TV and the DCT on the quality
            case's scenes and codes (tasks/bench_nonlocal.py)
-  adapt    the dictionary adapted to one capture (train --init shipped --no-augment on its non-local
-           reconstruction, then the non-local method with it), whole CLI processes
+  adapt    reconstruct --adapt (the dictionary adapted to each capture in the same run) beside the
+           default and the non-local method, whole CLI processes, 8-bit and [0, 1] captures
   video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
            peak resident memory)
 
@@ -469,15 +469,17 @@ def case_nonlocal(quick: bool) -> dict:
 
 
 def case_adapt(quick: bool) -> dict:
-    """The dictionary adapted to one capture (README: train --init shipped --no-augment on the capture's
-    non-local reconstruction, then the non-local method with it): whole CLI processes, beside the default
-    and the non-local method alone, on held-out real footage (hitomi L = 2 and Bernoulli, sigma 0)."""
+    """`reconstruct --adapt` (the dictionary adapted to the capture in the same run: README) as whole CLI
+    processes, each into a fresh cache, beside the default and the non-local method, on held-out real footage
+    (hitomi L = 2 and Bernoulli, sigma 0); the capture in 8-bit units and as [0, 1] floats."""
     import tempfile
 
     from codedvideo.stages import simulate_capture
     from codedvideo.scenes import load_video
 
     size = (96, 96) if quick else (256, 256)
+    runs = (("default", ()), ("omp --adapt", ("--adapt",)), ("nonlocal", ("--method", "nonlocal")),
+            ("nonlocal --adapt", ("--method", "nonlocal", "--adapt")))
     rows = []
     with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
         tmp = Path(tmp)
@@ -485,22 +487,16 @@ def case_adapt(quick: bool) -> dict:
             video = load_video(scene, frames=8, size=size)
             for code in ("hitomi", "bernoulli"):
                 cap = simulate_capture(video, code=code, bump=2, sigma=0.0, seed=0)
-                for key in ("coded", "mask"):
-                    np.save(tmp / f"{key}.npy", cap[key])
-                inputs = ("--coded", tmp / "coded.npy", "--mask", tmp / "mask.npy", "--cache", tmp / "c", "--overwrite")
-                row = dict(scene=scene, code=code)
-                for label, extra in (("default", ()), ("nonlocal", ("--method", "nonlocal"))):
-                    seconds, _ = _cli("reconstruct", *inputs, *extra, "--output", tmp / f"{label}.npy", cwd=ROOT)
-                    row[label] = dict(seconds=seconds, psnr=_psnr(np.load(tmp / f"{label}.npy"), video))
-                seconds, _ = _cli("train", "--frames", 8, "--init", "shipped", "--no-augment", "--iterations", 1,
-                                  "--samples", 7000, "--cache", tmp / "c", "--overwrite", "--output", tmp / "scene.zarr",
-                                  tmp / "nonlocal.npy", cwd=ROOT)
-                row["train_seconds"] = seconds
-                seconds, _ = _cli("reconstruct", *inputs, "--method", "nonlocal", "--dictionary", tmp / "scene.zarr",
-                                  "--output", tmp / "adapted.npy", cwd=ROOT)
-                row["adapted"] = dict(seconds=seconds, psnr=_psnr(np.load(tmp / "adapted.npy"), video))
-                rows.append(row)
-                shutil.rmtree(tmp / "c", ignore_errors=True)
+                np.save(tmp / "mask.npy", cap["mask"])
+                for units, scale in (("8-bit", 1.0), ("[0, 1]", 255.0)):
+                    np.save(tmp / "coded.npy", cap["coded"] / np.float32(scale))
+                    row = dict(scene=scene, code=code, units=units)
+                    for label, extra in runs:
+                        shutil.rmtree(tmp / "c", ignore_errors=True)
+                        seconds, _ = _cli("reconstruct", "--coded", tmp / "coded.npy", "--mask", tmp / "mask.npy",
+                                          "--cache", tmp / "c", "--overwrite", *extra, "--output", tmp / "r.npy", cwd=ROOT)
+                        row[label] = dict(seconds=seconds, psnr=_psnr(np.load(tmp / "r.npy") * np.float32(scale), video))
+                    rows.append(row)
     return dict(case="adapt", size=list(size), frames=8, rows=rows, sgemm_gflops=sgemm_gflops())
 
 
@@ -616,10 +612,10 @@ def table(results: dict) -> str:
                                                 for k, v in r.items() if isinstance(v, dict)))
         if name == "adapt":
             for x in r["rows"]:
-                rows.append(f"  adapted dictionary, {x['scene']} {x['code']}: default {x['default']['psnr']:.2f} dB "
-                            f"{x['default']['seconds']:.1f} s, nonlocal {x['nonlocal']['psnr']:.2f} dB "
-                            f"{x['nonlocal']['seconds']:.1f} s, train {x['train_seconds']:.1f} s, nonlocal with the "
-                            f"adapted dictionary {x['adapted']['psnr']:.2f} dB {x['adapted']['seconds']:.1f} s")
+                base = x["default"]["seconds"]
+                rows.append(f"  --adapt, {x['scene']} {x['code']} ({x['units']}): " + ", ".join(
+                    f"{k} {x[k]['psnr']:.2f} dB {x[k]['seconds']:.2f} s ({x[k]['seconds'] / base:.2f}x)"
+                    for k in ("default", "omp --adapt", "nonlocal", "nonlocal --adapt")))
         if name == "startup":
             rows.append(f"  start-up: reconstruct {r['size']} as a whole process {r['process_seconds']:.2f} s, in-process "
                         f"{r['in_process_seconds']:.2f} s: {r['ratio']:.2f}x (target 1.5x)")

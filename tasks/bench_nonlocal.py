@@ -40,8 +40,9 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     from codedvideo.nonlocal_sc import nonlocal_region
     from codedvideo.omp_kernel import load_kernels
     from codedvideo.scenes import load_video
-    from codedvideo.stages import reconstruct_volume, simulate_capture
+    from codedvideo.stages import reconstruct_capture, reconstruct_volume, simulate_capture
     from codedvideo.store import load_dictionary
+    from codedvideo.units import infer_data_range
 
     load_kernels()
     D, _ = load_dictionary(shipped.verified(8))
@@ -84,6 +85,12 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
                         vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s, cache=tmp,
                                                     progress=False)
                         row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+                    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # --adapt: both passes timed
+                        t = time.perf_counter()
+                        vol, _ = reconstruct_capture("nonlocal", cap["coded"], cap["mask"], adapt=True,
+                                                     data_range=infer_data_range(255.0), settings=s, dictionary=D,
+                                                     cache=tmp, progress=False)
+                        row["adapt"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
                 t = time.perf_counter()
                 vol = gap_tv(cap["coded"], cap["mask"])
                 row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
@@ -96,24 +103,28 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
 def table_row(x: dict) -> list[str]:
     cell = lambda v: f"{v['psnr']:6.2f} {v['seconds']:5.2f}s"  # noqa: E731
     return [f"{x['scene']:<24}{x['code'] + ' L=' + str(x['bump']):<12}{x['sigma']:>4.0f}",
-            *(f"{cell(x[k]):>14}" for k in ("nonlocal", "default", "gaptv", "dct")),
+            *(f"{cell(x[k]):>14}" for k in ("adapt", "nonlocal", "default", "gaptv", "dct") if k in x),
             f"{x['nonlocal']['psnr'] - x['default']['psnr']:+6.2f}"]
 
 
 def nonlocal_table(r: dict) -> list[str]:
-    out = [f"{'scene':<24}{'code':<12}{'sig':>4}  {'nonlocal dB/s':>14}  {'default':>14}  {'gap-tv':>14}  "
-           f"{'dct (16)':>14}  {'nl-def':>6}"]
+    methods = [k for k in ("adapt", "nonlocal", "default", "gaptv", "dct") if k in r["rows"][0]]
+    heads = {"adapt": "nl --adapt dB/s", "nonlocal": "nonlocal dB/s", "default": "default", "gaptv": "gap-tv",
+             "dct": "dct (16)"}
+    out = [f"{'scene':<24}{'code':<12}{'sig':>4}  " + "  ".join(f"{heads[k]:>14}" for k in methods) + f"  {'nl-def':>6}"]
     out += ["  ".join(table_row(x)) for x in r["rows"]]
     for kind in ("real", "synthetic"):
         sel = [x for x in r["rows"] if x["kind"] == kind]
         if sel:
-            m = {k: np.mean([x[k]["psnr"] for x in sel]) for k in ("nonlocal", "default", "gaptv", "dct")}
-            sec = {k: np.mean([x[k]["seconds"] for x in sel]) for k in ("nonlocal", "default")}
+            m = {k: np.mean([x[k]["psnr"] for x in sel]) for k in methods}
+            sec = {k: np.mean([x[k]["seconds"] for x in sel]) for k in methods if k in ("adapt", "nonlocal", "default")}
             worst = min(x["nonlocal"]["psnr"] - x["default"]["psnr"] for x in sel)
-            out.append(f"mean over {kind} ({len(sel)}): nonlocal {m['nonlocal']:.2f} dB (gap-tv "
-                       f"{m['nonlocal'] - m['gaptv']:+.2f}), default {m['default']:.2f} (gap-tv "
-                       f"{m['default'] - m['gaptv']:+.2f}), gap-tv {m['gaptv']:.2f}, dct {m['dct']:.2f}; "
-                       f"time {sec['nonlocal'] / sec['default']:.2f}x the default; worst nonlocal-default {worst:+.2f}")
+            line = f"mean over {kind} ({len(sel)}): "
+            for k in ("adapt", "nonlocal", "default"):
+                if k in m:
+                    line += (f"{heads[k].split(' dB')[0]} {m[k]:.2f} dB (gap-tv {m[k] - m['gaptv']:+.2f}, "
+                             f"{sec[k] / sec['default']:.2f}x the default's time), ")
+            out.append(line + f"gap-tv {m['gaptv']:.2f}, dct {m['dct']:.2f}; worst nonlocal-default {worst:+.2f}")
     return out
 
 

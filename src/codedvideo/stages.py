@@ -654,7 +654,10 @@ def reconstruct_captures(
                             scheduler=scheduler, workers=workers, progress=progress)
     adapted: dict[int, tuple[np.ndarray, dict]] = {}  # capture -> its adapted dictionary and the record
     if sparse and adapt:  # a first job; each capture's result adapts its dictionary as it comes (one held at once)
-        with contextlib.closing(job(dictionary, dictionary_key=dictionary_key, desc="first pass")) as firsts:
+        # its warnings (never-open pixels, dependent stops) would be said again by the second job, which gives the result
+        with contextlib.closing(job(dictionary, dictionary_key=dictionary_key, desc="first pass")) as firsts, \
+                warnings.catch_warnings():
+            warnings.simplefilter("ignore")
             for i, first, info in firsts:
                 if first is not None:
                     Da, record = adapt_dictionary(first, dictionary)
