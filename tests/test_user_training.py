@@ -153,3 +153,21 @@ def test_init_options_that_do_not_apply_are_refused(tmp_path, capsys, video8, ex
     rc = main([*args, *([] if extra == ["--kind", "dct"] else [str(d / "scene.npy")])])
     err = capsys.readouterr().err.strip()
     assert rc == 2 and named in err and len(err.splitlines()) == 1, err
+
+
+def test_a_reconstruction_that_overshoots_its_range_keeps_it(tmp_path, video8):
+    """A [0, 1] or 8-bit reconstruction with ~1 % of values up to 1.14 times its range keeps that range."""
+    from codedvideo.scenes import training_videos
+
+    _, v = video8
+    over = v.copy()
+    hot = np.random.default_rng(0).random(v.shape) < 0.01
+    over[hot] = np.linspace(256, 290, int(hot.sum()), dtype=np.float32)
+    np.save(tmp_path / "v8.npy", over)
+    np.save(tmp_path / "v01.npy", over / np.float32(255))
+    assert over.max() / 255 > 1.13
+    (v8,), _ = training_videos([str(tmp_path / "v8.npy")], frames=N, clips=1, seed=0)
+    (v01,), _ = training_videos([str(tmp_path / "v01.npy")], frames=N, clips=1, seed=0)
+    # before: the 8-bit one was taken as 12-bit (scaled by 255/4095) and the [0, 1] one as 8-bit (unscaled)
+    np.testing.assert_allclose(v8, over, rtol=1e-6)
+    np.testing.assert_allclose(v01, over, rtol=1e-5, atol=1e-3)

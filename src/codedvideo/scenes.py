@@ -103,7 +103,7 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max
     video with fewer than ``frames`` frames, or smaller than a patch, is left out with a warning; none
     usable is an :class:`InputError` that names each and why.
     """
-    from .units import infer_data_range
+    from .units import OUTLIER_SHARE, infer_data_range
 
     videos: list[np.ndarray] = []
     used: list[str] = []
@@ -133,7 +133,9 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max
         if f < frames or min(h, w) < patch:
             problems.append(f"{spec} ({f} frames of {h}x{w})")
             continue
-        units = infer_data_range(float(video.max()), what="frame values")
+        # a reconstruction overshoots its range: a few values above 1 (or 255) are outliers, as in a capture
+        units = infer_data_range(float(video.max()), what="frame values", outlier_ranges=(1.0, 255.0),
+                                 quantile=lambda: float(np.quantile(video[:, ::3, ::3], 1 - OUTLIER_SHARE)))
         if units.scale != 1:
             video *= np.float32(units.scale)
         log.info("training video %s: data range %g (%s)", spec, units.value, units.source)

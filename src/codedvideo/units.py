@@ -87,7 +87,7 @@ OUTLIER_PEAK = 8.0
 
 
 def infer_data_range(peak: float, *, dtype=None, given: float | None = None, what: str = "coded / open count",
-                     noise: float = 0.0, quantile=None) -> DataRange:
+                     noise: float = 0.0, quantile=None, outlier_ranges: tuple[float, ...] = (1.0,)) -> DataRange:
     """The data range of a capture whose frames peak at ``peak`` (:func:`static_peak`; module docstring).
 
     ``noise``: the read noise the capture is known to have (``--noise-sigma``), whose peaks may lie above
@@ -95,7 +95,9 @@ def infer_data_range(peak: float, *, dtype=None, given: float | None = None, wha
     ``quantile``: a function giving the ``1 - OUTLIER_SHARE`` quantile of the same values
     (:func:`static_quantile`), asked only for float values that peak just above 1: when that quantile is
     within [0, 1] the few above are outliers and the range is 1 (one hot pixel at 2.5 made a [0, 1]
-    capture 8-bit: a black video, its PSNR 50 dB too high).
+    capture 8-bit: a black video, its PSNR 50 dB too high).  ``outlier_ranges``: the ranges this applies
+    to (up to ``OUTLIER_PEAK`` times each); training videos add 255, since a reconstruction overshoots its
+    range (an 8-bit one peaking at 290 was taken as 12-bit).
     """
     peak = float(peak)
     if given is not None:
@@ -105,11 +107,13 @@ def infer_data_range(peak: float, *, dtype=None, given: float | None = None, wha
         return DataRange(255.0, f"dtype {kind.name}", peak)
     integer = kind is not None and kind.kind in "iub"
     room = NOISE_SIGMAS * max(float(noise), 0.0)
-    if not integer and quantile is not None and NOISE_ROOM + room < peak <= OUTLIER_PEAK:
-        typical = float(quantile())
-        if typical <= NOISE_ROOM + room:
-            return DataRange(1.0, f"values ({1 - OUTLIER_SHARE:.0%} of {what} at most {typical:.4g}; its peak "
-                                  f"{peak:.4g} taken as outliers)", peak)
+    for value in outlier_ranges if not integer and quantile is not None else ():
+        if value * NOISE_ROOM + room < peak <= value * OUTLIER_PEAK:
+            typical = float(quantile())
+            if typical <= value * NOISE_ROOM + room:
+                return DataRange(value, f"values ({1 - OUTLIER_SHARE:.0%} of {what} at most {typical:.4g}; its "
+                                        f"peak {peak:.4g} taken as outliers)", peak)
+            break
     for value in COMMON_RANGES:
         if integer and value == 1.0:
             continue
