@@ -215,3 +215,19 @@ def test_one_experiment_has_one_timing_in_the_csv(mini):
         if r.get("key"):
             seconds.setdefault(r["key"], set()).add(r["seconds"])
     assert any(len(v) == 1 for v in seconds.values()) and all(len(v) == 1 for v in seconds.values()), seconds
+
+
+def test_the_report_dictionaries_ignore_the_pipeline_init_and_augment(tmp_path):
+    """Reported: dictionary.init leaked into the report's dictionaries (the speed study's small ones were the
+    512-atom init dictionary; Fig. 7 at an N with none shipped failed after Table 1)."""
+    from codedvideo.report import Runner
+
+    raw = dict(MINI, frames=8, cache=str(tmp_path / "cache"), dictionary=dict(init="shipped", augment=False))
+    raw["report"] = dict(MINI["report"], dir=str(tmp_path / "out"), frames=8, fig7_frames=[4, 8])
+    path = tmp_path / "r.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    runner = Runner(load_config(path))
+    dc = runner.dictionary_config(8, 128).dictionary
+    assert dc.init is None and dc.augment is True
+    D, meta = runner.dictionary(8, 128)
+    assert D.shape[1] == 128 and meta["init"] == "dct3d+samples" and meta["augment"] is True

@@ -95,7 +95,9 @@ class Runner:
         upd = {k: v for k, v in self.cfg.report.dictionary.model_dump().items() if v is not None}
         if atoms is not None:
             upd["atoms"] = atoms
-        upd.update(kind="learned", path=None)
+        # generic dictionaries at several N and sizes: the pipeline's init (one dictionary, its atoms, its N)
+        # and augment: false (fitting one scene) would leak into every one of them
+        upd.update(kind="learned", path=None, init=None, augment=True)
         return self.cfg.model_copy(update=dict(frames=frames, dictionary=self.cfg.dictionary.model_copy(update=upd)))
 
     def dictionary(self, frames: int, atoms: int | None = None) -> tuple[np.ndarray, dict]:
