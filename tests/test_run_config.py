@@ -130,3 +130,29 @@ def test_simulating_again_keeps_the_last_reconstructions_record_and_says_it_is_s
     assert (out / "recon.metrics.json").read_text() == record
     assert report["metrics_path"] == str(out / "capture" / "metrics.json")
     assert json.loads((out / "capture" / "metrics.json").read_text())["capture"]
+
+
+@pytest.mark.parametrize("section, value", [
+    ("code: {name: hitomi, p: 0.3}", lambda cfg: cfg.code.p == 0.3),
+    ("dictionary: {path: mine.zarr, atoms: 1024, sparsity: 4}", lambda cfg: cfg.dictionary.sparsity == 4),
+])
+def test_values_report_uses_are_taken_by_report_and_still_refused_by_run(tmp_path, capsys, monkeypatch, section,
+                                                                         value):
+    """Reported: report's Bernoulli runs read code.p and its dictionaries train with the dictionary: section
+    (never dictionary.path), yet the config was refused for them at load."""
+    import codedvideo.report
+
+    class Loaded(Exception):
+        pass
+
+    def loaded(cfg, **kwargs):  # the config `report` gets, without running a report
+        assert value(cfg)
+        raise Loaded
+
+    monkeypatch.setattr(codedvideo.report, "run_report", loaded)
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(f"frames: 4\n{section}\noutput: {{dir: {tmp_path / 'out'}}}\n")
+    with pytest.raises(Loaded):
+        main(["-q", "report", str(cfg)])
+    rc, err = run(tmp_path, capsys, cfg.read_text())
+    assert rc == 2 and len(err.splitlines()) == 1 and section.split(":")[0] in err, err

@@ -908,9 +908,9 @@ def _scored_volume(path: str, what: str):
     return channels
 
 
-def _config(a):
+def _config(a, use: str = "run"):
     """The config file of ``run`` and ``report``, ``--overwrite`` as ``output.overwrite: true``."""
-    cfg = load_config(a.config)
+    cfg = load_config(a.config, use=use)
     if a.overwrite:
         cfg = cfg.model_copy(update=dict(output=cfg.output.model_copy(update=dict(overwrite=True))))
     return cfg
@@ -936,7 +936,7 @@ def _cmd_run(a) -> int:
 def _cmd_report(a) -> int:
     from .report import run_report, verdict
 
-    result = run_report(_config(a), progress=not a.quiet, config_path=a.config)
+    result = run_report(_config(a, "report"), progress=not a.quiet, config_path=a.config)
     lines = [f"report: {result['html']}", f"numbers: {result['csv']}", f"video: {result['video']}"]
     lines += [f"{verdict(f['holds'])}: {f['claim']} ({f['detail']})" for f in result["findings"]]
     lines.append(f"experiments: {result['computed']} computed, {result['reused']} reused; {result['seconds']:.0f} s")

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from .errors import ConfigError
 from .physics import SensorModel
@@ -33,6 +33,13 @@ class _Strict(BaseModel):
         """Those of ``names`` set to other than their defaults (a value the run would ignore is refused only
         when changed: pipeline.yaml lists every key with its default)."""
         return [n for n in names if getattr(self, n) != type(self).model_fields[n].default]
+
+
+def _for_report(info: ValidationInfo) -> bool:
+    """Whether the config is loaded for ``codedvideo report`` (:func:`load_config`), which reads ``code.p`` for its
+    Bernoulli runs whatever ``code.name`` is, and trains its own dictionaries from the ``dictionary:`` section,
+    leaving ``dictionary.path`` and ``init`` aside: refusing those as ignored there refused what it uses."""
+    return (info.context or {}).get("use") == "report"
 
 
 #: The codes that take a bump length, and those that take an open probability (:func:`codedvideo.codes.make_code`).
@@ -69,13 +76,13 @@ class CodeConfig(_Strict):
     path: str | None = None
 
     @model_validator(mode="after")
-    def _path_with_file(self) -> "CodeConfig":
+    def _path_with_file(self, info: ValidationInfo) -> "CodeConfig":
         if self.name == "file" and not self.path:
             raise ValueError("code 'file' needs code.path (a .npy or multi-page TIFF mask)")
         if self.name != "file" and self.path:
             raise ValueError(f"code.path is only used with name: file (name is {self.name!r})")
         unused = [f"code.{k}" for k, codes in (("bump", BUMP_CODES), ("p", P_CODES))
-                  if self.name not in codes and k in self._changed(k)]
+                  if self.name not in codes and k in self._changed(k) and not (k == "p" and _for_report(info))]
         if unused:
             raise ValueError(f"{' and '.join(unused)}: code {self.name!r} does not use it (code.bump: "
                              f"{', '.join(BUMP_CODES)}; code.p: {', '.join(P_CODES)})")
@@ -133,11 +140,12 @@ class DictionaryConfig(_Strict):
     augment: bool = True
 
     @model_validator(mode="after")
-    def _settings_used(self) -> "DictionaryConfig":
-        if self.init is not None and (self.kind == "dct" or "atoms" in self._changed("atoms")):
+    def _settings_used(self, info: ValidationInfo) -> "DictionaryConfig":
+        report = _for_report(info)
+        if self.init is not None and not report and (self.kind == "dct" or "atoms" in self._changed("atoms")):
             raise ValueError("dictionary.init starts K-SVD from a dictionary, with its atoms: dictionary.kind dct "
                              "and dictionary.atoms do not apply")
-        if self.path is not None:
+        if self.path is not None and not report:
             unused = self._changed("kind", "atoms", "samples", "iterations", "sparsity", "training", "clips",
                                    "max_speed", "init", "augment")
             if unused:
@@ -407,8 +415,11 @@ def _first_error(exc: ValidationError) -> tuple[str, dict]:
     return msg + more, err
 
 
-def load_config(path: str | Path) -> PipelineConfig:
+def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> PipelineConfig:
     """Read and validate pipeline.yaml; raise :class:`ConfigError` naming the key.
+
+    ``use``: the command it is for; a value refused as ignored by ``run`` may be one ``report`` uses
+    (:func:`_for_report`).
 
     Strict: the file must be UTF-8 YAML holding a non-empty mapping, no key
     may appear twice, and values are not coerced (``frames: "8"`` or
@@ -438,7 +449,7 @@ def load_config(path: str | Path) -> PipelineConfig:
         raise ConfigError(f"config {path}: expected a mapping at the top level")
     try:
         # JSON mode: YAML lists are valid tuples, and strict types still apply
-        return PipelineConfig.model_validate_json(json.dumps(raw, default=str))
+        return PipelineConfig.model_validate_json(json.dumps(raw, default=str), context=dict(use=use))
     except ValidationError as exc:
         msg, err = _first_error(exc)
         # the location without pydantic's names of union branches ("constrained-float", ...)
