@@ -55,3 +55,28 @@ def test_an_empty_cache_name_is_refused_not_the_current_folder(capsys):
     for command in ("verify", "clean"):
         assert main(["-q", "cache", command, ""]) == 2
         assert "name the cache folder" in capsys.readouterr().err
+
+
+def test_clean_leaves_user_files_in_report_that_share_a_record_fields_or_name(tmp_path, capsys):
+    """Reported: a user's JSON named like a record was removed when it shared one field with a record, and a
+    lone .npy named like a volume was called broken and removed."""
+    folder = tmp_path / "cache" / "report"
+    folder.mkdir(parents=True)
+    np.save(folder / "0123456789abcdef.npy", np.arange(10.0))
+    mine = '{"scene": "my lab scene", "psnr": 31.2, "notes": "keep"}'
+    (folder / "fedcba9876543210.json").write_text(mine)
+    capsys.readouterr()
+    assert main(["cache", "verify", str(tmp_path / "cache")]) == 0
+    assert capsys.readouterr().out.strip() == ""  # neither is reported
+    for broken in (["--broken"], []):
+        assert main(["-q", "cache", "clean", str(tmp_path / "cache"), *broken]) == 0
+    np.testing.assert_array_equal(np.load(folder / "0123456789abcdef.npy"), np.arange(10.0))
+    assert (folder / "fedcba9876543210.json").read_text() == mine
+    # a damaged record of ours (it names its own key) is still found, and removed with its volume
+    (folder / "00000000000000aa.json").write_text('{"key": "00000000000000aa", "scene": "default", "psnr"')
+    np.save(folder / "00000000000000aa.npy", np.zeros((2, 7, 7), np.float32))
+    capsys.readouterr()
+    assert main(["cache", "verify", str(tmp_path / "cache")]) == 1
+    assert [json.loads(line)["status"] for line in capsys.readouterr().out.splitlines()] == ["broken"]
+    assert main(["-q", "cache", "clean", "--broken", str(tmp_path / "cache")]) == 0
+    assert sorted(p.name for p in folder.iterdir()) == ["0123456789abcdef.npy", "fedcba9876543210.json"]

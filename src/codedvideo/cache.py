@@ -8,8 +8,10 @@ contents; nothing else in the folder is ever reported or removed:
 * ``recon-KEY.zarr`` -- the working store of a reconstruction (checked: the
   current layout, its inputs match their recorded digest, every finished
   tile matches its blake2b digest);
-* ``report/KEY.json`` (and ``report/KEY.npy``) -- an experiment record of
-  ``codedvideo report`` (checked: the JSON parses and holds a record's fields, the array loads).
+* ``report/KEY.json`` (and ``report/KEY.npy`` beside it) -- an experiment record of
+  ``codedvideo report`` (checked: the JSON parses and holds a record's fields, ``key`` its name's,
+  the array loads).  A JSON that is not such a record is taken as a damaged one only when it names
+  its own key or holds nothing (``{}``); a ``.npy`` without a record is not taken as ours.
 
 Besides, ``.NAME.tmp-*`` temporaries that killed runs left behind, and
 ``dict-KEY.lock`` / ``recon-KEY.lock`` lock files.  Each entry is examined
@@ -303,6 +305,29 @@ def report_record_problem(record, key: str) -> str | None:
     return None
 
 
+def _report_json(path: Path, key: str) -> tuple[str, str] | None:
+    """The status of ``report/KEY.json`` as codedvideo's record, or None when it is someone else's file.
+
+    Ours: a record the check passes, or a damaged one that names its own key (``"key": KEY``, even cut short)
+    or holds nothing (``{}``, an empty file: nothing to lose).  A user's JSON of that name was removed when
+    it shared a field with a record (its scene and psnr, say)."""
+    try:
+        text = path.read_text()
+    except (OSError, ValueError):
+        return None  # unreadable: nothing says it is ours
+    try:
+        record = json.loads(text)
+    except ValueError as exc:
+        return ("broken", f"record does not parse ({exc})") if not text.strip() or f'"key": "{key}"' in text \
+            else None
+    problem = report_record_problem(record, key)
+    if problem is None:
+        return "ok", "record parses"
+    if record == {} or (isinstance(record, dict) and record.get("key") == key):
+        return "broken", f"record is not a report record ({problem})"
+    return None
+
+
 def _scan_report(folder: Path, remove) -> list[dict]:
     """``report/KEY.json`` records (and their ``KEY.npy`` volumes); written atomically, so no lock."""
     if not folder.is_dir():
@@ -314,27 +339,17 @@ def _scan_report(folder: Path, remove) -> list[dict]:
             keys.setdefault(m.group(1), {})[m.group(2)] = child
     records = []
     for key, files in keys.items():
-        status, detail = "ok", "record parses"
-        if "json" in files:
-            try:
-                record = json.loads(files["json"].read_text())
-                if isinstance(record, dict) and record and not set(record) & set(REPORT_FIELDS):
-                    continue  # an object with none of a record's fields: someone else's file, left alone
-                problem = report_record_problem(record, key)
-                if problem:
-                    status, detail = "broken", f"record is not a report record ({problem})"
-            except (OSError, ValueError) as exc:
-                status, detail = "broken", f"record does not parse ({exc})"
-        else:
-            status, detail = "broken", "volume without its record"
+        found = _report_json(files["json"], key) if "json" in files else None
+        if found is None:
+            continue  # someone else's JSON, or a .npy with no record of ours beside it: left alone
+        status, detail = found
         if status == "ok" and "npy" in files:
             try:
                 np.load(files["npy"], mmap_mode="r", allow_pickle=False)
                 detail = "record parses, volume loads"
             except (OSError, ValueError) as exc:
                 status, detail = "broken", f"volume does not load ({exc})"
-        main = files.get("json", files.get("npy"))
-        records.append(_record(main, "report", status, detail))
+        records.append(_record(files["json"], "report", status, detail))
         if remove is not None and status in remove[0]:
             for path in files.values():
                 path.unlink(missing_ok=True)
