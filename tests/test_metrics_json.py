@@ -172,3 +172,21 @@ def test_an_output_sharing_a_stem_with_another_says_it_replaces_its_record(tmp_p
     assert main([*args, "--output", str(tmp_path / "rec.npy")]) == 0
     with pytest.warns(UserWarning, match="held the record of .*rec.npy"):
         assert main([*args, "--output", str(tmp_path / "rec.mp4")]) == 0
+
+
+def test_the_same_output_named_relative_then_absolute_is_not_said_to_replace_another(tmp_path, capsys, monkeypatch,
+                                                                                    recwarn):
+    """Reported: rec.npy, then /abs/rec.npy, warned that the metrics file held the record of another output."""
+    from codedvideo.cli import main
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+
+    cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code="hitomi", bump=2, sigma=0, seed=0)
+    for name in ("coded", "mask"):
+        np.save(tmp_path / f"{name}.npy", cap[name])
+    monkeypatch.chdir(tmp_path)
+    args = ["-q", "reconstruct", "--coded", "coded.npy", "--mask", "mask.npy", "--method", "dct", "--cache", "cache"]
+    assert main([*args, "--output", "rec.npy"]) == 0
+    assert main([*args, "--output", str(tmp_path / "rec.npy"), "--overwrite"]) == 0
+    assert not [w for w in recwarn if "held the record" in str(w.message)], [str(w.message) for w in recwarn]
+    assert json.loads((tmp_path / "rec.metrics.json").read_text())["output"] == str(tmp_path / "rec.npy")

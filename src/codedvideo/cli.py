@@ -715,9 +715,17 @@ def _warn_replaced_record(mpath: Path, output) -> None:
         earlier = json.loads(Path(mpath).read_text()).get("output")
     except (OSError, ValueError, AttributeError):
         return
-    if earlier and Path(earlier) != Path(output) and Path(earlier).exists():
+    if earlier and Path(earlier).exists() and not _same_path(earlier, output):
         warnings.warn(f"{mpath}: held the record of {earlier}, which shares its name; it now describes {output} "
                       "(give the outputs different names to keep both)")
+
+
+def _same_path(a, b) -> bool:
+    """One file, however named (relative and absolute, through a link): the file itself when both exist."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return Path(a).resolve() == Path(b).resolve()
 
 
 class _RawCorrected:
