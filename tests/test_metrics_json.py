@@ -157,6 +157,21 @@ def test_a_reconstruction_in_other_units_than_its_truth_is_warned(tmp_path, caps
         _evaluate(capsys, tmp_path / "r01.npy", tmp_path / "t.npy")
 
 
+def test_a_dark_scene_in_the_same_units_as_its_truth_is_not_warned(tmp_path, capsys, recwarn):
+    """Reported: the reconstruction's peak was compared with the truth's data range, so any dark scene (truth
+    and reconstruction at 0.04 of 8-bit, peaks near 10) was asked whether it was in the same units."""
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0, 255, (4, 16, 16)).astype(np.float32) * np.float32(0.04)
+    np.save(tmp_path / "t.npy", t)
+    np.save(tmp_path / "r.npy", t * np.float32(1.14))  # (peaks 10.2 and 11.6)
+    result = _evaluate(capsys, tmp_path / "r.npy", tmp_path / "t.npy")
+    assert result["data_range_source"].startswith("values")  # (range 255 found from the truth's peak)
+    assert not [w for w in recwarn if "same units" in str(w.message)], [str(w.message) for w in recwarn]
+    np.save(tmp_path / "r01.npy", t / 255)  # the dark scene in [0, 1] against its 8-bit truth: still warned
+    with pytest.warns(UserWarning, match="same units"):
+        _evaluate(capsys, tmp_path / "r01.npy", tmp_path / "t.npy")
+
+
 def test_an_output_sharing_a_stem_with_another_says_it_replaces_its_record(tmp_path, capsys):
     """Reported: rec.npy and rec.mp4 share rec.metrics.json; the second run replaced the first's figures in
     silence."""

@@ -888,10 +888,12 @@ def _cmd_evaluate(a) -> int:
             recon = np.asarray(recon, np.float32) * np.float32(written / 255.0)
             extra["reconstruction_scaled"] = f"video frames x {written:g} / 255 (the data range they were written with)"
     recon_peak = peak_of(recon)
-    if peak > 0 and not units.value / 16 <= recon_peak <= 4 * units.value:  # another unit: a score that means nothing
-        warnings.warn(f"evaluate: {a.recon} peaks at {recon_peak:.4g} and {a.truth}'s data range is {units.value:g} "
-                      f"({units.source}); are they in the same units? (a [0, 1] reconstruction against 8-bit truth "
-                      "scores about 10 dB)")
+    # another unit: a score that means nothing; against the truth's own peak, not its range (a dark scene's
+    # reconstruction peaks as far below 255 as its truth does)
+    if peak > 0 and not peak / 16 <= recon_peak <= 4 * peak:
+        warnings.warn(f"evaluate: {a.recon} peaks at {recon_peak:.4g} and {a.truth} at {peak:.4g} (data range "
+                      f"{units.value:g}, {units.source}); are they in the same units? (a [0, 1] reconstruction "
+                      "against 8-bit truth scores about 10 dB)")
     result = json_safe(dict(evaluate(recon, truth, data_range=units.value),
                             data_range_source=units.source, **extra))
     if a.output:
