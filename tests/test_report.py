@@ -63,10 +63,13 @@ def test_every_csv_number_is_finite(mini):
     # Table 1: 2 bumps x 2 sigmas, one scene plus the mean
     assert sum(r["experiment"] == "table1" and r["scene"] == "mean" for r in rows) == 4
     # the non-local method is a point of the error-against-time study, timed and scored like the others
-    nonlocal_rows = [r for r in rows if r["experiment"] == "speed" and r["label"].startswith("non-local")]
-    assert [r["scene"] for r in nonlocal_rows] == ["default", "mean"]
-    assert all(r["method"] in ("nonlocal", "") and float(r["seconds"]) > 0 for r in nonlocal_rows)
-    assert nonlocal_rows[0]["method"] == "nonlocal"
+    # and with its dictionary adapted to each capture (--adapt), a point of its own
+    for adapted in (False, True):
+        nonlocal_rows = [r for r in rows if r["experiment"] == "speed" and r["label"].startswith("non-local")
+                         and ("adapted" in r["label"]) == adapted]
+        assert [r["scene"] for r in nonlocal_rows] == ["default", "mean"]
+        assert all(r["method"] in ("nonlocal", "") and float(r["seconds"]) > 0 for r in nonlocal_rows)
+        assert nonlocal_rows[0]["method"] == "nonlocal"
     numbers = 0
     for r in rows:
         assert r["psnr"] != ""

@@ -258,6 +258,8 @@ class ReportConfig(_Strict):
     speed_strides: list[Annotated[int, Field(ge=1, le=7)]] = [1, 2, 3]
     #: Speed study: the sparse methods besides the configured one, each a point with its default settings.
     speed_methods: list[Literal["omp", "nonlocal"]] = ["omp", "nonlocal"]
+    #: Speed study: the sparse methods also timed with their dictionary adapted to each capture (``--adapt``).
+    speed_adapt: list[Literal["omp", "nonlocal"]] = ["nonlocal"]
     #: The scene of the frame strips and the side-by-side video.
     video_scene: str = "default"
     fps: int = Field(4, ge=1)

@@ -50,8 +50,9 @@ from .errors import InputError
 from .cache import RECON_VERSION, content_key, report_record_problem
 from .volumes import write_json
 from .scenes import load_video
-from .stages import SPARSE_METHODS, simulate_capture, train_dictionary
+from .stages import SPARSE_METHODS, reconstruct_capture, simulate_capture, train_dictionary
 from .store import load_dictionary
+from .units import infer_data_range
 
 #: Part of every experiment key: bump it when what an experiment records changes.
 REPORT_VERSION = "report-v1"
@@ -115,7 +116,7 @@ class Runner:
 
     def run(self, *, scene: str, frames: int, code: str, bump: int, sigma: float, method: str,
             max_atoms: int | None = None, tol_rms: float | None = None, atoms: int | None = None,
-            stride: int | None = None, keep: bool = False, timed: bool = False) -> dict:
+            stride: int | None = None, keep: bool = False, timed: bool = False, adapt: bool = False) -> dict:
         """One experiment: capture, reconstruct, evaluate (or its cached record).
 
         Parameters
@@ -131,6 +132,8 @@ class Runner:
         timed : bool
             The wall time is plotted: take the best of ``report.repeats`` runs
             (otherwise one run).
+        adapt : bool
+            A sparse method with its dictionary adapted to the capture (``--adapt``), both passes timed.
 
         Returns
         -------
@@ -150,6 +153,8 @@ class Runner:
                 max_atoms=max_atoms or r.max_atoms, tol_rms="auto" if tol_rms is None else float(tol_rms),
                 stride=stride or r.stride, method="nonlocal" if method == "nonlocal" else "omp")), sigma)
             settings.update(omp.__dict__, tile=r.tile, version=RECON_VERSION, method=method)
+            if adapt:  # (absent otherwise: the records of earlier reports keep their keys)
+                settings["adapt"] = True
             if method != "dct":
                 D, meta = self.dictionary(frames, atoms)
                 dkey = meta["sha256"]
@@ -189,10 +194,17 @@ class Runner:
         for _ in range(repeats):  # best of `repeats` wall times
             with tempfile.TemporaryDirectory(dir=self.folder, prefix="work-") as tmp:  # fresh store: no reused tiles
                 t0 = time.perf_counter()
-                volume, info = baselines.reconstruct_method(method, cap["coded"], cap["mask"], dictionary=D,
-                                                            dictionary_key=dkey, settings=omp, cache=tmp,
-                                                            tile=self.cfg.reconstruct.tile,
-                                                            workers=self.cfg.reconstruct.workers)
+                if adapt:
+                    volume, info = reconstruct_capture(method, cap["coded"], cap["mask"], adapt=True,
+                                                       data_range=infer_data_range(255.0, given=255.0), settings=omp,
+                                                       dictionary=D, dictionary_key=dkey, cache=tmp,
+                                                       tile=self.cfg.reconstruct.tile,
+                                                       workers=self.cfg.reconstruct.workers, progress=False)
+                else:
+                    volume, info = baselines.reconstruct_method(method, cap["coded"], cap["mask"], dictionary=D,
+                                                                dictionary_key=dkey, settings=omp, cache=tmp,
+                                                                tile=self.cfg.reconstruct.tile,
+                                                                workers=self.cfg.reconstruct.workers)
                 seconds = min(seconds, time.perf_counter() - t0)
         if existing is not None:
             cio.write_array(vol_path, volume.astype(np.float32))
@@ -247,11 +259,12 @@ def run_experiments(runner: Runner) -> dict:
     variants += [dict(label=f"patch stride {st}", stride=st) for st in rc.speed_strides if st != r.stride]
     variants = [dict(v, method=r.method) for v in variants]
     variants += [dict(label="default settings", method=m) for m in rc.speed_methods if m != r.method]
+    variants += [dict(label="default settings, adapted (--adapt)", method=m, adapt=True) for m in rc.speed_adapt]
     for v in variants:
         for scene in rc.scenes:
             rec = runner.run(scene=scene, frames=n, code=v.get("code", "hitomi"), bump=L, sigma=0.0,
                              method=v["method"], max_atoms=v.get("max_atoms"), tol_rms=v.get("tol_rms"),
-                             atoms=v.get("atoms"), stride=v.get("stride"), timed=True)
+                             atoms=v.get("atoms"), stride=v.get("stride"), timed=True, adapt=v.get("adapt", False))
             name = "OMP" if v["method"] == "omp" else "non-local OMP"
             out["speed"].append(dict(rec, label=f"{name} {v['label']}", in_mean=True))
     return out
