@@ -71,14 +71,52 @@ def test_each_capture_of_a_stream_gets_its_own_dictionary(tmp_path, D):
     assert results[0][2]["work_store"] == results[2][2]["work_store"]
 
 
+def test_a_stream_adapted_again_into_its_cache_or_a_fresh_one_is_the_same(tmp_path, D):
+    """Reported: a 3-capture stream rerun into its cache gave another video (3.4 grey levels apart): K-SVD's
+    products round differently with one BLAS thread or two, and an adaptation that ran beside the first job's
+    graph saw that graph's limit; in a rerun (no graph: every tile in the cache) it did not."""
+    video = load_video("footage:carphone", frames=24, size=(64, 64))
+    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=3)
+    runs = [list(reconstruct_captures("omp", list(cap["coded"]), lambda i: cap["mask"], adapt=True,
+                                      **common(D, tmp_path / cache)))
+            for cache in ("a", "a", "b")]
+    for (_, first, info), (_, again, info_again), (_, fresh, _) in zip(*runs):
+        np.testing.assert_array_equal(first, again)
+        np.testing.assert_array_equal(first, fresh)
+        assert info_again["tiles_computed"] == 0 and info["adapted"]["adapted"]
+        assert set(info["seconds"]) >= {"first_pass", "adapt", "reconstruct"}
+
+
+def test_a_capture_with_little_to_learn_keeps_its_dictionary(D):
+    """A dark 2048x2048 first result with one bright pixel: every patch drawn is flat, and K-SVD's refusal
+    ended the run ('training videos: every ... patch ... is flat'); now the dictionary is kept, and said."""
+    video = np.zeros((8, 2048, 2048), np.float32)
+    video[:, 1000, 700] = 50.0
+    same, record = adapt_dictionary(video, D)
+    assert same is D and not record["adapted"] and "texture" in record["reason"]
+
+
+def test_a_capture_saturated_everywhere_is_still_said_with_adapt(tmp_path, D):
+    """Reported: the warning for a blown-out capture of a stream was lost (the first job's warnings are left to
+    the second, but the capture was marked as warned)."""
+    video = load_video("footage:carphone", frames=16, size=(48, 48))
+    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=2)
+    codeds = [cap["coded"][0], np.full_like(cap["coded"][1], 2000.0)]
+    with pytest.warns(UserWarning, match="capture 2 of 2: every measured pixel is at or above"):
+        out = list(reconstruct_captures("omp", codeds, lambda i: cap["mask"], adapt=True, white_level=1000.0,
+                                        **common(D, tmp_path / "c")))
+    assert len(out) == 2 and all(np.isfinite(v).all() for _, v, _ in out)
+
+
 def test_a_flat_capture_keeps_the_dictionary_and_stays_finite(tmp_path, D):
     flat = np.full((8, 24, 24), 100.0, np.float32)
     same, record = adapt_dictionary(flat, D)
     assert same is D and not record["adapted"]
     mask = simulate_capture(flat, code="hitomi", bump=2, sigma=0.0, seed=0)["mask"]
     dark = np.zeros((24, 24), np.float32)
-    volume, _ = reconstruct_capture("omp", dark + 1e-3, mask, adapt=True, **common(D, tmp_path / "c"))
+    volume, info = reconstruct_capture("omp", dark + 1e-3, mask, adapt=True, **common(D, tmp_path / "c"))
     assert np.isfinite(volume).all() and np.abs(volume).max() < 1
+    assert not info["adapted"]["adapted"] and info["tiles_computed"] == 0  # the first job's tiles, not solved again
 
 
 def test_cli_adapt_writes_its_record_and_is_refused_without_a_dictionary(tmp_path, capsys, carphone):

@@ -662,7 +662,8 @@ def _cmd_reconstruct(a) -> int:
             metrics["settings"]["bayer"] = a.bayer
     else:
         patches = sum(e["reconstruction"]["patches"] for e in entries)
-        t_rec = sum(e["reconstruction"]["seconds"]["reconstruct"] for e in entries)
+        t_rec = sum(sum(e["reconstruction"]["seconds"].get(k, 0.0) for k in ("first_pass", "adapt", "reconstruct"))
+                    for e in entries)
         seconds = time.perf_counter() - t_all
         # the patches of the tiles computed in this run (a rerun from the cache counted every patch: 1.3 M/s)
         solved = sum(r["patches"] * r.get("tiles_computed", 0) / max(r.get("tiles", 1), 1)

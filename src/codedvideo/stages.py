@@ -341,7 +341,8 @@ def sparse_volumes(
         per capture (to plan, then to finish), so that no more than one
         capture's inputs are held at a time.
     D : ndarray of shape (N * 49, K), or a callable ``D(i)`` giving capture ``i``'s own
-        (a dictionary adapted to each capture, :func:`adapt_dictionary`; keyed by its contents)
+        dictionary and its cache key (a dictionary adapted to each capture, :func:`adapt_dictionary`;
+        an empty key: keyed by its contents)
 
     Yields
     ------
@@ -379,14 +380,14 @@ def sparse_volumes(
                 plan.append(None)
             else:
                 coded, mask, still = pair
-                Di = D(i) if per_capture else D
+                Di, dkey_i = D(i) if per_capture else (D, dkey)
                 never_open = _check_capture(coded, mask, Di)
                 if never_open:
                     unopened.append(never_open)
                 if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
                     plan.append("static")
                 else:
-                    key = content_key(RECON_VERSION, coded, mask, dkey or content_key(Di), settings.__dict__, tile,
+                    key = content_key(RECON_VERSION, coded, mask, dkey_i or content_key(Di), settings.__dict__, tile,
                                       *(() if still is None else (np.asarray(still, np.uint8),)))
                     if key not in opened:
                         _allow_open_files(len(opened) + 65, cache)  # a lock held per store until the job ends
@@ -517,14 +518,24 @@ def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0) -> tup
     A volume with nothing to learn from (flat in space and time) keeps ``D``.
     Returns the dictionary and a record of the adaptation.
     """
+    from threadpoolctl import threadpool_limits
+
     from .dictionaries import prepare_dictionary
 
     t0 = time.perf_counter()
     volume = np.asarray(volume, np.float32)
     if not np.ptp(volume) > 1e-3 * max(1.0, float(np.abs(volume).max(initial=0.0))):
         return D, dict(adapted=False, reason="the first reconstruction is flat", seconds=time.perf_counter() - t0)
-    Da, meta = learn_dictionary([volume], frames=volume.shape[0], init=D, augment=False, iterations=ADAPT_ITERATIONS,
-                                samples=ADAPT_SAMPLES, sparsity=ADAPT_SPARSITY, tol_rms=0.0, seed=seed)
+    try:
+        # one BLAS thread: the same bits whatever the cores (products round otherwise with other thread counts);
+        # the caller runs no graph meanwhile, whose own limit would change it midway (reconstruct_captures)
+        with threadpool_limits(limits=1, user_api="blas"):
+            Da, meta = learn_dictionary([volume], frames=volume.shape[0], init=D, augment=False,
+                                        iterations=ADAPT_ITERATIONS, samples=ADAPT_SAMPLES, sparsity=ADAPT_SPARSITY,
+                                        tol_rms=0.0, seed=seed)
+    except InputError:  # every patch drawn is flat (a dark frame with a few bright pixels): nothing to learn
+        return D, dict(adapted=False, reason="no patch drawn from the first reconstruction has texture",
+                       seconds=time.perf_counter() - t0)
     Da = prepare_dictionary(Da, "adapted to the capture")
     return Da, dict(adapted=True, samples=meta["samples"], iterations=ADAPT_ITERATIONS, final_rmse=meta["final_rmse"],
                     seconds=time.perf_counter() - t0)
@@ -652,19 +663,32 @@ def reconstruct_captures(
         raise ConfigError(f"--adapt: method {method} has no dictionary to adapt (omp, nonlocal and dct have)")
     job = functools.partial(sparse_volumes, count, for_sparse, settings=settings, tile=tile, cache=cache,
                             scheduler=scheduler, workers=workers, progress=progress)
-    adapted: dict[int, tuple[np.ndarray, dict]] = {}  # capture -> its adapted dictionary and the record
-    if sparse and adapt:  # a first job; each capture's result adapts its dictionary as it comes (one held at once)
-        # its warnings (never-open pixels, dependent stops) would be said again by the second job, which gives the result
-        with contextlib.closing(job(dictionary, dictionary_key=dictionary_key, desc="first pass")) as firsts, \
-                warnings.catch_warnings():
+    adapted: dict[int, np.ndarray] = {}  # capture -> its adapted dictionary (until its second job is planned)
+    records: dict[int, dict] = {}  # capture -> what its adaptation did, and the first job's seconds
+    for i in range(count) if sparse and adapt else ():
+        # A first job per capture, then its adaptation: no graph is in flight while K-SVD runs (a graph's thread
+        # limits BLAS threads, which changed an adaptation's bits when it ran beside one).  Its warnings
+        # (never-open pixels, dependent stops) are said by the second job, which gives the result.
+        with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            for i, first, info in firsts:
-                if first is not None:
-                    Da, record = adapt_dictionary(first, dictionary)
-                    adapted[i] = Da, dict(record, first_pass_seconds=sum(info["seconds"].values()))
-                del first
-    results = ((job(lambda i: adapted[i][0], desc="adapted") if adapted
-                else job(dictionary, dictionary_key=dictionary_key)) if sparse
+            first_job = sparse_volumes(1, lambda _, i=i: for_sparse(i), dictionary, settings=settings, tile=tile,
+                                       cache=cache, scheduler=scheduler, workers=workers, progress=progress,
+                                       dictionary_key=dictionary_key, desc=f"first pass {i + 1}/{count}")
+            with contextlib.closing(first_job):  # closed here: the graph's thread has ended
+                _, first, info = next(first_job)
+        if first is not None and info.get("method") != "static":  # (one pattern for all pixels: no tiles)
+            Da, record = adapt_dictionary(first, dictionary)
+            if record["adapted"]:
+                adapted[i] = Da
+            records[i] = dict(record, first_pass=dict(seconds=sum(info["seconds"].values()),
+                                                      tile_seconds=info["seconds_total"]))
+        del first
+    if sparse and adapt:
+        blown.clear()  # the warnings the first jobs swallowed are said by the second
+        used.cache_clear()
+    # a capture not adapted (flat) keeps the dictionary and its key: its second job is the first's, from the cache
+    results = ((job(lambda i: (adapted.pop(i), "") if i in adapted else (dictionary, dictionary_key), desc="adapted")
+                if adapted else job(dictionary, dictionary_key=dictionary_key)) if sparse
                else ((i, None, None) for i in range(count)))
     warned_nonlocal, nonlocal_checked = False, {}
     with contextlib.closing(results) if sparse else contextlib.nullcontext():
@@ -676,8 +700,12 @@ def reconstruct_captures(
                 volume, info = reconstruct_method(method, coded_used, mask_used)
             if sparse and info.get("method") != "static":  # (the static estimate says so)
                 info = dict(info, method=method, dictionary_atoms=int(dictionary.shape[1]))
-                if i in adapted:
-                    info["adapted"] = adapted.pop(i)[1]
+                if i in records:  # the first job's and the adaptation's time beside the second's
+                    record = info["adapted"] = records.pop(i)
+                    info["seconds"] = dict(first_pass=record["first_pass"]["seconds"], adapt=record["seconds"],
+                                           **info["seconds"])
+                    work = record["first_pass"]["tile_seconds"] + record["seconds"] + info["seconds_total"]
+                    info["patches_per_second"] = info["patches"] / max(work, 1e-9) * (info["tiles_computed"] > 0)
                 problem = None
                 if method == "nonlocal":  # (a code's patterns counted once: 3 s for a 4K mask, N = 18)
                     code = content_key(np.asarray(mask_used))
