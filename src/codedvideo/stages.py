@@ -604,10 +604,10 @@ def reconstruct_captures(
         measured pixel agrees is the still estimate itself.  (Methods without
         patches: the pixels whose 13x13 neighbourhood agrees take it.)
     adapt : bool
-        Sparse methods: reconstruct every capture (one job), adapt the
-        dictionary to each capture's result (:func:`adapt_dictionary`), then
-        reconstruct every capture again with its own (a second job).  About
-        twice the time, +0.65 dB on held-out real footage (README).
+        Sparse methods: reconstruct each capture (a job each), adapt the
+        dictionary to its result (:func:`adapt_dictionary`), then reconstruct
+        every capture again with its own (one job).  About twice the time,
+        +0.65 dB on held-out real footage with ``nonlocal`` (README).
 
     Yields
     ------
