@@ -330,3 +330,19 @@ def test_frame_names_sort_in_frame_order_past_ten_thousand_frames(tmp_path):
         names = write(frames)
     assert [p.name for p in names] == ["frame_00000.png", "frame_00001.png"]
     assert [p.name for p in cio.write_frames(tmp_path / "g", frames, fmt="png")] == ["frame_0000.png", "frame_0001.png"]
+
+
+@pytest.mark.parametrize("name", ["a.tif", "a.exr", "a.png"])
+def test_an_image_written_again_later_is_the_same_bytes(tmp_path, name):
+    """Reported: coded.tif embedded the time it was written (TIFF DateTime), so two runs of one seed differed."""
+    import time
+
+    from codedvideo.io import write_image
+
+    image = np.linspace(0, 1, 64, dtype=np.float32).reshape(8, 8) * (255 if name.endswith(".png") else 1)
+    written = []
+    for run in ("1", "2"):
+        (tmp_path / run).mkdir()
+        written.append(write_image(tmp_path / run / name, image).read_bytes())
+        time.sleep(1.1)  # a new second on the clock
+    assert written[0] == written[1]

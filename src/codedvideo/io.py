@@ -715,6 +715,7 @@ class _OiioPages:
         if self.spec is None:
             h, w, c = page.shape
             self.spec = oiio.ImageSpec(w, h, c, fmt)
+            self.spec.attribute("DateTime", "")  # no time of writing: the same pixels give the same bytes
             if c in (2, 4):
                 self.spec.attribute("oiio:UnassociatedAlpha", 1)  # colour values are not premultiplied by alpha
             if self.pages > 1:
