@@ -215,6 +215,35 @@ def test_cli_simulate_code_file_and_errors(tmp_path, capsys):
     assert not (tmp_path / "g").exists() and not (tmp_path / "i").exists()
 
 
+def test_cli_simulate_a_code_file_of_one_code_per_capture(tmp_path, capsys):
+    """A calibrated code that changes per capture (K, N, H, W): capture t takes code t mod K, in memory and from a
+    video file alike, and mask.npy holds the code of every capture (a (T, N, H, W) code file was refused)."""
+    from codedvideo import io as cio
+    from codedvideo.synth import make_scene
+
+    codes = np.stack([make_code("hitomi", (24, 24), frames=4, bump=2, rng=k) for k in range(2)])
+    codes = codes.astype(np.float32) * 0.9 + 0.05  # calibrated: leakage and a response below 1
+    np.save(tmp_path / "codes.npy", codes)
+    assert _cli("simulate", "synth:default", "--frames", 4, "--code-file", tmp_path / "codes.npy", "--captures", 3,
+                "--size", 24, 24, "--output", tmp_path / "mem") == 0
+    mask = np.load(tmp_path / "mem" / "mask.npy")
+    assert mask.shape == (3, 4, 24, 24)
+    for t in range(3):
+        np.testing.assert_array_equal(mask[t], codes[t % 2])
+    coded, truth = np.load(tmp_path / "mem" / "coded.npy"), np.load(tmp_path / "mem" / "truth.npy")
+    np.testing.assert_allclose(coded[2], (codes[0] * truth[8:12]).sum(0), rtol=1e-5, atol=1e-3)
+    cio.write_video(tmp_path / "clip.mkv", make_scene("default", frames=12, size=(24, 24)), fps=30)
+    assert _cli("simulate", tmp_path / "clip.mkv", "--frames", 4, "--code-file", tmp_path / "codes.npy",
+                "--captures", "all", "--output", tmp_path / "file") == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "file" / "mask.npy"), mask)
+    capsys.readouterr()
+    assert _cli("simulate", "synth:default", "--frames", 4, "--code-file", tmp_path / "codes.npy", "--captures", 3,
+                "--new-code-per-capture", "--size", 24, 24, "--output", tmp_path / "new") == 2
+    err = capsys.readouterr().err.strip()
+    assert "codes.npy" in err and "--new-code-per-capture" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "new").exists()
+
+
 def test_cli_reconstruct_treats_saturated_pixels_as_missing(tmp_path, capsys):
     W = 80.0
     assert _cli("simulate", "synth:default", "--frames", 4, "--bump", 2, "--white-level", W, "--size", 24, 24,

@@ -83,7 +83,9 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"bump length of hitomi, hitomi-tiled and rowwise (default {PipelineConfig().code.bump})")
     s.add_argument("--code", default=None, choices=CODE_NAMES,
                    help="shutter code (default: hitomi, or file with --code-file); see README")
-    s.add_argument("--code-file", default=None, metavar="PATH", help="mask of --code file: .npy (N, H, W) or multi-page TIFF")
+    s.add_argument("--code-file", default=None, metavar="PATH",
+                   help="mask of --code file: .npy (N, H, W) or multi-page TIFF; or .npy (K, N, H, W), one code per "
+                        "capture in turn")
     s.add_argument("--p", type=float, default=None,
                    help=f"open probability of bernoulli / shifting (default {PipelineConfig().code.p:g})")
     s.add_argument("--noise-sigma", type=float, default=0.0, help="read noise, grey levels")
@@ -306,13 +308,24 @@ def _cmd_simulate(a) -> int:
         raise ConfigError(f"option --captures all: only for a video file (give a number for {a.video})")
     if a.cacti_out and a.new_code_per_capture:
         raise ConfigError("option --cacti-out: a CACTI file has one mask; it does not go with --new-code-per-capture")
-    if a.cacti_out and code_cfg.path:  # a CACTI file holds a binary mask: a calibrated one is refused before any work
-        from .omp import is_binary
-        from .volumes import read_mask
+    file_codes = 1  # codes in the code file: several are one per capture, in turn
+    if code_cfg.path:  # read (and checked) before any work
+        from .volumes import read_masks
 
-        if not is_binary(read_mask(code_cfg.path)):
-            raise ConfigError(f"option --cacti-out {a.cacti_out}: a CACTI file holds a binary mask, and the code "
-                              f"file {code_cfg.path} is calibrated (values other than 0 and 1)")
+        file_mask = read_masks(code_cfg.path)
+        file_codes = file_mask.shape[0] if file_mask.ndim == 4 else 1
+        clash = [o for o, on in (("--new-code-per-capture", a.new_code_per_capture), ("--cacti-out", a.cacti_out),
+                                 ("--bayer", a.bayer)) if on]
+        if file_codes > 1 and clash:
+            raise ConfigError(f"option {clash[0]}: the code file {code_cfg.path} holds {file_codes} codes, one per "
+                              f"capture in turn, which {clash[0]} does not take")
+        if a.cacti_out:  # a CACTI file holds a binary mask: a calibrated one is refused before any work
+            from .omp import is_binary
+
+            if not is_binary(file_mask):
+                raise ConfigError(f"option --cacti-out {a.cacti_out}: a CACTI file holds a binary mask, and the code "
+                                  f"file {code_cfg.path} is calibrated (values other than 0 and 1)")
+        del file_mask
     if a.bayer:
         from .bayer import check_even
 
@@ -339,7 +352,8 @@ def _cmd_simulate(a) -> int:
     options = dict(code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed, p=code_cfg.p,
                    code_path=code_cfg.path, sensor=sensor_model(noise))
     if not (a.bayer or a.cacti_out or a.video.startswith(("synth:", "footage:"))):
-        paths = _simulate_video_file(a, captures=captures, size=size, options=options)
+        paths = _simulate_video_file(a, captures=captures, size=size, options=options,
+                                     per_capture=a.new_code_per_capture or file_codes > 1)
     elif a.bayer:  # the colour video through the filter: coded.npy the mosaic, truth.npy (3, N, H, W)
         from .bayer import load_color_video, simulate_bayer
 
@@ -514,9 +528,10 @@ def _read_captures(a) -> _Captures:
         dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
 
 
-def _simulate_video_file(a, *, captures: int, size, options: dict) -> dict:
+def _simulate_video_file(a, *, captures: int, size, options: dict, per_capture: bool) -> dict:
     """``simulate`` of a video file or a folder of frames: read, coded and written capture by capture (the same
-    files as :func:`codedvideo.stages.simulate_capture` of the whole clip); their paths."""
+    files as :func:`codedvideo.stages.simulate_capture` of the whole clip); their paths.  ``per_capture``: a
+    mask per capture (a new code each, or a code file's codes in turn)."""
     from .scenes import iter_clips
     from .stages import simulate_stream
     from .volumes import capture_paths, capture_writer
@@ -525,7 +540,7 @@ def _simulate_video_file(a, *, captures: int, size, options: dict) -> dict:
     clips = iter_clips(a.video, frames=a.frames, captures=captures, size=size, start=a.start)
     first = next(clips)
     h, w = first.shape[1:]
-    masks = captures if a.new_code_per_capture else 1
+    masks = captures if per_capture else 1
     made = not out.exists()
     try:
         with capture_writer(out, coded_shape=(captures, h, w) if captures > 1 else (h, w),

@@ -230,7 +230,7 @@ def thinout_code(shape: tuple[int, int], *, frames: int) -> np.ndarray:
 
     Returns
     -------
-    mask : ndarray of shape (N, H, W), uint8
+    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
     """
     if frames < 1:
         raise InputError(f"code thinout: frames must be >= 1, got {frames}")
@@ -251,7 +251,7 @@ def grid_code(shape: tuple[int, int], *, frames: int) -> np.ndarray:
 
     Returns
     -------
-    mask : ndarray of shape (N, H, W), uint8
+    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
     """
     if frames < 1:
         raise InputError(f"code grid: frames must be >= 1, got {frames}")
@@ -286,7 +286,8 @@ def load_code_file(
     frames: int | None = None,
     shape: tuple[int, int] | None = None,
 ) -> np.ndarray:
-    """A user-supplied code: a .npy ``(N, H, W)`` array or a multi-page TIFF.
+    """A user-supplied code: a .npy ``(N, H, W)`` array or a multi-page TIFF; or a .npy ``(K, N, H, W)`` of K codes,
+    one per capture in turn (a calibrated code that changes per capture; capture ``t`` takes code ``t mod K``).
 
     Parameters
     ----------
@@ -298,7 +299,7 @@ def load_code_file(
 
     Returns
     -------
-    mask : ndarray of shape (N, H, W), uint8
+    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
 
     Raises
     ------
@@ -306,13 +307,13 @@ def load_code_file(
         Naming the file when it is missing, unreadable, not binary, or its
         N or (H, W) differ from the ones asked for.
     """
-    from .volumes import read_mask
+    from .volumes import read_masks
 
-    mask = read_mask(path)
-    if frames is not None and mask.shape[0] != frames:
-        raise InputError(f"code file {path}: has N = {mask.shape[0]} sub-frames, expected N = {frames}")
-    if shape is not None and tuple(mask.shape[1:]) != tuple(shape):
-        raise InputError(f"code file {path}: size {tuple(mask.shape[1:])} does not match the video {tuple(shape)}")
+    mask = read_masks(path)
+    if frames is not None and mask.shape[-3] != frames:
+        raise InputError(f"code file {path}: has N = {mask.shape[-3]} sub-frames, expected N = {frames}")
+    if shape is not None and tuple(mask.shape[-2:]) != tuple(shape):
+        raise InputError(f"code file {path}: size {tuple(mask.shape[-2:])} does not match the video {tuple(shape)}")
     return mask
 
 
@@ -356,7 +357,7 @@ def make_code(
 
     Returns
     -------
-    mask : ndarray of shape (N, H, W), uint8
+    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
     """
     if name in ("hitomi", "hitomi-tiled"):
         starts = bump_starts(shape, frames=frames, bump=bump, rng=rng, tiled=name == "hitomi-tiled")

@@ -178,8 +178,8 @@ def simulate_capture(
     Returns
     -------
     dict with ``coded`` (H, W) float32 for one capture, else (T, H, W); ``mask``
-    (N, H, W) uint8, or (T, N, H, W) with a new code per capture; ``truth``
-    (T * N, H, W) float32
+    (N, H, W) uint8, or (T, N, H, W) with a new code per capture (or a code file
+    of several codes, taken in turn); ``truth`` (T * N, H, W) float32
     """
     if captures < 1 or video.shape[0] % captures:
         raise InputError(f"video of {video.shape[0]} frames: not {captures} captures of equal length")
@@ -190,10 +190,10 @@ def simulate_capture(
     coded, masks = [], []
     for one, mask, _ in stream:
         coded.append(one)
-        if len(masks) < (captures if new_code_per_capture else 1):
-            masks.append(mask)
+        masks.append(mask)
+    repeating = all(m is masks[0] for m in masks)  # the same code every capture (a real sensor's)
     return dict(coded=coded[0] if captures == 1 else np.stack(coded),
-                mask=masks[0] if len(masks) == 1 else np.stack(masks), truth=np.asarray(video, np.float32))
+                mask=masks[0] if repeating else np.stack(masks), truth=np.asarray(video, np.float32))
 
 
 def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: float = 0.5,
@@ -201,7 +201,8 @@ def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: 
                     new_code_per_capture: bool = False) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """:func:`simulate_capture` one capture at a time: ``clips`` yields the T clips (N, H, W) in order; yields
     ``(coded (H, W), mask (N, H, W), clip)`` for each, from the same seeded streams (the same captures bit for
-    bit)."""
+    bit).  A repeating code is the same array every capture; a code file of K codes gives capture ``t`` its
+    code ``t mod K``."""
     ss = np.random.SeedSequence(seed)
     code_rng, noise_rng = (np.random.default_rng(s) for s in ss.spawn(2))
     if sensor is not None:
@@ -212,6 +213,11 @@ def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: 
         if masks is None:  # every code is drawn first, from its own stream
             masks = [make_code(code, clip.shape[1:], frames=clip.shape[0], bump=bump, p=p, rng=code_rng,
                                path=code_path) for _ in range(captures if new_code_per_capture else 1)]
+            if masks[0].ndim == 4:  # a code file of one code per capture, in turn
+                if new_code_per_capture:
+                    raise InputError(f"code file {code_path}: holds {masks[0].shape[0]} codes, one per capture; "
+                                     "a new code per capture does not apply")
+                masks = list(masks[0])
             if not all(np.any(m) for m in masks):  # (a Bernoulli p of 1e-9, say): nothing would be measured
                 raise InputError(f"code {code}{f' (p = {p:g})' if code == 'bernoulli' else ''}: opens no pixel in any "
                                  "sub-frame; nothing would be measured")
