@@ -50,7 +50,8 @@ from .errors import InputError
 from .cache import RECON_VERSION, content_key, report_record_problem
 from .volumes import write_json
 from .scenes import load_video
-from .stages import SPARSE_METHODS, reconstruct_capture, simulate_capture, train_dictionary
+from .stages import ADAPT_ITERATIONS, ADAPT_SAMPLES, ADAPT_SPARSITY, SPARSE_METHODS, reconstruct_capture, \
+    simulate_capture, train_dictionary
 from .store import load_dictionary
 from .units import infer_data_range
 
@@ -153,8 +154,8 @@ class Runner:
                 max_atoms=max_atoms or r.max_atoms, tol_rms="auto" if tol_rms is None else float(tol_rms),
                 stride=stride or r.stride, method="nonlocal" if method == "nonlocal" else "omp")), sigma)
             settings.update(omp.__dict__, tile=r.tile, version=RECON_VERSION, method=method)
-            if adapt:  # (absent otherwise: the records of earlier reports keep their keys)
-                settings["adapt"] = True
+            if adapt:  # the recipe, so that a changed one is computed again (absent otherwise: earlier keys stand)
+                settings["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY)
             if method != "dct":
                 D, meta = self.dictionary(frames, atoms)
                 dkey = meta["sha256"]

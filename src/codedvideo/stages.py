@@ -614,7 +614,7 @@ def reconstruct_captures(
         Sparse methods: reconstruct each capture (a job each), adapt the
         dictionary to its result (:func:`adapt_dictionary`), then reconstruct
         every capture again with its own (one job).  About twice the time,
-        +0.65 dB on held-out real footage with ``nonlocal`` (README).
+        +0.8 dB on held-out real footage with ``nonlocal`` (README).
 
     Yields
     ------
