@@ -136,7 +136,7 @@ def _parser() -> argparse.ArgumentParser:
                         "similar patches solved together under their own codes (better, about 4x the time); "
                         "dct: 3D DCT dictionary, same OMP; thinout, interp, gaptv: baselines (see README)")
     r.add_argument("--adapt", action="store_true",
-                   help="adapt the dictionary to each capture: reconstruct, one K-SVD iteration on that result, "
+                   help="adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, "
                         "reconstruct again with it (omp, nonlocal, dct; about twice the time, better on real footage)")
     r.add_argument("--output", "-o", required=True,
                    help=".npy, .zarr, .mat, .tif/.tiff, .mp4/.mov (H.264), .mkv/.avi (FFV1), .gif, or a name without "

@@ -230,7 +230,7 @@ def thinout_code(shape: tuple[int, int], *, frames: int) -> np.ndarray:
 
     Returns
     -------
-    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
+    mask : ndarray of shape (N, H, W), uint8
     """
     if frames < 1:
         raise InputError(f"code thinout: frames must be >= 1, got {frames}")
@@ -251,7 +251,7 @@ def grid_code(shape: tuple[int, int], *, frames: int) -> np.ndarray:
 
     Returns
     -------
-    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
+    mask : ndarray of shape (N, H, W), uint8
     """
     if frames < 1:
         raise InputError(f"code grid: frames must be >= 1, got {frames}")

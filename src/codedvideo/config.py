@@ -172,7 +172,7 @@ class ReconstructConfig(_Strict):
     weighting: Literal["uniform", "fit"] = "uniform"
     #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved together.
     method: Literal["omp", "nonlocal"] = "omp"
-    #: Adapt the dictionary to each capture: reconstruct, one K-SVD iteration on that result, reconstruct again
+    #: Adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, reconstruct again
     #: (about twice the time; README, "Adapting the dictionary").
     adapt: bool = False
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
