@@ -52,6 +52,60 @@ def test_adapt_is_reproducible_and_a_rerun_reuses_both_passes(tmp_path, D, carph
     assert info_again["adapted"]["final_rmse"] == info_a["adapted"]["final_rmse"]
 
 
+def test_nonlocal_adapt_solves_its_groups_from_the_survey_not_from_default_tiles(tmp_path, D, carphone):
+    """nonlocal --adapt: a first pass on every 7th reference patch (the survey), K-SVD on its result, then the
+    groups of every 4th reference matched on and solved from the survey's result with the adapted dictionary:
+    the tile graph gives what one whole-image call of the method gives from that estimate (to the roundoff of
+    its blocks' sums, as the method's own tiles)."""
+    import dataclasses
+
+    from codedvideo.nonlocal_sc import nonlocal_region
+    from codedvideo.stages import ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP, reconstruct_volume
+
+    video, cap = carphone
+    options = common(D, tmp_path / "a")
+    settings = dataclasses.replace(options["settings"], method="nonlocal")
+    adapted, info = reconstruct_capture("nonlocal", cap["coded"], cap["mask"], **dict(options, settings=settings),
+                                        adapt=True)
+    survey, _ = reconstruct_volume(cap["coded"], cap["mask"], D, tile=32, cache=tmp_path / "b", progress=False,
+                                   settings=dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP))
+    Da, record = adapt_dictionary(survey, D)
+    assert record["final_rmse"] == info["adapted"]["final_rmse"]
+    whole, _ = nonlocal_region(cap["coded"], cap["mask"], Da, survey,
+                               dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP))
+    np.testing.assert_allclose(adapted, whole, rtol=0, atol=1e-3)
+    plain, _ = reconstruct_capture("nonlocal", cap["coded"], cap["mask"], **dict(options, settings=settings))
+    assert evaluate(adapted, video)["psnr"] > evaluate(plain, video)["psnr"] + 0.3
+
+
+def test_a_second_pass_whose_survey_is_damaged_is_not_given_as_a_result(tmp_path, D, carphone):
+    """The second pass reads the survey's tiles checked against their digests: a survey tile damaged between
+    the passes stops the job with a one-line error naming the store, never a video built on it."""
+    import dataclasses
+
+    from codedvideo import stages
+    from codedvideo.store import WorkStore
+
+    _, cap = carphone
+    options = common(D, tmp_path / "a")
+    settings = dataclasses.replace(options["settings"], method="nonlocal")
+    real = stages.adapt_dictionary
+
+    def adapt_then_damage(volume, D0, **kw):
+        out = real(volume, D0, **kw)
+        for entry in (tmp_path / "a").glob("recon-*.zarr"):  # the survey's store: overwrite a core, not its digest
+            store = WorkStore(entry)
+            store.group["volume"][:, :8, :8] = 0.0
+        return out
+
+    stages.adapt_dictionary = adapt_then_damage
+    try:
+        with pytest.raises(RuntimeError, match="tile 0 is not finished or fails its checksum"):
+            reconstruct_capture("nonlocal", cap["coded"], cap["mask"], **dict(options, settings=settings), adapt=True)
+    finally:
+        stages.adapt_dictionary = real
+
+
 def test_each_capture_of_a_stream_gets_its_own_dictionary(tmp_path, D):
     """Captures in one job (one graph) come out as each adapted alone: a tile whose inputs two captures share
     is not shared when their dictionaries differ, and equal captures share their work."""

@@ -110,7 +110,7 @@ def nonlocal_region(
         Passes; each regroups on the previous pass's estimate.
     step : int
         Stride of the reference patches (combined with ``settings.stride``; None:
-        1 for a group of one, ``STEP`` otherwise); with
+        1 for a group of one, ``settings.group_step`` or ``STEP`` otherwise); with
         ``aggregate="all"`` every pixel still gets about ``group * 49 / step**2`` estimates.
     atoms : int, optional
         Atoms of a group's shared support (None: ``settings.max_atoms`` for a group
@@ -158,7 +158,7 @@ def nonlocal_region(
     if h < patch or w < patch:
         raise ValueError(f"region {h}x{w} is smaller than one {patch}x{patch} patch")
     if step is None:
-        step = 1 if group == 1 else STEP
+        step = 1 if group == 1 else settings.group_step or STEP
     if project is None:
         project = group > 1
     if group < 1 or window < 0 or iterations < 0 or step < 1:

@@ -154,6 +154,17 @@ def _first_task(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSetting
     return tile.core, volume.copy(), stats  # a copy: the halo around the core is not kept while blocks use it
 
 
+def _stored_first_task(first_path: str, tile: Tile) -> tuple:
+    """Stage 1 from another job's result: the core of the same tile in the working store ``first_path`` (a
+    first pass of ``--adapt``), checked against its digest, as the first estimate; its counts are that tile's,
+    its seconds this read's (the first pass's are counted by its own job)."""
+    t0 = time.perf_counter()
+    volume, stats = WorkStore.opened(first_path).read_tile(tile.index, tile.core)
+    stats = np.where([name.startswith("seconds") for name in STAT_NAMES], 0.0, stats)
+    stats[STAT_NAMES.index("seconds_total")] = time.perf_counter() - t0
+    return tile.core, volume, stats
+
+
 def _paste(region: tuple[int, int, int, int], box: tuple[int, int, int, int], values: np.ndarray, out: np.ndarray,
            add: bool = False) -> None:
     """Put (or add) ``values``, which cover ``box``, into ``out``, which covers ``region``, where they meet."""
@@ -256,11 +267,14 @@ def nonlocal_reach(tile: Tile, blocks: list[Tile], shape: tuple[int, int], patch
             max(0, int(regions[:, 2].min()) - m), min(shape[1], int(regions[:, 3].max()) + m))
 
 
-def _nonlocal_tasks(places: dict, d_nodes: dict, settings: OmpSettings, patch: int, run: str) -> list:
+def _nonlocal_tasks(places: dict, d_nodes: dict, settings: OmpSettings, patch: int, run: str,
+                    first_stores: dict) -> list:
     """The final (stage 3) task of every distinct tile content, with the stages it needs (see above).
 
-    ``places`` maps ``(dictionary token, content)`` to the (store, tile) pairs, ``d_nodes`` a token to its node."""
+    ``places`` maps ``(dictionary token, content)`` to the (store, tile) pairs, ``d_nodes`` a token to its node,
+    ``first_stores`` a store to the store whose result is its first estimate (:attr:`TileWork.first`)."""
     first_task = dask.delayed(_first_task, pure=False)
+    stored_first_task = dask.delayed(_stored_first_task, pure=False)
     groups_task = dask.delayed(_groups_task, pure=False)
     combine_task = dask.delayed(_combine_task, pure=False)
     firsts: dict = {}  # (store, tile index) -> its stage 1 task
@@ -282,8 +296,10 @@ def _nonlocal_tasks(places: dict, d_nodes: dict, settings: OmpSettings, patch: i
         def first_of(t: Tile):
             key = (path, t.index)
             if key not in firsts:
-                firsts[key] = first_task(path, t, D_node, settings, patch,
-                                         dask_key_name=f"first-{run}-{last - i:09d}-{t.index}")
+                name = f"first-{run}-{last - i:09d}-{t.index}"
+                firsts[key] = (first_task(path, t, D_node, settings, patch, dask_key_name=name)
+                               if first_stores.get(path) is None else
+                               stored_first_task(first_stores[path], t, dask_key_name=name))
             return firsts[key]
 
         parts, owned = [], []
@@ -341,6 +357,9 @@ class TileWork:
     store: str
     tiles: tuple[Tile, ...]
     contents: tuple[str, ...]
+    #: The non-local method from a finished job's result (``--adapt``'s second pass): the path of the working
+    #: store, of the same tiles, whose volume is the first estimate (None: the default's tiles give it).
+    first: str | None = None
 
 
 def build_graph(works: list[TileWork], D: np.ndarray | list[np.ndarray], settings: OmpSettings, *, patch: int = 7):
@@ -376,7 +395,7 @@ def build_graph(works: list[TileWork], D: np.ndarray | list[np.ndarray], setting
     # captures' tiles run first and the captures complete in order (the test of streaming checks it)
     last = len(places) - 1
     if settings.method == "nonlocal":
-        tasks = _nonlocal_tasks(places, d_nodes, settings, patch, run)
+        tasks = _nonlocal_tasks(places, d_nodes, settings, patch, run, {work.store: work.first for work in works})
     else:
         tasks = [task(tuple(where), d_nodes[token], settings, patch, dask_key_name=f"tile-{run}-{last - i:09d}")
                  for i, ((token, _), where) in enumerate(places.items())]
@@ -548,13 +567,15 @@ class StorePlan:
 
 
 def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.ndarray | None,
-               settings: OmpSettings, *, tile: int, patch: int = 7) -> StorePlan:
+               settings: OmpSettings, *, tile: int, patch: int = 7, first: str | None = None) -> StorePlan:
     """Plan a working store's tiles from its inputs in memory (as :meth:`WorkStore.create` was given them).
 
     A store made afresh has no tile done; a reused one has each tile that
     claims to be done checked against its digest (a damaged one is logged and
     computed again).  The tiles left are keyed by their content
     (:func:`tile_content`), so that equal tiles of any store are solved once.
+    With ``first`` (:attr:`TileWork.first`) a tile's answer also depends on that
+    store's result around it, so its content is keyed by that store's key and the tile's place.
     """
     from .store import workstore_inputs
 
@@ -572,12 +593,15 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
     if settings.method == "nonlocal":  # its reference patches lie on a grid of the image too; its blocks reach far
         from .nonlocal_sc import STEP
 
-        stride = max(stride, STEP)
+        stride = max(stride, settings.group_step or STEP)
         blocks = nonlocal_blocks(tuple(coded.shape), tile, patch)
         reach = [_still_reach(still, t.core, patch) or nonlocal_reach(t, blocks, tuple(coded.shape), patch)
                  for t in todo]
     contents = tuple(tile_content(coded, mask, still, t, stride=stride, reach=r) for t, r in zip(todo, reach))
-    return StorePlan(tiles, damaged, TileWork(str(store.path), todo, contents))
+    if first is not None:
+        first_key = WorkStore.opened(first).key
+        contents = tuple(f"{c}-{first_key}-{t.index}" for c, t in zip(contents, todo))
+    return StorePlan(tiles, damaged, TileWork(str(store.path), todo, contents, first))
 
 
 def reconstruct_stores(
@@ -619,12 +643,12 @@ def reconstruct_stores(
         plan = plans[j]
         volume, summary = _verified_volume(stores[j], list(plan.tiles), {t.index for t in plan.work.tiles},
                                            D[j] if isinstance(D, list) else D, settings, patch=patch,
-                                           scheduler=scheduler, workers=workers)
+                                           scheduler=scheduler, workers=workers, first=plan.work.first)
         yield j, volume, dict(summary, tiles_damaged=int(plan.damaged.sum()), tile_tasks=len(tasks))
 
 
 def _verified_volume(store: WorkStore, tiles: list[Tile], computed: set[int], D, settings, *, patch, scheduler,
-                     workers) -> tuple[np.ndarray, dict]:
+                     workers, first: str | None = None) -> tuple[np.ndarray, dict]:
     """Read every tile of a store back, checked against its digest; compute the ones that fail again."""
     t0 = time.perf_counter()
     ok, _, volume, stats = store.read_verified(tiles)
@@ -636,7 +660,7 @@ def _verified_volume(store: WorkStore, tiles: list[Tile], computed: set[int], D,
             break
         log.warning("cache entry %s: tiles %s did not read back as written; computing them again",
                     store.path, [t.index for t in todo])
-        work = TileWork(str(store.path), todo, tuple(f"{store.path}:{t.index}" for t in todo))
+        work = TileWork(str(store.path), todo, tuple(f"{store.path}:{t.index}" for t in todo), first)
         tasks, needs = build_graph([work], D, settings, patch=patch)
         for _ in stream_graph(tasks, needs, scheduler=scheduler, workers=workers, progress=False):
             pass

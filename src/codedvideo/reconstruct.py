@@ -66,6 +66,9 @@ class OmpSettings:
     #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved
     #: together under their own codes (:mod:`codedvideo.nonlocal_sc`).
     method: str = "omp"
+    #: "nonlocal": stride of its groups' reference patches (0: :data:`codedvideo.nonlocal_sc.STEP`).
+    #: ``--adapt`` surveys with a sparser grid first (:data:`codedvideo.stages.ADAPT_SURVEY_STEP`).
+    group_step: int = 0
 
 
 def tile_halo(settings: OmpSettings, patch: int = P.PATCH) -> int:

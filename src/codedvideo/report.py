@@ -50,8 +50,8 @@ from .errors import InputError
 from .cache import RECON_VERSION, content_key, report_record_problem
 from .volumes import write_json
 from .scenes import load_video
-from .stages import ADAPT_ITERATIONS, ADAPT_SAMPLES, ADAPT_SPARSITY, SPARSE_METHODS, reconstruct_capture, \
-    simulate_capture, train_dictionary
+from .stages import (ADAPT_ITERATIONS, ADAPT_REFINE_STEP, ADAPT_SAMPLES, ADAPT_SPARSITY, ADAPT_SURVEY_STEP,
+                     SPARSE_METHODS, reconstruct_capture, simulate_capture, train_dictionary)
 from .store import load_dictionary
 from .units import infer_data_range
 
@@ -155,7 +155,9 @@ class Runner:
                 stride=stride or r.stride, method="nonlocal" if method == "nonlocal" else "omp")), sigma)
             settings.update(omp.__dict__, tile=r.tile, version=RECON_VERSION, method=method)
             if adapt:  # the recipe, so that a changed one is computed again (absent otherwise: earlier keys stand)
-                settings["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY)
+                settings["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY,
+                                         **(dict(survey_step=ADAPT_SURVEY_STEP, refine_step=ADAPT_REFINE_STEP)
+                                            if method == "nonlocal" else {}))
             if method != "dct":
                 D, meta = self.dictionary(frames, atoms)
                 dkey = meta["sha256"]

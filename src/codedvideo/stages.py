@@ -330,6 +330,7 @@ def sparse_volumes(
     progress: bool = True,
     dictionary_key: str = "",
     desc: str = "reconstruct",
+    first_of=None,
 ) -> Iterator[tuple[int, np.ndarray | None, dict | None]]:
     """Sparse-code ``count`` captures as one job: one graph over (capture, tile); yield the volumes in order.
 
@@ -349,6 +350,11 @@ def sparse_volumes(
     D : ndarray of shape (N * 49, K), or a callable ``D(i)`` giving capture ``i``'s own
         dictionary and its cache key (a dictionary adapted to each capture, :func:`adapt_dictionary`;
         an empty key: keyed by its contents)
+    first_of : callable, optional
+        The non-local method: ``first_of(i)`` -> the working store of an earlier
+        job on capture ``i`` (same tiles) whose result is the first estimate its
+        groups are matched on and solved from, in place of the default's tiles
+        (``--adapt``'s second pass), or None.  That store is locked for the job too.
 
     Yields
     ------
@@ -376,6 +382,7 @@ def sparse_volumes(
     stores: list[tuple[WorkStore, StorePlan]] = []  # per sparse-coded capture (equal captures: the same pair)
     dictionaries: list[np.ndarray] = []  # each store's (per capture: its own)
     opened: dict[str, tuple[WorkStore, StorePlan]] = {}
+    first_locked: set[str] = set()
     seconds_plan = []
     unopened: list[int] = []  # never-open pixels of each capture that has some: one warning for the job
     with contextlib.ExitStack() as locks:
@@ -393,10 +400,16 @@ def sparse_volumes(
                 if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
                     plan.append("static")
                 else:
+                    first = first_of(i) if first_of is not None else None
+                    if first is not None and first not in first_locked:  # kept as it is while its result is read
+                        _allow_open_files(len(opened) + len(first_locked) + 65, cache)
+                        locks.enter_context(entry_lock(Path(first)))
+                        first_locked.add(first)
                     key = content_key(RECON_VERSION, coded, mask, dkey_i or content_key(Di), settings.__dict__, tile,
-                                      *(() if still is None else (np.asarray(still, np.uint8),)))
+                                      *(() if still is None else (np.asarray(still, np.uint8),)),
+                                      *(() if first is None else (WorkStore.opened(first).key,)))
                     if key not in opened:
-                        _allow_open_files(len(opened) + 65, cache)  # a lock held per store until the job ends
+                        _allow_open_files(len(opened) + len(first_locked) + 65, cache)  # a lock per store until the end
                         # absolute: a dask.distributed worker started in another folder opens it too
                         entry = Path(cache).absolute() / f"recon-{key}.zarr"
                         # One run at a time per entry (processes, threads, clients of one dask cluster): a
@@ -408,7 +421,8 @@ def sparse_volumes(
                             attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION),
                             still=still)
                         # its tiles planned from the inputs in hand (not read back from the store)
-                        opened[key] = store, plan_store(store, coded, mask, still, settings, tile=tile, patch=PATCH)
+                        opened[key] = store, plan_store(store, coded, mask, still, settings, tile=tile, patch=PATCH,
+                                                        first=first)
                     plan.append(len(stores))
                     stores.append(opened[key])
                     dictionaries.append(Di)
@@ -517,6 +531,13 @@ SPARSE_METHODS = ("omp", "nonlocal", "dct")
 #: for one), 4 on 14000 patches 34.54 (0.73 s); sparsity 4 or 8 no better.  A dictionary adapted to one
 #: capture does not carry to the next (-1.3 to +1.4 dB a case, no gain on average): each gets its own.
 ADAPT_SAMPLES, ADAPT_ITERATIONS, ADAPT_SPARSITY = 7000, 4, 6
+#: ``nonlocal --adapt``: the first pass solves the groups of every 7th reference patch (a survey, 0.2 of the
+#: groups of the non-local method's stride 3), the second pass the groups of every 4th from the survey's
+#: result, with no per-patch tiles (:attr:`codedvideo.parallel.TileWork.first`).  Measured on the 24
+#: held-out real cases, in one thread (2026-11-26): surveys of every 5th or 7th reference gave the quality of
+#: two full passes (GAP-TV + 3.80 dB with a second pass of every 3rd, against + 3.84), in 5.5 to 5.9x the
+#: default's time against 9.2x; a second pass of every 4th trades about 0.1 dB for a third of the time (README).
+ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP = 7, 4
 
 
 def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0) -> tuple[np.ndarray, dict]:
@@ -668,17 +689,24 @@ def reconstruct_captures(
 
     if adapt and not sparse:
         raise ConfigError(f"--adapt: method {method} has no dictionary to adapt (omp, nonlocal and dct have)")
+    # --adapt with the non-local method: a first pass on a sparser grid of groups (a survey: what K-SVD learns
+    # from and the groups of the second pass are matched on), then the groups solved from it (no default tiles)
+    survey = settings.method == "nonlocal" and adapt
+    first_settings = dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP) if survey else settings
+    if survey:
+        settings = dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP)
     job = functools.partial(sparse_volumes, count, for_sparse, settings=settings, tile=tile, cache=cache,
                             scheduler=scheduler, workers=workers, progress=progress)
     adapted: dict[int, np.ndarray] = {}  # capture -> its adapted dictionary (until its second job is planned)
     records: dict[int, dict] = {}  # capture -> what its adaptation did, and the first job's seconds
+    first_stores: dict[int, str] = {}  # capture -> the working store of its first pass (the survey's)
     for i in range(count) if sparse and adapt else ():
         # A first job per capture, then its adaptation: no graph is in flight while K-SVD runs (a graph's thread
         # limits BLAS threads, which changed an adaptation's bits when it ran beside one).  Its warnings
         # (never-open pixels, dependent stops) are said by the second job, which gives the result.
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            first_job = sparse_volumes(1, lambda _, i=i: for_sparse(i), dictionary, settings=settings, tile=tile,
+            first_job = sparse_volumes(1, lambda _, i=i: for_sparse(i), dictionary, settings=first_settings, tile=tile,
                                        cache=cache, scheduler=scheduler, workers=workers, progress=progress,
                                        dictionary_key=dictionary_key, desc=f"first pass {i + 1}/{count}")
             with contextlib.closing(first_job):  # closed here: the graph's thread has ended
@@ -687,6 +715,8 @@ def reconstruct_captures(
             Da, record = adapt_dictionary(first, dictionary)
             if record["adapted"]:
                 adapted[i] = Da
+                if survey:
+                    first_stores[i] = info["work_store"]
             records[i] = dict(record, first_pass=dict(seconds=sum(info["seconds"].values()),
                                                       tile_seconds=info["seconds_total"]))
         del first
@@ -694,7 +724,8 @@ def reconstruct_captures(
         blown.clear()  # the warnings the first jobs swallowed are said by the second
         used.cache_clear()
     # a capture not adapted (flat) keeps the dictionary and its key: its second job is the first's, from the cache
-    results = ((job(lambda i: (adapted.pop(i), "") if i in adapted else (dictionary, dictionary_key), desc="adapted")
+    results = ((job(lambda i: (adapted.pop(i), "") if i in adapted else (dictionary, dictionary_key), desc="adapted",
+                    first_of=first_stores.get if survey else None)
                 if adapted else job(dictionary, dictionary_key=dictionary_key)) if sparse
                else ((i, None, None) for i in range(count)))
     warned_nonlocal, nonlocal_checked = False, {}

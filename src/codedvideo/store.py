@@ -658,6 +658,25 @@ class WorkStore:
                     volume[:, y0:y1, x0:x1] = np.nan
         return ok, damaged, volume, stats
 
+    def read_tile(self, index: int, core: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """One finished tile's volume core and statistics row, checked against its digest (used inside tasks:
+        another job's tiles as a first estimate); a tile not done or that fails raises a one-line error."""
+        y0, y1, x0, x1 = core
+        arrays = [self.array(name).async_array for name in ("volume", "stats", "digest")]
+
+        async def read():
+            return await asyncio.gather(arrays[0].getitem((slice(None), slice(y0, y1), slice(x0, x1))),
+                                        arrays[1].getitem((slice(index, index + 1), slice(None))),
+                                        arrays[2].getitem((slice(index, index + 1), slice(None))))
+
+        try:
+            volume, stats, digest = (np.asarray(a) for a in sync(read()))
+        except Exception as exc:  # zarr raises its own types for a damaged chunk
+            raise RuntimeError(f"working store {self.path}: tile {index} cannot be read ({exc})") from exc
+        if tile_digest(self.key, index, core, volume, stats[0]).tobytes() != digest[0].tobytes():
+            raise RuntimeError(f"working store {self.path}: tile {index} is not finished or fails its checksum")
+        return volume, stats[0]
+
     def done_tiles(self) -> np.ndarray:
         """Boolean per tile: its digest matches its volume core and statistics row as read back."""
         return self.read_verified(self.tiles())[0]
