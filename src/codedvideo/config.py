@@ -173,7 +173,8 @@ class ReconstructConfig(_Strict):
     #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved together.
     method: Literal["omp", "nonlocal"] = "omp"
     #: Adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, reconstruct again
-    #: (about twice the time; README, "Adapting the dictionary").
+    #: (omp: about twice the time; nonlocal: a sparse survey first, about 1.1x its time; README, "Adapting the
+    #: dictionary").
     adapt: bool = False
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
     tile: int = Field(128, ge=8, le=4096)

@@ -634,8 +634,9 @@ def reconstruct_captures(
     adapt : bool
         Sparse methods: reconstruct each capture (a job each), adapt the
         dictionary to its result (:func:`adapt_dictionary`), then reconstruct
-        every capture again with its own (one job).  About twice the time,
-        +0.8 dB on held-out real footage with ``nonlocal`` (README).
+        every capture again with its own (one job).  ``omp``: about twice the
+        time; ``nonlocal``: a survey first (:data:`ADAPT_SURVEY_STEP`), about
+        1.1x its time, +0.6 dB on held-out real footage (README).
 
     Yields
     ------
