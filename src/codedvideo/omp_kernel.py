@@ -86,6 +86,27 @@ def _correlate(B, pat, r, c):
         i += 1
 
 
+@njit(nogil=True, cache=True, inline="always", fastmath={"contract"})
+def _dot(a, b, m):
+    """``sum_i a_i b_i`` over the first ``m`` in four interleaved partial sums added ``(s0 + s1) + (s2 + s3)``,
+    then the tail in order: a fixed order (the same bits on every machine and thread count) whose four
+    dependency chains run side by side instead of one multiply-add waiting for the last (the Gram-Schmidt
+    steps of OMP were bound by that latency)."""
+    s0 = s1 = s2 = s3 = 0.0
+    i = 0
+    while i + 4 <= m:
+        s0 += a[i] * b[i]
+        s1 += a[i + 1] * b[i + 1]
+        s2 += a[i + 2] * b[i + 2]
+        s3 += a[i + 3] * b[i + 3]
+        i += 4
+    s = (s0 + s1) + (s2 + s3)
+    while i < m:
+        s += a[i] * b[i]
+        i += 1
+    return s
+
+
 @njit(nogil=True, cache=True, fastmath=False)
 def _column_norms2(B, pat, c):
     """``c[k] = sum_i B[i, pat_i, k]**2`` in float32, every square rounded before it is added.
@@ -203,36 +224,28 @@ def _omp_kernel(y, pat, B, floor, tol, kmax, dep_tol, select_bits, tiny, index, 
             while score_bits[j] != best:
                 j += 1
             # Gram-Schmidt, twice, of the chosen column against the selected ones
-            an = 0.0
             for i in range(m):
                 q[i] = B[i, pat[p, i], j]
-                an += q[i] * q[i]
+            an = _dot(q, q, m)
             for t in range(it):
                 h[t] = 0.0
             for _ in range(2):
                 for t in range(it):
-                    d = 0.0
-                    for i in range(m):
-                        d += Q[t, i] * q[i]
+                    d = _dot(Q[t], q, m)
                     h[t] += d
                     for i in range(m):
                         q[i] -= d * Q[t, i]
-            qn = 0.0
-            for i in range(m):
-                qn += q[i] * q[i]
-            qn = np.sqrt(qn)
+            qn = np.sqrt(_dot(q, q, m))
             if not (qn > dep_tol * np.sqrt(an) and best > 0):
                 dependent[p] = True
                 break
-            proj = 0.0
             for i in range(m):
                 q[i] /= qn
                 Q[it, i] = q[i]
-                proj += q[i] * r[i]
-            rr = 0.0
+            proj = _dot(q, r, m)
             for i in range(m):
                 r[i] -= proj * q[i]
-                rr += r[i] * r[i]
+            rr = _dot(r, r, m)
             for t in range(it):
                 R[t, it] = h[t]
             R[it, it] = qn
@@ -1013,38 +1026,30 @@ def somp_kernel(y, pat, members, size, B, floor, tol, kmax, dep_tol, select_bits
                     continue
                 p = members[g, a]
                 na = nsel[a]
-                an = 0.0
                 for i in range(m):
                     q[i] = B[i, pat[p, i], j]
-                    an += q[i] * q[i]
+                an = _dot(q, q, m)
                 for t in range(na):
                     h[t] = 0.0
                 for _ in range(2):
                     for t in range(na):
-                        d = 0.0
-                        for i in range(m):
-                            d += Q[a, t, i] * q[i]
+                        d = _dot(Q[a, t], q, m)
                         h[t] += d
                         for i in range(m):
                             q[i] -= d * Q[a, t, i]
-                qn = 0.0
-                for i in range(m):
-                    qn += q[i] * q[i]
-                qn = np.sqrt(qn)
+                qn = np.sqrt(_dot(q, q, m))
                 if not (qn > dep_tol * np.sqrt(an)):
                     dependent[g, a] = True
                     active[a] = False
                     n_active -= 1
                     continue
-                proj = 0.0
                 for i in range(m):
                     q[i] /= qn
                     Q[a, na, i] = q[i]
-                    proj += q[i] * r[a, i]
-                rr = 0.0
+                proj = _dot(q, r[a], m)
                 for i in range(m):
                     r[a, i] -= proj * q[i]
-                    rr += r[a, i] * r[a, i]
+                rr = _dot(r[a], r[a], m)
                 for t in range(na):
                     R[a, t, na] = h[t]
                 R[a, na, na] = qn
