@@ -234,3 +234,21 @@ def test_a_data_range_given_below_the_values_is_warned(tmp_path, capsys, capture
     with pytest.warns(UserWarning, match=r"% of the pixels .* lie above the data range 1 \(given"):
         _reconstruct(tmp_path, capsys, coded.astype(np.float32), truth.astype(np.float32), mask, "dct",
                      extra=("--data-range", "1"))
+
+
+def test_the_tolerance_warning_counts_the_patches_whose_coded_rms_is_within_the_tolerance():
+    """A coded image that is dark except for a bright block: the share of 7x7 patches within the tolerance,
+    counted patch by patch, decides whether the warning is given and the share it names."""
+    from codedvideo.units import tolerance_warning
+
+    rng = np.random.default_rng(3)
+    coded = rng.uniform(0.0, 1.0, (40, 50))
+    coded[:, 30:] = 200.0  # 20 bright columns: every patch that reaches them is far above the tolerance
+    rms = np.array([[np.sqrt(np.mean(coded[y:y + 7, x:x + 7] ** 2)) for x in range(44)] for y in range(34)])
+    share = float(np.mean(rms <= 2.0))
+    assert 0.5 < share < 0.6  # the patches wholly left of column 30
+    message = tolerance_warning(coded, 2.0)
+    assert message is not None and f"on {share:.0%} of the patches" in message
+    assert tolerance_warning(coded[:, :36], 2.0) is not None  # most patches dark: warned
+    assert tolerance_warning(np.hstack([coded, np.full((40, 30), 200.0)]), 2.0) is None  # most bright: not
+    assert tolerance_warning(coded, 0.0) is None and tolerance_warning(coded[:5, :5], 2.0) is None

@@ -130,12 +130,13 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str 
     starts as the patch's coded values, so a patch whose coded RMS is within
     the tolerance gets no atom at all (it takes its still answer, coded / open count: no motion).
     """
-    from scipy import ndimage
-
-    if tol_rms <= 0:
+    coded = np.asarray(coded, np.float64)
+    if tol_rms <= 0 or min(coded.shape) < patch:
         return None
-    rms = np.sqrt(np.maximum(ndimage.uniform_filter(np.asarray(coded, np.float64) ** 2, size=patch, mode="nearest"), 0))
-    share = float(np.mean(rms <= tol_rms))
+    # each patch's mean square from running sums (no scipy.ndimage: a run of one capture starts 0.05 s sooner)
+    c = np.pad((coded**2).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    sums = c[patch:, patch:] - c[:-patch, patch:] - c[patch:, :-patch] + c[:-patch, :-patch]
+    share = float(np.mean(np.maximum(sums, 0) / patch**2 <= tol_rms**2))
     if share <= 0.5:
         return None
     return (f"the residual tolerance (--tol-rms / --noise-sigma) is met before the first atom on {share:.0%} of "
