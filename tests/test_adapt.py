@@ -106,6 +106,27 @@ def test_a_second_pass_whose_survey_is_damaged_is_not_given_as_a_result(tmp_path
         stages.adapt_dictionary = real
 
 
+def test_nonlocal_adapt_on_a_code_the_groups_cannot_solve_is_omp_adapt(tmp_path):
+    """N = 16 Bernoulli: more pixel patterns than the groups' table holds.  The survey is then the default's
+    result, and the second pass is the per-patch OMP with the adapted dictionary (what omp --adapt gives), not
+    the survey's unadapted result; the metrics and a warning say that the groups were not used."""
+    from codedvideo.synth import make_scene
+
+    rng = np.random.default_rng(3)
+    video = make_scene("default", frames=16, size=(48, 48))
+    mask = (rng.random((16, 48, 48)) < 0.5).astype(np.uint8)
+    coded = (mask * video).sum(0).astype(np.float32)
+    D16 = rng.standard_normal((16 * 49, 512)).astype(np.float32)
+    common = dict(data_range=infer_data_range(255.0), settings=omp_settings(PipelineConfig().reconstruct, 0.0),
+                  dictionary=D16, tile=24, progress=False, adapt=True)
+    omp_adapted, omp_info = reconstruct_capture("omp", coded, mask, cache=tmp_path / "a", **common)
+    with pytest.warns(UserWarning, match="--method nonlocal .* distinct pixel shutter patterns"):
+        vol, info = reconstruct_capture("nonlocal", coded, mask, cache=tmp_path / "b", **common)
+    assert omp_info["adapted"]["adapted"] and info["adapted"]["adapted"]
+    assert info["method"] == "omp" and "patterns" in info["nonlocal_unavailable"]
+    np.testing.assert_array_equal(vol, omp_adapted)
+
+
 def test_each_capture_of_a_stream_gets_its_own_dictionary(tmp_path, D):
     """Captures in one job (one graph) come out as each adapted alone: a tile whose inputs two captures share
     is not shared when their dictionaries differ, and equal captures share their work."""

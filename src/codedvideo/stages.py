@@ -698,6 +698,16 @@ def reconstruct_captures(
         settings = dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP)
     job = functools.partial(sparse_volumes, count, for_sparse, settings=settings, tile=tile, cache=cache,
                             scheduler=scheduler, workers=workers, progress=progress)
+    nonlocal_checked: dict[str, str | None] = {}
+
+    def nonlocal_problem(mask) -> str | None:
+        """Why the non-local method cannot solve a capture with this mask, or None (a code's patterns are
+        counted once: 3 s for a 4K mask, N = 18)."""
+        code = content_key(np.asarray(mask))
+        if code not in nonlocal_checked:
+            nonlocal_checked[code] = _nonlocal_unavailable(mask, dictionary)
+        return nonlocal_checked[code]
+
     adapted: dict[int, np.ndarray] = {}  # capture -> its adapted dictionary (until its second job is planned)
     records: dict[int, dict] = {}  # capture -> what its adaptation did, and the first job's seconds
     first_stores: dict[int, str] = {}  # capture -> the working store of its first pass (the survey's)
@@ -716,7 +726,9 @@ def reconstruct_captures(
             Da, record = adapt_dictionary(first, dictionary)
             if record["adapted"]:
                 adapted[i] = Da
-                if survey:
+                # (a code the groups cannot solve: the survey is the default's result, and the second pass
+                # its own per-patch OMP with the adapted dictionary, as with omp --adapt)
+                if survey and nonlocal_problem(for_sparse(i)[1]) is None:
                     first_stores[i] = info["work_store"]
             records[i] = dict(record, first_pass=dict(seconds=sum(info["seconds"].values()),
                                                       tile_seconds=info["seconds_total"]))
@@ -729,7 +741,7 @@ def reconstruct_captures(
                     first_of=first_stores.get if survey else None)
                 if adapted else job(dictionary, dictionary_key=dictionary_key)) if sparse
                else ((i, None, None) for i in range(count)))
-    warned_nonlocal, nonlocal_checked = False, {}
+    warned_nonlocal = False
     with contextlib.closing(results) if sparse else contextlib.nullcontext():
         for i, volume, info in results:
             coded_used, mask_used, still, moving, saturated = used(i)
@@ -745,12 +757,7 @@ def reconstruct_captures(
                                            **info["seconds"])
                     work = record["first_pass"]["tile_seconds"] + record["seconds"] + info["seconds_total"]
                     info["patches_per_second"] = info["patches"] / max(work, 1e-9) * (info["tiles_computed"] > 0)
-                problem = None
-                if method == "nonlocal":  # (a code's patterns counted once: 3 s for a 4K mask, N = 18)
-                    code = content_key(np.asarray(mask_used))
-                    if code not in nonlocal_checked:
-                        nonlocal_checked[code] = _nonlocal_unavailable(mask_used, dictionary)
-                    problem = nonlocal_checked[code]
+                problem = nonlocal_problem(mask_used) if method == "nonlocal" else None
                 if problem:  # its tiles gave the default's answer: said, not hidden
                     info.update(method="omp", nonlocal_unavailable=problem)
                     if not warned_nonlocal:
