@@ -138,7 +138,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--adapt", action="store_true",
                    help="adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, "
                         "reconstruct again with it (omp, nonlocal, dct; omp: about twice the time; nonlocal: a sparse survey "
-                        "first, about 1.1x nonlocal's time, +0.6 dB on real footage)")
+                        "first, about 1.2x nonlocal's time, +0.6 dB on real footage)")
     r.add_argument("--output", "-o", required=True,
                    help=".npy, .zarr, .mat, .tif/.tiff, .mp4/.mov (H.264), .mkv/.avi (FFV1), .gif, or a name without "
                         "suffix (or ending .d): a folder of 16-bit TIFF frames (--cacti: all measurements, time-first)")

@@ -173,7 +173,7 @@ class ReconstructConfig(_Strict):
     #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved together.
     method: Literal["omp", "nonlocal"] = "omp"
     #: Adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, reconstruct again
-    #: (omp: about twice the time; nonlocal: a sparse survey first, about 1.1x its time; README, "Adapting the
+    #: (omp: about twice the time; nonlocal: a sparse survey first, about 1.2x its time; README, "Adapting the
     #: dictionary").
     adapt: bool = False
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).

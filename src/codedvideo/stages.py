@@ -536,7 +536,7 @@ ADAPT_SAMPLES, ADAPT_ITERATIONS, ADAPT_SPARSITY = 7000, 4, 6
 #: result, with no per-patch tiles (:attr:`codedvideo.parallel.TileWork.first`).  Measured on the 24
 #: held-out real cases, in one thread (2026-11-26): surveys of every 5th or 7th reference gave the quality of
 #: two full passes (GAP-TV + 3.80 dB with a second pass of every 3rd, against + 3.84), in 5.5 to 5.9x the
-#: default's time against 9.2x; a second pass of every 4th trades about 0.1 dB for a third of the time (README).
+#: default's time against 9.2x; with a second pass of every 4th, + 3.66 dB in 4.3x (README).
 ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP = 7, 4
 
 
@@ -636,7 +636,7 @@ def reconstruct_captures(
         dictionary to its result (:func:`adapt_dictionary`), then reconstruct
         every capture again with its own (one job).  ``omp``: about twice the
         time; ``nonlocal``: a survey first (:data:`ADAPT_SURVEY_STEP`), about
-        1.1x its time, +0.6 dB on held-out real footage (README).
+        1.2x its time, +0.6 dB on held-out real footage (README).
 
     Yields
     ------
@@ -737,6 +737,7 @@ def reconstruct_captures(
         blown.clear()  # the warnings the first jobs swallowed are said by the second
         used.cache_clear()
     # a capture not adapted (flat) keeps the dictionary and its key: its second job is the first's, from the cache
+    # (with the survey, the method's own job at the second pass's stride)
     results = ((job(lambda i: (adapted.pop(i), "") if i in adapted else (dictionary, dictionary_key), desc="adapted",
                     first_of=first_stores.get if survey else None)
                 if adapted else job(dictionary, dictionary_key=dictionary_key)) if sparse
