@@ -536,3 +536,60 @@ def test_pixels_never_open_in_several_captures_are_one_warning(tmp_path, capsys)
              tmp_path / "r.npy", "--cache", tmp_path / "cache", "--method", "dct", "--independent-captures")
     said = [str(w.message) for w in caught if "never open" in str(w.message)]
     assert len(said) == 1 and said[0].startswith(f"{sum(closed)} pixels are never open in"), said
+
+
+def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"):
+    """Six 48x48 captures (9 tiles of 16 each), capture 3 equal to capture 2 and capture 5 to capture 0, done
+    with windows of ``window_tiles`` tiles; the volumes, the open-file room asked for and what each planning of a
+    capture saw finished."""
+    from codedvideo import stages
+    from codedvideo.codes import make_code
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.physics import simulate
+    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.synth import make_scene
+
+    video = make_scene("default", frames=4 * 6, size=(48, 48))
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
+    codeds = [simulate(video[4 * t : 4 * t + 4], mask, sigma=1.0, rng=t) for t in range(6)]
+    codeds[3], codeds[5] = codeds[2], codeds[0]
+    cache = tmp_path / name
+    monkeypatch.setattr(stages, "WINDOW_TILES", window_tiles)
+    asked, planned, solved = [], {}, []
+    from codedvideo import parallel
+
+    tile_task = parallel._tile_task
+    monkeypatch.setattr(parallel, "_tile_task", lambda *a: (solved.append(1), tile_task(*a))[1])
+    allow = stages._allow_open_files
+    monkeypatch.setattr(stages, "_allow_open_files", lambda needed, c: (asked.append(needed), allow(needed, c)))
+
+    def capture(i):
+        if i not in planned:  # its first call plans it: how many tiles of the job were finished by then
+            planned[i] = sum(1 for p in cache.glob("recon-*.zarr/digest/c/**/*") if p.is_file())
+        return codeds[i], mask, None
+
+    out = list(stages.sparse_volumes(6, capture, dct_dictionary(4), settings=OmpSettings(max_atoms=6, tol_rms=0.5),
+                                     tile=16, cache=cache, progress=False, scheduler=scheduler))
+    return out, asked, planned, len(solved)
+
+
+def test_a_job_in_windows_equals_one_window_and_holds_a_few_windows_at_a_time(tmp_path, monkeypatch):
+    """A long job is planned and computed a window of captures at a time: with a window of one capture the
+    volumes are bit for bit those of one window over all six, the first tiles are finished before the last
+    captures are planned, and no more than three windows' working stores are locked at once (the one handed
+    out, the one running, the one being planned), where one window locks all six."""
+    one, asked_one, planned_one, solved_one = _window_job(tmp_path, monkeypatch, 10**6, name="one")
+    small, asked, planned, solved = _window_job(tmp_path, monkeypatch, 1, name="small")
+    assert [i for i, _, _ in small] == list(range(6))
+    for (_, a, _), (_, b, _) in zip(one, small):
+        np.testing.assert_array_equal(a, b)
+    assert planned_one[5] == 0  # one window: every capture planned before any tile
+    assert planned[5] > 0
+    # the room asked for before each new lock: four entries (captures 3 and 5 repeat 2 and 0) at once in one
+    # window; one window's entry at a time beside the next one's in windows of one capture
+    assert max(asked_one) - 65 == 3
+    assert max(asked) - 65 <= 1
+    # a capture equal to one of a window still held shares its store, and one equal to a capture done long
+    # before finds its tiles in the cache: no tile is solved twice either way (4 distinct captures of 9 tiles)
+    assert small[3][2]["work_store"] == small[2][2]["work_store"]
+    assert solved == solved_one == 4 * 9

@@ -1,13 +1,14 @@
 """Dask wiring: the tile plan, the task graph and its executors.
 
 This is the only module that imports dask.  The plan is plain data
-(:func:`plan_tiles`); the graph of a job is one ``dask.delayed`` task per
-distinct tile content over all of its captures' working stores
+(:func:`plan_tiles`); the graph of a window of a job's captures is one
+``dask.delayed`` task per distinct tile content over their working stores
 (:func:`build_graph`), and the same graph runs on the local threaded scheduler
 (default: both cores), the synchronous scheduler (tests, debugging) or a
 dask.distributed scheduler given by address (a cluster started by hand, or by
-dask-jobqueue on Slurm/PBS).  The whole graph runs at once while the caller
-takes the captures in order as each is complete (:func:`stream_graph`).
+dask-jobqueue on Slurm/PBS).  A job's windows run one after another as one
+stream of work while the caller takes the captures in order as each is
+complete (:class:`GraphRunner`).
 
 A tile task reads its region *with a halo of* ``patch - 1`` pixels from the Zarr
 working store, reconstructs it, keeps the core (whose pixels then see exactly
@@ -422,23 +423,32 @@ class _Cancelled(Exception):
     """The consumer of a streamed graph stopped early: the remaining tasks are not started."""
 
 
-def stream_graph(
-    tasks: list,
-    needs: list[list[int]],
-    *,
-    scheduler: str | None = None,
-    workers: int | None = None,
-    progress: bool = True,
-    desc: str = "reconstruct",
-) -> Iterator[int]:
-    """Run one graph and yield ``j = 0, 1, ...`` in order, each as soon as the tasks ``needs[j]`` have finished.
+def _grow_bar(bar, total: int) -> None:
+    """Set a progress bar's length, keeping its count and its clock (its rate, hence its ETA)."""
+    bar.total = total
+    container = getattr(bar, "container", None)  # a notebook's bar: its widget holds the length too
+    if container is not None:
+        with contextlib.suppress(Exception):
+            container.children[1].max = total
+    bar.refresh()
 
-    The whole graph runs at once, so every core stays busy across the
-    groups' boundaries, while the caller consumes finished groups in order
-    (a capture is written while the next ones compute).  One progress bar
-    with an ETA counts the tasks (locally, the stages the tiles stand on too:
-    the non-local method's first estimates and blocks).  A task's error is
-    raised here; a caller that stops early cancels the tasks not yet started.
+
+class GraphRunner:
+    """Runs a job's graphs, one after another, as one stream of work: both cores (or a cluster) busy throughout.
+
+    A long job is planned and computed in windows of captures (a graph each,
+    :func:`codedvideo.stages.sparse_volumes`), so that its first tiles start
+    after one window is planned, and what the plans hold and the locks kept
+    do not grow with its length.  :meth:`offer` hands over the next window's
+    graph while the one before it runs: locally it starts as soon as the one
+    before it has no more than one task per worker left (the tasks of both
+    share one pool of worker threads, so no core waits at a window's end and
+    none is oversubscribed); a dask.distributed scheduler takes it at once
+    (it runs earlier graphs first).  :meth:`wait` blocks until a group of a
+    graph's tasks has finished and raises a task's error.  One progress bar
+    with an ETA counts the tasks of the whole job (locally, the stages the
+    tiles stand on too: the non-local method's first estimates and blocks);
+    its length is estimated from the windows planned so far.
 
     Parameters
     ----------
@@ -449,112 +459,221 @@ def stream_graph(
     workers : int, optional
         Local worker threads (default: the number of cores).
     """
-    from tqdm.auto import tqdm
 
-    bar = tqdm(total=len(tasks), desc=desc, unit="task", disable=not progress or not tasks, leave=False)
-    try:
-        if scheduler and scheduler not in ("threads", "sync"):
-            yield from _stream_distributed(tasks, needs, scheduler, bar)
+    def __init__(self, *, scheduler: str | None = None, workers: int | None = None, progress: bool = True,
+                 desc: str = "reconstruct"):
+        from tqdm.auto import tqdm
+
+        self.distributed = bool(scheduler) and scheduler not in ("threads", "sync")
+        self.scheduler, self.workers = scheduler, workers or os.cpu_count() or 1
+        self.bar = tqdm(total=0, desc=desc, unit="task", disable=not progress, leave=False)
+        self.graphs: list[dict] = []  # per graph: tasks, needs, finished, left, drained, share
+        self.events: queue.Queue = queue.Queue()  # (graph, task index | -1 (a stage) | None (the end)) or an error
+        self.lock = threading.Lock()
+        self.stop = threading.Event()
+        self.threads: list[threading.Thread] = []
+        self.launched = 0
+        self.share = 0.0  # the job's share the graphs offered so far cover
+        self.pool = self.client = None
+        self.limits = contextlib.ExitStack()
+        self.quiet: list = []
+        self.counted = 0
+
+    def __enter__(self) -> "GraphRunner":
+        if self.distributed:
+            self._open_client()
         else:
-            yield from _stream_local(tasks, needs, scheduler, workers, bar)
-    finally:
-        bar.close()
+            self.limits.enter_context(_single_threaded_blas(self.scheduler != "sync"))  # one core per worker thread
+            if self.scheduler != "sync":
+                self.pool = dask.threaded.ContextAwareThreadPoolExecutor(self.workers)
+        return self
 
+    def __exit__(self, *exc) -> None:
+        self.close()
 
-def _stream_local(tasks, needs, scheduler, workers, bar) -> Iterator[int]:
-    from dask.callbacks import Callback
+    def close(self) -> None:
+        """Cancel what has not started, wait for what runs, and let go of the pool or the client."""
+        self.stop.set()
+        for thread in self.threads:
+            thread.join()
+        if self.pool is not None:
+            self.pool.shutdown(wait=True)
+            self.pool = None
+        if self.client is not None:
+            with contextlib.suppress(Exception):  # (a scheduler that is gone cancels nothing)
+                self.client.cancel([f for g in self.graphs for f in g.get("futures", ()) if not f.done()])
+            with contextlib.suppress(Exception):
+                self.client.close()
+            self.client = None
+            for q, level in self.quiet:
+                q.setLevel(level)
+        self.limits.close()
+        self.bar.close()
 
-    done_keys: queue.Queue = queue.Queue()
-    stop = threading.Event()
-    index = {task.key: i for i, task in enumerate(tasks)}
-    graph = HighLevelGraph.merge(*(task.__dask_graph__() for task in tasks)) if tasks else {}
-    stages = {k for k in graph.keys() if isinstance(k, str) and k.startswith(STAGE_PREFIXES)}
-    if stages:
-        bar.reset(total=bar.total + len(stages))  # (reset: a notebook's bar takes its new length only so)
+    # -- handing over and waiting --------------------------------------------------------------------
+    def offer(self, tasks: list, needs: list[list[int]], share: float = 1.0) -> int:
+        """Hand over a graph (``needs[j]``: the tasks that group ``j`` waits for), covering ``share`` of the
+        job (its length is estimated from it); returns its number for :meth:`wait`."""
+        g = len(self.graphs)
+        stages = set()
+        if tasks and not self.distributed:
+            graph = HighLevelGraph.merge(*(task.__dask_graph__() for task in tasks))
+            stages = {k for k in graph.keys() if isinstance(k, str) and k.startswith(STAGE_PREFIXES)}
+        self.graphs.append(dict(tasks=tasks, needs=needs, finished=np.zeros(len(tasks), bool),
+                                index={task.key: i for i, task in enumerate(tasks)}, stages=stages,
+                                left=len(tasks) + len(stages), drained=not tasks))
+        self.share = min(1.0, self.share + share)
+        offered = sum(len(x["tasks"]) + len(x["stages"]) for x in self.graphs)
+        _grow_bar(self.bar, max(offered, round(offered / self.share)) if self.share > 0 else offered)
+        if self.distributed:
+            self._submit(g)
+        else:
+            with self.lock:
+                self._launch_ready()
+        return g
 
-    def pretask(key, dsk, state):
-        if stop.is_set():
-            raise _Cancelled()
+    def wait(self, g: int, j: int) -> None:
+        """Block until the tasks that group ``j`` of graph ``g`` needs have finished; raise a task's error."""
+        graph = self.graphs[g]
+        need = graph["needs"][j]
+        if self.distributed:
+            self._wait_distributed(graph, need)
+            return
+        while not graph["finished"][need].all():
+            item = self.events.get()
+            if isinstance(item, BaseException):
+                raise item
+            h, i = item
+            if i is None:  # graph h ended: all of it is done
+                self.graphs[h]["finished"][:] = True
+                continue
+            if i >= 0:
+                self.graphs[h]["finished"][i] = True
+            self.bar.update(1)
 
-    def posttask(key, result, dsk, state, worker_id):
-        if key in index:
-            done_keys.put(index[key])
-        elif key in stages:
-            done_keys.put(-1)  # a stage: the bar moves
+    # -- local: dask's threaded scheduler, one pool for all graphs -------------------------------------
+    def _launch_ready(self) -> None:
+        """Start the next graph when it is offered and the one before it is drained (under the lock)."""
+        while self.launched < len(self.graphs) and (self.launched == 0 or self.graphs[self.launched - 1]["drained"]):
+            g = self.launched
+            self.launched += 1
+            if self.graphs[g]["tasks"]:
+                thread = threading.Thread(target=self._run, args=(g,), name=f"codedvideo-graph-{g}", daemon=True)
+                self.threads.append(thread)
+                thread.start()
 
-    def run():
+    def _drained(self, g: int) -> None:
+        with self.lock:
+            if not self.graphs[g]["drained"]:
+                self.graphs[g]["drained"] = True
+                self._launch_ready()
+
+    def _run(self, g: int) -> None:
+        from dask.callbacks import Callback
+
+        graph = self.graphs[g]
+        index, stages = graph["index"], graph["stages"]
+        # the next graph starts once no more tasks are left than worker threads (sync: once this one is done)
+        margin = 0 if self.scheduler == "sync" else self.workers
+
+        def pretask(key, dsk, state):
+            if self.stop.is_set():
+                raise _Cancelled()
+
+        def posttask(key, result, dsk, state, worker_id):
+            if key in index:
+                self.events.put((g, index[key]))
+            elif key in stages:
+                self.events.put((g, -1))  # a stage: the bar moves
+            else:
+                return
+            with self.lock:
+                graph["left"] -= 1
+                ready = graph["left"] <= margin
+            if ready:
+                self._drained(g)
+
         try:
-            with _single_threaded_blas(scheduler != "sync"):  # one core per worker thread
+            if self.scheduler == "sync":
+                dask.compute(*graph["tasks"], scheduler=dask.local.get_sync,
+                             callbacks=[Callback(pretask=pretask, posttask=posttask)._callback])
+            else:
                 # the scheduler as a function: a name would make dask import distributed (0.1 to 0.5 s)
                 # to look for a client first
-                dask.compute(*tasks, scheduler=dask.local.get_sync if scheduler == "sync" else dask.threaded.get,
-                             num_workers=workers or os.cpu_count() or 1,
+                dask.compute(*graph["tasks"], scheduler=dask.threaded.get, pool=self.pool,
                              callbacks=[Callback(pretask=pretask, posttask=posttask)._callback])
-            done_keys.put(None)
+            self.events.put((g, None))
         except BaseException as exc:  # handed to the consumer
-            done_keys.put(exc)
+            self.events.put(exc)
+        finally:
+            self._drained(g)  # (a graph that failed lets the next one start: its error is raised first)
 
-    thread = threading.Thread(target=run, name="codedvideo-graph", daemon=True)
-    thread.start()
-    finished = np.zeros(len(tasks), bool)
-    try:
-        for j, need in enumerate(needs):
-            while not finished[need].all():
-                item = done_keys.get()
-                if isinstance(item, BaseException):
-                    raise item
-                if item is None:  # the graph ended: everything is done
-                    finished[:] = True
-                    break
-                if item >= 0:
-                    finished[item] = True
-                bar.update(1)
+    # -- dask.distributed -------------------------------------------------------------------------------
+    _LOST: tuple = ()
+
+    def _open_client(self) -> None:
+        import asyncio
+        import concurrent.futures
+
+        from distributed import Client
+        from distributed.comm.core import CommClosedError
+
+        # (not OSError at large: a task's own error, a full disk on a worker say, is raised as it is)
+        self._LOST = (CommClosedError, asyncio.CancelledError, concurrent.futures.CancelledError, ConnectionError)
+        # the client's own log of a lost connection is pages of tracebacks: the one line of SchedulerError says it
+        names = ["distributed", "tornado", "asyncio"] + [
+            name for name in list(logging.root.manager.loggerDict) if name.startswith(("distributed.", "tornado."))]
+        self.quiet = [(logging.getLogger(name), logging.getLogger(name).level) for name in names]
+        for q, _ in self.quiet:
+            q.setLevel(logging.CRITICAL)
+        with self._lost_connection():
+            self.client = Client(self.scheduler)
+
+    @contextlib.contextmanager
+    def _lost_connection(self):
+        try:
+            yield
+        except CodedVideoError:
+            raise
+        except self._LOST as exc:  # the scheduler went away: the finished tiles are in the cache
+            raise SchedulerError(f"scheduler {self.scheduler}: the connection was lost mid-run "
+                                 f"({type(exc).__name__}); the tiles finished are kept: run again to resume from "
+                                 "the cache") from exc
+
+    def _submit(self, g: int) -> None:
+        graph = self.graphs[g]
+        with self._lost_connection():
+            graph["futures"] = self.client.compute(graph["tasks"]) if graph["tasks"] else []
+
+    def _wait_distributed(self, graph: dict, need: list[int]) -> None:
+        from distributed import wait
+
+        futures = graph["futures"]
+        with self._lost_connection():
+            wait([futures[i] for i in need])
+            for i in need:
+                futures[i].result()  # raises the task's error
+        done = sum(f.done() for g in self.graphs for f in g.get("futures", ()))
+        self.bar.update(done - self.counted)
+        self.counted = done
+
+
+def stream_graph(
+    tasks: list,
+    needs: list[list[int]],
+    *,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    desc: str = "reconstruct",
+) -> Iterator[int]:
+    """Run one graph and yield ``j = 0, 1, ...`` in order, each as soon as the tasks ``needs[j]`` have finished
+    (:class:`GraphRunner` with one graph).  A caller that stops early cancels the tasks not yet started."""
+    with GraphRunner(scheduler=scheduler, workers=workers, progress=progress and bool(tasks), desc=desc) as runner:
+        g = runner.offer(tasks, needs)
+        for j in range(len(needs)):
+            runner.wait(g, j)
             yield j
-    finally:
-        stop.set()
-        thread.join()
-
-
-def _stream_distributed(tasks, needs, address, bar) -> Iterator[int]:
-    import asyncio
-    import concurrent.futures
-
-    from distributed import Client, wait
-    from distributed.comm.core import CommClosedError
-
-    # (not OSError at large: a task's own error, a full disk on a worker say, is raised as it is)
-    lost = (CommClosedError, asyncio.CancelledError, concurrent.futures.CancelledError, ConnectionError)
-    # the client's own log of a lost connection is pages of tracebacks: the one line below says it
-    quiet = [logging.getLogger(name) for name in ("distributed", "tornado", "asyncio")]
-    quiet += [logging.getLogger(name) for name in list(logging.root.manager.loggerDict)
-              if name.startswith(("distributed.", "tornado."))]
-    levels = [q.level for q in quiet]
-    for q in quiet:
-        q.setLevel(logging.CRITICAL)
-    try:
-        with Client(address) as client:
-            futures = client.compute(tasks)
-            counted = 0
-            try:
-                for j, need in enumerate(needs):
-                    wait([futures[i] for i in need])
-                    for i in need:
-                        futures[i].result()  # raises the task's error
-                    done = sum(f.done() for f in futures)
-                    bar.update(done - counted)
-                    counted = done
-                    yield j
-            finally:
-                with contextlib.suppress(Exception):  # (a scheduler that is gone cancels nothing)
-                    client.cancel([f for f in futures if not f.done()])
-    except CodedVideoError:
-        raise
-    except lost as exc:  # the scheduler went away: the finished tiles are in the cache
-        raise SchedulerError(f"scheduler {address}: the connection was lost mid-run ({type(exc).__name__}); "
-                             "the tiles finished are kept: run again to resume from the cache") from exc
-    finally:
-        for q, level in zip(quiet, levels):
-            q.setLevel(level)
 
 
 @dataclass(frozen=True)
@@ -604,47 +723,19 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
     return StorePlan(tiles, damaged, TileWork(str(store.path), todo, contents, first))
 
 
-def reconstruct_stores(
-    stores: list[WorkStore],
-    plans: list[StorePlan],
-    D: np.ndarray | list[np.ndarray],
-    settings: OmpSettings,
-    *,
-    patch: int = 7,
-    scheduler: str | None = None,
-    workers: int | None = None,
-    progress: bool = True,
-    desc: str = "reconstruct",
-) -> Iterator[tuple[int, np.ndarray, dict]]:
-    """Reconstruct every tile of every working store that is not done yet, as one graph; yield the volumes in order.
+def store_volume(store: WorkStore, plan: StorePlan, D: np.ndarray, settings: OmpSettings, *, patch: int = 7,
+                 scheduler: str | None = None, workers: int | None = None) -> tuple[np.ndarray, dict]:
+    """A working store's volume once the tasks of its plan have finished, and its summary.
 
-    The stores are a job's captures (one store may appear more than once:
-    captures with equal inputs), each with its :func:`plan_store`; ``D`` is
-    their dictionary, or a list of one per store.  The tiles
-    left of all stores form one graph (:func:`build_graph`: a task per
-    distinct tile content), so both cores, or a cluster, stay busy across
-    captures.  As soon as the tiles of store ``j`` are done, its tiles are
-    read back and checked, any that fail are computed again (up to
-    :data:`MAX_ATTEMPTS` rounds), and ``(j, volume, summary)`` is yielded, in
-    the order of ``stores``; no more than the volume being handed out is
-    held.  The caller holds each entry's lock.
-
-    Yields
-    ------
-    j : int
-    volume : ndarray (N, H, W) float32
-    summary : dict
-        Tiles computed now, reused and found damaged, the summed statistics
-        and ``seconds_verify``, the time spent reading tiles back and checking them.
+    Its tiles are read back and checked against their digests; any that fail
+    are computed again (up to :data:`MAX_ATTEMPTS` rounds).  The summary holds
+    the tiles computed now, reused and found damaged, the summed statistics
+    and ``seconds_verify``, the time spent reading tiles back and checking
+    them.  The caller holds the store's lock.
     """
-    works = [plan.work for plan in plans]
-    tasks, needs = build_graph(works, D, settings, patch=patch)
-    for j in stream_graph(tasks, needs, scheduler=scheduler, workers=workers, progress=progress, desc=desc):
-        plan = plans[j]
-        volume, summary = _verified_volume(stores[j], list(plan.tiles), {t.index for t in plan.work.tiles},
-                                           D[j] if isinstance(D, list) else D, settings, patch=patch,
-                                           scheduler=scheduler, workers=workers, first=plan.work.first)
-        yield j, volume, dict(summary, tiles_damaged=int(plan.damaged.sum()), tile_tasks=len(tasks))
+    volume, summary = _verified_volume(store, list(plan.tiles), {t.index for t in plan.work.tiles}, D, settings,
+                                       patch=patch, scheduler=scheduler, workers=workers, first=plan.work.first)
+    return volume, dict(summary, tiles_damaged=int(plan.damaged.sum()))
 
 
 def _verified_volume(store: WorkStore, tiles: list[Tile], computed: set[int], D, settings, *, patch, scheduler,

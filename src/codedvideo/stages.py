@@ -30,7 +30,7 @@ from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
 from .errors import ConfigError, InputError, OutputError
 from .metrics import evaluate
-from .parallel import StorePlan, plan_store, plan_tiles, reconstruct_stores
+from .parallel import GraphRunner, build_graph, plan_store, plan_tiles, store_volume
 from .patches import PATCH
 from .reconstruct import STAT_NAMES, OmpSettings
 from .scenes import load_video, training_videos
@@ -296,7 +296,7 @@ def _check_capture(coded: np.ndarray, mask: np.ndarray, D: np.ndarray) -> int:
 
 
 def _allow_open_files(needed: int, cache) -> None:
-    """Make room for ``needed`` open files (a job locks each working store it plans until it ends, 64
+    """Make room for ``needed`` open files (a job locks each working store of the windows it holds, 64
     kept for the rest): the soft limit raised toward the hard one (doubled, so that this is rare), or
     an OutputError, while planning and before any tile, where that is not allowed."""
     try:
@@ -312,9 +312,9 @@ def _allow_open_files(needed: int, cache) -> None:
             raise ValueError(f"the hard limit is {hard}")
         resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
     except (ValueError, OSError) as exc:
-        raise OutputError(f"cache {cache}: this job locks a working store per capture, {needed - 64} so far, and "
-                          f"cannot have more open files ({exc}; ulimit -n); raise the limit or reconstruct fewer "
-                          "captures a job") from exc
+        raise OutputError(f"cache {cache}: this job locks a working store per capture of the windows it holds, "
+                          f"{needed - 64} now, and cannot have more open files ({exc}; ulimit -n); raise the limit "
+                          "or reconstruct fewer captures a job") from exc
 
 
 def sparse_volumes(
@@ -332,7 +332,13 @@ def sparse_volumes(
     desc: str = "reconstruct",
     first_of=None,
 ) -> Iterator[tuple[int, np.ndarray | None, dict | None]]:
-    """Sparse-code ``count`` captures as one job: one graph over (capture, tile); yield the volumes in order.
+    """Sparse-code ``count`` captures as one job, in windows of captures; yield the volumes in order.
+
+    The captures are planned (locked, their working stores made, their tiles
+    keyed) a window at a time (:data:`WINDOW_TILES`), each window's tiles one
+    graph over (capture, tile) in which equal tiles are solved once; the
+    graphs run back to back on the same workers (:class:`GraphRunner`), the
+    next window planned while one runs.
 
     Parameters
     ----------
@@ -354,7 +360,7 @@ def sparse_volumes(
         The non-local method: ``first_of(i)`` -> the working store of an earlier
         job on capture ``i`` (same tiles) whose result is the first estimate its
         groups are matched on and solved from, in place of the default's tiles
-        (``--adapt``'s second pass), or None.  That store is locked for the job too.
+        (``--adapt``'s second pass), or None.  That store is locked while the capture is done, too.
 
     Yields
     ------
@@ -378,81 +384,162 @@ def sparse_volumes(
     """
     per_capture = callable(D)
     dkey = "" if per_capture else dictionary_key or content_key(D)
-    plan: list = []  # per capture: None (the caller's), "static", or the index of its store
-    stores: list[tuple[WorkStore, StorePlan]] = []  # per sparse-coded capture (equal captures: the same pair)
-    dictionaries: list[np.ndarray] = []  # each store's (per capture: its own)
-    opened: dict[str, tuple[WorkStore, StorePlan]] = {}
-    first_locked: set[str] = set()
-    seconds_plan = []
+    locks = _EntryLocks(cache)
+    live: dict[str, tuple[_Window, int]] = {}  # key -> the window and store of a capture planned and not yet done
     unopened: list[int] = []  # never-open pixels of each capture that has some: one warning for the job
-    with contextlib.ExitStack() as locks:
-        for i in range(count):
+    position = 0  # the next capture to plan
+
+    def plan_capture(i: int, window: _Window) -> int:
+        """Plan capture ``i`` into ``window``: how it is done (None: the caller's; "static"; or a store, locked,
+        with its tiles planned -- a store that an earlier capture of a window not yet done has is shared); its tiles."""
+        pair = capture(i)
+        if pair is None:
+            window.how.append(None)
+            return 0
+        coded, mask, still = pair
+        Di, dkey_i = D(i) if per_capture else (D, dkey)
+        never_open = _check_capture(coded, mask, Di)
+        if never_open:
+            unopened.append(never_open)
+        if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
+            window.how.append("static")
+            return 0
+        first = first_of(i) if first_of is not None else None
+        if first is not None:  # kept as it is while its result is read
+            locks.take(Path(first), window)
+        key = content_key(RECON_VERSION, coded, mask, dkey_i or content_key(Di), settings.__dict__, tile,
+                          *(() if still is None else (np.asarray(still, np.uint8),)),
+                          *(() if first is None else (WorkStore.opened(first).key,)))
+        # absolute: a dask.distributed worker started in another folder opens it too
+        entry = Path(cache).absolute() / f"recon-{key}.zarr"
+        # One run at a time per entry (processes, threads, clients of one dask cluster): a second run waits
+        # here, then reuses the tiles the first one finished.
+        locks.take(entry, window)
+        n_tiles = len(plan_tiles(coded.shape, tile, patch=PATCH))
+        if key not in live:
+            store = WorkStore.create(
+                entry, coded, mask, tile=tile, n_stats=len(STAT_NAMES), n_tiles=n_tiles,
+                attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION), still=still)
+            # its tiles planned from the inputs in hand (not read back from the store)
+            window.stores.append(store)
+            window.plans.append(plan_store(store, coded, mask, still, settings, tile=tile, patch=PATCH, first=first))
+            window.dictionaries.append(Di)
+            live[key] = window, len(window.stores) - 1
+            window.keys.append(key)
+        window.how.append(live[key])
+        return n_tiles
+
+    def plan_window() -> _Window | None:
+        """The next captures, planned until they hold :data:`WINDOW_TILES` tiles (at least one capture)."""
+        nonlocal position
+        if position >= count:
+            return None
+        window, tiles = _Window(start=position), 0
+        while position < count and (tiles < WINDOW_TILES or not window.how):
             t0 = time.perf_counter()
-            pair = capture(i)
-            if pair is None:
-                plan.append(None)
-            else:
-                coded, mask, still = pair
-                Di, dkey_i = D(i) if per_capture else (D, dkey)
-                never_open = _check_capture(coded, mask, Di)
-                if never_open:
-                    unopened.append(never_open)
-                if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
-                    plan.append("static")
-                else:
-                    first = first_of(i) if first_of is not None else None
-                    if first is not None and first not in first_locked:  # kept as it is while its result is read
-                        _allow_open_files(len(opened) + len(first_locked) + 65, cache)
-                        locks.enter_context(entry_lock(Path(first)))
-                        first_locked.add(first)
-                    key = content_key(RECON_VERSION, coded, mask, dkey_i or content_key(Di), settings.__dict__, tile,
-                                      *(() if still is None else (np.asarray(still, np.uint8),)),
-                                      *(() if first is None else (WorkStore.opened(first).key,)))
-                    if key not in opened:
-                        _allow_open_files(len(opened) + len(first_locked) + 65, cache)  # a lock per store until the end
-                        # absolute: a dask.distributed worker started in another folder opens it too
-                        entry = Path(cache).absolute() / f"recon-{key}.zarr"
-                        # One run at a time per entry (processes, threads, clients of one dask cluster): a
-                        # second run waits here, then reuses the tiles the first one finished.
-                        locks.enter_context(entry_lock(entry))
-                        store = WorkStore.create(
-                            entry, coded, mask, tile=tile, n_stats=len(STAT_NAMES),
-                            n_tiles=len(plan_tiles(coded.shape, tile, patch=PATCH)),
-                            attrs=dict(key=key, settings=settings.__dict__, tile=tile, version=RECON_VERSION),
-                            still=still)
-                        # its tiles planned from the inputs in hand (not read back from the store)
-                        opened[key] = store, plan_store(store, coded, mask, still, settings, tile=tile, patch=PATCH,
-                                                        first=first)
-                    plan.append(len(stores))
-                    stores.append(opened[key])
-                    dictionaries.append(Di)
-                del pair
-            seconds_plan.append(time.perf_counter() - t0)
-        if unopened:
+            tiles += max(1, plan_capture(position, window))
+            window.seconds_plan.append(time.perf_counter() - t0)
+            position += 1
+        if position >= count and unopened:
             where = "" if count == 1 else (f" in {len(unopened)} of {count} captures ({min(unopened)} to "
                                            f"{max(unopened)} each)")
             warnings.warn(f"{sum(unopened)} pixels are never open{where} (or were left out as saturated or defective); "
-                          "they are filled from their neighbours", stacklevel=2)
-        solved = reconstruct_stores([store for store, _ in stores], [p for _, p in stores],
-                                    dictionaries if per_capture else D, settings, patch=PATCH,
-                                    scheduler=scheduler, workers=workers, progress=progress, desc=desc)
-        t_wait = time.perf_counter()
-        for i, how in enumerate(plan):
-            if how is None:
-                yield i, None, None
-                continue
-            coded, mask, _ = capture(i)
-            if how == "static":
-                yield i, *_static_volume(coded, mask)
-                continue
-            j, volume, summary = next(solved)
-            t_solved = time.perf_counter()
-            volume, info = _finish_sparse(volume, summary, coded, mask, settings, stores[j][0].path)
-            info["seconds"] = dict(store_inputs=seconds_plan[i], reconstruct=t_solved - t_wait - summary["seconds_verify"],
-                                   assemble=summary["seconds_verify"] + time.perf_counter() - t_solved)
-            del coded, mask
-            yield i, volume, info
+                          "they are filled from their neighbours", stacklevel=3)
+        tasks, needs = build_graph([plan.work for plan in window.plans], window.dictionaries if per_capture else D,
+                                   settings, patch=PATCH)
+        window.tile_tasks = len(tasks)
+        window.graph = runner.offer(tasks, needs, share=len(window.how) / count)
+        return window
+
+    with contextlib.closing(locks), GraphRunner(scheduler=scheduler, workers=workers, progress=progress,
+                                                desc=desc) as runner:
+        windows = [plan_window()]
+        while windows:
+            window = windows[0]
+            if len(windows) == 1:  # the next window planned (and handed to the workers) while this one runs
+                following = plan_window()
+                if following is not None:
+                    windows.append(following)
             t_wait = time.perf_counter()
+            for k, how in enumerate(window.how):
+                i = window.start + k
+                if how is None:
+                    yield i, None, None
+                    continue
+                coded, mask, _ = capture(i)
+                if how == "static":
+                    yield i, *_static_volume(coded, mask)
+                    continue
+                owner, j = how
+                runner.wait(owner.graph, j)
+                t_solved = time.perf_counter()
+                volume, summary = store_volume(owner.stores[j], owner.plans[j], owner.dictionaries[j], settings,
+                                               patch=PATCH, scheduler=scheduler, workers=workers)
+                summary["tile_tasks"] = owner.tile_tasks
+                volume, info = _finish_sparse(volume, summary, coded, mask, settings, owner.stores[j].path)
+                info["seconds"] = dict(store_inputs=window.seconds_plan[k], reconstruct=t_solved - t_wait,
+                                       assemble=time.perf_counter() - t_solved)
+                del coded, mask
+                yield i, volume, info
+                t_wait = time.perf_counter()
+            for key in window.keys:  # its stores done: later captures with the same inputs lock them afresh
+                del live[key]
+            locks.release(window)
+            windows.pop(0)
+
+
+#: A job's captures are planned and computed in windows of at least this many tiles (a graph each, run back to
+#: back on the same workers: :class:`codedvideo.parallel.GraphRunner`).  A long stream's first tiles start once one
+#: window is planned (not all of its captures), the next window is planned while one runs, and what the plans and
+#: the graph hold, and the cache locks kept, do not grow with its length.  Equal tiles are shared within a window.
+WINDOW_TILES = 64
+
+
+@dataclasses.dataclass
+class _Window:
+    """Captures ``start ..`` of a job, planned: per capture how it is done (None: the caller's, "static", or the
+    ``(window, store index)`` whose volume is its own), and the stores it made, with their plans and dictionaries."""
+
+    start: int
+    how: list = dataclasses.field(default_factory=list)
+    stores: list = dataclasses.field(default_factory=list)
+    plans: list = dataclasses.field(default_factory=list)
+    dictionaries: list = dataclasses.field(default_factory=list)
+    keys: list = dataclasses.field(default_factory=list)
+    seconds_plan: list = dataclasses.field(default_factory=list)
+    tile_tasks: int = 0
+    graph: int = -1
+
+
+class _EntryLocks:
+    """The cache entries a job holds (:func:`codedvideo.store.entry_lock`), each locked once however many
+    captures of its windows use it, and let go when the last window that uses it is done."""
+
+    def __init__(self, cache):
+        self.cache = cache
+        self.held: dict[str, list] = {}  # entry -> [its lock, the windows using it (with repeats)]
+
+    def take(self, entry: Path, window: _Window) -> None:
+        name = str(entry)
+        if name not in self.held:
+            _allow_open_files(len(self.held) + 65, self.cache)
+            lock = contextlib.ExitStack()
+            lock.enter_context(entry_lock(entry))
+            self.held[name] = [lock, []]
+        self.held[name][1].append(id(window))
+
+    def release(self, window: _Window) -> None:
+        for name in list(self.held):
+            lock, users = self.held[name]
+            users[:] = [u for u in users if u != id(window)]
+            if not users:
+                lock.close()
+                del self.held[name]
+
+    def close(self) -> None:
+        for lock, _ in self.held.values():
+            lock.close()
+        self.held.clear()
 
 
 def _fill_nearest(volume: np.ndarray, holes: np.ndarray) -> None:
