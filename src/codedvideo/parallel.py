@@ -462,11 +462,12 @@ class GraphRunner:
 
     def __init__(self, *, scheduler: str | None = None, workers: int | None = None, progress: bool = True,
                  desc: str = "reconstruct"):
-        from tqdm.auto import tqdm
-
         self.distributed = bool(scheduler) and scheduler not in ("threads", "sync")
         self.scheduler, self.workers = scheduler, workers or os.cpu_count() or 1
-        self.bar = tqdm(total=0, desc=desc, unit="task", disable=not progress, leave=False)
+        # the next graph starts once no more tasks are left than worker threads (sync: once this one is done)
+        self.margin = 0 if scheduler == "sync" else self.workers
+        self.progress, self.desc = progress, desc
+        self.bar = None  # made with the first task (a job all in the cache shows none)
         self.graphs: list[dict] = []  # per graph: tasks, needs, finished, left, drained, share
         self.events: queue.Queue = queue.Queue()  # (graph, task index | -1 (a stage) | None (the end)) or an error
         self.lock = threading.Lock()
@@ -508,7 +509,8 @@ class GraphRunner:
             for q, level in self.quiet:
                 q.setLevel(level)
         self.limits.close()
-        self.bar.close()
+        if self.bar is not None:
+            self.bar.close()
 
     # -- handing over and waiting --------------------------------------------------------------------
     def offer(self, tasks: list, needs: list[list[int]], share: float = 1.0) -> int:
@@ -524,7 +526,12 @@ class GraphRunner:
                                 left=len(tasks) + len(stages), drained=not tasks))
         self.share = min(1.0, self.share + share)
         offered = sum(len(x["tasks"]) + len(x["stages"]) for x in self.graphs)
-        _grow_bar(self.bar, max(offered, round(offered / self.share)) if self.share > 0 else offered)
+        if offered and self.bar is None:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=0, desc=self.desc, unit="task", disable=not self.progress, leave=False)
+        if self.bar is not None:
+            _grow_bar(self.bar, max(offered, round(offered / self.share)) if self.share > 0 else offered)
         if self.distributed:
             self._submit(g)
         else:
@@ -549,7 +556,7 @@ class GraphRunner:
                 continue
             if i >= 0:
                 self.graphs[h]["finished"][i] = True
-            self.bar.update(1)
+            self.bar.update(1)  # (a task finished: the bar was made when it was offered)
 
     # -- local: dask's threaded scheduler, one pool for all graphs -------------------------------------
     def _launch_ready(self) -> None:
@@ -561,6 +568,8 @@ class GraphRunner:
                 thread = threading.Thread(target=self._run, args=(g,), name=f"codedvideo-graph-{g}", daemon=True)
                 self.threads.append(thread)
                 thread.start()
+            if self.graphs[g]["left"] <= self.margin:  # too few tasks to keep the workers busy: the next one too
+                self.graphs[g]["drained"] = True
 
     def _drained(self, g: int) -> None:
         with self.lock:
@@ -573,8 +582,6 @@ class GraphRunner:
 
         graph = self.graphs[g]
         index, stages = graph["index"], graph["stages"]
-        # the next graph starts once no more tasks are left than worker threads (sync: once this one is done)
-        margin = 0 if self.scheduler == "sync" else self.workers
 
         def pretask(key, dsk, state):
             if self.stop.is_set():
@@ -589,7 +596,7 @@ class GraphRunner:
                 return
             with self.lock:
                 graph["left"] -= 1
-                ready = graph["left"] <= margin
+                ready = graph["left"] <= self.margin
             if ready:
                 self._drained(g)
 
@@ -654,7 +661,8 @@ class GraphRunner:
             for i in need:
                 futures[i].result()  # raises the task's error
         done = sum(f.done() for g in self.graphs for f in g.get("futures", ()))
-        self.bar.update(done - self.counted)
+        if self.bar is not None:
+            self.bar.update(done - self.counted)
         self.counted = done
 
 
@@ -669,7 +677,7 @@ def stream_graph(
 ) -> Iterator[int]:
     """Run one graph and yield ``j = 0, 1, ...`` in order, each as soon as the tasks ``needs[j]`` have finished
     (:class:`GraphRunner` with one graph).  A caller that stops early cancels the tasks not yet started."""
-    with GraphRunner(scheduler=scheduler, workers=workers, progress=progress and bool(tasks), desc=desc) as runner:
+    with GraphRunner(scheduler=scheduler, workers=workers, progress=progress, desc=desc) as runner:
         g = runner.offer(tasks, needs)
         for j in range(len(needs)):
             runner.wait(g, j)
