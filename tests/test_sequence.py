@@ -568,18 +568,29 @@ def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"
             planned[i] = sum(1 for p in cache.glob("recon-*.zarr/digest/c/**/*") if p.is_file())
         return codeds[i], mask, None
 
+    import tqdm.auto
+
+    bars = []
+
+    class Recording(tqdm.auto.tqdm):
+        def close(self):
+            if not self.disable:  # (a closed bar is disabled: its second close, on deletion, is not counted)
+                bars.append((self.total, self.n))
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recording)
     out = list(stages.sparse_volumes(6, capture, dct_dictionary(4), settings=OmpSettings(max_atoms=6, tol_rms=0.5),
-                                     tile=16, cache=cache, progress=False, scheduler=scheduler))
-    return out, asked, planned, len(solved)
+                                     tile=16, cache=cache, progress=True, scheduler=scheduler))
+    return out, asked, planned, len(solved), bars
 
 
 def test_a_job_in_windows_equals_one_window_and_holds_a_few_windows_at_a_time(tmp_path, monkeypatch):
     """A long job is planned and computed a window of captures at a time: with a window of one capture the
     volumes are bit for bit those of one window over all six, the first tiles are finished before the last
-    captures are planned, and no more than three windows' working stores are locked at once (the one handed
-    out, the one running, the one being planned), where one window locks all six."""
-    one, asked_one, planned_one, solved_one = _window_job(tmp_path, monkeypatch, 10**6, name="one")
-    small, asked, planned, solved = _window_job(tmp_path, monkeypatch, 1, name="small")
+    captures are planned, no more than two windows' working stores are locked at once (the one handed out and
+    the next, planned while it runs), where one window locks all of them, and one progress bar ends full."""
+    one, asked_one, planned_one, solved_one, _ = _window_job(tmp_path, monkeypatch, 10**6, name="one")
+    small, asked, planned, solved, bars = _window_job(tmp_path, monkeypatch, 1, name="small")
     assert [i for i, _, _ in small] == list(range(6))
     for (_, a, _), (_, b, _) in zip(one, small):
         np.testing.assert_array_equal(a, b)
@@ -593,3 +604,5 @@ def test_a_job_in_windows_equals_one_window_and_holds_a_few_windows_at_a_time(tm
     # before finds its tiles in the cache: no tile is solved twice either way (4 distinct captures of 9 tiles)
     assert small[3][2]["work_store"] == small[2][2]["work_store"]
     assert solved == solved_one == 4 * 9
+    # one bar for the job, its length estimated window by window, full at the end
+    assert bars == [(36, 36)]
