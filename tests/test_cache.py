@@ -342,3 +342,99 @@ def test_a_dictionary_trained_on_a_video_is_keyed_by_what_the_video_holds(tmp_pa
     (tmp_path / "elsewhere").mkdir()
     d3, reused = train(shutil.copy(clip, tmp_path / "elsewhere" / "renamed.mkv"))
     assert reused and np.array_equal(d2, d3)
+
+
+# ----------------------------------------------------------------------------- a budget for working stores
+def test_sizes_are_read_in_powers_of_1024_and_anything_else_is_refused():
+    from codedvideo.cache import parse_size
+
+    assert [parse_size(t) for t in ("0", "123", "500M", "20G", "1.5T", "2GiB", ".5k", 7)] == [
+        0, 123, 500 * 2**20, 20 * 2**30, int(1.5 * 2**40), 2 * 2**30, 512, 7]
+    for bad in ("-1", "12X", "", "nan", "G", float("inf"), -3):
+        with pytest.raises(ValueError):
+            parse_size(bad)
+
+
+def _stores(tmp_path, count):
+    """``count`` working stores of distinct 48x48 captures in one cache, made one after another."""
+    from codedvideo.stages import sparse_volumes
+
+    video = make_scene("default", frames=4 * count, size=(48, 48))
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
+    codeds = [simulate(video[4 * t : 4 * t + 4], mask, sigma=1.0, rng=t) for t in range(count)]
+    out = []
+    for t in range(count):  # a job each: their stores are used in this order
+        out += list(sparse_volumes(1, lambda _, t=t: (codeds[t], mask, None), dct_dictionary(4),
+                                   settings=OmpSettings(**SETTINGS), tile=TILE, cache=tmp_path / "c", progress=False))
+    return codeds, mask, [Path(info["work_store"]) for _, _, info in out]
+
+
+def test_a_cache_budget_removes_the_least_recently_used_stores_and_never_one_in_use(tmp_path):
+    """Four stores and a budget for one and a half: the oldest go first, a store another run holds (or this
+    job still uses) stays however old it is, and the dictionaries beside them are never touched."""
+    from codedvideo.cache import CacheBudget, _folder_bytes
+    from codedvideo.store import entry_lock
+
+    _, _, stores = _stores(tmp_path, 4)
+    (tmp_path / "c" / "dict-0123456789abcdef.zarr").mkdir()  # (not a working store: never sized nor removed)
+    size = _folder_bytes(stores[0])
+    budget = CacheBudget(tmp_path / "c", size + size // 2)
+    assert set(budget.sizes) == set(stores) and budget.total() >= 4 * size * 0.9
+    # the oldest is in use by "another run", the newest by this job (each lock a file of its own)
+    with entry_lock(stores[0]) as held0, entry_lock(stores[3]) as held3:
+        assert held0 and held3
+        removed = budget.finished([stores[3]])
+    assert removed == [stores[1], stores[2]]  # the oldest not in use, then the next; the two in use stay
+    assert stores[0].is_dir() and stores[3].is_dir() and not stores[1].exists() and not stores[2].exists()
+    assert (tmp_path / "c" / "dict-0123456789abcdef.zarr").is_dir()
+    assert budget.total() > budget.budget  # (over it while they are in use)
+    assert budget.finished([]) == [stores[0]]  # let go of: the oldest goes, and the rest fits
+    assert budget.total() <= budget.budget and stores[3].is_dir()
+
+
+def test_a_stream_within_a_cache_budget_gives_the_same_bits_and_reruns_from_what_is_left(tmp_path, monkeypatch):
+    """Six captures in windows of one with a budget of about two stores: the result is bit for bit the
+    unlimited job's, the cache stays within the budget, and a rerun computes again what was removed (least
+    recently used first: in a rerun that is the stores it is about to reach) to the same bits."""
+    from codedvideo import stages
+    from codedvideo.cache import _folder_bytes
+
+    codeds, mask, stores = _stores(tmp_path, 6)  # the unlimited job, capture by capture
+    unlimited = [np.asarray(v) for _, v, _ in stages.sparse_volumes(
+        6, lambda i: (codeds[i], mask, None), dct_dictionary(4), settings=OmpSettings(**SETTINGS), tile=TILE,
+        cache=tmp_path / "c", progress=False)]
+    size = _folder_bytes(stores[0])
+    monkeypatch.setattr(stages, "WINDOW_TILES", 1)
+    bounded = tmp_path / "bounded"
+
+    def job():
+        from codedvideo.cache import CacheBudget
+
+        budget = CacheBudget(bounded, 2 * size + size // 2)
+        got = list(stages.sparse_volumes(6, lambda i: (codeds[i], mask, None), dct_dictionary(4),
+                                         settings=OmpSettings(**SETTINGS), tile=TILE, cache=bounded, progress=False,
+                                         budget=budget))
+        return got, budget
+
+    first, budget = job()
+    for (_, got, info), want in zip(first, unlimited):
+        np.testing.assert_array_equal(got, want)
+    assert len(budget.removed) == 4 and budget.total() <= budget.budget
+    assert sum(_folder_bytes(p) for p in bounded.glob("recon-*.zarr")) <= budget.budget
+    again, budget = job()
+    assert budget.total() <= budget.budget
+    for (_, got, _), want in zip(again, unlimited):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_a_cache_budget_that_is_not_a_size_is_one_line_before_any_work(tmp_path):
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "coded.npy", rng.uniform(0, 255, (2, 16, 16)).astype(np.float32))
+    np.save(tmp_path / "mask.npy", (rng.random((2, 16, 16)) < 0.5).astype(np.uint8))
+    proc = subprocess.run([sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded",
+                           str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"), "--output",
+                           str(tmp_path / "r.npy"), "--cache", str(tmp_path / "c"), "--cache-budget", "20X"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "--cache-budget" in proc.stderr and "20X" in proc.stderr
+    assert not (tmp_path / "r.npy").exists() and not (tmp_path / "c").exists()

@@ -26,10 +26,12 @@ a rerun resumes it); ``broken`` (damaged: a rerun rebuilds or recomputes it);
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
 import re
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -41,7 +43,8 @@ from .patches import PATCH
 if TYPE_CHECKING:
     from .config import PipelineConfig
 
-__all__ = ["verify_cache", "clean_cache", "REMOVED_WHEN_BROKEN", "RECON_VERSION", "content_key", "dictionary_key"]
+__all__ = ["verify_cache", "clean_cache", "CacheBudget", "parse_size", "REMOVED_WHEN_BROKEN", "RECON_VERSION",
+           "content_key", "dictionary_key"]
 
 _ENTRY = re.compile(r"^(dict|recon)-([0-9a-f]{16})\.zarr$")
 _TEMP = re.compile(r"^\.((dict|recon)-[0-9a-f]{16}\.zarr)\.tmp-\d+-[0-9a-f]{8}$")
@@ -152,6 +155,104 @@ def clean_cache(root: str | os.PathLike, *, broken_only: bool) -> list[Path]:
     removed: list[Path] = []
     _scan(Path(root), remove=(statuses, removed, not broken_only))
     return removed
+
+
+# ----------------------------------------------------------------------------- a budget for working stores
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*([kmgt]?)i?b?\s*$", re.IGNORECASE)
+
+
+def parse_size(text: str | int | float) -> int:
+    """``"500M"``, ``"20G"``, ``"1.5T"`` (powers of 1024; a ``B`` or ``iB`` after the unit is allowed) or a
+    number of bytes -> bytes.  Raises ValueError for anything else, or a size below 0."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value, unit = float(text), ""
+    else:
+        m = _SIZE.match(str(text))
+        if not m:
+            raise ValueError(f"{text!r} is not a size (for example 500M, 20G or 1.5T)")
+        value, unit = float(m.group(1)), m.group(2).lower()
+    if not value >= 0 or value != value or value == float("inf"):
+        raise ValueError(f"{text!r}: a size is a number of bytes >= 0")
+    return int(value * 1024 ** "_kmgt".index(unit or "_"))
+
+
+def _folder_bytes(path: Path) -> int:
+    """Bytes of the files under ``path`` (0 when it is gone)."""
+    total = 0
+    stack = [str(path)]
+    while stack:
+        try:
+            with os.scandir(stack.pop()) as it:
+                for e in it:
+                    if e.is_dir(follow_symlinks=False):
+                        stack.append(e.path)
+                    elif e.is_file(follow_symlinks=False):
+                        total += e.stat(follow_symlinks=False).st_size
+        except OSError:
+            continue
+    return total
+
+
+class CacheBudget:
+    """Keep a cache's working stores (``recon-KEY.zarr``) within ``budget`` bytes while a job writes more.
+
+    A long coded video makes a working store per capture (at 3840x2160,
+    N = 18: about 550 MB each), so a minute of it would need about 1 TB of
+    cache.  Each time the job is done with some of its stores
+    (:meth:`finished`), the stores least recently used are removed until the
+    working stores fit the budget again, each while holding its lock: an entry
+    any run holds (this job's stores still in use included) is left alone, and
+    dictionaries and report records are never touched.  A removed store costs
+    a rerun its tiles (they are computed again, to the same bits), nothing else.
+    The stores are sized once when the job starts and then as it finishes them.
+    """
+
+    def __init__(self, root: str | os.PathLike, budget: int):
+        self.root, self.budget = Path(root), int(budget)
+        self.sizes: dict[Path, int] = {}
+        self.used: dict[Path, float] = {}
+        self.removed: list[Path] = []
+        #: Stores never removed while in this set (what the job will read again).
+        self.keep: set[Path] = set()
+        if self.root.is_dir():
+            for child in self.root.iterdir():
+                m = _ENTRY.match(child.name)
+                if m and m.group(1) == "recon" and _looks_like_entry(child, "recon"):
+                    self.sizes[child] = _folder_bytes(child)
+                    with contextlib.suppress(OSError):
+                        self.used[child] = child.stat().st_mtime
+
+    def total(self) -> int:
+        """Bytes of the working stores as last sized."""
+        return sum(self.sizes.values())
+
+    def finished(self, entries) -> list[Path]:
+        """The job is done with ``entries`` (working stores, still locked by it or not): size them, mark them
+        used now, and remove stores, least recently used first, until the rest fit the budget.  Returns the
+        stores removed now."""
+        from .store import entry_lock
+
+        now = max(self.used.values(), default=0.0)
+        for entry in entries:
+            entry = Path(entry)
+            now += 1e-6  # (in the order given: the first done is the first to go)
+            self.sizes[entry] = _folder_bytes(entry)
+            self.used[entry] = max(now, time.time())
+        removed = []
+        for entry in sorted(self.sizes, key=lambda e: self.used.get(e, 0.0)):
+            if self.total() <= self.budget:
+                break
+            if entry in self.keep:
+                continue
+            with entry_lock(entry, blocking=False) as held:
+                if not held:  # in use (by this job or another run): kept
+                    continue
+                if os.path.lexists(entry) and _looks_like_entry(entry, "recon"):
+                    _remove_entry(entry, removed)
+            del self.sizes[entry]
+            self.used.pop(entry, None)
+        self.removed += removed
+        return removed
 
 
 # ----------------------------------------------------------------------------- scanning

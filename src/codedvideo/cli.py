@@ -178,6 +178,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--fps", type=int, default=30, help="frame rate of a video output (default 30)")
     r.add_argument("--cache", default="cache",
                    help="working stores and dictionaries, reused by later runs (default: cache)")
+    r.add_argument("--cache-budget", default=None, metavar="SIZE",
+                   help="keep the cache's working stores within SIZE (e.g. 20G) as a long job goes, removing the "
+                        "least recently used (a rerun computes their tiles again; default: no limit)")
     r.add_argument("--overwrite", action="store_true",
                    help="replace an existing output file that codedvideo did not write (folders: never)")
     r.add_argument("--independent-captures", action="store_true",
@@ -415,7 +418,7 @@ def _reconstruct_options(a):
     rc = validated(ReconstructConfig, dict(
         max_atoms=a.max_atoms, tol_rms="auto" if a.tol_rms is None else a.tol_rms, static_atoms=a.static_atoms,
         stride=a.stride, weighting=a.weighting, tile=a.tile, batch=a.batch, scheduler=a.scheduler, workers=a.workers,
-        adapt=a.adapt))
+        adapt=a.adapt, cache_budget=a.cache_budget))
     noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, white_level=a.white_level, bits=a.bits,
                                         black_level=a.black_level), _RECONSTRUCT_OPTIONS)
     out = validated(OutputConfig, dict(fps=a.fps, data_range=a.data_range), _RECONSTRUCT_OPTIONS)
@@ -622,7 +625,8 @@ def _cmd_reconstruct(a) -> int:
             # what did not change since the capture before or until the one after (asked again by the join)
             still_of = functools.lru_cache(maxsize=4)(
                 lambda i: agreeing_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale))
-        results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, adapt=rc.adapt, **options)
+        results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, adapt=rc.adapt,
+                                       cache_budget=rc.cache_budget, **options)
         if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
             from .sequence import joined
 

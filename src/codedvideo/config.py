@@ -182,6 +182,19 @@ class ReconstructConfig(_Strict):
     #: A dask.distributed address (``tcp://host:port``, ``tls://...``), or "threads" / "sync".
     scheduler: str | None = None
     workers: int | None = Field(None, ge=1, le=1024)
+    #: Bytes the cache's working stores may take while a job writes more (a size such as 20G; null: no limit).
+    #: A long coded video makes a store per capture (about 550 MB each at 3840x2160, N = 18): the stores least
+    #: recently used are removed as the job goes (a rerun computes their tiles again).
+    cache_budget: int | None = None
+
+    @field_validator("cache_budget", mode="before")
+    @classmethod
+    def _size(cls, v):
+        if v is None:
+            return None
+        from .cache import parse_size
+
+        return parse_size(v)
 
     @field_validator("scheduler")
     @classmethod
@@ -480,7 +493,7 @@ def validated(model: type[BaseModel], values: dict, options: dict[str, str] | No
             raise ConfigError(f"options: {msg.removeprefix('Value error, ')}") from exc
         field = str(err["loc"][0])
         option = (options or {}).get(field, "--" + field.replace("_", "-"))
-        raise ConfigError(f"option {option} {values.get(field)!r}: {msg}") from exc
+        raise ConfigError(f"option {option} {values.get(field)!r}: {msg.removeprefix('Value error, ')}") from exc
 
 
 def check_scheduler(address: str | None, timeout: float = 5.0) -> None:

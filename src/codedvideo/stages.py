@@ -24,7 +24,7 @@ import numpy as np
 from . import io as cio
 from . import patches as P
 from . import physics
-from .cache import RECON_VERSION, content_key, dictionary_key
+from .cache import RECON_VERSION, CacheBudget, content_key, dictionary_key
 from .codes import make_code
 from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
@@ -331,6 +331,7 @@ def sparse_volumes(
     dictionary_key: str = "",
     desc: str = "reconstruct",
     first_of=None,
+    budget: CacheBudget | None = None,
 ) -> Iterator[tuple[int, np.ndarray | None, dict | None]]:
     """Sparse-code ``count`` captures as one job, in windows of captures; yield the volumes in order.
 
@@ -361,6 +362,9 @@ def sparse_volumes(
         job on capture ``i`` (same tiles) whose result is the first estimate its
         groups are matched on and solved from, in place of the default's tiles
         (``--adapt``'s second pass), or None.  That store is locked while the capture is done, too.
+    budget : CacheBudget, optional
+        Told of each window's stores once the window is done, and keeps the
+        cache's working stores within its bytes (the least recently used removed).
 
     Yields
     ------
@@ -486,6 +490,8 @@ def sparse_volumes(
                 del live[key]
             locks.release(window)
             windows.pop(0)
+            if budget is not None:
+                budget.finished(store.path for store in window.stores)
 
 
 #: A job's captures are planned and computed in windows of at least this many tiles (a graph each, run back to
@@ -698,6 +704,7 @@ def reconstruct_captures(
     workers: int | None = None,
     progress: bool = True,
     adapt: bool = False,
+    cache_budget: int | None = None,
 ) -> Iterator[tuple[int, np.ndarray, dict]]:
     """Captures in their own units -> their videos in the same units, by any method, in order, as one job.
 
@@ -724,6 +731,10 @@ def reconstruct_captures(
         every capture again with its own (one job).  ``omp``: about twice the
         time; ``nonlocal``: a survey first (:data:`ADAPT_SURVEY_STEP`), about
         1.2x its time, +0.6 dB on held-out real footage (README).
+    cache_budget : int, optional
+        Bytes the cache's working stores may take (:class:`codedvideo.cache.CacheBudget`): the least recently
+        used are removed as the job's windows finish (with ``adapt``, the first passes' stores only after the
+        job).  None: no limit.
 
     Yields
     ------
@@ -823,6 +834,11 @@ def reconstruct_captures(
     if sparse and adapt:
         blown.clear()  # the warnings the first jobs swallowed are said by the second
         used.cache_clear()
+    # sized once the first passes (with --adapt) have made their stores; those the second job reads are kept
+    budget = None if cache_budget is None or not sparse else CacheBudget(cache, cache_budget)
+    if budget is not None:
+        budget.keep.update(Path(p) for p in first_stores.values())
+        job = functools.partial(job, budget=budget)
     # a capture not adapted (flat) keeps the dictionary and its key: its second job is the first's, from the cache
     # (with the survey, the method's own job at the second pass's stride)
     results = ((job(lambda i: (adapted.pop(i), "") if i in adapted else (dictionary, dictionary_key), desc="adapted",
@@ -867,6 +883,9 @@ def reconstruct_captures(
             info["saturated_pixels"] = saturated
             del coded_used, mask_used
             yield i, volume, info
+    if budget is not None and budget.keep:  # the job is over: the first passes' stores may go too
+        budget.keep.clear()
+        budget.finished([])
 
 
 def _nonlocal_unavailable(mask: np.ndarray, D: np.ndarray) -> str | None:
@@ -888,7 +907,7 @@ def reconstruct_capture(method: str, coded: np.ndarray, mask: np.ndarray, *, sti
     results = reconstruct_captures(method, [coded], lambda i: mask, still_of=None if still is None else (lambda i: still),
                                    **options)
     with contextlib.closing(results):
-        _, volume, info = next(results)
+        (_, volume, info), = results  # to its end: the job's cache budget is applied there
     return volume, info
 
 
@@ -988,7 +1007,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
             rc.method, capture["coded"], capture["mask"], data_range=units, settings=omp_settings(rc, sigma, scale=units.scale),
             dictionary=D, dictionary_key=dmeta["sha256"], dictionary_name=str(dict_path),
             white_level=cfg.noise.white_level, where="simulated capture", tile=rc.tile, cache=cfg.cache,
-            scheduler=rc.scheduler, workers=rc.workers, progress=progress, adapt=rc.adapt)
+            scheduler=rc.scheduler, workers=rc.workers, progress=progress, adapt=rc.adapt, cache_budget=rc.cache_budget)
         report["seconds"]["reconstruct"] = time.perf_counter() - t0
         report["reconstruction"] = info
         t0 = time.perf_counter()
