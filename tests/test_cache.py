@@ -438,3 +438,39 @@ def test_a_cache_budget_that_is_not_a_size_is_one_line_before_any_work(tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "--cache-budget" in proc.stderr and "20X" in proc.stderr
     assert not (tmp_path / "r.npy").exists() and not (tmp_path / "c").exists()
+
+
+def test_a_job_whose_stores_may_not_fit_the_disk_is_said_before_any_work(tmp_path, monkeypatch):
+    """The working stores a stream will make, against the free space under the cache: one warning line naming
+    the cache, the sizes and --cache-budget before the job starts; with a budget that fits, none."""
+    import shutil as sh
+    from collections import namedtuple
+
+    from codedvideo.cli import main
+
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "coded.npy", rng.uniform(0, 255, (4, 16, 16)).astype(np.float32))
+    np.save(tmp_path / "mask.npy", (rng.random((2, 16, 16)) < 0.5).astype(np.uint8))
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(sh, "disk_usage", lambda path: usage(10**9, 10**9 - 12000, 12000))  # 12000 bytes free
+    args = ["reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+            "--method", "dct", "--cache", str(tmp_path / "c")]
+    import warnings
+
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert main(["-q", *args, "--output", str(tmp_path / "a.npy")]) == 0
+    said = [str(w.message) for w in said if "free" in str(w.message)]
+    assert len(said) == 1 and "--cache-budget" in said[0] and str(tmp_path / "c") in said[0]
+    assert "about 15 KiB (4 captures of about 3.8 KiB)" in said[0] and "12 KiB free" in said[0]
+    # a budget counts what a job holds at once: the budget and the stores in use beside it
+    from codedvideo.cache import cache_room_problem
+
+    assert cache_room_problem(tmp_path / "c", 1000, 2, 16, 16, None) is not None
+    assert cache_room_problem(tmp_path / "c", 1000, 2, 16, 16, 1, in_use=3) is None  # 1 B + 3 x 3840 B
+    assert cache_room_problem(tmp_path / "c", 1000, 2, 16, 16, 1, in_use=4) is not None
+    monkeypatch.setattr(sh, "disk_usage", lambda path: usage(10**9, 0, 10**9))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert main(["-q", *args, "--output", str(tmp_path / "b.npy")]) == 0
+    assert not [w for w in said if "free" in str(w.message)]

@@ -255,6 +255,46 @@ class CacheBudget:
         return removed
 
 
+def working_store_bytes(frames: int, height: int, width: int) -> int:
+    """About the bytes of one capture's working store: its volume (float32) and its inputs (coded float32,
+    mask and still map uint8), before compression (which shrinks a volume by about a seventh)."""
+    return frames * height * width * 5 + height * width * 5
+
+
+def cache_room_problem(cache: str | os.PathLike, captures: int, frames: int, height: int, width: int,
+                       budget: int | None, in_use: int = 3) -> str | None:
+    """Why the disk under ``cache`` may not hold a job's working stores (None: it may), for a warning before
+    any work: the stores of ``captures`` captures (with a budget: at most the budget and the ``in_use``
+    stores a job holds at once beside it) against the disk's free bytes."""
+    import shutil
+
+    each = working_store_bytes(frames, height, width)
+    need = captures * each if budget is None else min(captures * each, budget + in_use * each)
+    place = Path(cache).absolute()
+    while not place.exists() and place != place.parent:  # (the cache is made when the first entry is)
+        place = place.parent
+    try:
+        free = shutil.disk_usage(place).free
+    except OSError:
+        return None
+    if need <= free:
+        return None
+    advice = ("give --cache-budget (reconstruct.cache_budget) below the free space" if budget is None else
+              "give a smaller --cache-budget")
+    return (f"cache {cache}: this job's working stores may take about {_human(need)} ({captures} "
+            f"{'capture' if captures == 1 else 'captures'} of about {_human(each)}), and its disk has "
+            f"{_human(free)} free; {advice}, or a cache on a larger disk")
+
+
+def _human(size: float) -> str:
+    """Bytes as a person reads them: ``"3.2 GiB"``, ``"15 KiB"``, ``"512 B"``."""
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if size < 1024:
+            return f"{size:.0f} {unit}" if unit == "B" or size >= 10 else f"{size:.1f} {unit}"
+        size /= 1024
+    return f"{size:.1f} TiB"
+
+
 # ----------------------------------------------------------------------------- scanning
 def _scan(root: Path, remove) -> list[dict]:
     from .store import entry_lock
