@@ -225,19 +225,22 @@ def test_pipeline_yaml_reconstruct_adapt_runs_the_adapted_passes(tmp_path):
 
 
 def test_nonlocal_adapt_within_a_cache_budget_keeps_the_surveys_until_the_job_ends(tmp_path, D, monkeypatch):
-    """A budget below one capture's stores, windows of one capture: the second pass still reads every capture's
-    survey (kept until the job ends, then removed like the rest), to the bits of the unlimited job."""
+    """A budget below one capture's stores, windows of one capture, the cache named relative to the current
+    folder (as the default, cache): the second pass still reads every capture's survey (kept until the job
+    ends, then removed like the rest), to the bits of the unlimited job. (Found in review: the budget named the
+    stores it found relative and the job's absolute, so a relative cache lost the surveys it needed.)"""
     from codedvideo import stages
     from codedvideo.cache import _folder_bytes
 
     monkeypatch.setattr(stages, "WINDOW_TILES", 1)
+    monkeypatch.chdir(tmp_path)
     video = load_video("footage:carphone", frames=24, size=(48, 48))
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=3)
     run = dict(common(D, tmp_path / "free"), settings=omp_settings(PipelineConfig().reconstruct.model_copy(
         update=dict(method="nonlocal")), 0.0))
     free = list(reconstruct_captures("nonlocal", list(cap["coded"]), lambda i: cap["mask"], adapt=True, **run))
     bounded = list(reconstruct_captures("nonlocal", list(cap["coded"]), lambda i: cap["mask"], adapt=True,
-                                        **dict(run, cache=tmp_path / "bounded"), cache_budget=100_000))
+                                        **dict(run, cache="bounded"), cache_budget=100_000))
     for (_, want, _), (_, got, info) in zip(free, bounded):
         np.testing.assert_array_equal(got, want)
         assert info["adapted"]["adapted"]

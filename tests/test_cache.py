@@ -350,7 +350,7 @@ def test_sizes_are_read_in_powers_of_1024_and_anything_else_is_refused():
 
     assert [parse_size(t) for t in ("0", "123", "500M", "20G", "1.5T", "2GiB", ".5k", 7)] == [
         0, 123, 500 * 2**20, 20 * 2**30, int(1.5 * 2**40), 2 * 2**30, 512, 7]
-    for bad in ("-1", "12X", "", "nan", "G", float("inf"), -3):
+    for bad in ("-1", "12X", "", "nan", "G", "20i", "5bk", float("inf"), -3):
         with pytest.raises(ValueError):
             parse_size(bad)
 
@@ -462,7 +462,7 @@ def test_a_job_whose_stores_may_not_fit_the_disk_is_said_before_any_work(tmp_pat
         assert main(["-q", *args, "--output", str(tmp_path / "a.npy")]) == 0
     said = [str(w.message) for w in said if "free" in str(w.message)]
     assert len(said) == 1 and "--cache-budget" in said[0] and str(tmp_path / "c") in said[0]
-    assert "about 15 KiB (4 captures of about 3.8 KiB)" in said[0] and "12 KiB free" in said[0]
+    assert "about 15 KiB (4 stores of about 3.8 KiB)" in said[0] and "12 KiB free" in said[0]
     # a budget counts what a job holds at once: the budget and the stores in use beside it
     from codedvideo.cache import cache_room_problem
 

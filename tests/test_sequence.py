@@ -606,3 +606,56 @@ def test_a_job_in_windows_equals_one_window_and_holds_a_few_windows_at_a_time(tm
     assert solved == solved_one == 4 * 9
     # one bar for the job, its length estimated window by window, full at the end
     assert bars == [(36, 36)]
+
+
+def test_a_job_never_waits_for_a_busy_entry_while_it_holds_another(tmp_path, monkeypatch):
+    """Windows let go of their entries and take others later, so two runs could each hold what the other waits
+    for (found in review: two runs of [A, B, A] hung for ever). Another run holds A and waits for B, which the
+    job holds when it asks for A: the job puts A off until it holds nothing, and both finish."""
+    import threading
+
+    from codedvideo import stages
+    from codedvideo.cache import RECON_VERSION, content_key
+    from codedvideo.codes import make_code
+    from codedvideo.dictionaries import dct_dictionary
+    from codedvideo.physics import simulate
+    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.store import entry_lock
+    from codedvideo.synth import make_scene
+
+    monkeypatch.setattr(stages, "WINDOW_TILES", 1)
+    video = make_scene("default", frames=8, size=(48, 48))
+    mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
+    codeds = [simulate(video[4 * t : 4 * t + 4], mask, sigma=1.0, rng=t) for t in range(2)]
+    D, s, cache = dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=2.0), tmp_path / "c"
+    entry = [cache.absolute() / f"recon-{content_key(RECON_VERSION, c, mask, content_key(D), s.__dict__, 16)}.zarr"
+             for c in codeds]  # B (capture 0) and A (capture 1)
+    holds_a, job_holds_b, other_done = threading.Event(), threading.Event(), threading.Event()
+
+    def other_run():
+        with entry_lock(entry[1]):  # A
+            holds_a.set()
+            job_holds_b.wait(60)
+            with entry_lock(entry[0]):  # B: waits until the job lets go of it
+                pass
+        other_done.set()
+
+    planned = set()
+
+    def capture(i):
+        if i == 1 and i not in planned:  # the job asks for A: it holds B by now
+            job_holds_b.set()
+        planned.add(i)
+        return codeds[i], mask, None
+
+    out = []
+    other = threading.Thread(target=other_run, daemon=True)
+    other.start()
+    assert holds_a.wait(60)
+    job = threading.Thread(target=lambda: out.extend(stages.sparse_volumes(2, capture, D, settings=s, tile=16,
+                                                                           cache=cache, progress=False)),
+                           daemon=True)
+    job.start()
+    job.join(120)
+    assert not job.is_alive() and other_done.is_set(), "the job and the other run waited for each other"
+    assert [i for i, _, _ in out] == [0, 1]

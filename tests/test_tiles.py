@@ -172,3 +172,39 @@ def test_patch_stride_covers_every_pixel_and_chunking_does_not_matter(capture, s
     for tile in (9, 16):
         vol, _ = reconstruct_volume(coded, mask, D, settings=s, tile=tile, cache=tmp_path / str(tile), progress=False)
         np.testing.assert_allclose(vol, whole, rtol=1e-4, atol=1e-3)
+
+
+@pytest.mark.parametrize("scheduler", [None, "sync"])
+def test_a_runner_chains_its_graphs_and_lets_go_of_those_done(scheduler):
+    """Three graphs handed over one after another run to the end on one pool (sync: one at a time), each
+    group waited for in order; a graph let go of holds no tasks and still answers; a task's error is raised
+    by the wait for it, and the runner closes."""
+    import threading
+
+    import dask
+
+    from codedvideo.parallel import GraphRunner
+
+    ran, lock = [], threading.Lock()
+
+    def work(g, i):
+        with lock:
+            ran.append((g, i))
+        if (g, i) == (2, 1):
+            raise ValueError("tile 1 of graph 2")
+        return g * 10 + i
+
+    task = dask.delayed(work, pure=False)
+    with GraphRunner(scheduler=scheduler, workers=2, progress=False) as runner:
+        graphs = [runner.offer([task(g, i, dask_key_name=f"tile-{g}-{i}") for i in range(4)],
+                               [[0, 1], [2, 3]], share=1 / 3) for g in range(3)]
+        for g in graphs[:2]:
+            for j in range(2):
+                runner.wait(g, j)
+            runner.forget(g)
+            assert runner.graphs[g]["tasks"] == [] and runner.graphs[g]["finished"].all()
+            runner.wait(g, 1)  # (answers at once)
+        with pytest.raises(ValueError, match="tile 1 of graph 2"):
+            runner.wait(graphs[2], 0)
+    assert {(g, i) for g, i in ran} >= {(g, i) for g in range(2) for i in range(4)}
+    assert not any(t.is_alive() for t in runner.threads)

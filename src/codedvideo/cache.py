@@ -158,7 +158,7 @@ def clean_cache(root: str | os.PathLike, *, broken_only: bool) -> list[Path]:
 
 
 # ----------------------------------------------------------------------------- a budget for working stores
-_SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*([kmgt]?)i?b?\s*$", re.IGNORECASE)
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(?:([kmgt])(?:ib|b)?|b)?\s*$", re.IGNORECASE)
 
 
 def parse_size(text: str | int | float) -> int:
@@ -170,7 +170,7 @@ def parse_size(text: str | int | float) -> int:
         m = _SIZE.match(str(text))
         if not m:
             raise ValueError(f"{text!r} is not a size (for example 500M, 20G or 1.5T)")
-        value, unit = float(m.group(1)), m.group(2).lower()
+        value, unit = float(m.group(1)), (m.group(2) or "").lower()
     if not value >= 0 or value != value or value == float("inf"):
         raise ValueError(f"{text!r}: a size is a number of bytes >= 0")
     return int(value * 1024 ** "_kmgt".index(unit or "_"))
@@ -208,11 +208,12 @@ class CacheBudget:
     """
 
     def __init__(self, root: str | os.PathLike, budget: int):
-        self.root, self.budget = Path(root), int(budget)
+        # absolute, as the job names its stores: a relative cache (the default, cache) is one place either way
+        self.root, self.budget = Path(root).absolute(), int(budget)
         self.sizes: dict[Path, int] = {}
         self.used: dict[Path, float] = {}
         self.removed: list[Path] = []
-        #: Stores never removed while in this set (what the job will read again).
+        #: Stores never removed while in this set (what the job will read again; absolute paths).
         self.keep: set[Path] = set()
         if self.root.is_dir():
             for child in self.root.iterdir():
@@ -226,15 +227,17 @@ class CacheBudget:
         """Bytes of the working stores as last sized."""
         return sum(self.sizes.values())
 
-    def finished(self, entries) -> list[Path]:
+    def finished(self, entries, busy=()) -> list[Path]:
         """The job is done with ``entries`` (working stores, still locked by it or not): size them, mark them
-        used now, and remove stores, least recently used first, until the rest fit the budget.  Returns the
-        stores removed now."""
+        used now, and remove stores, least recently used first, until the rest fit the budget; never one in
+        ``busy`` (the entries the job holds: on a file system whose locks are per process, NFS, asking for
+        their lock again would not show them in use).  Returns the stores removed now."""
         from .store import entry_lock
 
+        busy = {Path(b).absolute() for b in busy}
         now = max(self.used.values(), default=0.0)
         for entry in entries:
-            entry = Path(entry)
+            entry = Path(entry).absolute()
             now += 1e-6  # (in the order given: the first done is the first to go)
             self.sizes[entry] = _folder_bytes(entry)
             self.used[entry] = max(now, time.time())
@@ -242,7 +245,7 @@ class CacheBudget:
         for entry in sorted(self.sizes, key=lambda e: self.used.get(e, 0.0)):
             if self.total() <= self.budget:
                 break
-            if entry in self.keep:
+            if entry in self.keep or entry in busy:
                 continue
             with entry_lock(entry, blocking=False) as held:
                 if not held:  # in use (by this job or another run): kept
@@ -261,15 +264,15 @@ def working_store_bytes(frames: int, height: int, width: int) -> int:
     return frames * height * width * 5 + height * width * 5
 
 
-def cache_room_problem(cache: str | os.PathLike, captures: int, frames: int, height: int, width: int,
+def cache_room_problem(cache: str | os.PathLike, stores: int, frames: int, height: int, width: int,
                        budget: int | None, in_use: int = 3) -> str | None:
-    """Why the disk under ``cache`` may not hold a job's working stores (None: it may), for a warning before
-    any work: the stores of ``captures`` captures (with a budget: at most the budget and the ``in_use``
-    stores a job holds at once beside it) against the disk's free bytes."""
+    """Why the disk under ``cache`` may not hold a job's ``stores`` working stores (None: it may), for a
+    warning before any work: all of them (with a budget: at most the budget and the ``in_use`` stores a
+    job holds at once beside it) against the disk's free bytes."""
     import shutil
 
     each = working_store_bytes(frames, height, width)
-    need = captures * each if budget is None else min(captures * each, budget + in_use * each)
+    need = stores * each if budget is None else min(stores * each, budget + in_use * each)
     place = Path(cache).absolute()
     while not place.exists() and place != place.parent:  # (the cache is made when the first entry is)
         place = place.parent
@@ -281,8 +284,8 @@ def cache_room_problem(cache: str | os.PathLike, captures: int, frames: int, hei
         return None
     advice = ("give --cache-budget (reconstruct.cache_budget) below the free space" if budget is None else
               "give a smaller --cache-budget")
-    return (f"cache {cache}: this job's working stores may take about {_human(need)} ({captures} "
-            f"{'capture' if captures == 1 else 'captures'} of about {_human(each)}), and its disk has "
+    return (f"cache {cache}: this job's working stores may take about {_human(need)} ({stores} "
+            f"{'store' if stores == 1 else 'stores'} of about {_human(each)}), and its disk has "
             f"{_human(free)} free; {advice}, or a cache on a larger disk")
 
 

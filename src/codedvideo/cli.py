@@ -616,7 +616,9 @@ def _cmd_reconstruct(a) -> int:
 
         # a job holds the stores of three windows at most (the one handed out, the next, the one being planned)
         window = -(-WINDOW_TILES // len(plan_tiles((h, w), rc.tile)))
-        problem = cache_room_problem(a.cache, count, n, h, w, rc.cache_budget, in_use=3 * window)
+        # (--adapt: a first pass's store too, a capture)
+        problem = cache_room_problem(a.cache, count * (2 if rc.adapt else 1), n, h, w, rc.cache_budget,
+                                     in_use=3 * window)
         if problem:
             warnings.warn(problem, stacklevel=1)
     options = dict(data_range=units, settings=settings, dictionary=D, dictionary_key=meta.get("sha256", ""),

@@ -475,6 +475,8 @@ class GraphRunner:
         self.threads: list[threading.Thread] = []
         self.launched = 0
         self.share = 0.0  # the job's share the graphs offered so far cover
+        self.offered = 0  # tasks offered so far (stages included)
+        self.forgotten = 0  # tasks of the graphs let go of (:meth:`forget`), all finished
         self.pool = self.client = None
         self.limits = contextlib.ExitStack()
         self.quiet: list = []
@@ -482,7 +484,11 @@ class GraphRunner:
 
     def __enter__(self) -> "GraphRunner":
         if self.distributed:
-            self._open_client()
+            try:
+                self._open_client()
+            except BaseException:
+                self.close()  # (the loggers quietened for the client are restored)
+                raise
         else:
             self.limits.enter_context(_single_threaded_blas(self.scheduler != "sync"))  # one core per worker thread
             if self.scheduler != "sync":
@@ -506,8 +512,9 @@ class GraphRunner:
             with contextlib.suppress(Exception):
                 self.client.close()
             self.client = None
-            for q, level in self.quiet:
-                q.setLevel(level)
+        for q, level in self.quiet:  # (also when the client could not be made)
+            q.setLevel(level)
+        self.quiet = []
         self.limits.close()
         if self.bar is not None:
             self.bar.close()
@@ -525,13 +532,13 @@ class GraphRunner:
                                 index={task.key: i for i, task in enumerate(tasks)}, stages=stages,
                                 left=len(tasks) + len(stages), drained=not tasks))
         self.share = min(1.0, self.share + share)
-        offered = sum(len(x["tasks"]) + len(x["stages"]) for x in self.graphs)
-        if offered and self.bar is None:
+        self.offered += len(tasks) + len(stages)
+        if self.offered and self.bar is None:
             from tqdm.auto import tqdm
 
             self.bar = tqdm(total=0, desc=self.desc, unit="task", disable=not self.progress, leave=False)
         if self.bar is not None:
-            _grow_bar(self.bar, max(offered, round(offered / self.share)) if self.share > 0 else offered)
+            _grow_bar(self.bar, max(self.offered, round(self.offered / self.share)) if self.share > 0 else self.offered)
         if self.distributed:
             self._submit(g)
         else:
@@ -539,12 +546,27 @@ class GraphRunner:
                 self._launch_ready()
         return g
 
+    def forget(self, g: int) -> None:
+        """Let go of graph ``g``'s tasks (and a cluster's results) once every group of it has been waited for,
+        so that what a long job holds does not grow with its windows; :meth:`wait` on it still answers."""
+        graph = self.graphs[g]
+        if graph.get("forgotten"):
+            return
+        graph.update(tasks=[], index={}, stages=set(), forgotten=True)
+        futures = graph.pop("futures", None)
+        if futures:
+            self.forgotten += len(futures)
+            with contextlib.suppress(Exception):
+                self.client.cancel([f for f in futures if not f.done()])  # (none: every group was waited for)
+        self.threads = [t for t in self.threads if t.is_alive()]
+
     def wait(self, g: int, j: int) -> None:
         """Block until the tasks that group ``j`` of graph ``g`` needs have finished; raise a task's error."""
         graph = self.graphs[g]
         need = graph["needs"][j]
         if self.distributed:
-            self._wait_distributed(graph, need)
+            if not graph.get("forgotten"):  # (a graph let go of was waited for whole)
+                self._wait_distributed(graph, need)
             return
         while not graph["finished"][need].all():
             item = self.events.get()
@@ -660,7 +682,8 @@ class GraphRunner:
             wait([futures[i] for i in need])
             for i in need:
                 futures[i].result()  # raises the task's error
-        done = sum(f.done() for g in self.graphs for f in g.get("futures", ()))
+        done = self.forgotten + sum(f.done() for g in self.graphs if not g.get("forgotten")
+                                    for f in g.get("futures", ()))
         if self.bar is not None:
             self.bar.update(done - self.counted)
         self.counted = done

@@ -403,9 +403,8 @@ def sparse_volumes(
         coded, mask, still = pair
         Di, dkey_i = D(i) if per_capture else (D, dkey)
         never_open = _check_capture(coded, mask, Di)
-        if never_open:
-            unopened.append(never_open)
         if (mask == mask[:, :1, :1]).all():  # one shutter pattern for all pixels: no temporal information
+            unopened.extend([never_open] if never_open else [])
             window.how.append("static")
             return 0
         first = first_of(i) if first_of is not None else None
@@ -417,8 +416,9 @@ def sparse_volumes(
         # absolute: a dask.distributed worker started in another folder opens it too
         entry = Path(cache).absolute() / f"recon-{key}.zarr"
         # One run at a time per entry (processes, threads, clients of one dask cluster): a second run waits
-        # here, then reuses the tiles the first one finished.
+        # for it (once this job holds no other entry), then reuses the tiles the first one finished.
         locks.take(entry, window)
+        unopened.extend([never_open] if never_open else [])
         n_tiles = len(plan_tiles(coded.shape, tile, patch=PATCH))
         if key not in live:
             store = WorkStore.create(
@@ -441,7 +441,13 @@ def sparse_volumes(
         window, tiles = _Window(start=position), 0
         while position < count and (tiles < WINDOW_TILES or not window.how):
             t0 = time.perf_counter()
-            tiles += max(1, plan_capture(position, window))
+            try:
+                tiles += max(1, plan_capture(position, window))
+            except _Busy:  # another run holds its entry: planned once this job holds none (the window ends here)
+                if not window.how:
+                    locks.release(window)
+                    return None
+                break
             window.seconds_plan.append(time.perf_counter() - t0)
             position += 1
         if position >= count and unopened:
@@ -457,7 +463,7 @@ def sparse_volumes(
 
     with contextlib.closing(locks), GraphRunner(scheduler=scheduler, workers=workers, progress=progress,
                                                 desc=desc) as runner:
-        windows = [plan_window()]
+        windows = [w for w in (plan_window(),) if w is not None]  # (holding nothing: it waits for a busy entry)
         while windows:
             window = windows[0]
             if len(windows) == 1:  # the next window planned (and handed to the workers) while this one runs
@@ -489,9 +495,12 @@ def sparse_volumes(
             for key in window.keys:  # its stores done: later captures with the same inputs lock them afresh
                 del live[key]
             locks.release(window)
+            runner.forget(window.graph)
             windows.pop(0)
             if budget is not None:
-                budget.finished(store.path for store in window.stores)
+                budget.finished((store.path for store in window.stores), busy=locks.held)
+            if not windows and position < count:  # the next window put off (an entry busy): nothing is held now
+                windows.append(plan_window())
 
 
 #: A job's captures are planned and computed in windows of at least this many tiles (a graph each, run back to
@@ -517,6 +526,10 @@ class _Window:
     graph: int = -1
 
 
+class _Busy(Exception):
+    """A cache entry another run holds, asked for while the job holds others (:meth:`_EntryLocks.take`)."""
+
+
 class _EntryLocks:
     """The cache entries a job holds (:func:`codedvideo.store.entry_lock`), each locked once however many
     captures of its windows use it, and let go when the last window that uses it is done."""
@@ -526,11 +539,16 @@ class _EntryLocks:
         self.held: dict[str, list] = {}  # entry -> [its lock, the windows using it (with repeats)]
 
     def take(self, entry: Path, window: _Window) -> None:
+        """Lock ``entry`` for ``window``.  While the job holds other entries it never waits for one that
+        another run holds (two runs taking each other's entries in turn would wait for ever): it raises
+        :class:`_Busy`, and the entry is asked for again once the job holds nothing."""
         name = str(entry)
         if name not in self.held:
             _allow_open_files(len(self.held) + 65, self.cache)
             lock = contextlib.ExitStack()
-            lock.enter_context(entry_lock(entry))
+            if not lock.enter_context(entry_lock(entry, blocking=not self.held)):
+                lock.close()
+                raise _Busy(name)
             self.held[name] = [lock, []]
         self.held[name][1].append(id(window))
 
@@ -796,6 +814,7 @@ def reconstruct_captures(
         settings = dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP)
     job = functools.partial(sparse_volumes, count, for_sparse, settings=settings, tile=tile, cache=cache,
                             scheduler=scheduler, workers=workers, progress=progress)
+    budget = None if cache_budget is None or not sparse else CacheBudget(cache, cache_budget)
     nonlocal_checked: dict[str, str | None] = {}
 
     def nonlocal_problem(mask) -> str | None:
@@ -828,16 +847,17 @@ def reconstruct_captures(
                 # its own per-patch OMP with the adapted dictionary, as with omp --adapt)
                 if survey and nonlocal_problem(for_sparse(i)[1]) is None:
                     first_stores[i] = info["work_store"]
+                    if budget is not None:  # the second job reads it: kept until the job ends
+                        budget.keep.add(Path(info["work_store"]).absolute())
             records[i] = dict(record, first_pass=dict(seconds=sum(info["seconds"].values()),
                                                       tile_seconds=info["seconds_total"]))
+        if budget is not None and info.get("work_store"):  # (the first job was closed before its window ended)
+            budget.finished([info["work_store"]])
         del first
     if sparse and adapt:
         blown.clear()  # the warnings the first jobs swallowed are said by the second
         used.cache_clear()
-    # sized once the first passes (with --adapt) have made their stores; those the second job reads are kept
-    budget = None if cache_budget is None or not sparse else CacheBudget(cache, cache_budget)
     if budget is not None:
-        budget.keep.update(Path(p) for p in first_stores.values())
         job = functools.partial(job, budget=budget)
     # a capture not adapted (flat) keeps the dictionary and its key: its second job is the first's, from the cache
     # (with the survey, the method's own job at the second pass's stride)
