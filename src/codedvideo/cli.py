@@ -568,7 +568,7 @@ def _cmd_reconstruct(a) -> int:
     one metrics JSON with an entry per coded image and the totals."""
     from .metrics import evaluate, json_safe, mean_psnr
     from .volumes import write_json, metrics_path, volume_writer
-    from .stages import SPARSE_METHODS, reconstruct_captures, trivial_estimate
+    from .stages import SPARSE_METHODS, cache_room, reconstruct_captures, trivial_estimate
     from .units import NOISE_ROOM, NOISE_SIGMAS, OUTLIER_SHARE, infer_data_range, share_above, static_peak, \
         static_quantile, tolerance_warning
 
@@ -609,16 +609,7 @@ def _cmd_reconstruct(a) -> int:
 
         check_mat_size(a.output, shape)
     if a.method in SPARSE_METHODS:  # a working store a capture: said before any work when the disk may not hold them
-        from .cache import cache_room_problem
-
-        from .parallel import plan_tiles
-        from .stages import WINDOW_TILES
-
-        # a job holds the stores of three windows at most (the one handed out, the next, the one being planned)
-        window = -(-WINDOW_TILES // len(plan_tiles((h, w), rc.tile)))
-        # (--adapt: a first pass's store too, a capture)
-        problem = cache_room_problem(a.cache, count * (2 if rc.adapt else 1), n, h, w, rc.cache_budget,
-                                     in_use=3 * window)
+        problem = cache_room(a.cache, count, (n, h, w), tile=rc.tile, budget=rc.cache_budget, adapt=rc.adapt)
         if problem:
             warnings.warn(problem, stacklevel=1)
     options = dict(data_range=units, settings=settings, dictionary=D, dictionary_key=meta.get("sha256", ""),

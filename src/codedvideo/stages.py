@@ -24,7 +24,7 @@ import numpy as np
 from . import io as cio
 from . import patches as P
 from . import physics
-from .cache import RECON_VERSION, CacheBudget, content_key, dictionary_key
+from .cache import RECON_VERSION, CacheBudget, cache_room_problem, content_key, dictionary_key
 from .codes import make_code
 from .config import PipelineConfig
 from .dictionaries import dct_dictionary, learn_dictionary
@@ -508,6 +508,16 @@ def sparse_volumes(
 #: window is planned (not all of its captures), the next window is planned while one runs, and what the plans and
 #: the graph hold, and the cache locks kept, do not grow with its length.  Equal tiles are shared within a window.
 WINDOW_TILES = 64
+
+
+def cache_room(cache, count: int, shape: tuple[int, int, int], *, tile: int, budget: int | None,
+               adapt: bool = False) -> str | None:
+    """Why the disk under ``cache`` may not hold the working stores of a job of ``count`` captures of
+    ``shape`` (N, H, W) (None: it may; :func:`codedvideo.cache.cache_room_problem`).  With ``adapt`` a
+    capture makes two; with a budget the job holds at most three windows' stores beside it."""
+    n, h, w = shape
+    window = -(-WINDOW_TILES // len(plan_tiles((h, w), tile, patch=PATCH)))  # captures a window
+    return cache_room_problem(cache, count * (2 if adapt else 1), n, h, w, budget, in_use=3 * window)
 
 
 @dataclasses.dataclass
