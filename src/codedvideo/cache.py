@@ -235,15 +235,15 @@ class CacheBudget:
         from .store import entry_lock
 
         busy = {Path(b).absolute() for b in busy}
-        now = max(self.used.values(), default=0.0)
+        now = max(time.time(), max(self.used.values(), default=0.0))
         for entry in entries:
             entry = Path(entry).absolute()
             now += 1e-6  # (in the order given: the first done is the first to go)
             self.sizes[entry] = _folder_bytes(entry)
-            self.used[entry] = max(now, time.time())
-        removed = []
+            self.used[entry] = now
+        removed, total = [], self.total()
         for entry in sorted(self.sizes, key=lambda e: self.used.get(e, 0.0)):
-            if self.total() <= self.budget:
+            if total <= self.budget:
                 break
             if entry in self.keep or entry in busy:
                 continue
@@ -252,7 +252,7 @@ class CacheBudget:
                     continue
                 if os.path.lexists(entry) and _looks_like_entry(entry, "recon"):
                     _remove_entry(entry, removed)
-            del self.sizes[entry]
+            total -= self.sizes.pop(entry)
             self.used.pop(entry, None)
         self.removed += removed
         return removed
