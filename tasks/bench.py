@@ -21,6 +21,9 @@ Cases (issue "Fast reconstruction"):
            default and the non-local method, whole CLI processes, 8-bit and [0, 1] captures
   video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
            peak resident memory)
+  footage  coded video of held-out real clips (bikes.mp4: 31 captures of 272x640; carphone: 15 of
+           144x176; N = 8, read noise 2): simulated and reconstructed by the CLI as one job and
+           capture by capture, PSNR, SSIM, boundary step and seconds; the job again in [0, 1] floats
 
 Every case runs in its own process so that its peak resident memory is its
 own; each also times a fixed-size SGEMM so figures can be read as ratios
@@ -461,6 +464,55 @@ def case_video(quick: bool) -> dict:
     return out
 
 
+#: Read noise of the footage case's captures, in grey levels (8-bit units).
+FOOTAGE_SIGMA = 2.0
+
+
+def case_footage(quick: bool) -> dict:
+    """Issue 15 on held-out real footage, as a user would run a clip of their own: ``simulate --captures all``
+    of the whole clip, then ``reconstruct`` as one job and capture by capture (--independent-captures),
+    whole CLI processes with ``--truth``; the job again with the capture and truth in [0, 1] floats."""
+    import tempfile
+
+    from codedvideo import manifest
+
+    clips = (("carphone", "skv-carphone"),) if quick else (("bikes", "skv-bikes"), ("carphone", "skv-carphone"))
+    out = dict(case="footage", frames=8, bump=2, noise_sigma=FOOTAGE_SIGMA, sgemm_gflops=sgemm_gflops())
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
+        tmp = Path(tmp)
+        for name, entry in clips:
+            clip, cap = manifest.verify(manifest.lookup(entry)), tmp / name
+            extent = ["--captures", "3", "--size", "64", "64"] if quick else ["--captures", "all"]
+            _cli("simulate", clip, "--frames", 8, "--bump", 2, "--noise-sigma", FOOTAGE_SIGMA, "--seed", 0, *extent,
+                 "--output", cap, cwd=ROOT)
+            coded = np.load(cap / "coded.npy", mmap_mode="r")
+            row = dict(captures=int(coded.shape[0]), size=list(coded.shape[1:]))
+            runs = (("sequence", cap, 1.0, []), ("independent", cap, 1.0, ["--independent-captures"]),
+                    ("sequence [0, 1]", tmp / f"{name}-unit", 1 / 255, []))
+            for label, where, scale, flag in runs:
+                if scale != 1.0:  # the same capture as a user holding [0, 1] floats has it (mask unchanged)
+                    where.mkdir()
+                    for key in ("coded", "truth"):
+                        np.save(where / f"{key}.npy", (np.load(cap / f"{key}.npy") * np.float32(scale)).astype(np.float32))
+                    shutil.copy(cap / "mask.npy", where / "mask.npy")
+                result = tmp / f"{name}-{len(row)}.npy"
+                seconds, peak = _cli("reconstruct", "--coded", where / "coded.npy", "--mask", where / "mask.npy",
+                                     "--truth", where / "truth.npy", "--noise-sigma", FOOTAGE_SIGMA * scale,
+                                     "--output", result, "--cache", tmp / f"cache-{name}-{len(row)}", *flag, cwd=ROOT)
+                metrics = json.loads(result.with_suffix(".metrics.json").read_text())
+                quality, entries = metrics["quality"], metrics["captures"]
+                row[label] = dict(seconds=seconds, peak_rss_mb=peak, psnr=quality["psnr"], ssim=quality["ssim"],
+                                  boundary_to_inside=quality["boundaries"]["boundary_to_inside"],
+                                  patches_still=sum(e["reconstruction"]["patches_static"] for e in entries)
+                                  / sum(e["reconstruction"]["patches"] for e in entries), output=result)
+            eight, unit = np.load(row["sequence"].pop("output")), np.load(row["sequence [0, 1]"].pop("output"))
+            row["independent"].pop("output")
+            row["unit_max_diff_grey"] = float(np.max(np.abs(unit * np.float32(255) - eight)))
+            row["time_ratio"] = row["sequence"]["seconds"] / row["independent"]["seconds"]
+            out[name] = row
+    return out
+
+
 def case_nonlocal(quick: bool) -> dict:
     """Issue 16: the non-local method beside the default, GAP-TV and the DCT (tasks/bench_nonlocal.py)."""
     from bench_nonlocal import case_nonlocal as run
@@ -569,7 +621,7 @@ def case_calibrated(quick: bool) -> dict:
 
 
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
-             sequence=case_sequence, video=case_video, calibrated=case_calibrated, startup=case_startup, units=case_units)
+             sequence=case_sequence, video=case_video, footage=case_footage, calibrated=case_calibrated, startup=case_startup, units=case_units)
 CASES["nonlocal"] = case_nonlocal  # a keyword: not a dict() argument
 CASES["adapt"] = case_adapt
 
@@ -653,6 +705,17 @@ def table(results: dict) -> str:
                 if isinstance(v, dict) and "captures" in v:
                     rows.append(f"  video {key} N = 18: {v['seconds']:.0f} s ({v['seconds_per_capture']:.1f} s a capture), "
                                 f"peak {v['peak_rss_mb']:.0f} MB, {v['psnr']:.2f} dB")
+        if name == "footage":
+            for clip, v in r.items():
+                if isinstance(v, dict) and "sequence" in v:
+                    q, i, u = v["sequence"], v["independent"], v["sequence [0, 1]"]
+                    rows.append(f"  footage {clip} ({v['captures']} captures of {v['size'][0]}x{v['size'][1]}, N = 8, "
+                                f"noise {r['noise_sigma']:g}): one job {q['seconds']:.1f} s {q['psnr']:.2f} dB SSIM "
+                                f"{q['ssim']:.4f}, boundary step {q['boundary_to_inside']:.2f} of the inside step, "
+                                f"{100 * q['patches_still']:.0f} % of patches still; capture by capture {i['seconds']:.1f} s "
+                                f"{i['psnr']:.2f} dB SSIM {i['ssim']:.4f}, boundary {i['boundary_to_inside']:.2f} "
+                                f"({100 * v['time_ratio']:.1f} % of the time); [0, 1] floats {u['psnr']:.2f} dB, "
+                                f"{u['seconds']:.1f} s, largest difference {v['unit_max_diff_grey']:.2g} grey levels")
         if name == "bayer":
             rows.append(f"  bayer {r['pattern']}: colour result {r['omp']['psnr']:.2f} dB, demosaicked static estimate "
                         f"{r['static']['psnr']:.2f} dB")
@@ -676,7 +739,7 @@ def table(results: dict) -> str:
 
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--cases", default="a,static,b,b1,c,quality,nonlocal,adapt,bayer,sequence,video,calibrated,startup,units")
+    ap.add_argument("--cases", default="a,static,b,b1,c,quality,nonlocal,adapt,bayer,sequence,video,footage,calibrated,startup,units")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
