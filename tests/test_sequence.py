@@ -697,3 +697,35 @@ def test_a_pixel_is_still_only_where_its_still_answer_is_quiet_enough():
         quiet = agreeing_pixels(cap["coded"], mask_of, 1, sigma=STILL_NOISE_MAX * bump)
         loud = agreeing_pixels(cap["coded"], mask_of, 1, sigma=STILL_NOISE_MAX * bump * 1.01)
         assert quiet.all() and not loud.any()
+
+
+def test_the_still_answer_averages_the_captures_it_agrees_with_and_leaves_the_moving_patches_alone(
+        tmp_path, capsys, monkeypatch):
+    """Under read noise the still answer is coded / open count averaged over the captures a pixel agrees with:
+    less noise than the capture's own value where only still patches cover a pixel, and the very same bits
+    wherever a patch that moves does (N = 3: no join)."""
+    from codedvideo import sequence
+    from codedvideo.sequence import erode_to_patches, normalised
+
+    cap, n = tmp_path / "cap", 3
+    _run(capsys, "simulate", "synth:default-static70", "--frames", n, "--size", 64, 96, "--captures", T,
+         "--noise-sigma", 5, "--output", cap)
+    args = ["reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--noise-sigma", 5, "--method",
+            "dct", "--cache", tmp_path / "cache"]
+    _run(capsys, *args, "--output", tmp_path / "mean.npy")
+    averaged = sequence.still_values
+
+    def own(codeds, masks, i, *, sigma, scale=1.0):  # the same still pixels, each with its capture's own value
+        values = averaged(codeds, masks, i, sigma=sigma, scale=scale)
+        return np.where(np.isfinite(values), normalised(codeds[i], masks(i))[0] * np.float32(scale), np.nan)
+
+    monkeypatch.setattr(sequence, "still_values", own)
+    _run(capsys, *args, "--output", tmp_path / "own.npy")
+    coded, mask, truth = (np.load(cap / f"{k}.npy") for k in ("coded", "mask", "truth"))
+    inner = np.concatenate([np.repeat(erode_to_patches(sequence.agreeing_pixels(coded, lambda j: mask, i, sigma=5))[None],
+                                      n, axis=0) for i in range(T)])
+    mean, mine = np.load(tmp_path / "mean.npy"), np.load(tmp_path / "own.npy")
+    assert inner.mean() > 0.3
+    np.testing.assert_array_equal(mean[~inner], mine[~inner])
+    rms = lambda v: float(np.sqrt(np.mean((v[inner] - truth[inner]) ** 2)))  # noqa: E731
+    assert rms(mean) < 0.8 * rms(mine)

@@ -624,11 +624,11 @@ def _cmd_reconstruct(a) -> int:
     else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
         still_of = None
         if job.kind == "captures" and count > 1 and not a.independent_captures:
-            from .sequence import agreeing_pixels
+            from .sequence import still_values
 
             # what did not change since the capture before or until the one after (asked again by the join)
             still_of = functools.lru_cache(maxsize=4)(
-                lambda i: agreeing_pixels(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale))
+                lambda i: still_values(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale))
         results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, adapt=rc.adapt,
                                        cache_budget=rc.cache_budget, **options)
         if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:

@@ -747,9 +747,9 @@ def reconstruct_captures(
     white_level : float, optional
         Pixels at or above it (capture units) are missing measurements.
     still_of : callable, optional
-        ``still_of(i)`` -> (H, W) bool (:func:`codedvideo.sequence.agreeing_pixels`):
-        pixels whose ``coded / open count`` agrees with a neighbouring
-        capture.  Patches wholly inside them take that value in every
+        ``still_of(i)`` -> (H, W) float32 (:func:`codedvideo.sequence.still_values`):
+        the still answer, in working units, of the pixels whose ``coded / open
+        count`` agrees with a neighbouring capture, NaN elsewhere.  Patches wholly inside them take that value in every
         sub-frame without a dictionary search; a capture in which every
         measured pixel agrees is the still estimate itself.  (Methods without
         patches: the pixels whose 13x13 neighbourhood agrees take it.)
@@ -800,8 +800,15 @@ def reconstruct_captures(
         coded_used = np.asarray(coded_used, np.float32) * scale if scale != 1 else np.asarray(coded_used, np.float32)
         still = None
         if still_of is not None:  # asked again when the capture is finished (not kept: T maps of H x W)
-            found = still_of(i) & np.asarray(mask_used).any(0)
-            still = found if found.any() else None
+            values = still_of(i)
+            found = np.isfinite(values) & np.asarray(mask_used).any(0)
+            if found.any():
+                # a pixel that only still patches cover measures its still answer (the captures it agrees with
+                # averaged in): coded = open count x value.  Pixels that a patch which moves covers keep their
+                # own measurement, so the search of that patch is the one it was (tested)
+                still, inner = found, erode_to_patches(found, PATCH)
+                coded_used = np.where(inner, np.asarray(mask_used, np.float32).sum(0) * values,
+                                      coded_used).astype(np.float32)
         moving = still is None or int(still.sum()) < int(np.asarray(mask_used).any(0).sum())
         return coded_used, mask_used, still, moving, saturated
 
@@ -903,8 +910,7 @@ def reconstruct_captures(
                                                                   mask_of(i), float(white_level) * float(scale))
             if still is not None and not sparse:  # no patches: the pixels whose every patch would be still
                 inner = erode_to_patches(still, PATCH)
-                q = normalised(codeds[i], mask_of(i))[0] * scale
-                volume[:, inner] = q[inner]
+                volume[:, inner] = normalised(coded_used, mask_used)[0][inner]
             info["still_pixels"] = 0 if still is None else int(still.sum())
             if scale != 1:
                 volume /= scale
@@ -933,7 +939,8 @@ def _nonlocal_unavailable(mask: np.ndarray, D: np.ndarray) -> str | None:
 
 def reconstruct_capture(method: str, coded: np.ndarray, mask: np.ndarray, *, still: np.ndarray | None = None,
                         **options) -> tuple[np.ndarray, dict]:
-    """One capture in its own units -> its video in the same units: a job of one (:func:`reconstruct_captures`)."""
+    """One capture in its own units -> its video in the same units: a job of one (:func:`reconstruct_captures`);
+    ``still``: its still values in working units, NaN where not still (:func:`codedvideo.sequence.still_values`)."""
     results = reconstruct_captures(method, [coded], lambda i: mask, still_of=None if still is None else (lambda i: still),
                                    **options)
     with contextlib.closing(results):
