@@ -729,3 +729,8 @@ def test_the_still_answer_averages_the_captures_it_agrees_with_and_leaves_the_mo
     np.testing.assert_array_equal(mean[~inner], mine[~inner])
     rms = lambda v: float(np.sqrt(np.mean((v[inner] - truth[inner]) ** 2)))  # noqa: E731
     assert rms(mean) < 0.8 * rms(mine)
+    # the metrics' measurement residual is each capture's own, not that of the averaged values it was given
+    reported = [e["reconstruction"]["measurement_residual_rms"]
+                for e in json.loads((tmp_path / "mean.metrics.json").read_text())["captures"]]
+    own_residual = [float(np.sqrt(np.mean(((mean[i * n:(i + 1) * n] * mask).sum(0) - coded[i]) ** 2))) for i in range(T)]
+    np.testing.assert_allclose(reported, own_residual, rtol=1e-4)

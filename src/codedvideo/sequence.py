@@ -8,10 +8,9 @@ noise, with the capture before or after it, and its still answer (``q``
 averaged with the captures it agrees with, :func:`still_values`) is quiet
 enough to be worth taking.  A 7x7 patch whose every pixel agrees is still: it
 takes the still answer in every sub-frame, with no dictionary search, while
-every other patch is solved with all of its measurements (a still pixel's own
-measurement being its still answer times its open count); the pixels averaged
-from still patches alone (those whose 13x13 neighbourhood agrees) are the
-still answer exactly.
+every other patch is solved with all of its measurements, its own; the pixels
+averaged from still patches alone (those whose 13x13 neighbourhood agrees) are
+the still answer exactly.
 
 Captures reconstructed one by one also meet badly: the first and last
 sub-frames of a capture are its least determined, so the step from one capture

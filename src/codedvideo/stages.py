@@ -749,8 +749,9 @@ def reconstruct_captures(
     still_of : callable, optional
         ``still_of(i)`` -> (H, W) float32 (:func:`codedvideo.sequence.still_values`):
         the still answer, in working units, of the pixels whose ``coded / open
-        count`` agrees with a neighbouring capture, NaN elsewhere.  Patches wholly inside them take that value in every
-        sub-frame without a dictionary search; a capture in which every
+        count`` agrees with a neighbouring capture, NaN elsewhere.  Patches wholly inside them take the still
+        answer in every sub-frame without a dictionary search (that value where only still patches cover
+        a pixel; elsewhere the capture's own, which the patches that move see); a capture in which every
         measured pixel agrees is the still estimate itself.  (Methods without
         patches: the pixels whose 13x13 neighbourhood agrees take it.)
     adapt : bool
@@ -798,7 +799,7 @@ def reconstruct_captures(
                                   f"--white-level {white_level}; it is reconstructed from its clipped values")
                 coded_used, mask_used, saturated = coded, mask, 0
         coded_used = np.asarray(coded_used, np.float32) * scale if scale != 1 else np.asarray(coded_used, np.float32)
-        still = None
+        still = measured = None
         if still_of is not None:  # asked again when the capture is finished (not kept: T maps of H x W)
             values = still_of(i)
             found = np.isfinite(values) & np.asarray(mask_used).any(0)
@@ -807,10 +808,12 @@ def reconstruct_captures(
                 # averaged in): coded = open count x value.  Pixels that a patch which moves covers keep their
                 # own measurement, so the search of that patch is the one it was (tested)
                 still, inner = found, erode_to_patches(found, PATCH)
-                coded_used = np.where(inner, np.asarray(mask_used, np.float32).sum(0) * values,
-                                      coded_used).astype(np.float32)
+                averaged = np.where(inner, np.asarray(mask_used, np.float32).sum(0) * values,
+                                    coded_used).astype(np.float32)
+                if not np.array_equal(averaged, coded_used):
+                    measured, coded_used = coded_used, averaged
         moving = still is None or int(still.sum()) < int(np.asarray(mask_used).any(0).sum())
-        return coded_used, mask_used, still, moving, saturated
+        return coded_used, mask_used, still, moving, saturated, measured
 
     sparse = method in SPARSE_METHODS
     if sparse:
@@ -818,7 +821,7 @@ def reconstruct_captures(
                                                              dictionary_name, frames=mask_of(0).shape[0])
 
     def for_sparse(i: int):
-        coded_used, mask_used, still, moving, _ = used(i)
+        coded_used, mask_used, still, moving, _, _ = used(i)
         return (coded_used, mask_used, still) if sparse and moving else None
 
     if adapt and not sparse:
@@ -885,11 +888,14 @@ def reconstruct_captures(
     warned_nonlocal = False
     with contextlib.closing(results) if sparse else contextlib.nullcontext():
         for i, volume, info in results:
-            coded_used, mask_used, still, moving, saturated = used(i)
+            coded_used, mask_used, still, moving, saturated, measured = used(i)
             if not moving:  # nothing moves: no sparse coding at all
                 volume, info = _static_volume(coded_used, mask_used)
             elif volume is None:
                 volume, info = reconstruct_method(method, coded_used, mask_used)
+            if measured is not None:  # still answers averaged over captures: the residual of this capture's own
+                residual = physics.forward(volume, mask_used) - measured
+                info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
             if sparse and info.get("method") != "static":  # (the static estimate says so)
                 info = dict(info, method=method, dictionary_atoms=int(dictionary.shape[1]))
                 if i in records:  # the first job's and the adaptation's time beside the second's
@@ -917,7 +923,7 @@ def reconstruct_captures(
                 if info.get("measurement_residual_rms") is not None:
                     info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(scale)
             info["saturated_pixels"] = saturated
-            del coded_used, mask_used
+            del coded_used, mask_used, measured
             yield i, volume, info
     if budget is not None and budget.keep:  # the job is over: the first passes' stores may go too
         budget.keep.clear()
