@@ -25,8 +25,8 @@ run: $(STAMP)  ## run the whole pipeline on the embedded default scene
 test: $(STAMP)  ## run the test suite
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP)  ## time reconstruction against GAP-TV and a matrix multiply
-	$(BIN)/python tasks/bench.py
+bench: $(STAMP)  ## time reconstruction against GAP-TV and a matrix multiply (CASES=sequence,footage: some cases)
+	$(BIN)/python tasks/bench.py $(if $(CASES),--cases $(CASES))
 
 report: $(STAMP)  ## the paper's experiments and error against run time: out/report/report.html (+ .csv)
 	$(CLI) report "$(CONFIG)"
