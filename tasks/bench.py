@@ -527,7 +527,8 @@ def case_footage(quick: bool) -> dict:
                 quality, entries = metrics["quality"], metrics["captures"]
                 done = row.setdefault(label, dict(seconds_runs=[]))
                 done["seconds_runs"].append(seconds)
-                done.update(seconds=float(np.median(done["seconds_runs"])), peak_rss_mb=peak, psnr=quality["psnr"],
+                done.update(seconds=float(np.median(done["seconds_runs"])), peak_rss_mb=max(peak, done.get("peak_rss_mb", 0)),
+                            psnr=quality["psnr"],
                             ssim=quality["ssim"], boundary_to_inside=quality["boundaries"]["boundary_to_inside"],
                             patches_still=sum(e["reconstruction"]["patches_static"] for e in entries)
                             / sum(e["reconstruction"]["patches"] for e in entries))

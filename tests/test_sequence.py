@@ -715,9 +715,10 @@ def test_the_still_answer_averages_the_captures_it_agrees_with_and_leaves_the_mo
     _run(capsys, *args, "--output", tmp_path / "mean.npy")
     averaged = sequence.still_values
 
-    def own(codeds, masks, i, *, sigma, scale=1.0):  # the same still pixels, each with its capture's own value
-        values = averaged(codeds, masks, i, sigma=sigma, scale=scale)
-        return np.where(np.isfinite(values), normalised(codeds[i], masks(i))[0] * np.float32(scale), np.nan)
+    def own(codeds, masks, i, **options):  # the same still pixels, each with its capture's own value
+        values = averaged(codeds, masks, i, **options)
+        scale = np.float32(options.get("scale", 1.0))
+        return np.where(np.isfinite(values), normalised(codeds[i], masks(i))[0] * scale, np.nan)
 
     monkeypatch.setattr(sequence, "still_values", own)
     _run(capsys, *args, "--output", tmp_path / "own.npy")
@@ -734,3 +735,34 @@ def test_the_still_answer_averages_the_captures_it_agrees_with_and_leaves_the_mo
                 for e in json.loads((tmp_path / "mean.metrics.json").read_text())["captures"]]
     own_residual = [float(np.sqrt(np.mean(((mean[i * n:(i + 1) * n] * mask).sum(0) - coded[i]) ** 2))) for i in range(T)]
     np.testing.assert_allclose(reported, own_residual, rtol=1e-4)
+
+
+def test_a_clipped_neighbour_is_never_averaged_into_a_still_answer():
+    """--white-level: where the capture after (a longer exposure) is clipped, its value does not pull the still
+    answer down (it did, by 3 grey levels on a half-saturated neighbour); the capture before still counts."""
+    from codedvideo.sequence import still_values
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+
+    still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * 8, axis=0)
+    short = simulate_capture(still, code="hitomi", bump=2, sigma=5, seed=1, captures=T)
+    long = simulate_capture(still, code="hitomi", bump=4, sigma=5, seed=2, captures=T)
+    codeds, masks = short["coded"].copy(), [short["mask"], short["mask"], long["mask"]]
+    white = float(np.percentile(codeds[1], 90))
+    codeds[2] = np.minimum(long["coded"][2], white)
+    clipped = (codeds[2] >= white) & (codeds[:2] < white).all(0)  # the long exposure clipped, the short ones not
+    assert 0.05 < clipped.mean() < 0.95
+    with_white = still_values(codeds, masks.__getitem__, 1, sigma=5, white_level=white)
+    before_only = still_values(codeds[:2], masks.__getitem__, 1, sigma=5)
+    np.testing.assert_array_equal(with_white[clipped], before_only[clipped])
+    pulled = still_values(codeds, masks.__getitem__, 1, sigma=5)  # without the white level: averaged in
+    assert (pulled[clipped] < before_only[clipped] - 1).sum() > 10
+
+
+def test_reconstruct_capture_refuses_a_map_of_still_pixels_for_still_values():
+    """A bool map where still values are asked would make every pixel still (its 0s and 1s the answer)."""
+    from codedvideo.stages import reconstruct_capture
+
+    coded, mask = np.ones((16, 16), np.float32), np.ones((4, 16, 16), np.uint8)
+    with pytest.raises(TypeError, match="still values"):
+        reconstruct_capture("omp", coded, mask, still=np.ones((16, 16), bool))

@@ -628,7 +628,7 @@ def _cmd_reconstruct(a) -> int:
 
             # what did not change since the capture before or until the one after (asked again by the join)
             still_of = functools.lru_cache(maxsize=4)(
-                lambda i: still_values(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale))
+                lambda i: still_values(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale, white_level=white))
         results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, adapt=rc.adapt,
                                        cache_budget=rc.cache_budget, **options)
         if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:

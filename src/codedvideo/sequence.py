@@ -40,7 +40,7 @@ STILL_NOISE_MAX = 6.0
 
 def normalised(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(coded / open count, open count)``; 0 where a pixel is never open."""
-    k = np.asarray(mask, np.float32).sum(0)
+    k = np.asarray(mask).sum(0, dtype=np.float32)  # (no float copy of the mask: 600 MB at 4K, N = 18)
     return np.where(k > 0, np.asarray(coded, np.float32) / np.maximum(k, 1e-12), 0).astype(np.float32), k
 
 
@@ -58,15 +58,17 @@ def agreeing_pixels(codeds, masks, i: int, *, sigma: float, scale: float = 1.0) 
     return np.isfinite(still_values(codeds, masks, i, sigma=sigma, scale=scale))
 
 
-def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0) -> np.ndarray:
+def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0,
+                 white_level: float | None = None) -> np.ndarray:
     """The still answer of capture ``i``'s pixels that agree with the capture before or after it; NaN elsewhere.
 
     A pixel agrees with a neighbouring capture when their ``coded / open count`` differ by at most
-    ``STILL_SIGMAS`` times the noise of the difference (at least ``STILL_FLOOR``), and only where its
-    still answer is quiet enough to be worth taking (``sigma / open count`` at most ``STILL_NOISE_MAX``).
-    Its still answer is ``coded / open count`` averaged over this capture and the neighbours it agrees
-    with, each weighted by its open count squared (the inverse of its noise variance): the same value
-    where they are equal (a still scene without noise: exact), and up to sqrt(3) less noise with it.
+    ``STILL_SIGMAS`` times the noise of the difference (at least ``STILL_FLOOR``), and only where both
+    values are quiet enough to be worth taking (``sigma / open count`` at most ``STILL_NOISE_MAX``) and
+    neither is saturated.  Its still answer is ``coded / open count`` averaged over this capture and the
+    neighbours it agrees with, each weighted by its open count squared (the inverse of its noise
+    variance): the same value where they are equal (a still scene without noise: exact), and with
+    sqrt(3) less noise than the capture's own where two neighbours with its open count agree.
 
     Parameters
     ----------
@@ -75,15 +77,23 @@ def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0) -> 
     i : the capture
     sigma : read-noise standard deviation, in the capture's units
     scale : factor from the capture's units to working units (:class:`codedvideo.units.DataRange`)
+    white_level : coded values at or above it (the capture's units) are clipped: never still, never averaged in
 
     Returns
     -------
     ndarray of shape (H, W), float32, in working units
     """
     sigma = sigma * scale
-    q, k = normalised(codeds[i], masks(i))
-    q = q * np.float32(scale)
-    quiet = (k > 0) & (sigma <= STILL_NOISE_MAX * k)  # the still answer is worth taking (STILL_NOISE_MAX)
+
+    def usable(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Capture j's ``coded / open count`` in working units, its open count, and where it may take part."""
+        q, k = normalised(codeds[j], masks(j))
+        quiet = (k > 0) & (sigma <= STILL_NOISE_MAX * k)
+        if white_level is not None:
+            quiet &= np.asarray(codeds[j]) < np.float32(white_level)
+        return q * np.float32(scale), k, quiet
+
+    q, k, quiet = usable(i)
     if not quiet.any():
         return np.full(q.shape, np.nan, np.float32)
     weight, pull = k * k, np.zeros(q.shape, np.float32)  # sum of w_j (q_j - q): 0 from the capture itself
@@ -91,12 +101,11 @@ def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0) -> 
     for j in (i - 1, i + 1):
         if not 0 <= j < len(codeds):
             continue
-        qj, kj = normalised(codeds[j], masks(j))
-        qj = qj * np.float32(scale)
+        qj, kj, quiet_j = usable(j)
         with np.errstate(divide="ignore"):
             spread = sigma * np.sqrt(1 / np.maximum(k, 1e-12) ** 2 + 1 / np.maximum(kj, 1e-12) ** 2)
         tol = np.maximum(STILL_SIGMAS * spread, STILL_FLOOR)
-        near = quiet & (kj > 0) & (np.abs(q - qj) <= tol)
+        near = quiet & quiet_j & (np.abs(q - qj) <= tol)
         agree |= near
         w = np.where(near, kj * kj, 0).astype(np.float32)
         weight, pull = weight + w, pull + w * (qj - q)
@@ -386,7 +395,7 @@ def joined(results, codeds, mask_of, *, data_range: float | None = None, still_o
     them is smoothed, so two volumes are held at a time; ``info["seconds"]["join"]``
     is the time spent on the capture's join with its successor.  With
     ``still_of`` (:func:`still_values`), the join is left out where both
-    captures are ``coded / open count`` exactly (their 13x13 neighbourhoods
+    captures are their still answer exactly (their 13x13 neighbourhoods
     agree): only the box around the rest, with ``margin`` pixels for the
     motion estimate, is joined, and nothing when nothing moves.
     """

@@ -782,8 +782,9 @@ def reconstruct_captures(
 
     @functools.lru_cache(maxsize=1)  # the finishing step asks twice in a row; one capture's inputs held at most
     def used(i: int):
-        """Capture i as reconstructed: working units, saturated pixels left out; its agreeing pixels (None:
-        none), whether anything moves, and its saturated count."""
+        """Capture i as reconstructed: working units, saturated pixels left out, the pixels only still patches
+        cover measuring their still answer; its agreeing pixels (None: none), whether anything moves, its
+        saturated count, and its own measurement where still answers changed it (else None)."""
         coded, mask = codeds[i], mask_of(i)
         coded_used, mask_used, saturated = coded, mask, 0
         if white_level is not None:
@@ -806,9 +807,10 @@ def reconstruct_captures(
             if found.any():
                 # a pixel that only still patches cover measures its still answer (the captures it agrees with
                 # averaged in): coded = open count x value.  Pixels that a patch which moves covers keep their
-                # own measurement, so the search of that patch is the one it was (tested)
+                # own measurement, so the per-patch search of that patch is the one it was (tested); the
+                # methods that couple patches (nonlocal groups, gap-tv, --adapt's learning) see the averages
                 still, inner = found, erode_to_patches(found, PATCH)
-                averaged = np.where(inner, np.asarray(mask_used, np.float32).sum(0) * values,
+                averaged = np.where(inner, np.asarray(mask_used).sum(0, dtype=np.float32) * values,
                                     coded_used).astype(np.float32)
                 if not np.array_equal(averaged, coded_used):
                     measured, coded_used = coded_used, averaged
@@ -947,6 +949,9 @@ def reconstruct_capture(method: str, coded: np.ndarray, mask: np.ndarray, *, sti
                         **options) -> tuple[np.ndarray, dict]:
     """One capture in its own units -> its video in the same units: a job of one (:func:`reconstruct_captures`);
     ``still``: its still values in working units, NaN where not still (:func:`codedvideo.sequence.still_values`)."""
+    if still is not None and not np.issubdtype(np.asarray(still).dtype, np.floating):
+        raise TypeError(f"still: the still values (float, NaN where not still), not {np.asarray(still).dtype} "
+                        "(a map of still pixels: sequence.still_values gives the values)")
     results = reconstruct_captures(method, [coded], lambda i: mask, still_of=None if still is None else (lambda i: still),
                                    **options)
     with contextlib.closing(results):
