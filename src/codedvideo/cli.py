@@ -635,7 +635,7 @@ def _cmd_reconstruct(a) -> int:
             from .sequence import joined
 
             # the step from one capture to the next smoothed along the motion, both measurements kept
-            results = joined(results, job.codeds, job.mask, data_range=units.value, still_of=still_of)
+            results = joined(results, job.codeds, job.mask, data_range=units.value, still_of=still_of, white_level=white)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     from .sequence import StepErrors
 

@@ -406,7 +406,8 @@ def _around(where: np.ndarray, reach: int) -> tuple[slice, slice]:
             slice(max(cols[0] - reach, 0), min(cols[-1] + reach + 1, w)))
 
 
-def joined(results, codeds, mask_of, *, data_range: float | None = None, still_of=None, margin: int = 16):
+def joined(results, codeds, mask_of, *, data_range: float | None = None, still_of=None, margin: int = 16,
+           white_level: float | None = None):
     """A stream of reconstructed captures ``(i, volume, info)`` in order, each joined to the next (:func:`join_captures`).
 
     A capture is handed on once the next one has arrived and the step between
@@ -415,15 +416,18 @@ def joined(results, codeds, mask_of, *, data_range: float | None = None, still_o
     ``still_of`` (:func:`still_values`), the join is left out where both
     captures are their still answer exactly (their 13x13 neighbourhoods
     agree): only the box around the rest, with ``margin`` pixels for the
-    motion estimate, is joined, and nothing when nothing moves.
+    motion estimate, is joined, and nothing when nothing moves.  With
+    ``white_level`` (the captures' units), pixels clipped in either capture
+    keep both captures' values: a clipped capture's frames are no line to
+    draw its neighbour toward.
     """
     try:
-        yield from _joined(results, codeds, mask_of, data_range, still_of, margin)
+        yield from _joined(results, codeds, mask_of, data_range, still_of, margin, white_level)
     finally:  # a join that fails, or a consumer that stops early, closes the job too (its stores' locks)
         getattr(results, "close", lambda: None)()
 
 
-def _joined(results, codeds, mask_of, data_range, still_of, margin):
+def _joined(results, codeds, mask_of, data_range, still_of, margin, white_level):
     held = None
     for i, volume, info in results:
         if held is not None:
@@ -441,6 +445,11 @@ def _joined(results, codeds, mask_of, data_range, still_of, margin):
                                      coded_before=codeds[j][box], mask_before=mask_of(j)[(slice(None), *box)],
                                      coded_after=codeds[i][box], mask_after=mask_of(i)[(slice(None), *box)],
                                      data_range=data_range)
+                if white_level is not None:  # clipped in either capture: both as they were
+                    white = np.float32(white_level)
+                    clipped = (np.asarray(codeds[j][box]) >= white) | (np.asarray(codeds[i][box]) >= white)
+                    b[:, clipped] = before[(slice(None), *box)][:, clipped]
+                    a[:, clipped] = volume[(slice(None), *box)][:, clipped]
                 before[(slice(None), *box)], volume[(slice(None), *box)] = b, a
             before_info.setdefault("seconds", {})["join"] = time.perf_counter() - t0
             yield j, before, before_info
