@@ -179,3 +179,19 @@ def test_a_join_works_only_near_what_changes_and_gives_the_whole_frames_values(s
     whole_b, whole_a = join_captures(before, after, **kw)
     np.testing.assert_allclose(b, whole_b, atol=1e-3)
     np.testing.assert_allclose(a, whole_a, atol=1e-3)
+
+
+def test_the_streaming_join_reads_only_the_boundary_frames_and_gives_the_whole_captures_bits(stream):
+    """joined() hands join_captures the last / first frames it reads, not whole captures (4K, N = 18: 0.8 GB of
+    copies at a boundary); the result is join_captures' on the whole captures, bit for bit, data range found too."""
+    from codedvideo.sequence import joined
+
+    captures, coded, mask, _ = stream
+    expected = [c.copy() for c in captures]
+    for t in range(len(expected) - 1):
+        expected[t], expected[t + 1] = join_captures(expected[t], expected[t + 1], coded_before=coded[t],
+                                                     mask_before=mask, coded_after=coded[t + 1], mask_after=mask)
+    streamed = joined(iter([(t, c.copy(), {}) for t, c in enumerate(captures)]), coded, lambda t: mask)
+    got = [volume for _, volume, _ in streamed]
+    for t in range(len(captures)):
+        np.testing.assert_array_equal(got[t], expected[t])

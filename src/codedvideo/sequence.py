@@ -441,16 +441,25 @@ def _joined(results, codeds, mask_of, data_range, still_of, margin, white_level)
                     slice(max(rows[0] - margin, 0), rows[-1] + margin + 1),
                     slice(max(cols[0] - margin, 0), cols[-1] + margin + 1))
             if box is not None:
-                b, a = join_captures(before[(slice(None), *box)], volume[(slice(None), *box)],
-                                     coded_before=codeds[j][box], mask_before=mask_of(j)[(slice(None), *box)],
-                                     coded_after=codeds[i][box], mask_after=mask_of(i)[(slice(None), *box)],
-                                     data_range=data_range)
+                # only the frames the join reads: its last / first 2 * len(JOIN_WEIGHTS) give the same bits as the
+                # whole capture (the copies of 4K N = 18 volumes were 0.5 GB); the data range from the whole box
+                n = before.shape[0]
+                m = min(n, 2 * len(JOIN_WEIGHTS))
+                tail, head = (slice(n - m, n), *box), (slice(0, m), *box)
+                pair_range = data_range
+                if pair_range is None:
+                    from .units import static_peak
+
+                    pair_range = max(static_peak(codeds[j][box], mask_of(j)[(slice(None), *box)]),
+                                     static_peak(codeds[i][box], mask_of(i)[(slice(None), *box)]))
+                b, a = join_captures(before[tail], volume[head], coded_before=codeds[j][box],
+                                     mask_before=mask_of(j)[tail], coded_after=codeds[i][box],
+                                     mask_after=mask_of(i)[head], data_range=pair_range)
                 if white_level is not None:  # clipped in either capture: both as they were
                     white = np.float32(white_level)
                     clipped = (np.asarray(codeds[j][box]) >= white) | (np.asarray(codeds[i][box]) >= white)
-                    b[:, clipped] = before[(slice(None), *box)][:, clipped]
-                    a[:, clipped] = volume[(slice(None), *box)][:, clipped]
-                before[(slice(None), *box)], volume[(slice(None), *box)] = b, a
+                    b[:, clipped], a[:, clipped] = before[tail][:, clipped], volume[head][:, clipped]
+                before[tail], volume[head] = b, a
             before_info.setdefault("seconds", {})["join"] = time.perf_counter() - t0
             yield j, before, before_info
         held = (i, volume, info)
