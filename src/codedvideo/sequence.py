@@ -169,6 +169,9 @@ class StepErrors:
 #: frame moves only to keep the measurement (:func:`_project_out`), which leaves the two nearer the
 #: boundary freer to move.
 JOIN_WEIGHTS = (1.0, 0.25, 0.0)
+#: Frames of a capture that :func:`join_captures` reads at either boundary: given only these (the last of the
+#: capture before, the first of the one after), it gives the bits it gives on the whole captures.
+JOIN_FRAMES = 2 * len(JOIN_WEIGHTS)
 #: Blend gain where the frames agree along the motion, and where they do not at all (above 1: the
 #: reconstruction's end frames are worse than the line through their neighbours).
 JOIN_GAIN_STILL, JOIN_GAIN_MOVING = 1.25, 0.4
@@ -441,10 +444,10 @@ def _joined(results, codeds, mask_of, data_range, still_of, margin, white_level)
                     slice(max(rows[0] - margin, 0), rows[-1] + margin + 1),
                     slice(max(cols[0] - margin, 0), cols[-1] + margin + 1))
             if box is not None:
-                # only the frames the join reads: its last / first 2 * len(JOIN_WEIGHTS) give the same bits as the
-                # whole capture (the copies of 4K N = 18 volumes were 0.5 GB); the data range from the whole box
+                # only the frames the join reads (JOIN_FRAMES: the copies of 4K N = 18 volumes were 0.5 GB);
+                # the data range, when not given, from the whole box as join_captures would find it
                 n = before.shape[0]
-                m = min(n, 2 * len(JOIN_WEIGHTS))
+                m = min(n, JOIN_FRAMES)
                 tail, head = (slice(n - m, n), *box), (slice(0, m), *box)
                 pair_range = data_range
                 if pair_range is None:
