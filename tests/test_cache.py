@@ -117,7 +117,7 @@ def test_two_processes_on_one_cache_twenty_times_all_succeed_bit_identical(scene
 
 def test_two_dask_clients_on_one_cache_and_one_cluster_both_succeed(scene, reference, tmp_path):
     """The same race with the tiles running on the worker processes of one dask.distributed cluster."""
-    distributed = pytest.importorskip("distributed")
+    import distributed  # a pinned dependency: a broken install fails, never skips
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
         a, b = _reconstruct_race(tmp_path, scene, reps=4, scheduler=cluster.scheduler_address)

@@ -14,7 +14,7 @@ from codedvideo.synth import make_scene
 
 @pytest.fixture(scope="module")
 def cluster():
-    distributed = pytest.importorskip("distributed")
+    import distributed  # a pinned dependency: a broken install fails, never skips
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as c:
         yield c
@@ -101,7 +101,7 @@ def _kill_a_worker_midway(job, cache, *, after: int, total: int):
     import threading
     import time
 
-    distributed = pytest.importorskip("distributed")
+    import distributed  # a pinned dependency: a broken install fails, never skips
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
         pids = list(client.run(os.getpid).values())
@@ -171,7 +171,7 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_the_rerun_resumes(tmp_path):
     import sys
     import time
 
-    pytest.importorskip("distributed")
+    import distributed  # noqa: F401  (a pinned dependency: a broken install fails, never skips)
     coded, mask, D = _scene((96, 128))
     from codedvideo.store import save_dictionary
 

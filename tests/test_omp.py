@@ -76,6 +76,8 @@ def test_duplicate_and_zero_atoms_stay_finite(rng):
     Y = rng.normal(size=(50, 49)).astype(np.float32)
     res = omp(Y, PlainOperator(D), max_atoms=49, tol=0.0)
     assert np.isfinite(res.coef).all()
+    used = np.arange(res.index.shape[1])[None, :] < res.count[:, None]
+    assert used.any() and not (used & (res.index == 2)).any()  # a zero atom is never chosen, in any slot
     est = synthesize(res, D)
     assert np.isfinite(est).all()
     assert (res.index[:, :1] != 2).all()  # a zero atom is never chosen

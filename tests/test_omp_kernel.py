@@ -110,14 +110,22 @@ def test_region_through_kernel_equals_numpy_operator(rng, code, monkeypatch):
     np.testing.assert_allclose(fast, slow, atol=2e-2 * 255 / 100)
 
 
-def test_more_than_64_subframes_use_the_dense_path(rng):
+def test_more_than_64_subframes_use_the_dense_path(rng, monkeypatch):
     """Patterns are 64-bit integers: beyond N = 64 the numpy operator (exact norms) takes over."""
-    n, K = 80, 60
-    D = random_dictionary(rng, n * 49, K)
-    mask = make_code("bernoulli", (12, 12), frames=n, rng=1)
-    S = P.extract(mask)
-    norms = MaskedOperator(S, D).norms(np.arange(S.shape[0]))
-    np.testing.assert_allclose(norms[3], np.linalg.norm(_explicit(S[3], D), axis=0), rtol=1e-4)
+    from codedvideo import omp as omp_module
+
+    tables = []
+    real_table = omp_module.pattern_table
+    monkeypatch.setattr(omp_module, "pattern_table", lambda *a: tables.append(a[0].shape) or real_table(*a))
+    for n, code in ((8, "hitomi"), (80, "bernoulli")):  # the table at N = 8 (the spy sees it), dense at N = 80
+        D = random_dictionary(rng, n * 49, 60)
+        mask = make_code(code, (12, 12), frames=n, bump=2, rng=1) if code == "hitomi" else \
+            make_code(code, (12, 12), frames=n, rng=1)
+        S = P.extract(mask)
+        norms = MaskedOperator(S, D).norms(np.arange(S.shape[0]))
+        for p in (0, 3, len(S) - 1):
+            np.testing.assert_allclose(norms[p], np.linalg.norm(_explicit(S[p], D), axis=0), rtol=1e-4)
+        assert len(tables) == 1 and tables[0][1] == 8, (n, tables)  # no pattern table beyond 64 sub-frames
     coded = (mask * rng.uniform(0, 255, (n, 12, 12))).sum(0).astype(np.float32)
     vol, stats = reconstruct_region(coded, mask, D, OmpSettings(max_atoms=4, tol_rms=2.0))
     assert np.isfinite(vol).all() and stats[2] > 0

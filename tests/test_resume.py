@@ -307,7 +307,7 @@ def _volumes(moving, tmp_path, settings, runs):
     coded, mask, D = moving
     out = {}
     for i, (tile, kw) in enumerate(runs):
-        out[(tile, tuple(kw.items()))] = reconstruct_volume(coded, mask, D, settings=settings, tile=tile,
+        out[(i, tile, tuple(kw.items()))] = reconstruct_volume(coded, mask, D, settings=settings, tile=tile,
                                                             cache=tmp_path / str(i), progress=False, **kw)[0]
     return out
 
@@ -316,6 +316,7 @@ def test_same_result_across_runs_workers_and_schedulers(moving, tmp_path):
     """Default settings (still-scene test on): bit for bit across runs, 1 or 2 worker threads and the sync scheduler."""
     vols = _volumes(moving, tmp_path, OmpSettings(max_atoms=8, tol_rms=3.0),
                     [(16, dict(workers=1)), (16, dict(workers=2)), (16, dict(scheduler="sync")), (16, dict(workers=2))])
+    assert len(vols) == 4  # the repeated run is compared too, not overwritten by it
     ref = next(iter(vols.values()))
     for key, vol in vols.items():
         np.testing.assert_array_equal(vol, ref, err_msg=str(key))

@@ -70,10 +70,17 @@ def test_defaults_listed_beside_a_setting_that_ignores_them_are_accepted(tmp_pat
     """pipeline.yaml lists every key with its default: switching the code or the training set alone runs."""
     from codedvideo.config import PipelineConfig
 
-    cfg = PipelineConfig.model_validate(dict(code=dict(name="bernoulli", bump=2, p=0.3),
-                                             noise=dict(full_well=20000.0, gain=10.0),
-                                             dictionary=dict(training=["mine.npy"], clips=144, max_speed=4.0)))
-    assert cfg.code.p == 0.3 and cfg.dictionary.training == ["mine.npy"]
+    from pydantic import ValidationError
+
+    accepted = dict(code=dict(name="bernoulli", bump=2, p=0.3), noise=dict(full_well=20000.0, gain=10.0),
+                    dictionary=dict(training=["mine.npy"], clips=144, max_speed=4.0))
+    PipelineConfig.model_validate(accepted)
+    # the same keys at any other value are refused: the defaults pass because they are the defaults
+    for section, key, other in [("code", "bump", 3), ("noise", "gain", 5.0), ("dictionary", "max_speed", 8.0)]:
+        changed = {k: dict(v) for k, v in accepted.items()}
+        changed[section][key] = other
+        with pytest.raises(ValidationError, match=f"{section}.{key}"):
+            PipelineConfig.model_validate(changed)
 
 
 def test_train_refuses_max_speed_for_user_videos(tmp_path, capsys, user_video):

@@ -93,8 +93,10 @@ def test_dependent_atoms_end_patches_early_with_a_counted_warning(scene8, tmp_pa
     assert np.isfinite(vol).all()
     assert info["dependent_stops"] == info["patches"]  # all of them, counted
     assert str(info["patches"]) in str(rec[0].message) or str(int(info["patches"])) in str(rec[0].message)
-    # the two usable atoms still give a sensible (flat + ramp) estimate: within the scene's range
-    assert vol.min() > -0.5 * video.max() and vol.max() < 1.5 * video.max()
+    # the two usable atoms still give a sensible (flat + ramp) estimate: inside the scene's range and closer to
+    # the scene than its flat mean is (23.6 dB measured against 19.7 dB for the mean)
+    assert vol.min() >= -1.0 and vol.max() <= video.max() + 1.0
+    assert evaluate(vol, video)["psnr"] > evaluate(np.full_like(video, video.mean()), video)["psnr"] + 2.0
 
 
 # ----------------------------------------------------------------------------- degenerate dictionaries: K-SVD
@@ -282,7 +284,10 @@ def test_always_open_pixels_in_the_kernel_stay_static(layout):
     region = (slice(None), slice(None), slice(0, W // 2 - 6))
     assert np.isfinite(vol).all()
     assert vol[region].std(0).max() < 1.0  # no temporal "detail" where nothing was measured in time
-    assert np.abs(vol[region] - static_estimate(coded, mask)[region]).max() < 60  # a sparse approximation of it
+    # a sparse approximation of the static answer: 2.4 grey levels RMS measured (21 at worst), where the
+    # static answer itself is 12 RMS from the moving truth
+    diff = vol[region] - static_estimate(coded, mask)[region]
+    assert np.sqrt(np.mean(diff**2)) < 4.0 and np.abs(diff).max() < 30
 
 
 def test_partly_always_open_mask_through_the_pipeline(tmp_path):
@@ -292,7 +297,12 @@ def test_partly_always_open_mask_through_the_pipeline(tmp_path):
     mask[:, :, : W // 2] = 1
     coded = simulate(video, mask)
     vol, _ = recon(coded, mask, dct_dictionary(n), tmp_path)
-    assert np.abs(vol).max() < 2 * 255
+    assert np.isfinite(vol).all()
+    left = (slice(None), slice(None), slice(0, W // 2 - 6))  # always open: the static answer, sparsely
+    diff = vol[left] - static_estimate(coded, mask)[left]
+    assert np.sqrt(np.mean(diff**2)) < 4.0
+    right = (slice(None), slice(None), slice(W // 2 + 6, None))  # coded: a reconstruction (26.3 dB measured)
+    assert evaluate(vol[right], video[right])["psnr"] > 24.0
 
 
 @pytest.fixture(scope="module")
