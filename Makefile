@@ -6,7 +6,7 @@ CLI    := $(BIN)/codedvideo
 STAMP  := $(VENV)/.installed
 CONFIG ?= pipeline.yaml
 
-.PHONY: help setup run test bench report train train-config simulate reconstruct submit clean
+.PHONY: help setup run test wheel-check bench report train train-config simulate reconstruct submit clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -24,6 +24,9 @@ run: $(STAMP)  ## run the whole pipeline on the embedded default scene
 
 test: $(STAMP)  ## run the test suite
 	$(BIN)/python -m pytest -q
+
+wheel-check:  ## build the wheel, install it into a fresh venv, run the CLI and the API from an empty folder
+	tasks/check_wheel.sh $(PYTHON)
 
 bench: $(STAMP)  ## time reconstruction against GAP-TV and a matrix multiply (CASES=sequence,footage: some cases)
 	$(BIN)/python tasks/bench.py $(if $(CASES),--cases $(CASES))

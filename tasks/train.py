@@ -2,7 +2,7 @@
 
     python tasks/train.py [pipeline.yaml]     # the dictionary: section (reused when shipped or cached)
     python tasks/train.py --shipped [N ...]   # `make train`: retrain codedvideo/data/dict-N*.zarr with the
-                                              # defaults and rewrite data_manifest with their checksums
+                                              # defaults and rewrite both manifests with their checksums
 """
 import sys
 
@@ -17,7 +17,7 @@ def _shipped(frames: list[int]) -> None:
     for n in frames:
         path, meta = train_dictionary(PipelineConfig(frames=n), output=shipped.path_for(n), retrain=True)
         print(f"dictionary N = {n}: {path} (final RMSE {meta.get('final_rmse'):.4f}, {meta['seconds']:.0f} s)")
-    print(f"manifest: {manifest.write_manifest()}")
+    print(f"manifests: {', '.join(map(str, manifest.write_manifests()))}")
 
 
 def main() -> None:

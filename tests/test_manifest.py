@@ -59,3 +59,25 @@ def test_missing_file_is_reported(tmp_path):
     path.write_text("\t".join(manifest.HEADER) + "\n" + "\t".join(["clip", "clips/none.mp4", "8", "train", "a" * 64, "me", "CC0"]) + "\n")
     with pytest.raises(InputError, match="clip.*missing"):
         manifest.verify(manifest.load_manifest(path)[0])
+
+
+def test_the_packaged_manifest_holds_the_projects_rows():
+    """The wheel carries codedvideo/data/manifest.tsv; the checkout's data_manifest lists the same datasets:
+    the same ids, checksums and sources, and each path names the same file."""
+    packaged = {e.id: e for e in manifest.load_manifest(manifest.DEFAULT_PATH)}
+    project = {e.id: e for e in manifest.load_manifest(manifest.PROJECT_PATH)}
+    assert manifest.DEFAULT_PATH.parent.name == "data" and manifest.DEFAULT_PATH.parent.parent.name == "codedvideo"
+    assert packaged.keys() == project.keys()
+    for id_, e in packaged.items():
+        p = project[id_]
+        assert (e.frames, e.split, e.sha256, e.source, e.licence) == (p.frames, p.split, p.sha256, p.source, p.licence)
+        assert manifest.resolve(e) == manifest.resolve(p), id_
+
+
+def test_shipped_rows_rebase_to_each_manifest(tmp_path):
+    """write_manifest gives each manifest its own relative paths to the shipped dictionaries."""
+    rows = manifest.shipped_rows(manifest.DEFAULT_PATH.parent)
+    assert rows and all(r.split("\t")[1].startswith("dict-N") for r in rows)
+    project_rows = manifest.shipped_rows(manifest.PROJECT_PATH.parent)
+    assert all(r.split("\t")[1].startswith("src/codedvideo/data/dict-N") for r in project_rows)
+    assert [r.split("\t")[4] for r in rows] == [r.split("\t")[4] for r in project_rows]

@@ -33,7 +33,13 @@ from .errors import InputError
 
 HEADER = ("id", "path_or_generator", "frames", "split", "sha256", "source", "licence")
 SPLITS = ("train", "test", "model")
-DEFAULT_PATH = Path(__file__).resolve().parents[2] / "data_manifest"
+#: The manifest installed with the package (``codedvideo/data/manifest.tsv``): the rows codedvideo itself
+#: reads at run time, paths relative to that folder.  It is what every lookup uses, in a checkout and in an
+#: installed wheel alike.
+DEFAULT_PATH = Path(__file__).resolve().parent / "data" / "manifest.tsv"
+#: The project's list of every dataset (``data_manifest`` at the top of a checkout; absent from a wheel).  It
+#: holds the same rows, paths relative to the checkout; a test keeps the two equal.
+PROJECT_PATH = Path(__file__).resolve().parents[2] / "data_manifest"
 SYNTH_CHECK_SIZE = (64, 64)
 
 #: Photographs each named synthetic scene is made of.
@@ -205,6 +211,11 @@ def lookup(id_: str, path: str | Path = DEFAULT_PATH) -> Entry:
         if e.id == id_:
             return e
     raise InputError(f"manifest {path}: no entry {id_!r}")
+
+
+def write_manifests() -> list[Path]:
+    """Regenerate the package's manifest and, in a checkout, the project's ``data_manifest`` (same rows)."""
+    return [write_manifest(p) for p in (DEFAULT_PATH, PROJECT_PATH) if p == DEFAULT_PATH or p.exists()]
 
 
 def write_manifest(path: str | Path = DEFAULT_PATH) -> Path:

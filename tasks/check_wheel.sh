@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Build the wheel from this checkout, install it into a fresh virtual environment, and run the commands and
+# the Python API from an empty folder: what a user who runs `pip install codedvideo` gets.
+# Usage: tasks/check_wheel.sh [PYTHON]    (CI runs it after `make test`; `make wheel-check`)
+set -euo pipefail
+root="$(cd "$(dirname "$0")/.." && pwd)"
+python="${1:-python3}"
+work="$(mktemp -d -t codedvideo-wheel-XXXXXX)"
+trap 'rm -rf "$work"' EXIT
+"$python" -m pip wheel --quiet --no-deps --wheel-dir "$work/dist" "$root"
+"$python" -m venv "$work/venv"
+"$work/venv/bin/python" -m pip install --quiet "$work"/dist/codedvideo-*.whl
+mkdir "$work/empty"
+cd "$work/empty"
+cli="$work/venv/bin/codedvideo"
+"$cli" -q simulate synth:default --frames 8 --bump 2 --size 64 64 --seed 0 --output cap
+"$cli" -q reconstruct --coded cap/coded.npy --mask cap/mask.npy --truth cap/truth.npy --output rec.npy
+"$work/venv/bin/python" - <<'PY'
+import json
+import numpy as np
+m = json.load(open("rec.metrics.json"))
+assert m["quality"]["psnr"] > 20, m["quality"]
+rec = np.load("rec.npy")
+assert rec.shape == (8, 64, 64) and np.isfinite(rec).all()
+print(f"wheel: simulate and reconstruct from an empty folder, PSNR {m['quality']['psnr']:.2f} dB")
+PY
