@@ -120,7 +120,9 @@ def test_data_range_inference_rules():
     assert infer_data_range(268.0).value == 4095.0  # past 8 bits with 5 % room ...
     assert infer_data_range(268.0, noise=30.0).value == 255.0  # ... but within the known read noise's peaks
     assert infer_data_range(60000.0, dtype=np.uint16).value == 65535.0
-    assert infer_data_range(3e5).value == 2 ** 19 - 1
+    assert infer_data_range(3e5).value == 409500.0  # floats: a standard range times a power of ten (12-bit / 100)
+    assert infer_data_range(248122.0).value == 255000.0  # thousandths of 8 bits (it was 262143: PSNR 0.23 dB high)
+    assert infer_data_range(3e5, dtype=np.int32).value == 2 ** 19 - 1  # wide integers: the next 2**b - 1
     assert infer_data_range(3.0, dtype=np.uint8).value == 255.0
     got = infer_data_range(3.0, given=7.5)
     assert got.value == 7.5 and "given" in got.source and got.scale == 255 / 7.5

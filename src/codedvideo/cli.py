@@ -16,6 +16,7 @@ import itertools
 import json
 import logging
 import os
+import re
 import signal
 import sys
 import threading
@@ -38,9 +39,19 @@ from .outputs import Output, check_outputs, mark_written
 
 log = logging.getLogger("codedvideo")
 
+#: '-' then a digit, '.digit', or inf / infinity / nan: no option of codedvideo's starts so.
+_NEGATIVE_NUMBER = re.compile(r"^-(\d|\.\d|(inf|infinity|nan)$)", re.IGNORECASE)
+
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with the project's error form: one line, ``codedvideo: error: ...``, exit status 2."""
+    """argparse with the project's error form: one line, ``codedvideo: error: ...``, exit status 2.
+
+    A value that starts with '-' and reads as a number (``-inf``, ``-1e3``, ``-nan``, a size ``-5M``) is a value,
+    not an option (argparse's own rule takes only ``-5`` and ``-.5``), so that the option's range check names it."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE_NUMBER
 
     def error(self, message: str):
         command = self.prog.removeprefix("codedvideo").strip()  # a subcommand's parser names it; the top one does not
@@ -297,9 +308,9 @@ def _cmd_simulate(a) -> int:
                                         **_given(full_well=a.full_well, gain=a.gain)), {"sigma": "--noise-sigma"})
     size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
     if size is not None:
-        validated(SceneConfig, dict(size=size, start=a.start))
+        validated(SceneConfig, dict(video=a.video, size=size, start=a.start), {"start": "--start"})
     else:
-        validated(SceneConfig, dict(start=a.start))
+        validated(SceneConfig, dict(video=a.video, start=a.start), {"start": "--start"})
     captures = a.captures
     if captures != "all":
         try:
@@ -569,8 +580,8 @@ def _cmd_reconstruct(a) -> int:
     from .metrics import evaluate, json_safe, mean_psnr
     from .volumes import write_json, metrics_path, volume_writer
     from .stages import SPARSE_METHODS, cache_room, reconstruct_captures, trivial_estimate
-    from .units import NOISE_ROOM, NOISE_SIGMAS, OUTLIER_SHARE, infer_data_range, share_above, static_peak, \
-        static_quantile, tolerance_warning
+    from .units import NOISE_ROOM, NOISE_SIGMAS, OUTLIER_SHARE, check_range, infer_data_range, share_above, \
+        static_peak, static_quantile, tolerance_warning
 
     rc, noise, out = _reconstruct_options(a)  # before any work
     t_all = t0 = time.perf_counter()
@@ -588,6 +599,8 @@ def _cmd_reconstruct(a) -> int:
                          "(check the file and the black level)")
     units = infer_data_range(peak, dtype=job.dtype, given=out.data_range, noise=noise.sigma, quantile=lambda: max(
         static_quantile(job.codeds[i], job.mask(i), 1 - OUTLIER_SHARE) for i in range(count)))
+    check_range(units, {"--noise-sigma": noise.sigma, "--tol-rms": rc.tol_rms if rc.tol_rms != "auto" else None,
+                        "--white-level": noise.white_level, "--black-level": noise.black_level}, job.source)
     level = units.value * NOISE_ROOM + NOISE_SIGMAS * noise.sigma
     if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
         share = max(share_above(job.codeds[i], job.mask(i), level) for i in range(count))
@@ -700,8 +713,9 @@ def _cmd_reconstruct(a) -> int:
     if per_frame["psnr"]:
         # the mean over all frames (every coded image has N frames: the mean of their means)
         quality = dict(psnr=mean_psnr(per_frame["psnr"]), ssim=float(np.mean(per_frame["ssim"])),
-                       exact_frames=int(np.sum(np.isinf(per_frame["psnr"]))),
-                       psnr_per_frame=per_frame["psnr"], ssim_per_frame=per_frame["ssim"], data_range=units.value)
+                       exact_frames=int(np.sum(np.isposinf(per_frame["psnr"]))),
+                       psnr_per_frame=per_frame["psnr"], ssim_per_frame=per_frame["ssim"], data_range=units.value,
+                       psnr_peak=dict(value=units.value, source=units.source))
         metrics["trivial"] = dict(psnr=mean_psnr(trivial_frames["psnr"]), ssim=float(np.mean(trivial_frames["ssim"])),
                                   psnr_per_frame=trivial_frames["psnr"], ssim_per_frame=trivial_frames["ssim"],
                                   data_range=units.value)
@@ -906,6 +920,9 @@ def _cmd_evaluate(a) -> int:
 
     peak = peak_of(truth)
     units = infer_data_range(peak, given=out.data_range, what="the truth")
+    from .units import check_range
+
+    check_range(units, {}, f"truth {a.truth}")
     extra = {}
     if Path(a.recon).suffix.lower() in VIDEO_SUFFIXES:  # 8-bit frames: 255 was the data range they were written with
         written = _written_range(a.recon) or units.value
@@ -919,8 +936,8 @@ def _cmd_evaluate(a) -> int:
         warnings.warn(f"evaluate: {a.recon} peaks at {recon_peak:.4g} and {a.truth} at {peak:.4g} (data range "
                       f"{units.value:g}, {units.source}); are they in the same units? (a [0, 1] reconstruction "
                       "against 8-bit truth scores about 10 dB)")
-    result = json_safe(dict(evaluate(recon, truth, data_range=units.value),
-                            data_range_source=units.source, **extra))
+    result = json_safe(dict(evaluate(recon, truth, data_range=units.value), data_range_source=units.source,
+                            psnr_peak=dict(value=units.value, source=units.source), **extra))
     if a.output:
         mark_written(write_json(Path(a.output), result))
     print(json.dumps(result, allow_nan=False))

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationIn
 
 from .errors import ConfigError
 from .physics import SensorModel
+from .units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX
 
 STAGES = ("train", "simulate", "reconstruct", "evaluate")
 
@@ -53,12 +54,19 @@ class SceneConfig(_Strict):
     #: The centre crop taken; None: a synthetic scene or footage clip 256x256, a video file its whole frame.
     size: tuple[Annotated[int, Field(ge=7, le=65536)], Annotated[int, Field(ge=7, le=65536)]] | None = None
     #: First frame taken from a video file.
-    start: int = Field(0, ge=0)
+    start: int = Field(0, ge=0, le=2**31 - 1)
 
     @field_validator("size", mode="before")
     @classmethod
     def _list_as_tuple(cls, v):
         return _pair(v)
+
+    @model_validator(mode="after")
+    def _start_of_a_file(self) -> "SceneConfig":
+        if self.start and self.video.startswith(("synth:", "footage:")):  # (its frames were made from frame 0)
+            raise ValueError(f"scene.start {self.start}: {self.video} is made from its first frame; start applies to "
+                             "a video file")
+        return self
 
 
 #: The names of :data:`codedvideo.codes.CODE_NAMES` (a test keeps them equal).
@@ -96,20 +104,20 @@ class NoiseConfig(_Strict):
     """
 
     #: Gaussian read noise, standard deviation in grey levels (frame units).
-    sigma: float = Field(0.0, ge=0)
+    sigma: float = Field(0.0, ge=0, le=LEVEL_MAX)
     #: Poisson photon noise on the clean coded image.
     shot_noise: bool = False
     #: Full-well capacity, electrons (with shot_noise).
-    full_well: float = Field(SensorModel.full_well, gt=0)
+    full_well: float = Field(SensorModel.full_well, gt=0, le=1e12)
     #: Electrons per grey level (with shot_noise).
-    gain: float = Field(SensorModel.gain, gt=0)
+    gain: float = Field(SensorModel.gain, ge=1e-6, le=1e12)  # (electrons / gain stays finite)
     #: Quantise the coded image to this many bits (null: no quantisation).
     bits: int | None = Field(None, ge=1, le=32)
     #: Clip the coded image at this grey level; reconstruction then treats
     #: pixels at or above it as missing (null: no saturation).
-    white_level: float | None = Field(None, gt=0)
+    white_level: float | None = Field(None, gt=0, le=LEVEL_MAX)
     #: Raw black level: an offset added once per read-out (before clipping and quantising).
-    black_level: float = Field(0.0, ge=0)
+    black_level: float = Field(0.0, ge=0, le=LEVEL_MAX)
 
     @model_validator(mode="after")
     def _shot_noise_settings(self) -> "NoiseConfig":
@@ -163,7 +171,7 @@ class DictionaryConfig(_Strict):
 class ReconstructConfig(_Strict):
     max_atoms: int = Field(8, ge=1, le=49)
     #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
-    tol_rms: Annotated[float, Field(ge=0, le=1e9)] | Literal["auto"] = "auto"  # (its square must fit a float32)
+    tol_rms: Annotated[float, Field(ge=0, le=LEVEL_MAX)] | Literal["auto"] = "auto"  # (also within 1e6 data ranges)
     #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
     static_atoms: int = Field(8, ge=0, le=49)
     #: Patch stride: 1 solves every overlapping patch (the paper); s solves 1 in s**2 (faster).
@@ -215,7 +223,7 @@ class OutputConfig(_Strict):
     fps: int = Field(30, ge=1, le=1000)
     #: Peak value of the frames: PSNR and the full scale of videos and 16-bit frames
     #: (null: found from the capture, see codedvideo.units).
-    data_range: float | None = Field(None, gt=0)
+    data_range: float | None = Field(None, ge=DATA_RANGE_MIN, le=DATA_RANGE_MAX)
     #: Replace existing output files that codedvideo did not write (folders never).
     overwrite: bool = False
 
@@ -420,13 +428,54 @@ def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool
 _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
 
 
-def _first_error(exc: ValidationError) -> tuple[str, dict]:
+#: pydantic's errors of a number out of its range (or not finite): their message gains the whole range.
+_NUMBER_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_equal", "finite_number"}
+
+
+def allowed(model: type[BaseModel], loc) -> str | None:
+    """The range a number field of ``model`` (at location ``loc``, or a field name) allows, as ``[0, 1e+12]``
+    or ``(0, 1]`` (None: no bounds): the one statement of the bounds, for pipeline.yaml and the options."""
+    field = None
+    for part in (loc,) if isinstance(loc, str) else loc:
+        if not isinstance(part, str) or model is None or part not in getattr(model, "model_fields", {}):
+            continue
+        field = model.model_fields[part]
+        sub = field.annotation
+        model = sub if isinstance(sub, type) and issubclass(sub, BaseModel) else None
+    if field is None:
+        return None
+    found = {}
+    items = list(field.metadata)
+    for arg in getattr(field.annotation, "__args__", ()):  # float | "auto", tuple[Annotated[int, ...], ...]
+        items += getattr(arg, "__metadata__", ())
+        items += [m for a in getattr(arg, "__args__", ()) for m in getattr(a, "__metadata__", ())]
+    for m in items:
+        for key in ("ge", "gt", "le", "lt"):
+            if getattr(m, key, None) is not None:
+                found[key] = getattr(m, key)
+        for sub in getattr(m, "metadata", ()):  # FieldInfo inside Annotated
+            for key in ("ge", "gt", "le", "lt"):
+                if getattr(sub, key, None) is not None:
+                    found[key] = getattr(sub, key)
+    if not found:
+        return None
+    lo = f"[{found['ge']:g}" if "ge" in found else f"({found['gt']:g}" if "gt" in found else "(-inf"
+    hi = f"{found['le']:g}]" if "le" in found else f"{found['lt']:g})" if "lt" in found else "inf)"
+    return f"{lo}, {hi}"
+
+
+def _first_error(exc: ValidationError, model: type[BaseModel] | None = None) -> tuple[str, dict]:
     errors = exc.errors()
     # a union such as `float | "auto"` reports one error per branch: the literal's is the least useful
     err = next((e for e in errors if e["type"] != "literal_error"), errors[0])
     if len(errors) > 1 and all(e["loc"][:1] == err["loc"][:1] for e in errors):
         errors = [err]
     msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+    if err["type"] in _NUMBER_ERRORS and model is not None:  # the whole allowed range, not only the side broken
+        bounds = allowed(model, err["loc"])
+        if bounds:
+            msg = f"{msg}; allowed {bounds}"
+
     more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
     return msg + more, err
 
@@ -467,7 +516,7 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
         # JSON mode: YAML lists are valid tuples, and strict types still apply
         return PipelineConfig.model_validate_json(json.dumps(raw, default=str), context=dict(use=use))
     except ValidationError as exc:
-        msg, err = _first_error(exc)
+        msg, err = _first_error(exc, PipelineConfig)
         # the location without pydantic's names of union branches ("constrained-float", ...)
         where = ".".join(str(p) for p in err["loc"] if isinstance(p, int) or str(p).isidentifier()) or "(top level)"
         # (a rule between keys names them itself: the whole section it was given is no help on one line)
@@ -486,7 +535,7 @@ def validated(model: type[BaseModel], values: dict, options: dict[str, str] | No
     try:
         return model.model_validate(values)
     except ValidationError as exc:
-        msg, err = _first_error(exc)
+        msg, err = _first_error(exc, model)
         if not err["loc"]:  # a rule between fields: its message names them as pipeline.yaml keys
             for field, option in (options or {}).items():
                 msg = re.sub(rf"\b[a-z_]+\.{field}\b", option, msg)

@@ -71,7 +71,7 @@ def evaluate(recon, truth, *, data_range: float = 255.0) -> dict:
     return dict(
         psnr=mean_psnr(psnr),
         ssim=float(np.mean(ssim)),
-        exact_frames=int(np.sum(np.isinf(psnr))),
+        exact_frames=int(np.sum(np.isposinf(psnr))),
         psnr_per_frame=psnr,
         ssim_per_frame=ssim,
         data_range=float(data_range),

@@ -1048,6 +1048,10 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         units = infer_data_range(static_peak(capture["coded"], capture["mask"]), given=cfg.output.data_range,
                                  noise=cfg.noise.sigma, quantile=lambda: static_quantile(
                                      capture["coded"], capture["mask"], 1 - OUTLIER_SHARE))
+        from .units import check_range
+
+        check_range(units, {"noise.sigma": cfg.noise.sigma, "noise.white_level": cfg.noise.white_level,
+                            "reconstruct.tol_rms": rc.tol_rms if rc.tol_rms != "auto" else None}, "simulated capture")
         report["data_range"] = units.as_dict()
         t0 = time.perf_counter()
         # saturated pixels (noise.white_level) are missing measurements

@@ -9,7 +9,13 @@ frame) is, in order of precedence:
 3. from the values: the peak ``p`` of ``coded / open count`` (the static
    estimate, which no frame can exceed without noise) rounded up to the first
    of 1 (floats only), 255, 4095 and 65535 that holds it (with 5 % room
-   for noise), else to the next ``2**b - 1``.
+   for noise), else (floats) to the first of those times a power of ten that holds it (a video in
+   thousandths of 8-bit units peaks near 255000: its range is 255000, and every figure, PSNR included,
+   is the 8-bit run's; the next ``2**b - 1``, 262143, made its PSNR 0.23 dB higher), and (integers
+   wider than 16 bits) to the next ``2**b - 1``.
+
+Every number is bounded (:data:`DATA_RANGE_MIN` ...): float32 holds 7 digits at any scale, but the
+sums of a patch's squares must stay finite, so values beyond those bounds are refused before any work.
 
 Reconstruction then runs in *working units*, the capture scaled so that its
 data range is 255 (8-bit captures are not rescaled at all), and the result is
@@ -30,6 +36,17 @@ WORKING_RANGE = 255.0
 #: Data ranges the values are rounded up to, with the room left for noise.
 COMMON_RANGES = (1.0, 255.0, 4095.0, 65535.0)
 NOISE_ROOM = 1.05
+
+#: The bounds of every number in the capture's units, shared by pipeline.yaml's fields (codedvideo.config)
+#: and the command line's options.  Work is in float32 (about 3.4e38 at most, 1.2e-38 the smallest normal):
+#: a patch's sum of squares reaches (64 frames x 1e12)**2 x 49 x 64, about 1e31, within it, and a range of
+#: 1e-6 keeps squared differences a million times the float32 step apart from its smallest normal.
+DATA_RANGE_MIN, DATA_RANGE_MAX = 1e-6, 1e12
+#: Grey-level settings (noise sigma, tolerance, white and black level) in the capture's units: at most this.
+LEVEL_MAX = 1e12
+#: ... and at most this many times the data range, once it is known (so that in working units, the
+#: data range at 255, every one of them stays below 2.55e8 and its square finite in float32).
+LEVELS_PER_RANGE = 1e6
 
 
 @dataclass(frozen=True)
@@ -119,8 +136,31 @@ def infer_data_range(peak: float, *, dtype=None, given: float | None = None, wha
             continue
         if peak <= value * NOISE_ROOM + room:
             return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
+    if not integer and peak > 0:  # a standard range in other decimal units (255000: thousandths of 8 bits)
+        value = min((v * 10.0**k for v in COMMON_RANGES for k in range(1, 40)
+                     if peak <= v * 10.0**k * NOISE_ROOM + room), default=peak)
+        return DataRange(float(value), f"values (peak of {what} {peak:.4g})", peak)
     value = float(2 ** math.ceil(math.log2(peak + 1)) - 1)
     return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
+
+
+def check_range(units: DataRange, levels: dict[str, float | None], where: str) -> None:
+    """Refuse a data range outside [:data:`DATA_RANGE_MIN`, :data:`DATA_RANGE_MAX`] (one found from values
+    too large), values more than :data:`LEVELS_PER_RANGE` times the range, and grey-level settings
+    (``levels``: option name -> value in the capture's units) that far above it; one line naming them."""
+    from .errors import ConfigError, InputError
+
+    if not DATA_RANGE_MIN <= units.value <= DATA_RANGE_MAX:
+        raise InputError(f"{where}: data range {units.value:.4g} ({units.source}) lies outside [{DATA_RANGE_MIN:g}, "
+                         f"{DATA_RANGE_MAX:g}], the values codedvideo works with in float32; scale the capture")
+    most = LEVELS_PER_RANGE * units.value
+    if units.peak > most:
+        raise InputError(f"{where}: values (coded / open count) reach {units.peak:.4g}, more than {LEVELS_PER_RANGE:g} "
+                         f"times the data range {units.value:.4g} ({units.source}); give the data range of the frames")
+    for option, value in levels.items():
+        if value is not None and value > most:
+            raise ConfigError(f"option {option} {value:g}: more than {LEVELS_PER_RANGE:g} times the data range "
+                              f"{units.value:.4g} ({units.source}); allowed [0, {most:g}] for this capture")
 
 
 def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str | None:
@@ -131,6 +171,8 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str 
     the tolerance gets no atom at all (it takes its still answer, coded / open count: no motion).
     """
     coded = np.asarray(coded, np.float64)
+    if not 0 < tol_rms < 1e150:  # (its square must be a float64)
+        return None
     if tol_rms <= 0 or min(coded.shape) < patch:
         return None
     # each patch's mean square from running sums (no scipy.ndimage: a run of one capture starts 0.05 s sooner)
