@@ -251,6 +251,7 @@ def _cmd_train(a) -> int:
                   dict(video=list(a.videos), cache=a.cache, init=a.init if a.init != "shipped" else None),
                   overwrite=a.overwrite)
     path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet, retrain=a.retrain)
+    mark_written(path)
     print(json.dumps(dict(dictionary=str(path), atoms=meta["atoms"], frames=meta["frames"], method=meta.get("method"),
                           final_rmse=meta.get("final_rmse"), reused=meta["reused"], seconds=round(meta["seconds"], 2))))
     return 0
