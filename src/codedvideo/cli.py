@@ -1026,6 +1026,13 @@ def _one_line(message, category, filename, lineno, line=None) -> str:
     return f"codedvideo: warning: {message}\n"
 
 
+class _LogLine(logging.Formatter):
+    """A log record as the command line says a warning or an error: ``codedvideo: warning: MESSAGE``."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"codedvideo: {record.levelname.lower()}: {record.getMessage()}"
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM (``kill``, ``timeout``, a batch scheduler ending a job), unwound as Ctrl-C is: every
     temporary removed, every lock released, one line, exit status 143."""
@@ -1051,7 +1058,9 @@ def guarded(fn) -> int:
     The filters, the format and the SIGTERM handler are restored on return.
     The stage scripts of ``tasks/`` run through it too.
     """
-    logging.basicConfig(level=logging.WARNING, format="codedvideo: %(message)s")
+    handler = logging.StreamHandler()  # log lines said as warnings are ("codedvideo: warning: ...")
+    handler.setFormatter(_LogLine())
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])
     previous, warnings.formatwarning = warnings.formatwarning, _one_line
     # SIGTERM's default ends the process where it stands, leaving partial outputs behind
     on_term = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() \
