@@ -19,7 +19,7 @@ and removed only while holding its lock (:func:`codedvideo.store.entry_lock`);
 an entry a running codedvideo holds is reported ``busy`` and left alone.
 
 Statuses: ``ok``; ``partial`` (a reconstruction with tiles still to compute:
-a rerun resumes it); ``broken`` (damaged: a rerun rebuilds or recomputes it);
+a rerun resumes it); ``broken`` (damaged, or a finished tile whose digest is gone: a rerun rebuilds or recomputes it);
 ``stale`` (written by another version of codedvideo: never reused);
 ``leftover`` (a temporary of a killed run); ``busy``.
 """
@@ -421,13 +421,20 @@ def _check_reconstruction(path: Path) -> tuple[str, str]:
     if inputs_digest(coded, mask, still) != attrs.get("inputs_digest"):
         return "broken", "inputs do not match their recorded digest"
     try:
-        ok, damaged, _, _ = store.read_verified(store.tiles())
+        ok, damaged, _, stats = store.read_verified(store.tiles())
+        # a tile whose results are written but whose digest is gone (deleted, or a run killed between the
+        # two writes) cannot be verified: damaged, not work left
+        unverifiable = ~store._rows("digest", 0).any(axis=1) & ~np.isnan(stats).all(axis=1)
     except Exception as exc:
         return "broken", f"tiles unreadable ({type(exc).__name__}: {exc})"
     n = len(ok)
     if damaged.any():
         bad = np.flatnonzero(damaged).tolist()
         return "broken", f"tiles {bad[:20]}{' ...' if len(bad) > 20 else ''} of {n} fail their checksum"
+    if unverifiable.any():
+        bad = np.flatnonzero(unverifiable).tolist()
+        return "broken", (f"tiles {bad[:20]}{' ...' if len(bad) > 20 else ''} of {n} have results but no digest "
+                          "(deleted), so they cannot be verified")
     if not ok.all():
         return "partial", f"{int(ok.sum())} of {n} tiles done and verified; a rerun computes the rest"
     return "ok", f"{n} tiles, every one matches its checksum"

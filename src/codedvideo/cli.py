@@ -262,6 +262,7 @@ def _cmd_train(a) -> int:
                   dict(video=list(a.videos), cache=a.cache, init=a.init if a.init != "shipped" else None),
                   overwrite=a.overwrite)
     path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet, retrain=a.retrain)
+    mark_written(path)
     print(json.dumps(dict(dictionary=str(path), atoms=meta["atoms"], frames=meta["frames"], method=meta.get("method"),
                           final_rmse=meta.get("final_rmse"), reused=meta["reused"], seconds=round(meta["seconds"], 2))))
     return 0
@@ -1042,6 +1043,13 @@ def _one_line(message, category, filename, lineno, line=None) -> str:
     return f"codedvideo: warning: {message}\n"
 
 
+class _LogLine(logging.Formatter):
+    """A log record as the command line says a warning or an error: ``codedvideo: warning: MESSAGE``."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return f"codedvideo: {record.levelname.lower()}: {record.getMessage()}"
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM (``kill``, ``timeout``, a batch scheduler ending a job), unwound as Ctrl-C is: every
     temporary removed, every lock released, one line, exit status 143."""
@@ -1067,7 +1075,9 @@ def guarded(fn) -> int:
     The filters, the format and the SIGTERM handler are restored on return.
     The stage scripts of ``tasks/`` run through it too.
     """
-    logging.basicConfig(level=logging.WARNING, format="codedvideo: %(message)s")
+    handler = logging.StreamHandler()  # log lines said as warnings are ("codedvideo: warning: ...")
+    handler.setFormatter(_LogLine())
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])
     previous, warnings.formatwarning = warnings.formatwarning, _one_line
     # SIGTERM's default ends the process where it stands, leaving partial outputs behind
     on_term = signal.signal(signal.SIGTERM, _terminate) if threading.current_thread() is threading.main_thread() \

@@ -202,7 +202,11 @@ class ReconstructConfig(_Strict):
             return None
         from .cache import parse_size
 
-        return parse_size(v)
+        size = parse_size(v)
+        if size == 0:  # every store removed as soon as it is done: every run would compute everything again
+            raise ValueError("a cache budget must be > 0 bytes (0 keeps nothing, so every run computes "
+                             "everything again); leave it out for no limit")
+        return size
 
     @field_validator("scheduler")
     @classmethod
@@ -356,6 +360,12 @@ class PipelineConfig(_Strict):
     def _known_order(cls, v: list[str]) -> list[str]:
         if not v:  # a run that would do nothing and write an empty metrics file
             raise ValueError(f"no stage to run; give one or more of {', '.join(STAGES)}")
+        twice = next((s for i, s in enumerate(v) if s in v[:i]), None)
+        if twice:
+            raise ValueError(f"{twice} is named twice; name each stage once")
+        if v != [s for s in STAGES if s in v]:  # the stages run in pipeline order only: say so, not reorder
+            raise ValueError(f"out of order; stages run in the order {', '.join(STAGES)} "
+                             f"(give [{', '.join(s for s in STAGES if s in v)}])")
         if "evaluate" in v and "reconstruct" not in v:  # it scores this run's reconstruction, in memory
             raise ValueError(f"stages {v}: evaluate scores the reconstruction the run makes; add reconstruct "
                              "(codedvideo evaluate scores a reconstruction already written)")

@@ -10,9 +10,14 @@ Every command names its outputs and its inputs before any work is done, and
   FIFO, a socket, a symbolic link), or is read-only;
 - an existing output of the other kind (a file where a folder is written, or
   the reverse);
-- an existing folder that codedvideo did not write.  Folders are recognised by
-  their own marker: a frame folder's ``codedvideo-frames.json``, a Zarr store
-  whose attributes name a codedvideo kind;
+- an existing folder that codedvideo did not write, ``overwrite`` or not.  A
+  folder is codedvideo's only when its record (``.NAME.codedvideo`` beside it)
+  names every file and folder codedvideo wrote in it (relative path; size,
+  modification time and inode of each file) and the folder holds nothing else,
+  each file unchanged.  A file or folder put inside by the user, a file the
+  user changed, or a folder with no record (a marker file such as
+  ``codedvideo-frames.json`` proves nothing) is named in the refusal; a file
+  the user removed loses nothing of theirs;
 - an existing file that codedvideo did not write, unless ``overwrite`` is
   given.  A file codedvideo wrote has a hidden record beside it
   (``.NAME.codedvideo``: size, modification time and inode at writing), so a
@@ -20,7 +25,8 @@ Every command names its outputs and its inputs before any work is done, and
 
 Writers replace an output by renaming a finished temporary onto it
 (:func:`codedvideo.io.atomic_output`), so the old output stays whole until the
-new one is complete.  Call :func:`mark_written` after writing a file output.
+new one is complete.  Call :func:`mark_written` after writing a file or folder
+output (the record is itself written atomically).
 """
 
 from __future__ import annotations
@@ -35,8 +41,6 @@ from .errors import OutputError
 
 #: Suffix of the hidden record written beside every file output.
 OWNED_SUFFIX = ".codedvideo"
-#: Marker files inside folders that codedvideo writes as a whole.
-FOLDER_MARKERS = ("codedvideo-frames.json",)
 
 
 @dataclass(frozen=True)
@@ -65,7 +69,7 @@ def _inside(child: Path, parent: Path) -> bool:
 
 
 def record_path(path: str | os.PathLike) -> Path:
-    """The hidden record beside a file output."""
+    """The hidden record beside a file or folder output."""
     path = Path(path)
     return path.with_name(f".{path.name}{OWNED_SUFFIX}")
 
@@ -74,37 +78,92 @@ def _fingerprint(st: os.stat_result) -> dict:
     return dict(size=st.st_size, mtime_ns=st.st_mtime_ns, inode=st.st_ino)
 
 
+def _folder_entries(path: Path) -> dict[str, dict | None]:
+    """Everything under the folder ``path``, by path relative to it (sorted): a file's fingerprint, or None for a
+    folder; anything else (a link, a FIFO...) as ``{"kind": ...}``, which no record of codedvideo's holds."""
+    entries: dict[str, dict | None] = {}
+    for top, dirs, names in os.walk(path, onerror=_raise):
+        dirs.sort()
+        for name in sorted([*dirs, *names]):
+            full = os.path.join(top, name)
+            rel = os.path.relpath(full, path)
+            st = os.lstat(full)
+            if stat.S_ISDIR(st.st_mode):
+                entries[rel] = None
+            elif stat.S_ISREG(st.st_mode):
+                entries[rel] = _fingerprint(st)
+            else:
+                entries[rel] = dict(kind=_kind_of(st) or "not a regular file")
+    return dict(sorted(entries.items()))
+
+
+def _raise(exc: OSError) -> None:
+    raise exc
+
+
 def mark_written(path: str | os.PathLike) -> None:
-    """Record that codedvideo wrote the file ``path`` as it is now (see the module docstring)."""
+    """Record that codedvideo wrote the file or folder ``path`` as it is now (see the module docstring)."""
     from .io import atomic_output
 
     path = Path(path)
     try:
-        st = os.stat(path)
+        st = os.lstat(path)
+        if stat.S_ISDIR(st.st_mode):
+            record = dict(name=path.name, kind="folder", inode=st.st_ino, files=_folder_entries(path))
+        elif stat.S_ISREG(st.st_mode):
+            record = dict(_fingerprint(st), name=path.name)
+        else:
+            return
     except OSError:
         return
-    if not stat.S_ISREG(st.st_mode):
-        return
     with atomic_output(record_path(path)) as tmp:
-        Path(tmp).write_text(json.dumps(dict(_fingerprint(st), name=path.name)) + "\n")
+        Path(tmp).write_text(json.dumps(record) + "\n")
+
+
+def folder_problem(path: str | os.PathLike) -> str | None:
+    """Why the folder ``path`` is not codedvideo's to replace (None: it is; see the module docstring).
+
+    One phrase naming the first file or folder (in sorted order) that codedvideo did not write there, or that
+    changed since: "holds PATH, which codedvideo did not write", "PATH changed since codedvideo wrote it".
+    """
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+        found = _folder_entries(path)
+    except OSError as exc:
+        return f"cannot read it ({exc.strerror or exc})"
+    record = record_path(path)
+    try:
+        recorded = json.loads(record.read_text())
+    except FileNotFoundError:
+        recorded = None
+    except (OSError, ValueError):
+        recorded = {}
+    if not isinstance(recorded, dict) or recorded.get("kind") != "folder" or recorded.get("inode") != st.st_ino \
+            or not isinstance(recorded.get("files"), dict):
+        why = f"no record {record.name} beside it" if recorded is None else \
+            f"its record {record.name} does not describe this folder"
+        first = next(iter(found), None)
+        return f"is a folder codedvideo did not write ({why}; " + \
+            (f"the first file in it: {path / first})" if first else "it is empty)")
+    files = recorded["files"]
+    for rel, fingerprint in found.items():
+        if rel not in files:
+            return f"holds {path / rel}, which codedvideo did not write"
+        if files[rel] != fingerprint:
+            return f"{path / rel} changed since codedvideo wrote it"
+    return None
 
 
 def written_by_codedvideo(path: str | os.PathLike) -> bool:
-    """True when ``path`` is a file or folder that codedvideo wrote (and, for a file, nobody changed since)."""
+    """True when ``path`` is a file or folder that codedvideo wrote and nobody changed since."""
     path = Path(path)
     try:
         st = os.lstat(path)
     except OSError:
         return False
     if stat.S_ISDIR(st.st_mode):
-        if any((path / m).is_file() for m in FOLDER_MARKERS):
-            return True
-        meta = path / "zarr.json"
-        try:
-            attrs = json.loads(meta.read_text()).get("attributes", {})
-        except (OSError, ValueError, AttributeError):
-            return False
-        return isinstance(attrs, dict) and str(attrs.get("kind", "")).startswith("codedvideo")
+        return folder_problem(path) is None
     if not stat.S_ISREG(st.st_mode):
         return False
     try:
@@ -184,12 +243,17 @@ def check_outputs(outputs: list[Output], inputs: dict[str, object], *, overwrite
                               "choose another output")
         if not st.st_mode & 0o222:
             raise OutputError(f"{out.label} {out.path}: exists and is read-only; codedvideo will not replace it")
+        if is_dir:
+            problem = folder_problem(out.path)
+            if problem:
+                raise OutputError(f"{out.label} {out.path}: {problem}; a folder is replaced only when it holds "
+                                  "nothing but what codedvideo wrote there, --overwrite or not (move that out, or "
+                                  "choose another output)")
+            check_writable(out.path)
+            continue
         if written_by_codedvideo(out.path):
             check_writable(out.path)
             continue
-        if is_dir:
-            raise OutputError(f"{out.label} {out.path}: is an existing folder that codedvideo did not write; "
-                              "it is never replaced (choose another output)")
         if not overwrite:
             raise OutputError(f"{out.label} {out.path}: exists and was not written by codedvideo; "
                               "give --overwrite to replace it")

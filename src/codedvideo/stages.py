@@ -1069,6 +1069,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         if cfg.output.frames != "none":
             report["outputs"]["frames"] = str(out / "frames")
             cio.write_frames(out / "frames", volume, fmt=cfg.output.frames, data_range=units.value)
+            mark_written(out / "frames")
         mark_written(cio.write_array(out / "recon.npy", volume))
         report["outputs"]["volume"] = str(out / "recon.npy")
         report["seconds"]["write"] = time.perf_counter() - t0
