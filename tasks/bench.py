@@ -140,7 +140,7 @@ def naive_omp(cap, D, *, crop=48):
     from codedvideo.config import PipelineConfig, auto_tolerance, omp_settings
     from codedvideo.metrics import evaluate
     from codedvideo.omp import omp_reference
-    from codedvideo.reconstruct import reconstruct_region
+    from codedvideo.region import reconstruct_region
 
     coded = cap["coded"][:crop, :crop]
     mask = cap["mask"][:, :crop, :crop]

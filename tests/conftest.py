@@ -28,7 +28,7 @@ def partly_still_capture(size, still_columns, seed):
     from codedvideo.codes import make_code
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.physics import simulate
-    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.region import OmpSettings
     from codedvideo.synth import make_scene
 
     video = make_scene("default", frames=4, size=size)

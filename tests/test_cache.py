@@ -17,7 +17,7 @@ from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.physics import simulate
 from codedvideo.stages import reconstruct_volume
-from codedvideo.reconstruct import OmpSettings
+from codedvideo.region import OmpSettings
 from codedvideo.synth import make_scene
 
 SETTINGS = dict(max_atoms=6, tol_rms=2.0)
@@ -47,7 +47,7 @@ for i in range(reps):
             row = dict(ok=True, computed=not meta["reused"])
         else:
             from codedvideo.stages import reconstruct_volume
-            from codedvideo.reconstruct import OmpSettings
+            from codedvideo.region import OmpSettings
             d = np.load(root / "scene.npz")
             vol, info = reconstruct_volume(d["coded"], d["mask"], d["D"], settings=OmpSettings(**json.loads(sys.argv[5])),
                                            tile=int(sys.argv[6]), cache=root / f"cache-{i}", workers=1, progress=False,

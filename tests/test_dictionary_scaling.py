@@ -19,7 +19,7 @@ from codedvideo.metrics import evaluate
 from codedvideo.omp import MaskedOperator, omp
 from codedvideo.physics import simulate, static_estimate
 from codedvideo.stages import reconstruct_volume
-from codedvideo.reconstruct import OmpSettings
+from codedvideo.region import OmpSettings
 from codedvideo.synth import make_scene
 
 H, W, N = 32, 40, 8

@@ -8,7 +8,7 @@ from codedvideo.codes import make_code
 from codedvideo.dictionaries import dct_dictionary
 from codedvideo.physics import simulate
 from codedvideo.stages import reconstruct_volume
-from codedvideo.reconstruct import OmpSettings
+from codedvideo.region import OmpSettings
 from codedvideo.synth import make_scene
 
 

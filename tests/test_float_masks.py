@@ -15,7 +15,7 @@ from codedvideo.metrics import evaluate
 from codedvideo.omp import MaskedOperator, is_binary, patch_code_groups, pixel_patterns
 from codedvideo.parallel import plan_tiles
 from codedvideo.patches import extract
-from codedvideo.reconstruct import OmpSettings, reconstruct_region
+from codedvideo.region import OmpSettings, reconstruct_region
 from codedvideo.synth import make_scene
 
 N, H, W = 8, 48, 52

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from codedvideo.nonlocal_sc import joint_omp, match_groups, nonlocal_region
-from codedvideo.reconstruct import OmpSettings, reconstruct_region
+from codedvideo.region import OmpSettings, reconstruct_region
 
 from conftest import random_dictionary
 
@@ -174,7 +174,7 @@ def test_the_method_through_the_tiled_graph_equals_one_whole_tile(tmp_path):
     from codedvideo.codes import make_code
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.physics import simulate
-    from codedvideo.reconstruct import tile_halo
+    from codedvideo.region import tile_halo
     from codedvideo.stages import reconstruct_volume
     from codedvideo.synth import make_scene
 
@@ -294,7 +294,7 @@ def test_a_tile_is_keyed_by_everything_its_blocks_read(rng):
     patches joins a group. A pixel beyond what the blocks read leaves the key alone (still regions far
     away keep being shared)."""
     from codedvideo.parallel import nonlocal_blocks, nonlocal_reach, plan_tiles, tile_content
-    from codedvideo.reconstruct import tile_halo
+    from codedvideo.region import tile_halo
 
     shape, size = (96, 96), 32
     settings = OmpSettings(method="nonlocal")
@@ -348,7 +348,7 @@ def test_captures_of_one_job_come_out_as_each_alone(tmp_path, rng):
 def test_patches_still_across_captures_take_the_still_answer_and_join_no_group(rng):
     """The still map of a sequence: wholly still patches are neither solved nor members of a group, and the
     pixels that only they cover keep coded / open count exactly, as the default's tiles do."""
-    from codedvideo.reconstruct import _still_answer
+    from codedvideo.region import _still_answer
 
     video = smooth_scene(rng, h=30, w=30)
     coded, mask = capture(video, rng)
@@ -376,7 +376,7 @@ def test_still_tiles_of_a_sequence_are_shared_and_come_out_as_each_capture_alone
     import dataclasses
 
     from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.reconstruct import _still_answer
+    from codedvideo.region import _still_answer
     from codedvideo.stages import reconstruct_volume, sparse_volumes
 
     mask = (rng.random((N, 64, 96)) < 0.5).astype(np.uint8)
@@ -447,7 +447,7 @@ def test_a_noisy_stream_whose_blocks_have_no_still_reference_runs(tmp_path, caps
     """Reported: a 2-capture noisy stack at tile 32 ended in a traceback ("cannot reshape array of size 0 into
     shape (0, newaxis)"): a block without a calm reference asked for the still answers of no patch."""
     from codedvideo.cli import main
-    from codedvideo.reconstruct import still_answers
+    from codedvideo.region import still_answers
     from codedvideo.stages import simulate_capture
     from codedvideo.synth import make_scene
 

@@ -7,7 +7,7 @@ from codedvideo import patches as P
 from codedvideo.codes import make_code
 from codedvideo.omp import MaskedOperator, omp, omp_reference, pixel_patterns, synthesize
 from codedvideo.omp_kernel import TableOMP, table_fits
-from codedvideo.reconstruct import OmpSettings, reconstruct_region
+from codedvideo.region import OmpSettings, reconstruct_region
 from conftest import random_dictionary
 
 
@@ -95,7 +95,7 @@ def test_table_size_limit_falls_back_for_many_patterns():
 @pytest.mark.parametrize("code", ["hitomi", "bernoulli"])
 def test_region_through_kernel_equals_numpy_operator(rng, code, monkeypatch):
     """reconstruct_region gives the same volume whichever exact OMP path runs."""
-    from codedvideo import reconstruct
+    from codedvideo import region as reconstruct
 
     n, K = 6, 120
     D = random_dictionary(rng, n * 49, K)

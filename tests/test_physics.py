@@ -273,7 +273,7 @@ def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_pat
 
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.metrics import evaluate
-    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.region import OmpSettings
     from codedvideo.stages import drop_saturated, reconstruct_capture
     from codedvideo.synth import make_scene
     from codedvideo.units import infer_data_range

@@ -9,7 +9,7 @@ from codedvideo.dictionaries import dct_dictionary
 from codedvideo.metrics import evaluate
 from codedvideo.scenes import load_video
 from codedvideo.stages import reconstruct_volume, simulate_capture, train_dictionary, trivial_estimate
-from codedvideo.reconstruct import OmpSettings
+from codedvideo.region import OmpSettings
 from codedvideo.store import load_dictionary
 
 

@@ -17,7 +17,7 @@ from codedvideo.dictionaries import dct_dictionary, learn_dictionary
 from codedvideo.physics import simulate
 from codedvideo.stages import reconstruct_volume, simulate_capture
 from codedvideo.volumes import write_capture, write_volume
-from codedvideo.reconstruct import OmpSettings
+from codedvideo.region import OmpSettings
 from codedvideo.store import WorkStore, save_dictionary
 from codedvideo.synth import make_scene
 

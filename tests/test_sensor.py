@@ -14,7 +14,7 @@ from codedvideo.dictionaries import dct_dictionary
 from codedvideo.errors import InputError
 from codedvideo.metrics import evaluate
 from codedvideo.stages import reconstruct_volume
-from codedvideo.reconstruct import OmpSettings
+from codedvideo.region import OmpSettings
 from codedvideo.synth import make_scene
 
 N, H, W = 8, 64, 64

@@ -219,7 +219,7 @@ def test_a_tile_equal_to_one_already_solved_reuses_its_result(tmp_path):
     from codedvideo.codes import make_code
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.physics import simulate
-    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.region import OmpSettings
     from codedvideo.stages import reconstruct_volume, sparse_volumes
     from codedvideo.synth import make_scene
 
@@ -245,7 +245,7 @@ def test_captures_are_handed_out_in_order_while_later_ones_still_compute(tmp_pat
     from codedvideo.codes import make_code
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.physics import simulate
-    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.region import OmpSettings
     from codedvideo.stages import sparse_volumes
     from codedvideo.synth import make_scene
 
@@ -546,7 +546,7 @@ def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"
     from codedvideo.codes import make_code
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.physics import simulate
-    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.region import OmpSettings
     from codedvideo.synth import make_scene
 
     video = make_scene("default", frames=4 * 6, size=(48, 48))
@@ -619,7 +619,7 @@ def test_a_job_never_waits_for_a_busy_entry_while_it_holds_another(tmp_path, mon
     from codedvideo.codes import make_code
     from codedvideo.dictionaries import dct_dictionary
     from codedvideo.physics import simulate
-    from codedvideo.reconstruct import OmpSettings
+    from codedvideo.region import OmpSettings
     from codedvideo.store import entry_lock
     from codedvideo.synth import make_scene
 

@@ -21,7 +21,7 @@ from codedvideo.omp import MaskedOperator, omp, synthesize
 from codedvideo.physics import forward, simulate, static_estimate
 from codedvideo.volumes import read_coded, read_mask
 from codedvideo.stages import reconstruct_volume
-from codedvideo.reconstruct import STAT_NAMES, OmpSettings, reconstruct_region
+from codedvideo.region import STAT_NAMES, OmpSettings, reconstruct_region
 from codedvideo.synth import make_scene
 
 H, W = 32, 40

@@ -17,7 +17,7 @@ from codedvideo.dictionaries import dct_dictionary
 from codedvideo.omp import pattern_table, pixel_patterns
 from codedvideo.physics import simulate
 from codedvideo.stages import reconstruct_volume
-from codedvideo.reconstruct import OmpSettings, reconstruct_region
+from codedvideo.region import OmpSettings, reconstruct_region
 from codedvideo.synth import make_scene
 
 N, H, W = 8, 61, 70
@@ -116,7 +116,7 @@ def test_fold_leaves_out_the_skipped_patches(rng):
 def test_still_patches_no_other_patch_overlaps_are_not_summed_and_change_nothing(monkeypatch):
     """Patches of the still map that only still patches overlap are left out of the sum (their pixels take the
     still answer): the volume is the same bit for bit as when every patch is summed."""
-    from codedvideo import reconstruct as R
+    from codedvideo import region as R
 
     coded, mask, still, D, s = partly_still_capture((40, 44), 26, seed=3)
     skipped = []

@@ -7,7 +7,7 @@ from codedvideo.dictionaries import dct_dictionary
 from codedvideo.parallel import plan_tiles
 from codedvideo.physics import simulate
 from codedvideo.stages import reconstruct_volume
-from codedvideo.reconstruct import OmpSettings, reconstruct_region
+from codedvideo.region import OmpSettings, reconstruct_region
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +68,7 @@ def test_reconstruction_beats_trivial_estimate(capture, tmp_path):
 
 def test_still_patches_take_the_cheap_path_with_the_same_answer():
     """A still, smooth scene is accepted by the still-scene test and matches full OMP within the noise."""
-    from codedvideo.reconstruct import STAT_NAMES
+    from codedvideo.region import STAT_NAMES
 
     n, h, w = 6, 30, 34
     yy, xx = np.mgrid[0:h, 0:w]
@@ -95,7 +95,7 @@ def test_still_test_equals_omp_over_the_still_dictionary(code):
     """The closed-form still test (no dictionary search) agrees with OMP over the still atoms."""
     from codedvideo import patches as P
     from codedvideo.omp import MaskedOperator, omp, synthesize
-    from codedvideo.reconstruct import static_dictionary, still_patches
+    from codedvideo.region import static_dictionary, still_patches
 
     rng = np.random.default_rng(11)
     n, h, w = 6, 24, 26
@@ -153,7 +153,7 @@ def test_one_shutter_pattern_for_all_pixels_gives_the_static_estimate(capture, t
 @pytest.mark.parametrize("stride", [2, 3, 7])
 def test_patch_stride_covers_every_pixel_and_chunking_does_not_matter(capture, stride, tmp_path):
     """A stride solves fewer patches, counted from the image's corner, so tiles agree with the whole image."""
-    from codedvideo.reconstruct import STAT_NAMES
+    from codedvideo.region import STAT_NAMES
 
     coded, mask, video = capture
     D = dct_dictionary(4)

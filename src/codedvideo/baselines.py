@@ -323,7 +323,7 @@ def reconstruct_method(
         Names the dictionary in those messages (e.g. its path).
     dictionary_key, settings, tile, cache, scheduler, workers, progress
         Passed to :func:`~codedvideo.stages.reconstruct_volume` (``settings``
-        an :class:`~codedvideo.reconstruct.OmpSettings`; default settings when None).
+        an :class:`~codedvideo.region.OmpSettings`; default settings when None).
 
     Returns
     -------
@@ -339,7 +339,7 @@ def reconstruct_method(
     if method not in METHODS:
         raise InputError(f"method {method!r}: unknown; choose one of {', '.join(METHODS)}")
     if method in ("omp", "nonlocal", "dct"):
-        from .reconstruct import OmpSettings
+        from .region import OmpSettings
         from .stages import reconstruct_volume, sparse_method
 
         settings, dictionary, dictionary_key = sparse_method(method, settings or OmpSettings(), dictionary,

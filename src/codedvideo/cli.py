@@ -580,9 +580,8 @@ def _cmd_reconstruct(a) -> int:
     one metrics JSON with an entry per coded image and the totals."""
     from .metrics import evaluate, json_safe, mean_psnr
     from .volumes import write_json, metrics_path, volume_writer
-    from .stages import SPARSE_METHODS, cache_room, reconstruct_captures, trivial_estimate
-    from .units import NOISE_ROOM, NOISE_SIGMAS, OUTLIER_SHARE, check_range, infer_data_range, share_above, \
-        static_peak, static_quantile, tolerance_warning
+    from .stages import SPARSE_METHODS, cache_room, reconstruct_stream, trivial_estimate
+    from .units import capture_units, tolerance_warning
 
     rc, noise, out = _reconstruct_options(a)  # before any work
     t_all = t0 = time.perf_counter()
@@ -593,23 +592,10 @@ def _cmd_reconstruct(a) -> int:
     if a.dictionary:
         job.inputs["dictionary"] = str(a.dictionary)
     t_read = time.perf_counter() - t0
-    peak = max(static_peak(job.codeds[i], job.mask(i)) for i in range(count))
-    # a sum of frames is never negative: the wrong file, or a black level taken off twice
-    if peak <= 0 and out.data_range is None:
-        raise InputError(f"{job.source}: no coded value above 0 where the code is open; nothing to reconstruct "
-                         "(check the file and the black level)")
-    units = infer_data_range(peak, dtype=job.dtype, given=out.data_range, noise=noise.sigma, quantile=lambda: max(
-        static_quantile(job.codeds[i], job.mask(i), 1 - OUTLIER_SHARE) for i in range(count)))
-    check_range(units, {"--noise-sigma": noise.sigma, "--tol-rms": rc.tol_rms if rc.tol_rms != "auto" else None,
-                        "--white-level": noise.white_level, "--black-level": noise.black_level}, job.source)
-    level = units.value * NOISE_ROOM + NOISE_SIGMAS * noise.sigma
-    if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
-        share = max(share_above(job.codeds[i], job.mask(i), level) for i in range(count))
-        warnings.warn(f"{job.source}: {share:.2%} of the pixels (coded / open count, up to {peak:.4g}) lie above the "
-                      f"data range {units.value:g} ({units.source}); they are clipped in videos and frames")
-    if out.data_range is None and units.value > 255 and peak <= 2 * 255:  # just past 8 bits: noise, or a dark frame?
-        warnings.warn(f"{job.source}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
-                      "just above 8-bit; if the frames are 8-bit with noise, give --noise-sigma or --data-range 255")
+    units = capture_units(job.codeds, job.mask, dtype=job.dtype, given=out.data_range, noise_sigma=noise.sigma,
+                          levels={"--noise-sigma": noise.sigma, "--tol-rms": rc.tol_rms if rc.tol_rms != "auto" else None,
+                                  "--white-level": noise.white_level, "--black-level": noise.black_level},
+                          where=job.source)
     settings = omp_settings(rc, noise.sigma, scale=units.scale)
     if a.method in ("omp", "nonlocal", "dct"):
         message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
@@ -636,20 +622,10 @@ def _cmd_reconstruct(a) -> int:
         results = iter([(0, *reconstruct_bayer(a.method, job.codeds[0], job.mask(0), pattern=a.bayer, **options))])
         trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
     else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
-        still_of = None
-        if job.kind == "captures" and count > 1 and not a.independent_captures:
-            from .sequence import still_values
-
-            # what did not change since the capture before or until the one after (asked again by the join)
-            still_of = functools.lru_cache(maxsize=4)(
-                lambda i: still_values(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale, white_level=white))
-        results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, adapt=rc.adapt,
-                                       cache_budget=rc.cache_budget, **options)
-        if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
-            from .sequence import joined
-
-            # the step from one capture to the next smoothed along the motion, both measurements kept
-            results = joined(results, job.codeds, job.mask, data_range=units.value, still_of=still_of, white_level=white)
+        stream = job.kind in ("captures", "measurements") and not a.independent_captures
+        # (a benchmark file's measurements are joined, but share no still answers: each has its own scene)
+        results = reconstruct_stream(a.method, job.codeds, job.mask, join=stream, still=job.kind == "captures",
+                                     noise_sigma=noise.sigma, adapt=rc.adapt, cache_budget=rc.cache_budget, **options)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     from .sequence import StepErrors
 

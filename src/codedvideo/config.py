@@ -398,13 +398,13 @@ class PipelineConfig(_Strict):
 
 
 def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
-    """The sparse-coding settings (:class:`codedvideo.reconstruct.OmpSettings`) of a ``reconstruct:`` section.
+    """The sparse-coding settings (:class:`codedvideo.region.OmpSettings`) of a ``reconstruct:`` section.
 
     ``sigma`` is the noise standard deviation that ``tol_rms: auto`` follows,
     in the capture's units; ``scale`` takes the capture's units to working
     units (:mod:`codedvideo.units`), in which the settings are returned.
     """
-    from .reconstruct import OmpSettings
+    from .region import OmpSettings
 
     tol = auto_tolerance(sigma * scale) if rc.tol_rms == "auto" else float(rc.tol_rms) * scale
     return OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms,

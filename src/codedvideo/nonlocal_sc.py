@@ -3,7 +3,7 @@
 The same structure recurs in many patches of a scene, and every copy was seen
 through a different shutter pattern: a group of ``k`` similar patches holds
 ``k x 49`` measurements of nearly the same unknowns.  From a first estimate (the
-default per-patch OMP of :func:`codedvideo.reconstruct.reconstruct_region`):
+default per-patch OMP of :func:`codedvideo.region.reconstruct_region`):
 
 1. block matching: for every reference patch, the ``group`` patches of the
    current estimate closest to it as whole ``7 x 7 x N`` blocks (sum of squared
@@ -54,7 +54,7 @@ import numpy as np
 from . import patches as P
 from .omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, is_binary, pixel_patterns, synthesize
 from .omp_kernel import TableOMP, block_match, scatter_patches, somp_kernel, table_fits
-from .reconstruct import OmpSettings, still_answers, still_patches
+from .region import OmpSettings, still_answers, still_patches
 
 #: Names of the statistics, in the order of the stats vector.
 STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_static", "seconds_match",
@@ -333,7 +333,7 @@ def keep_still(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, still: n
     ``coded``, ``mask``, ``still`` cover a region; ``volume`` is its ``[rows, cols]`` part, which must lie
     ``patch - 1`` pixels inside the region wherever the region is not cut by the image's border.
     """
-    from .reconstruct import _still_answer
+    from .region import _still_answer
 
     if still is None or not np.any(still):
         return

@@ -313,7 +313,7 @@ def _omp_weights_kernel(y, S, D3, floor, tol, kmax, dep_tol, select_bits, tiny, 
 
 @njit(nogil=True, cache=True)
 def still_kernel(y, n_pix, C, tol, atoms, ok, frame):
-    """The still-scene test of :func:`codedvideo.reconstruct.still_patches`, one patch at a time.
+    """The still-scene test of :func:`codedvideo.region.still_patches`, one patch at a time.
 
     ``frame[p]`` (zeros on entry) gets the still image of every passing patch
     ``ok[p]``: the fewest of its largest 2D DCT coefficients (columns of ``C``,

@@ -40,7 +40,7 @@ import numpy as np
 from dask.highlevelgraph import HighLevelGraph
 
 from .errors import CodedVideoError, SchedulerError
-from .reconstruct import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
+from .region import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
 from .store import WorkStore, write_tiles
 
 log = logging.getLogger("codedvideo")
@@ -62,7 +62,7 @@ def plan_tiles(shape: tuple[int, int], tile: int, *, patch: int = 7, halo: int |
     """Cut an image into ``tile x tile`` cores (the last ones smaller) with halos.
 
     The halo is ``patch - 1`` pixels on every side (or ``halo``:
-    :func:`codedvideo.reconstruct.tile_halo`), clipped at the image border, so
+    :func:`codedvideo.region.tile_halo`), clipped at the image border, so
     every patch that covers a core pixel lies inside the tile's halo region.
     """
     h, w = shape

@@ -103,8 +103,6 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max
     video with fewer than ``frames`` frames, or smaller than a patch, is left out with a warning; none
     usable is an :class:`InputError` that names each and why.
     """
-    from .units import OUTLIER_SHARE, infer_data_range
-
     videos: list[np.ndarray] = []
     used: list[str] = []
     problems: list[str] = []
@@ -133,13 +131,7 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max
         if f < frames or min(h, w) < patch:
             problems.append(f"{spec} ({f} frames of {h}x{w})")
             continue
-        # a reconstruction overshoots its range: a few values above 1 (or 255) are outliers, as in a capture
-        units = infer_data_range(float(video.max()), what="frame values", outlier_ranges=(1.0, 255.0),
-                                 quantile=lambda: float(np.quantile(video[:, ::3, ::3], 1 - OUTLIER_SHARE)))
-        if units.scale != 1:
-            video *= np.float32(units.scale)
-        log.info("training video %s: data range %g (%s)", spec, units.value, units.source)
-        videos.append(video)
+        videos.append(working_units(video, what=f"training video {spec}"))
         used.append(spec)
     need = f"{frames} frames (N) of at least {patch}x{patch} pixels"
     if not videos:
@@ -148,6 +140,19 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max
     if problems:
         warnings.warn(f"training videos left out, each needs {need}: " + "; ".join(problems), stacklevel=2)
     return videos, used
+
+
+def working_units(video: np.ndarray, *, what: str = "video") -> np.ndarray:
+    """A float32 video scaled in place to working units (its data range, found from its values, to 255)."""
+    from .units import OUTLIER_SHARE, infer_data_range
+
+    # a reconstruction overshoots its range: a few values above 1 (or 255) are outliers, as in a capture
+    units = infer_data_range(float(video.max()), what="frame values", outlier_ranges=(1.0, 255.0),
+                             quantile=lambda: float(np.quantile(video[:, ::3, ::3], 1 - OUTLIER_SHARE)))
+    if units.scale != 1:
+        video *= np.float32(units.scale)
+    log.info("%s: data range %g (%s)", what, units.value, units.source)
+    return video
 
 
 def resolve_data(spec: str) -> str:

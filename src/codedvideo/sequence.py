@@ -38,7 +38,7 @@ STILL_SIGMAS = 3.0
 STILL_NOISE_MAX = 6.0
 #: A still region is *flat* where the variance of ``coded / open count`` over a 7x7 window is at most this
 #: multiple of its read noise's: there the single-capture still test (a few 2D DCT atoms fitted within the
-#: noise, :func:`codedvideo.reconstruct.still_patches`) removes the noise that the still answer keeps
+#: noise, :func:`codedvideo.region.still_patches`) removes the noise that the still answer keeps
 #: (measured: a flat still background at sigma 5 gave 44.4 dB as still answers against 55.0 dB capture by
 #: capture, and the whole frame lost 0.7 dB at sigma 10).
 FLAT_VARIANCE = 1.5

@@ -32,7 +32,7 @@ from .errors import ConfigError, InputError, OutputError
 from .metrics import evaluate
 from .parallel import GraphRunner, build_graph, plan_store, plan_tiles, store_volume
 from .patches import PATCH
-from .reconstruct import STAT_NAMES, OmpSettings
+from .region import STAT_NAMES, OmpSettings
 from .scenes import load_video, training_videos
 from .store import WorkStore, entry_lock, load_dictionary, save_dictionary
 from .volumes import CAPTURE_FILES, metrics_path, write_capture, write_json, write_volume
@@ -349,7 +349,7 @@ def sparse_volumes(
         ``capture(i)`` -> ``(coded (H, W), mask (N, H, W), still)`` in
         working units, ``still`` an (H, W) bool map of pixels known to be
         still (their wholly still patches take the still answer,
-        :func:`codedvideo.reconstruct.reconstruct_region`) or None; or None
+        :func:`codedvideo.region.reconstruct_region`) or None; or None
         for a capture that is not sparse-coded (yielded as ``(i, None,
         None)`` for the caller to fill in).  It is called twice
         per capture (to plan, then to finish), so that no more than one
@@ -932,6 +932,30 @@ def reconstruct_captures(
         budget.finished([])
 
 
+def reconstruct_stream(method: str, codeds, mask_of, *, join: bool, still: bool = True, noise_sigma: float = 0.0,
+                       white_level: float | None = None, data_range, **options) -> Iterator[tuple[int, np.ndarray, dict]]:
+    """A stream of captures (a coded camera's frames, or a benchmark file's measurements) -> their videos, in
+    order: :func:`reconstruct_captures` as one job and, with ``join`` and more than one capture, the still
+    answers shared with agreeing neighbours (:func:`codedvideo.sequence.still_values`) and the step from one
+    capture to the next smoothed (:func:`codedvideo.sequence.joined`).  ``still``: share still answers (False
+    for a benchmark file's measurements, each of its own scene).  What the command line and the Python API
+    (:func:`codedvideo.api.reconstruct`) both run; ``options`` as :func:`reconstruct_captures`."""
+    count = len(codeds)
+    if not join or count < 2:
+        return reconstruct_captures(method, codeds, mask_of, data_range=data_range, white_level=white_level,
+                                    **options)
+    from .sequence import joined, still_values
+
+    # what did not change since the capture before or until the one after (asked again by the join)
+    still_of = functools.lru_cache(maxsize=4)(
+        lambda i: still_values(codeds, mask_of, i, sigma=noise_sigma, scale=data_range.scale,
+                               white_level=white_level)) if still else None
+    results = reconstruct_captures(method, codeds, mask_of, data_range=data_range, white_level=white_level,
+                                   still_of=still_of, **options)
+    # the step from one capture to the next smoothed along the motion, both measurements kept
+    return joined(results, codeds, mask_of, data_range=data_range.value, still_of=still_of, white_level=white_level)
+
+
 def _nonlocal_unavailable(mask: np.ndarray, D: np.ndarray) -> str | None:
     """Why the non-local method cannot solve a capture with this mask (it then gives the default's answer,
     :func:`codedvideo.nonlocal_sc.nonlocal_region`), or None."""
@@ -1039,19 +1063,16 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     if "reconstruct" in cfg.stages:
         D, dmeta = load_dictionary(dict_path)
         check_dictionary(dmeta, cfg.frames, dict_path)
-        from .units import OUTLIER_SHARE, infer_data_range, static_peak, static_quantile
+        from .units import capture_units
 
         rc = cfg.reconstruct
         sensor = sensor_model(cfg.noise)
         # with shot noise / quantisation: the RMS noise at the mean coded level
         sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
-        units = infer_data_range(static_peak(capture["coded"], capture["mask"]), given=cfg.output.data_range,
-                                 noise=cfg.noise.sigma, quantile=lambda: static_quantile(
-                                     capture["coded"], capture["mask"], 1 - OUTLIER_SHARE))
-        from .units import check_range
-
-        check_range(units, {"noise.sigma": cfg.noise.sigma, "noise.white_level": cfg.noise.white_level,
-                            "reconstruct.tol_rms": rc.tol_rms if rc.tol_rms != "auto" else None}, "simulated capture")
+        units = capture_units([capture["coded"]], lambda i: capture["mask"], given=cfg.output.data_range,
+                              noise_sigma=cfg.noise.sigma, where="simulated capture",
+                              levels={"noise.sigma": cfg.noise.sigma, "noise.white_level": cfg.noise.white_level,
+                                      "reconstruct.tol_rms": rc.tol_rms if rc.tol_rms != "auto" else None})
         report["data_range"] = units.as_dict()
         t0 = time.perf_counter()
         # saturated pixels (noise.white_level) are missing measurements

@@ -184,3 +184,48 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str 
     return (f"the residual tolerance (--tol-rms / --noise-sigma) is met before the first atom on {share:.0%} of "
             "the patches: they take their still answer (coded / open count), with no motion recovered; check the "
             "data range (--data-range) and the tolerance")
+
+
+def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, noise_sigma: float = 0.0,
+                  levels: dict[str, float | None] | None = None, where: str = "coded image") -> DataRange:
+    """The data range of a job's captures, found once, checked and warned about: the one inference that the
+    command line, ``codedvideo run`` and the Python API all use.
+
+    Parameters
+    ----------
+    codeds : sequence of T coded images (H, W), in the capture's units
+    mask_of : callable ``mask_of(i)`` -> the (N, H, W) mask of capture ``i``
+    dtype : the captures' type as stored (8-bit integers are 0..255 whatever their values)
+    given : the data range the user gave (``--data-range``), or None to find it from the values
+    noise_sigma : the read noise in the capture's units (its peaks may lie above the range)
+    levels : option name -> grey-level setting in the capture's units, refused when far above the range
+    where : what the captures are called in messages (the file)
+
+    Raises :class:`codedvideo.errors.InputError` for a capture with nothing above 0 (and no range given) or
+    values beyond float32's working bounds; warns (one line each) when values lie above the range found or
+    given, and when a range just past 8 bits was found.
+    """
+    import warnings
+
+    from .errors import InputError
+
+    count = len(codeds)
+    peak = max(static_peak(codeds[i], mask_of(i)) for i in range(count))
+    # a sum of frames is never negative: the wrong file, or a black level taken off twice
+    if peak <= 0 and given is None:
+        raise InputError(f"{where}: no coded value above 0 where the code is open; nothing to reconstruct "
+                         "(check the file and the black level)")
+    units = infer_data_range(peak, dtype=dtype, given=given, noise=noise_sigma, quantile=lambda: max(
+        static_quantile(codeds[i], mask_of(i), 1 - OUTLIER_SHARE) for i in range(count)))
+    check_range(units, levels or {}, where)
+    level = units.value * NOISE_ROOM + NOISE_SIGMAS * noise_sigma
+    if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
+        share = max(share_above(codeds[i], mask_of(i), level) for i in range(count))
+        warnings.warn(f"{where}: {share:.2%} of the pixels (coded / open count, up to {peak:.4g}) lie above the "
+                      f"data range {units.value:g} ({units.source}); they are clipped in videos and frames",
+                      stacklevel=2)
+    if given is None and units.value > 255 and peak <= 2 * 255:  # just past 8 bits: noise, or a dark frame?
+        warnings.warn(f"{where}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
+                      "just above 8-bit; if the frames are 8-bit with noise, give --noise-sigma or --data-range 255",
+                      stacklevel=2)
+    return units
