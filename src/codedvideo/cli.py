@@ -615,7 +615,7 @@ def _cmd_reconstruct(a) -> int:
     options = dict(data_range=units, settings=settings, dictionary=D, dictionary_key=meta.get("sha256", ""),
                    dictionary_name=str(a.dictionary or ""), white_level=white, where=job.source, tile=rc.tile,
                    cache=a.cache, scheduler=rc.scheduler, workers=rc.workers, progress=not a.quiet)
-    trivial_of = trivial_estimate
+    trivial_of, cuts = trivial_estimate, None
     if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
         from .bayer import reconstruct_bayer, static_estimate
 
@@ -623,19 +623,27 @@ def _cmd_reconstruct(a) -> int:
         trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
     else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
         still_of = None
+        if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
+            from .sequence import Cuts
+
+            # boundaries whose two captures do not show one scene (a cut, a dark or blown-out capture, a jump
+            # of exposure): nothing is averaged or joined across them
+            cuts = Cuts(job.codeds, job.mask, scale=units.scale, white_level=white)
         if job.kind == "captures" and count > 1 and not a.independent_captures:
             from .sequence import still_values
 
             # what did not change since the capture before or until the one after (asked again by the join)
             still_of = functools.lru_cache(maxsize=4)(
-                lambda i: still_values(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale, white_level=white))
+                lambda i: still_values(job.codeds, job.mask, i, sigma=noise.sigma, scale=units.scale, white_level=white,
+                                       cut=cuts))
         results = reconstruct_captures(a.method, job.codeds, job.mask, still_of=still_of, adapt=rc.adapt,
                                        cache_budget=rc.cache_budget, **options)
         if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
             from .sequence import joined
 
             # the step from one capture to the next smoothed along the motion, both measurements kept
-            results = joined(results, job.codeds, job.mask, data_range=units.value, still_of=still_of, white_level=white)
+            results = joined(results, job.codeds, job.mask, data_range=units.value, still_of=still_of, white_level=white,
+                             cut=cuts)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     from .sequence import StepErrors
 
@@ -675,6 +683,10 @@ def _cmd_reconstruct(a) -> int:
                       dictionary_atoms=entries[0]["reconstruction"].get("dictionary_atoms")),
         data_range=units.as_dict(),
     )
+    if cuts is not None:  # the boundaries not joined, and why (each was asked by the join already)
+        metrics["cuts"] = [dict(c, captures=[job.labels[c["boundary"] + d].get("capture", c["boundary"] + d + 1)
+                                             for d in (0, 1)])
+                           for c in (cuts(i) and dict(boundary=i, **cuts(i)) for i in range(count - 1)) if c]
     summary = dict(output=str(a.output))
     if job.kind in ("single", "bayer"):
         info = entries[0]["reconstruction"]
