@@ -615,17 +615,24 @@ def _cmd_reconstruct(a) -> int:
     options = dict(data_range=units, settings=settings, dictionary=D, dictionary_key=meta.get("sha256", ""),
                    dictionary_name=str(a.dictionary or ""), white_level=white, where=job.source, tile=rc.tile,
                    cache=a.cache, scheduler=rc.scheduler, workers=rc.workers, progress=not a.quiet)
-    trivial_of = trivial_estimate
+    trivial_of, cuts = trivial_estimate, None
     if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
         from .bayer import reconstruct_bayer, static_estimate
 
         results = iter([(0, *reconstruct_bayer(a.method, job.codeds[0], job.mask(0), pattern=a.bayer, **options))])
         trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
     else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
-        stream = job.kind in ("captures", "measurements") and not a.independent_captures
+        stream = job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures
+        if stream:
+            from .sequence import Cuts
+
+            # boundaries whose two captures do not show one scene (a cut, a dark or blown-out capture, a jump
+            # of exposure): nothing is averaged or joined across them
+            cuts = Cuts(job.codeds, job.mask, scale=units.scale, white_level=white)
         # (a benchmark file's measurements are joined, but share no still answers: each has its own scene)
         results = reconstruct_stream(a.method, job.codeds, job.mask, join=stream, still=job.kind == "captures",
-                                     noise_sigma=noise.sigma, adapt=rc.adapt, cache_budget=rc.cache_budget, **options)
+                                     cuts=cuts, noise_sigma=noise.sigma, adapt=rc.adapt, cache_budget=rc.cache_budget,
+                                     **options)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     from .sequence import StepErrors
 
@@ -665,6 +672,10 @@ def _cmd_reconstruct(a) -> int:
                       dictionary_atoms=entries[0]["reconstruction"].get("dictionary_atoms")),
         data_range=units.as_dict(),
     )
+    if cuts is not None:  # the boundaries not joined, and why (each was asked by the join already)
+        metrics["cuts"] = [dict(c, captures=[job.labels[c["boundary"] + d].get("capture", c["boundary"] + d + 1)
+                                             for d in (0, 1)])
+                           for c in (cuts(i) and dict(boundary=i, **cuts(i)) for i in range(count - 1)) if c]
     summary = dict(output=str(a.output))
     if job.kind in ("single", "bayer"):
         info = entries[0]["reconstruction"]

@@ -17,6 +17,12 @@ sub-frames of a capture are its least determined, so the step from one capture
 to the next is worse than a step inside one, a flicker every N frames
 (:class:`StepErrors` measures it).  :func:`join_captures` smooths each such
 step along the motion, without moving either capture's measurement.
+
+Both read across a boundary, so neither may where the two captures do not show
+one scene: a cut between shots, a dark or blown-out capture, a large change of
+exposure.  :class:`Cuts` tests each boundary on the measurements alone and the
+join and the still answers leave a boundary it takes as a cut alone: either side
+is then what it is capture by capture.
 """
 
 from __future__ import annotations
@@ -58,14 +64,14 @@ def erode_to_patches(agree: np.ndarray, patch: int = 7) -> np.ndarray:
     return ndimage.minimum_filter(agree.view(np.uint8), size=2 * patch - 1, mode="nearest").astype(bool)
 
 
-def agreeing_pixels(codeds, masks, i: int, *, sigma: float, scale: float = 1.0) -> np.ndarray:
+def agreeing_pixels(codeds, masks, i: int, *, sigma: float, scale: float = 1.0, cut=None) -> np.ndarray:
     """Pixels of capture ``i`` whose ``coded / open count`` agrees, within the noise, with the capture before or
     after, (H, W) bool: where :func:`still_values` is a number."""
-    return np.isfinite(still_values(codeds, masks, i, sigma=sigma, scale=scale))
+    return np.isfinite(still_values(codeds, masks, i, sigma=sigma, scale=scale, cut=cut))
 
 
 def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0,
-                 white_level: float | None = None) -> np.ndarray:
+                 white_level: float | None = None, cut=None) -> np.ndarray:
     """The still answer of capture ``i``'s pixels that agree with the capture before or after it; NaN elsewhere.
 
     A pixel agrees with a neighbouring capture when their ``coded / open count`` differ by at most
@@ -84,6 +90,8 @@ def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0,
     sigma : read-noise standard deviation, in the capture's units
     scale : factor from the capture's units to working units (:class:`codedvideo.units.DataRange`)
     white_level : coded values at or above it (the capture's units) are clipped: never still, never averaged in
+    cut : callable ``cut(j)``, optional (:class:`Cuts`): true where captures ``j`` and ``j + 1`` do not show one
+        scene; no neighbour across such a boundary is compared or averaged in
 
     Returns
     -------
@@ -105,7 +113,7 @@ def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0,
     weight, pull = k * k, np.zeros(q.shape, np.float32)  # sum of w_j (q_j - q): 0 from the capture itself
     agree = np.zeros(q.shape, bool)
     for j in (i - 1, i + 1):
-        if not 0 <= j < len(codeds):
+        if not 0 <= j < len(codeds) or (cut is not None and cut(min(i, j))):
             continue
         qj, kj, quiet_j = usable(j)
         with np.errstate(divide="ignore"):
@@ -119,6 +127,117 @@ def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0,
         agree &= ~_flat(q, np.where(k > 0, sigma / np.maximum(k, 1e-12), 0).astype(np.float32))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(agree, q + pull / weight, np.nan).astype(np.float32)
+
+
+# --- boundaries that are not joined (a cut, a dark or blown-out capture, a jump of exposure) -----------
+
+#: Side, in cells, of the coarse image of ``coded / open count`` (block means) that two captures are compared
+#: on: block means take out the code (each pixel sees its own sub-frames) and most of the motion of a capture.
+CUT_CELLS = 64
+#: Smoothing of the coarse image, cells.
+CUT_SMOOTH = 1.0
+#: Correlation of the two coarse images below which the captures show different scenes.  Measured at
+#: N = 8, bump 2 (read noise 0 and 2): ordinary motion gave at least 0.28 (bikes.mp4, 25 fps, a blurred car
+#: crossing the whole frame between two captures), 0.71 on synthetic zoom, 0.93 on carphone and bigbuckbunny,
+#: at least 0.72 on the synthetic scenes; cuts gave -0.11 (the default scene and its mirror image), 0.03 to
+#: 0.04 (carphone and its mirror image), -0.2 (bikes, a capture holding a cut of its own), -0.11 to 0.29
+#: (carphone then bikes: two clips cut together are not always told apart, the price of joining fast motion).
+CUT_CORRELATION = 0.2
+#: Ratio of the mean ``coded / open count`` of the two captures above which (or below whose inverse) the
+#: exposure changed too much to join.  Measured: ordinary footage 0.89 to 1.14 (bikes, carphone, bigbuckbunny,
+#: the synthetic scenes); 0.61, 0.75 and 1.45 where bikes cuts to another shot inside a capture.
+CUT_GAIN = 1.3
+#: A capture is *dark* when its mean ``coded / open count`` is at most this, in working units (data range
+#: 255); the gain is taken with this floor, so two dark captures agree.
+CUT_DARK = 2.0
+#: A coarse image whose standard deviation is at most this (working units) is *flat*: no structure to
+#: compare.  Two flat captures are compared on their gain alone; one flat beside one that is not is a cut.
+CUT_FLAT = 1.0
+#: Share of the open pixels clipped at the white level above which a capture is *blown out*.
+CUT_CLIPPED = 0.5
+
+
+class Cuts:
+    """Which boundaries of a stream of captures are not joined: ``cuts(i)`` is None where captures ``i`` and
+    ``i + 1`` show one scene, else why not (a dict: ``reason`` and the figures).
+
+    Each capture is summarised once (its coarse image of ``coded / open count``, :data:`CUT_CELLS` cells
+    on its long side, and the share of its pixels clipped) and kept: small beside a capture, asked in any
+    order.  The test, per boundary (every threshold in working units or scale-free):
+
+    * ``blown``: more than :data:`CUT_CLIPPED` of either capture's open pixels are clipped (``white_level``);
+    * ``dark``: one capture's mean is at most :data:`CUT_DARK` and the other's is not;
+    * ``exposure``: the means (each at least :data:`CUT_DARK`) differ by more than :data:`CUT_GAIN` times;
+    * ``flat``: one coarse image is flat (:data:`CUT_FLAT`) and the other is not;
+    * ``scene``: the correlation of the two coarse images is below :data:`CUT_CORRELATION` (gain-free:
+      robust to motion, which moves a few cells, and to a small change of exposure).
+
+    ``cuts.found()`` lists the boundaries asked so far that are cuts, for the metrics.
+    """
+
+    def __init__(self, codeds, masks, *, scale: float = 1.0, white_level: float | None = None):
+        self.codeds, self.masks, self.scale, self.white_level = codeds, masks, float(scale), white_level
+        self._summary: dict[int, tuple] = {}
+        self._boundary: dict[int, dict | None] = {}
+
+    def summary(self, i: int) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """Capture i's coarse image (working units), where it is measured, its mean and its clipped share."""
+        if i not in self._summary:
+            coded = np.asarray(self.codeds[i])
+            q, k = normalised(coded, self.masks(i))
+            seen = k > 0
+            clipped = 0.0
+            if self.white_level is not None:
+                white = coded >= np.float32(self.white_level)
+                clipped = float((white & seen).sum()) / max(int(seen.sum()), 1)
+                seen &= ~white
+            q = np.where(seen, q * np.float32(self.scale), 0).astype(np.float32)
+            h, w = q.shape
+            s = max(1, -(-max(h, w) // CUT_CELLS))
+            hc, wc = -(-h // s), -(-w // s)
+
+            def cells(a):  # block sums over s x s cells (the last ones partial)
+                a = np.pad(a, ((0, hc * s - h), (0, wc * s - w)))
+                return a.reshape(hc, s, wc, s).sum((1, 3), dtype=np.float64)
+
+            count = cells(seen.astype(np.float32))
+            coarse = cells(q) / np.maximum(count, 1)
+            mean = float(q.sum(dtype=np.float64) / max(int(seen.sum()), 1))
+            self._summary[i] = (coarse, count > 0, mean, clipped)
+        return self._summary[i]
+
+    def __call__(self, i: int) -> dict | None:
+        """None where captures i and i + 1 agree (join them), else why not."""
+        if i not in self._boundary:
+            self._boundary[i] = self._test(i)
+        return self._boundary[i]
+
+    def _test(self, i: int) -> dict | None:
+        from scipy import ndimage  # lazy (see erode_to_patches)
+
+        (a, seen_a, mean_a, clip_a), (b, seen_b, mean_b, clip_b) = self.summary(i), self.summary(i + 1)
+        figures = dict(gain=(max(mean_b, CUT_DARK) / max(mean_a, CUT_DARK)), mean=[mean_a, mean_b])
+        if max(clip_a, clip_b) > CUT_CLIPPED:
+            return dict(reason="blown", clipped=[clip_a, clip_b], **figures)
+        if (mean_a <= CUT_DARK) != (mean_b <= CUT_DARK):
+            return dict(reason="dark", **figures)
+        if max(figures["gain"], 1 / figures["gain"]) > CUT_GAIN:
+            return dict(reason="exposure", **figures)
+        both = seen_a & seen_b
+        if both.sum() < 2:
+            return None
+        a, b = (ndimage.gaussian_filter(np.where(both, c, c[both].mean()), CUT_SMOOTH, mode="nearest")[both]
+                for c in (a, b))
+        spread_a, spread_b = float(a.std()), float(b.std())
+        if spread_a <= CUT_FLAT or spread_b <= CUT_FLAT:
+            return None if spread_a <= CUT_FLAT and spread_b <= CUT_FLAT else dict(reason="flat", **figures)
+        correlation = float(np.mean((a - a.mean()) * (b - b.mean())) / (spread_a * spread_b))
+        figures["correlation"] = correlation
+        return dict(reason="scene", **figures) if correlation < CUT_CORRELATION else None
+
+    def found(self) -> list[dict]:
+        """The boundaries asked so far that are cuts: ``boundary`` i (between captures i and i + 1, from 0) first."""
+        return [dict(boundary=i, **why) for i, why in sorted(self._boundary.items()) if why is not None]
 
 
 def _flat(q: np.ndarray, noise: np.ndarray, patch: int = 7) -> np.ndarray:
@@ -410,7 +529,7 @@ def _around(where: np.ndarray, reach: int) -> tuple[slice, slice]:
 
 
 def joined(results, codeds, mask_of, *, data_range: float | None = None, still_of=None, margin: int = 16,
-           white_level: float | None = None):
+           white_level: float | None = None, cut=None):
     """A stream of reconstructed captures ``(i, volume, info)`` in order, each joined to the next (:func:`join_captures`).
 
     A capture is handed on once the next one has arrived and the step between
@@ -422,22 +541,25 @@ def joined(results, codeds, mask_of, *, data_range: float | None = None, still_o
     motion estimate, is joined, and nothing when nothing moves.  With
     ``white_level`` (the captures' units), pixels clipped in either capture
     keep both captures' values: a clipped capture's frames are no line to
-    draw its neighbour toward.
+    draw its neighbour toward.  With ``cut`` (:class:`Cuts`), a boundary where ``cut(j)`` is true (captures
+    ``j`` and ``j + 1`` do not show one scene) is not joined: both keep their values.
     """
     try:
-        yield from _joined(results, codeds, mask_of, data_range, still_of, margin, white_level)
+        yield from _joined(results, codeds, mask_of, data_range, still_of, margin, white_level, cut)
     finally:  # a join that fails, or a consumer that stops early, closes the job too (its stores' locks)
         getattr(results, "close", lambda: None)()
 
 
-def _joined(results, codeds, mask_of, data_range, still_of, margin, white_level):
+def _joined(results, codeds, mask_of, data_range, still_of, margin, white_level, cut):
     held = None
     for i, volume, info in results:
         if held is not None:
             j, before, before_info = held
             t0 = time.perf_counter()
             box = (slice(None), slice(None))
-            if still_of is not None:
+            if cut is not None and cut(j):  # two scenes (or a dark, blown-out, re-exposed capture): not joined
+                box = None
+            elif still_of is not None:
                 moving = ~(erode_to_patches(np.isfinite(still_of(j))) & erode_to_patches(np.isfinite(still_of(i))))
                 rows, cols = np.flatnonzero(moving.any(1)), np.flatnonzero(moving.any(0))
                 box = None if rows.size == 0 else (

@@ -932,28 +932,33 @@ def reconstruct_captures(
         budget.finished([])
 
 
-def reconstruct_stream(method: str, codeds, mask_of, *, join: bool, still: bool = True, noise_sigma: float = 0.0,
-                       white_level: float | None = None, data_range, **options) -> Iterator[tuple[int, np.ndarray, dict]]:
+def reconstruct_stream(method: str, codeds, mask_of, *, join: bool, still: bool = True, cuts=None,
+                       noise_sigma: float = 0.0, white_level: float | None = None, data_range,
+                       **options) -> Iterator[tuple[int, np.ndarray, dict]]:
     """A stream of captures (a coded camera's frames, or a benchmark file's measurements) -> their videos, in
     order: :func:`reconstruct_captures` as one job and, with ``join`` and more than one capture, the still
     answers shared with agreeing neighbours (:func:`codedvideo.sequence.still_values`) and the step from one
-    capture to the next smoothed (:func:`codedvideo.sequence.joined`).  ``still``: share still answers (False
-    for a benchmark file's measurements, each of its own scene).  What the command line and the Python API
+    capture to the next smoothed (:func:`codedvideo.sequence.joined`), except across the boundaries ``cuts``
+    (:class:`codedvideo.sequence.Cuts`, made here when None) finds are no boundary of one scene.  ``still``:
+    share still answers (False for a benchmark file's measurements, each of its own scene).  What the command line and the Python API
     (:func:`codedvideo.api.reconstruct`) both run; ``options`` as :func:`reconstruct_captures`."""
     count = len(codeds)
     if not join or count < 2:
         return reconstruct_captures(method, codeds, mask_of, data_range=data_range, white_level=white_level,
                                     **options)
-    from .sequence import joined, still_values
+    from .sequence import Cuts, joined, still_values
 
+    if cuts is None:
+        cuts = Cuts(codeds, mask_of, scale=data_range.scale, white_level=white_level)
     # what did not change since the capture before or until the one after (asked again by the join)
     still_of = functools.lru_cache(maxsize=4)(
         lambda i: still_values(codeds, mask_of, i, sigma=noise_sigma, scale=data_range.scale,
-                               white_level=white_level)) if still else None
+                               white_level=white_level, cut=cuts)) if still else None
     results = reconstruct_captures(method, codeds, mask_of, data_range=data_range, white_level=white_level,
                                    still_of=still_of, **options)
     # the step from one capture to the next smoothed along the motion, both measurements kept
-    return joined(results, codeds, mask_of, data_range=data_range.value, still_of=still_of, white_level=white_level)
+    return joined(results, codeds, mask_of, data_range=data_range.value, still_of=still_of, white_level=white_level,
+                  cut=cuts)
 
 
 def _nonlocal_unavailable(mask: np.ndarray, D: np.ndarray) -> str | None:
