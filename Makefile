@@ -6,7 +6,7 @@ CLI    := $(BIN)/codedvideo
 STAMP  := $(VENV)/.installed
 CONFIG ?= pipeline.yaml
 
-.PHONY: help setup run test wheel-check bench report train train-config simulate reconstruct submit clean
+.PHONY: help setup run test wheel-check docs bench report train train-config simulate reconstruct submit clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -24,6 +24,15 @@ run: $(STAMP)  ## run the whole pipeline on the embedded default scene
 
 test: $(STAMP)  ## run the test suite
 	$(BIN)/python -m pytest -q
+
+DOCS_STAMP := $(VENV)/.docs-installed
+$(DOCS_STAMP): $(STAMP) pyproject.toml
+	$(BIN)/python -m pip install --quiet -e '.[test,docs]'
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)  ## the documentation with its API reference, from the docstrings: build/docs/index.html
+	sed -e 's#](docs/#](#g' -e 's#\[examples/\](examples/)#`examples/`#' README.md > docs/index.md
+	$(BIN)/mkdocs build --strict
 
 wheel-check:  ## build the wheel, install it into a fresh venv, run the CLI and the API from an empty folder
 	tasks/check_wheel.sh $(PYTHON)

@@ -24,3 +24,5 @@ rec = np.load("rec.npy")
 assert rec.shape == (8, 64, 64) and np.isfinite(rec).all()
 print(f"wheel: simulate and reconstruct from an empty folder, PSNR {m['quality']['psnr']:.2f} dB")
 PY
+# the Python API from the same folder: the README's quick start
+"$work/venv/bin/python" "$root/examples/quickstart.py"
