@@ -633,9 +633,12 @@ def _cmd_reconstruct(a) -> int:
                                        cache_budget=rc.cache_budget, **options)
         if job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures:
             from .sequence import joined
+            from .volumes import spilled
 
-            # the step from one capture to the next smoothed along the motion, both measurements kept
-            results = joined(results, job.codeds, job.mask, data_range=units.value, still_of=still_of, white_level=white)
+            # the step from one capture to the next smoothed along the motion, both measurements kept; the
+            # captures it holds are kept on disk (spilled: the same bits, read a few frames at a time)
+            results = joined(spilled(results, a.cache), job.codeds, job.mask, data_range=units.value,
+                             still_of=still_of, white_level=white)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     from .sequence import StepErrors
 
@@ -649,14 +652,16 @@ def _cmd_reconstruct(a) -> int:
                 entry["raw"] = raw[i]
             truth = job.truth(i)
             if truth is not None:
-                entry["quality"] = evaluate(volume.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=units.value)
+                frames = np.asarray(volume)  # (a capture kept on disk read whole to be scored)
+                entry["quality"] = evaluate(frames.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=units.value)
                 entry["trivial"] = evaluate(trivial_of(job.codeds[i], job.mask(i)).reshape(-1, h, w),
                                             truth.reshape(-1, h, w), data_range=units.value)
                 for key in ("psnr", "ssim"):
                     per_frame[key] += entry["quality"][f"{key}_per_frame"]
                     trivial_frames[key] += entry["trivial"][f"{key}_per_frame"]
                 if job.kind in ("captures", "measurements"):
-                    steps.add(volume, truth)
+                    steps.add(frames, truth)
+                del frames
             t1 = time.perf_counter()
             if put is None:
                 put = stack.enter_context(volume_writer(a.output, shape, data_range=units.value, fps=out.fps, part=n))

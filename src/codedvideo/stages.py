@@ -491,6 +491,7 @@ def sparse_volumes(
                                        assemble=time.perf_counter() - t_solved)
                 del coded, mask
                 yield i, volume, info
+                del volume  # not held while the next capture is assembled
                 t_wait = time.perf_counter()
             for key in window.keys:  # its stores done: later captures with the same inputs lock them afresh
                 del live[key]
@@ -927,6 +928,7 @@ def reconstruct_captures(
             info["saturated_pixels"] = saturated
             del coded_used, mask_used, measured
             yield i, volume, info
+            del volume  # not held while the next capture is reconstructed
     if budget is not None and budget.keep:  # the job is over: the first passes' stores may go too
         budget.keep.clear()
         budget.finished([])
