@@ -21,6 +21,8 @@ Cases (issue "Fast reconstruction"):
            default and the non-local method, whole CLI processes, 8-bit and [0, 1] captures
   video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
            peak resident memory)
+  outputs  issue 29: peak resident memory per output format (npy, mp4, mkv, gif, zarr, tif, mat, frames),
+           one 1920x1080 N = 18 capture and two as one job, whole CLI processes, fresh caches
   footage  coded video of held-out real clips (bikes.mp4: 31 captures of 272x640; carphone: 15 of
            144x176; N = 8, read noise 2): simulated and reconstructed by the CLI as one job and
            capture by capture, PSNR, SSIM, boundary step and seconds; the job again in [0, 1] floats
@@ -482,6 +484,41 @@ def case_video(quick: bool) -> dict:
     return out
 
 
+#: Outputs of case outputs: every format reconstruct writes (a name without suffix: a folder of 16-bit TIFF frames).
+OUTPUT_FORMATS = ("rec.npy", "rec.mp4", "rec.mkv", "rec.gif", "rec.zarr", "rec.tif", "rec.mat", "frames")
+
+
+def case_outputs(quick: bool) -> dict:
+    """Issue 29: peak resident memory of whole CLI processes per output format, one 1920x1080 N = 18 capture
+    (bump 3), a fresh cache each (computed), and two captures as one job (the join); each format's peak
+    against the .npy path's."""
+    import tempfile
+
+    from codedvideo.stages import simulate_capture
+    from codedvideo.synth import make_scene
+
+    size = (216, 384) if quick else (1080, 1920)
+    out = dict(case="outputs", size=list(size), frames=18, sgemm_gflops=sgemm_gflops(), peaks={})
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
+        tmp = Path(tmp)
+        for t_count in (1, 2):
+            video = make_scene("default", frames=18 * t_count, size=size)
+            cap = simulate_capture(video, code="hitomi", bump=3, sigma=0.0, seed=0, captures=t_count)
+            for key in ("coded", "mask"):
+                np.save(tmp / f"{key}.npy", cap[key])
+            del cap, video
+            for name in OUTPUT_FORMATS if t_count == 1 else ("rec.npy", "rec.mp4"):
+                shutil.rmtree(tmp / "cache", ignore_errors=True)
+                seconds, peak = _cli("reconstruct", "--coded", tmp / "coded.npy", "--mask", tmp / "mask.npy",
+                                     "--output", tmp / name, "--cache", tmp / "cache", cwd=ROOT)
+                out["peaks"][f"T={t_count} {name}"] = dict(peak_rss_mb=peak, seconds=seconds)
+                shutil.rmtree(tmp / name, ignore_errors=True) if (tmp / name).is_dir() else (tmp / name).unlink()
+    base = out["peaks"]["T=1 rec.npy"]["peak_rss_mb"]
+    for v in out["peaks"].values():
+        v["of_npy"] = v["peak_rss_mb"] / base
+    return out
+
+
 #: Read noise of the footage case's captures, in grey levels (8-bit units).
 FOOTAGE_SIGMA = 2.0
 
@@ -652,6 +689,7 @@ CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quali
              sequence=case_sequence, video=case_video, footage=case_footage, calibrated=case_calibrated, startup=case_startup, units=case_units)
 CASES["nonlocal"] = case_nonlocal  # a keyword: not a dict() argument
 CASES["adapt"] = case_adapt
+CASES["outputs"] = case_outputs
 
 
 def run_child(name: str, quick: bool) -> dict:
@@ -738,6 +776,9 @@ def table(results: dict) -> str:
                 if isinstance(v, dict) and "captures" in v:
                     rows.append(f"  video {key} N = 18: {v['seconds']:.0f} s ({v['seconds_per_capture']:.1f} s a capture), "
                                 f"peak {v['peak_rss_mb']:.0f} MB, {v['psnr']:.2f} dB")
+        if name == "outputs":
+            rows.append(f"  outputs {r['size'][1]}x{r['size'][0]} N = 18, peak RSS of whole processes (fresh caches): " +
+                        ", ".join(f"{k} {v['peak_rss_mb']:.0f} MB ({v['of_npy']:.2f}x)" for k, v in r["peaks"].items()))
         if name == "footage":
             for clip, v in r.items():
                 if isinstance(v, dict) and "sequence" in v:

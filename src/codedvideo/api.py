@@ -291,14 +291,14 @@ def reconstruct(coded, mask, *, dictionary=None, method: str = "omp", adapt: boo
         from .stages import reconstruct_stream
 
         results = reconstruct_stream(method, codeds, mask_of, join=not independent_captures, data_range=units,
-                                     noise_sigma=sigma, settings=settings, dictionary=D, dictionary_key=key,
+                                     spill=folder, noise_sigma=sigma, settings=settings, dictionary=D, dictionary_key=key,
                                      dictionary_name=name, where="reconstruct", tile=rc.tile, cache=folder,
                                      workers=workers, progress=progress, adapt=adapt)
         out = np.empty((count * n, *coded.shape[-2:]), np.float32)
         infos = []
         with contextlib.closing(results):
             for i, volume, info in results:
-                out[i * n:(i + 1) * n] = volume
+                out[i * n:(i + 1) * n] = np.asarray(volume)  # (a capture the join kept on disk: read back)
                 infos.append(info)
     return Reconstruction(out, units, infos) if full_output else out
 

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError, OutputError
-from .io import atomic_output
+from .io import atomic_output, frames_of
 
 CACTI_KEYS = ("orig", "mask", "meas")
 VOLUME_KEYS = ("recon", "orig")
@@ -387,12 +387,12 @@ def mat_writer(path: str | os.PathLike, shape: tuple[int, int, int], *, key: str
 
             def write(part):
                 nonlocal written
-                part = np.asarray(part, dtype="<f4")
-                if part.ndim != 3 or part.shape[1:] != (h, w) or written + part.shape[0] > f_count:
+                part = part if hasattr(part, "shape") else np.asarray(part, dtype="<f4")
+                if len(part.shape) != 3 or tuple(part.shape[1:]) != (h, w) or written + part.shape[0] > f_count:
                     raise ValueError(f"mat file {path}: part of shape {part.shape} after {written} of {f_count} "
                                      f"frames of {h}x{w}")
-                for frame in part:
-                    fh.write(z.compress(np.ascontiguousarray(frame.T).tobytes()))  # column-major (H, W)
+                for frame in frames_of(part):  # converted a frame at a time: no copy of the part
+                    fh.write(z.compress(np.ascontiguousarray(np.asarray(frame, dtype="<f4").T).tobytes()))  # column-major (H, W)
                 written += part.shape[0]
 
             yield write

@@ -631,8 +631,8 @@ def _cmd_reconstruct(a) -> int:
             cuts = Cuts(job.codeds, job.mask, scale=units.scale, white_level=white)
         # (a benchmark file's measurements are joined, but share no still answers: each has its own scene)
         results = reconstruct_stream(a.method, job.codeds, job.mask, join=stream, still=job.kind == "captures",
-                                     cuts=cuts, noise_sigma=noise.sigma, adapt=rc.adapt, cache_budget=rc.cache_budget,
-                                     **options)
+                                     cuts=cuts, spill=a.cache, noise_sigma=noise.sigma, adapt=rc.adapt,
+                                     cache_budget=rc.cache_budget, **options)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     from .sequence import StepErrors
 
@@ -646,14 +646,16 @@ def _cmd_reconstruct(a) -> int:
                 entry["raw"] = raw[i]
             truth = job.truth(i)
             if truth is not None:
-                entry["quality"] = evaluate(volume.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=units.value)
+                frames = np.asarray(volume)  # (a capture kept on disk read whole to be scored)
+                entry["quality"] = evaluate(frames.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=units.value)
                 entry["trivial"] = evaluate(trivial_of(job.codeds[i], job.mask(i)).reshape(-1, h, w),
                                             truth.reshape(-1, h, w), data_range=units.value)
                 for key in ("psnr", "ssim"):
                     per_frame[key] += entry["quality"][f"{key}_per_frame"]
                     trivial_frames[key] += entry["trivial"][f"{key}_per_frame"]
                 if job.kind in ("captures", "measurements"):
-                    steps.add(volume, truth)
+                    steps.add(frames, truth)
+                del frames
             t1 = time.perf_counter()
             if put is None:
                 put = stack.enter_context(volume_writer(a.output, shape, data_range=units.value, fps=out.fps, part=n))

@@ -586,11 +586,34 @@ def _gif_complete(path: Path) -> bool:
 
 # ----------------------------------------------------------------------------- writing
 def _to_uint8(frames: np.ndarray, data_range: float) -> np.ndarray:
-    return np.clip(np.rint(np.asarray(frames, np.float64) * (255.0 / data_range)), 0, 255).astype(np.uint8)
+    """Frames scaled so ``data_range`` maps to 255, rounded and clipped to uint8 (in float64, one copy, in place)."""
+    frames = np.asarray(frames)
+    work = np.empty(frames.shape, np.float64)
+    work[...] = frames
+    np.multiply(work, 255.0 / data_range, out=work)
+    np.rint(work, out=work)
+    np.clip(work, 0, 255, out=work)
+    return work.astype(np.uint8)
+
+
+def frames_of(part):
+    """The frames of a part ``(n, ...)`` one at a time, as arrays.
+
+    A part need not be an ndarray: anything that yields its frames (e.g.
+    :class:`codedvideo.volumes.FrameFile`, a volume kept on disk) is read a
+    frame at a time, never whole.
+    """
+    if isinstance(part, np.ndarray):
+        yield from part
+    else:
+        for frame in part:
+            yield np.asarray(frame)
 
 
 def _frames_last(frames: np.ndarray, path, what: str) -> np.ndarray:
-    """(N, H, W) or (C, N, H, W) with C in (1, 3) -> (N, H, W) grey or (N, H, W, 3) colour."""
+    """(N, H, W) or (C, N, H, W) with C in (1, 3) -> (N, H, W) grey or (N, H, W, 3) colour (views, no copy)."""
+    if not isinstance(frames, np.ndarray) and getattr(frames, "ndim", None) == 3:
+        return frames  # frames read one at a time (frames_of)
     frames = np.asarray(frames)
     if frames.ndim == 4:
         if frames.shape[0] not in (1, 3):
@@ -639,8 +662,9 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
     """Encode a video part by part (:func:`write_video`'s formats): yields ``write(frames)``.
 
     ``frames`` are (n, H, W) grey or (n, H, W, 3) RGB, in order; each part is
-    encoded as it comes, so a long video is never held whole.  The file
-    appears under ``path`` only when the block ends without an error.
+    encoded as it comes, a frame at a time (converted to 8 bits one frame at
+    a time: no float copy of the part), so a long video is never held whole.
+    The file appears under ``path`` only when the block ends without an error.
     """
     import av
 
@@ -672,11 +696,10 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
                     stream.options = options
 
                 def write(frames: np.ndarray) -> None:
-                    data = _to_uint8(np.asarray(frames), data_range)
-                    if any(pad):
-                        data = np.pad(data, ((0, 0), (0, pad[0]), (0, pad[1])) + (((0, 0),) if colour else ()),
-                                      mode="edge")
-                    for img in data:
+                    for img in frames_of(frames):
+                        img = _to_uint8(img, data_range)
+                        if any(pad):
+                            img = np.pad(img, ((0, pad[0]), (0, pad[1])) + (((0, 0),) if colour else ()), mode="edge")
                         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(img), format=in_fmt)
                         for packet in stream.encode(frame):
                             container.mux(packet)
@@ -832,7 +855,7 @@ def stack_writer(path: str | os.PathLike, pages: int, *, dtype=None):
         out = _OiioPages(tmp, pages)
         try:
             def write(part: np.ndarray) -> None:
-                for page in np.asarray(part):
+                for page in frames_of(part):
                     out.add(*_pixels(path, page, dtype))
 
             yield write
@@ -906,7 +929,7 @@ def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_ran
         def write(frames: np.ndarray) -> list[Path]:
             nonlocal count
             names = []
-            for frame in np.asarray(frames):
+            for frame in frames_of(frames):
                 if ofmt == "float":
                     arr = (frame * np.float32(full / data_range)).astype(np.float32)
                 elif full == 255.0:
@@ -964,7 +987,15 @@ def npy_writer(path: str | os.PathLike, shape: tuple, dtype="<f4"):
             np.lib.format.write_array_header_2_0(fh, dict(descr=np.lib.format.dtype_to_descr(dtype),
                                                           fortran_order=False, shape=tuple(shape)))
             start = fh.tell()
-            yield lambda part: np.ascontiguousarray(part, dtype=dtype).tofile(fh)  # no copy of a part of dtype
+
+            def write(part) -> None:
+                if isinstance(part, np.ndarray) and part.dtype == dtype and part.flags.c_contiguous:
+                    part.tofile(fh)  # no copy
+                else:  # converted a frame at a time (no copy of the whole part)
+                    for frame in frames_of(part):
+                        np.ascontiguousarray(frame, dtype=dtype).tofile(fh)
+
+            yield write
             if fh.tell() - start != total:
                 raise RuntimeError(f"output {path}: {fh.tell() - start} of {total} bytes written")
 

@@ -491,6 +491,7 @@ def sparse_volumes(
                                        assemble=time.perf_counter() - t_solved)
                 del coded, mask
                 yield i, volume, info
+                del volume  # not held while the next capture is assembled
                 t_wait = time.perf_counter()
             for key in window.keys:  # its stores done: later captures with the same inputs lock them afresh
                 del live[key]
@@ -927,20 +928,23 @@ def reconstruct_captures(
             info["saturated_pixels"] = saturated
             del coded_used, mask_used, measured
             yield i, volume, info
+            del volume  # not held while the next capture is reconstructed
     if budget is not None and budget.keep:  # the job is over: the first passes' stores may go too
         budget.keep.clear()
         budget.finished([])
 
 
 def reconstruct_stream(method: str, codeds, mask_of, *, join: bool, still: bool = True, cuts=None,
-                       noise_sigma: float = 0.0, white_level: float | None = None, data_range,
-                       **options) -> Iterator[tuple[int, np.ndarray, dict]]:
+                       spill: str | Path | None = None, noise_sigma: float = 0.0, white_level: float | None = None,
+                       data_range, **options) -> Iterator[tuple[int, np.ndarray, dict]]:
     """A stream of captures (a coded camera's frames, or a benchmark file's measurements) -> their videos, in
     order: :func:`reconstruct_captures` as one job and, with ``join`` and more than one capture, the still
     answers shared with agreeing neighbours (:func:`codedvideo.sequence.still_values`) and the step from one
     capture to the next smoothed (:func:`codedvideo.sequence.joined`), except across the boundaries ``cuts``
     (:class:`codedvideo.sequence.Cuts`, made here when None) finds are no boundary of one scene.  ``still``:
-    share still answers (False for a benchmark file's measurements, each of its own scene).  What the command line and the Python API
+    share still answers (False for a benchmark file's measurements, each of its own scene).  ``spill``: a
+    folder where the captures the join holds wait on disk (:func:`codedvideo.volumes.spilled`: the same bits,
+    read a few frames at a time), or None to hold them in memory.  What the command line and the Python API
     (:func:`codedvideo.api.reconstruct`) both run; ``options`` as :func:`reconstruct_captures`."""
     count = len(codeds)
     if not join or count < 2:
@@ -956,6 +960,10 @@ def reconstruct_stream(method: str, codeds, mask_of, *, join: bool, still: bool 
                                white_level=white_level, cut=cuts)) if still else None
     results = reconstruct_captures(method, codeds, mask_of, data_range=data_range, white_level=white_level,
                                    still_of=still_of, **options)
+    if spill is not None:
+        from .volumes import spilled
+
+        results = spilled(results, spill)
     # the step from one capture to the next smoothed along the motion, both measurements kept
     return joined(results, codeds, mask_of, data_range=data_range.value, still_of=still_of, white_level=white_level,
                   cut=cuts)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -351,17 +352,31 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0
         chunks = (min(part or shape[0], shape[0]), *(min(256, s) for s in shape[1:]))
         with array_writer(output, shape, np.float32, chunks=chunks, attrs=dict(kind="codedvideo-volume")) as arr:
             def put(index, part):
-                arr[index] = np.asarray(part, dtype=np.float32)
+                # a chunk at a time, each written once and whole: no float copy of the part (a part kept on
+                # disk, a FrameFile, is read a band of chunk rows at a time)
+                for top in range(0, shape[1], chunks[1]):
+                    rows = slice(top, top + chunks[1])
+                    band = np.asarray(part[:, rows], dtype=np.float32)
+                    for left in range(0, shape[2], chunks[2]):
+                        cols = slice(left, left + chunks[2])
+                        arr[index, rows, cols] = band[:, :, cols]
+                    del band  # (not held while the next band is read)
 
             yield put
         return
-    volume = np.empty(tuple(shape), np.float32)
+    gathered = []  # (a whole volume given at once, as a Bayer mosaic's is, is kept as given: no copy)
 
     def gather(index, part):
-        volume[index] = part
+        if not gathered and index == slice(None) and isinstance(part, np.ndarray) and part.shape == tuple(shape) \
+                and part.dtype == np.float32:
+            gathered.append(part)
+            return
+        if not gathered:
+            gathered.append(np.empty(tuple(shape), np.float32))
+        gathered[0][index] = part
 
     yield gather
-    write_volume(volume, output, data_range=data_range, fps=fps)
+    write_volume(gathered[0] if gathered else np.empty(tuple(shape), np.float32), output, data_range=data_range, fps=fps)
 
 
 def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 255.0, fps: int = 30) -> Path:
@@ -381,11 +396,15 @@ def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 
     output = Path(output)
     suffix = output.suffix.lower()
     volume = np.asarray(volume)
-    if suffix == ".npy":
-        cio.write_array(output, volume.astype(np.float32))
-    elif suffix == ".zarr":
-        save_array(output, volume.astype(np.float32), chunks=volume.shape[:-2] + (256, 256),
-                   attrs=dict(kind="codedvideo-volume"))
+    if suffix == ".npy":  # (a float32 volume written as it is: no copy)
+        cio.write_array(output, np.asarray(volume, np.float32))
+    elif suffix == ".zarr":  # a chunk at a time, each written once and whole: no float copy of the volume
+        chunks = volume.shape[:-2] + (256, 256)
+        with array_writer(output, volume.shape, np.float32, chunks=chunks, attrs=dict(kind="codedvideo-volume")) as arr:
+            for top in range(0, volume.shape[-2], 256):
+                for left in range(0, volume.shape[-1], 256):
+                    where = (Ellipsis, slice(top, top + 256), slice(left, left + 256))
+                    arr[where] = np.asarray(volume[where], np.float32)
     elif suffix == ".mat":
         from .cacti import write_mat_volume
 
@@ -467,3 +486,129 @@ def read_volume(path: str | Path, *, color: str = "luma") -> np.ndarray:
         return cio.read_stack(path, color=color) * np.float32(cio.read_frames_scale(path))
     return cio.read_stack(path, color=color)
 
+
+
+class FrameFile:
+    """A grey volume (N, H, W) kept in an unnamed temporary file: read and written a range of frames at a time.
+
+    What a stream of captures holds between captures (:func:`spilled`): the
+    join reads and changes only the frames at a boundary, and the writers
+    read one frame at a time (:func:`codedvideo.io.frames_of`), so the volume
+    is never in memory whole.  The file is read with plain reads, not mapped
+    (mapped pages would count in the process's resident memory), and is gone
+    when the object is (or the process ends).
+
+    Indexing: ``vol[i]``, ``vol[a:b]`` and ``vol[a:b, rows, cols]`` (any index
+    after the first) read those frames into a new array; ``vol[a:b, ...] =
+    values`` writes them back; ``np.asarray(vol)`` reads it whole.
+    """
+
+    def __init__(self, volume: np.ndarray, folder: str | Path | None = None):
+        import tempfile
+
+        volume = np.asarray(volume)
+        if volume.ndim != 3:
+            raise ValueError(f"FrameFile: a volume (N, H, W), not {volume.shape}")
+        if folder is not None:
+            Path(folder).mkdir(parents=True, exist_ok=True)
+        self.shape, self.dtype = tuple(volume.shape), volume.dtype
+        self._frame_bytes = int(np.prod(self.shape[1:])) * self.dtype.itemsize
+        self._fh = tempfile.TemporaryFile(dir=folder, prefix=".codedvideo-frames-")
+        for frame in volume:
+            self._fh.write(np.ascontiguousarray(frame).data)
+        self._fh.flush()
+
+    ndim = 3
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    @property
+    def nbytes(self) -> int:
+        return self.size * self.dtype.itemsize
+
+    def _frames(self, key) -> range:
+        n = self.shape[0]
+        if isinstance(key, (int, np.integer)):
+            i = int(key) + (n if key < 0 else 0)
+            if not 0 <= i < n:
+                raise IndexError(f"frame {key} of {n}")
+            return range(i, i + 1)
+        if isinstance(key, slice):
+            return range(*key.indices(n))
+        raise TypeError(f"FrameFile: frames by an int or a slice, not {type(key).__name__}")
+
+    def _read(self, frames: range, rows: slice = slice(None)) -> np.ndarray:
+        """Frames ``frames``, rows ``rows`` (step 1) of each: only those bytes are read."""
+        top, bottom, _ = rows.indices(self.shape[1])
+        bottom = max(bottom, top)
+        out = np.empty((len(frames), bottom - top, *self.shape[2:]), self.dtype)
+        row_bytes = self._frame_bytes // self.shape[1]
+        want = (bottom - top) * row_bytes
+        for k, f in enumerate(frames):
+            view = memoryview(out[k].reshape(-1).view(np.uint8))
+            got = os.preadv(self._fh.fileno(), [view], f * self._frame_bytes + top * row_bytes) if want else 0
+            if got != want:
+                raise OSError(f"FrameFile: read {got} of {want} bytes of frame {f}")
+        return out
+
+    def _write(self, frames: range, values: np.ndarray) -> None:
+        for k, f in enumerate(frames):
+            data = np.ascontiguousarray(values[k], dtype=self.dtype)
+            os.pwrite(self._fh.fileno(), data.data.cast("B"), f * self._frame_bytes)
+
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        frames = self._frames(key[0])
+        if len(key) > 1 and isinstance(key[1], slice) and key[1].step in (None, 1):  # only those rows read
+            out, key = self._read(frames, key[1]), (key[0], slice(None), *key[2:])
+        else:
+            out = self._read(frames)
+        if isinstance(key[0], (int, np.integer)):
+            return out[0][key[1:]]
+        return out[(slice(None), *key[1:])]
+
+    def __setitem__(self, key, values) -> None:
+        key = key if isinstance(key, tuple) else (key,)
+        frames = self._frames(key[0])
+        if isinstance(key[0], (int, np.integer)):
+            current = self._read(frames)
+            current[0][key[1:]] = values
+        elif len(key) == 1:
+            current = np.broadcast_to(np.asarray(values, self.dtype), (len(frames), *self.shape[1:]))
+        else:
+            current = self._read(frames)
+            current[(slice(None), *key[1:])] = values
+        self._write(frames, current)
+
+    def __iter__(self):
+        for f in range(self.shape[0]):
+            yield self._read(range(f, f + 1))[0]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self._read(range(self.shape[0]))
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+    def close(self) -> None:
+        self._fh.close()
+
+
+def spilled(results, folder: str | Path | None = None):
+    """A stream of ``(i, volume, info)`` with each (N, H, W) volume moved to a :class:`FrameFile` as it comes.
+
+    What holds a capture while the next one is reconstructed (the join of
+    :func:`codedvideo.sequence.joined`) then holds a file, not its memory;
+    the values are the same bits.  Closing the stream closes ``results``.
+    """
+    try:
+        for i, volume, info in results:
+            if isinstance(volume, np.ndarray) and volume.ndim == 3:
+                volume = FrameFile(volume, folder)
+            yield i, volume, info
+            del volume
+    finally:
+        getattr(results, "close", lambda: None)()
