@@ -17,7 +17,7 @@ def _shipped(frames: list[int]) -> None:
     for n in frames:
         path, meta = train_dictionary(PipelineConfig(frames=n), output=shipped.path_for(n), retrain=True)
         print(f"dictionary N = {n}: {path} (final RMSE {meta.get('final_rmse'):.4f}, {meta['seconds']:.0f} s)")
-    print(f"manifests: {', '.join(map(str, manifest.write_manifests()))}")
+    print(f"manifests: {', '.join(map(str, shipped.write_manifests()))}")
 
 
 def main() -> None:

@@ -7,7 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from codedvideo.baselines import METHODS, gap_tv, interp, normalized_fill, reconstruct_method, thinout
+from codedvideo.baselines import METHODS, gap_tv, interp, normalized_fill, thinout
+from codedvideo.stages import reconstruct_method
 from codedvideo.codes import make_code
 from codedvideo.errors import InputError
 from codedvideo.metrics import evaluate

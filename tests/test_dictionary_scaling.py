@@ -1,7 +1,7 @@
 """Dictionary scaling: atoms of any nonzero norm give the same answer; zero atoms are dropped or refused.
 
 Reconstruction goes through :func:`codedvideo.dictionaries.prepare_dictionary`
-(:func:`codedvideo.baselines.reconstruct_method`), and the OMP kernels' own
+(:func:`codedvideo.stages.reconstruct_method`), and the OMP kernels' own
 floors are relative, so a globally scaled dictionary works even without it.
 """
 import warnings
@@ -11,7 +11,7 @@ import pytest
 
 from codedvideo import patches as P
 from codedvideo import synth
-from codedvideo.baselines import reconstruct_method
+from codedvideo.stages import reconstruct_method
 from codedvideo.codes import make_code
 from codedvideo.dictionaries import UNIT_NORM_TOL, dct_dictionary, learn_dictionary, prepare_dictionary
 from codedvideo.errors import InputError

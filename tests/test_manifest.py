@@ -2,7 +2,7 @@ import shutil
 
 import pytest
 
-from codedvideo import manifest, synth
+from codedvideo import manifest, shipped, synth
 from codedvideo.errors import InputError
 
 
@@ -76,8 +76,8 @@ def test_the_packaged_manifest_holds_the_projects_rows():
 
 def test_shipped_rows_rebase_to_each_manifest(tmp_path):
     """write_manifest gives each manifest its own relative paths to the shipped dictionaries."""
-    rows = manifest.shipped_rows(manifest.DEFAULT_PATH.parent)
+    rows = shipped.shipped_rows(manifest.DEFAULT_PATH.parent)
     assert rows and all(r.split("\t")[1].startswith("dict-N") for r in rows)
-    project_rows = manifest.shipped_rows(manifest.PROJECT_PATH.parent)
+    project_rows = shipped.shipped_rows(manifest.PROJECT_PATH.parent)
     assert all(r.split("\t")[1].startswith("src/codedvideo/data/dict-N") for r in project_rows)
     assert [r.split("\t")[4] for r in rows] == [r.split("\t")[4] for r in project_rows]

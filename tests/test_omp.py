@@ -3,7 +3,8 @@ import pytest
 
 from codedvideo import patches as P
 from codedvideo.codes import make_code
-from codedvideo.omp import MaskedOperator, PlainOperator, omp, omp_reference, synthesize
+from codedvideo.omp import MaskedOperator, PlainOperator, omp, omp_reference
+from codedvideo.omp_kernel import synthesize
 from conftest import random_dictionary
 
 

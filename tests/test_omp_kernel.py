@@ -5,7 +5,8 @@ import pytest
 
 from codedvideo import patches as P
 from codedvideo.codes import make_code
-from codedvideo.omp import MaskedOperator, omp, omp_reference, pixel_patterns, synthesize
+from codedvideo.omp import MaskedOperator, omp, omp_reference, pixel_patterns
+from codedvideo.omp_kernel import synthesize
 from codedvideo.omp_kernel import TableOMP, table_fits
 from codedvideo.region import OmpSettings, reconstruct_region
 from conftest import random_dictionary

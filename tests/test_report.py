@@ -158,7 +158,8 @@ def test_a_claim_one_noise_level_cannot_test_is_not_tested_not_refuted():
     """Reported: with table_sigmas [0] the report said "NOT reproduced: longer bumps win as noise grows"."""
     from types import SimpleNamespace
 
-    from codedvideo.report import findings, verdict
+    from codedvideo.report import findings
+    from codedvideo.report_html import verdict
 
     rc = SimpleNamespace(table_sigmas=[0.0], table_bumps=[1, 2], bump=2, frames=4)
     table = {(1, 0.0): 20.0, (2, 0.0): 21.0}

@@ -17,7 +17,8 @@ from codedvideo.dictionaries import dct_dictionary
 from codedvideo.errors import InputError
 from codedvideo.ksvd import DUPLICATE_COS, ksvd
 from codedvideo.metrics import evaluate
-from codedvideo.omp import MaskedOperator, omp, synthesize
+from codedvideo.omp import MaskedOperator, omp
+from codedvideo.omp_kernel import synthesize
 from codedvideo.physics import forward, simulate, static_estimate
 from codedvideo.volumes import read_coded, read_mask
 from codedvideo.stages import reconstruct_volume

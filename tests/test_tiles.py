@@ -94,7 +94,8 @@ def test_still_patches_take_the_cheap_path_with_the_same_answer():
 def test_still_test_equals_omp_over_the_still_dictionary(code):
     """The closed-form still test (no dictionary search) agrees with OMP over the still atoms."""
     from codedvideo import patches as P
-    from codedvideo.omp import MaskedOperator, omp, synthesize
+    from codedvideo.omp import MaskedOperator, omp
+    from codedvideo.omp_kernel import synthesize
     from codedvideo.region import static_dictionary, still_patches
 
     rng = np.random.default_rng(11)

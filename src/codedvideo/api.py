@@ -211,7 +211,7 @@ def _settings(method: str, adapt: bool, workers, noise_sigma: float, scale: floa
 
 def _dictionary(method: str, dictionary, frames: int) -> tuple[np.ndarray | None, str, str]:
     """(D, its key, its name) for the sparse methods; (None, "", "") for the others."""
-    from .stages import check_dictionary
+    from .shipped import check_dictionary
 
     if method not in ("omp", "nonlocal"):
         return None, "", ""

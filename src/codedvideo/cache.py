@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .config import parse_size
 from .errors import InputError
 from .patches import PATCH
 
@@ -99,7 +100,7 @@ def dictionary_key(cfg: PipelineConfig) -> str:
 
 def init_dictionary_digest(init: str, frames: int) -> str:
     """The dictionary a K-SVD starts from, by its content (its sha256, checked on load)."""
-    from .stages import init_dictionary
+    from .shipped import init_dictionary
 
     return str(init_dictionary(init, frames)[1]["sha256"])
 
@@ -155,25 +156,6 @@ def clean_cache(root: str | os.PathLike, *, broken_only: bool) -> list[Path]:
     removed: list[Path] = []
     _scan(Path(root), remove=(statuses, removed, not broken_only))
     return removed
-
-
-# ----------------------------------------------------------------------------- a budget for working stores
-_SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(?:([kmgt])(?:ib|b)?|b)?\s*$", re.IGNORECASE)
-
-
-def parse_size(text: str | int | float) -> int:
-    """``"500M"``, ``"20G"``, ``"1.5T"`` (powers of 1024; a ``B`` or ``iB`` after the unit is allowed) or a
-    number of bytes -> bytes.  Raises ValueError for anything else, or a size below 0."""
-    if isinstance(text, (int, float)) and not isinstance(text, bool):
-        value, unit = float(text), ""
-    else:
-        m = _SIZE.match(str(text))
-        if not m:
-            raise ValueError(f"{text!r} is not a size (for example 500M, 20G or 1.5T)")
-        value, unit = float(m.group(1)), (m.group(2) or "").lower()
-    if not value >= 0 or value != value or value == float("inf"):
-        raise ValueError(f"{text!r}: a size is a number of bytes >= 0")
-    return int(value * 1024 ** "_kmgt".index(unit or "_"))
 
 
 def _folder_bytes(path: Path) -> int:

@@ -840,7 +840,7 @@ def _boundary_steps(entries: list, psnr_per_frame: list, n: int) -> dict:
 
 def _method_dictionary(a, frames: int):
     """``(D, meta)`` of ``--dictionary`` for ``--method omp``; ``(None, {})`` for the other methods."""
-    from .stages import check_dictionary
+    from .shipped import check_dictionary
     from .store import load_dictionary
 
     from . import shipped
@@ -976,7 +976,8 @@ def _cmd_run(a) -> int:
 
 
 def _cmd_report(a) -> int:
-    from .report import run_report, verdict
+    from .report import run_report
+    from .report_html import verdict
 
     result = run_report(_config(a, "report"), progress=not a.quiet, config_path=a.config)
     lines = [f"report: {result['html']}", f"numbers: {result['csv']}", f"video: {result['video']}"]

@@ -200,8 +200,6 @@ class ReconstructConfig(_Strict):
     def _size(cls, v):
         if v is None:
             return None
-        from .cache import parse_size
-
         size = parse_size(v)
         if size == 0:  # every store removed as soon as it is done: every run would compute everything again
             raise ValueError("a cache budget must be > 0 bytes (0 keeps nothing, so every run computes "
@@ -571,3 +569,22 @@ def check_scheduler(address: str | None, timeout: float = 5.0) -> None:
     except OSError as exc:
         raise ConfigError(f"scheduler {address}: cannot connect within {timeout:g} s "
                           f"({getattr(exc, 'strerror', None) or exc}); is the scheduler running?") from exc
+
+
+# ----------------------------------------------------------------------------- a budget for working stores
+_SIZE = re.compile(r"^\s*(\d+(?:\.\d*)?|\.\d+)\s*(?:([kmgt])(?:ib|b)?|b)?\s*$", re.IGNORECASE)
+
+
+def parse_size(text: str | int | float) -> int:
+    """``"500M"``, ``"20G"``, ``"1.5T"`` (powers of 1024; a ``B`` or ``iB`` after the unit is allowed) or a
+    number of bytes -> bytes.  Raises ValueError for anything else, or a size below 0."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        value, unit = float(text), ""
+    else:
+        m = _SIZE.match(str(text))
+        if not m:
+            raise ValueError(f"{text!r} is not a size (for example 500M, 20G or 1.5T)")
+        value, unit = float(m.group(1)), (m.group(2) or "").lower()
+    if not value >= 0 or value != value or value == float("inf"):
+        raise ValueError(f"{text!r}: a size is a number of bytes >= 0")
+    return int(value * 1024 ** "_kmgt".index(unit or "_"))

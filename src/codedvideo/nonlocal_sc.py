@@ -52,9 +52,9 @@ import time
 import numpy as np
 
 from . import patches as P
-from .omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, is_binary, pixel_patterns, synthesize
-from .omp_kernel import TableOMP, block_match, scatter_patches, somp_kernel, table_fits
-from .region import OmpSettings, still_answers, still_patches
+from .omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, is_binary, pixel_patterns
+from .omp_kernel import TableOMP, block_match, scatter_patches, somp_kernel, synthesize, table_fits
+from .region import WINDOW, OmpSettings, still_answers, still_patches
 
 #: Names of the statistics, in the order of the stats vector.
 STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_static", "seconds_match",
@@ -62,7 +62,6 @@ STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_stati
 
 #: Defaults chosen on the benchmark (tasks/bench_nonlocal.py).
 GROUP = 16
-WINDOW = 6
 ITERATIONS = 1
 STEP = 3
 #: A group's atom budget is this times ``settings.max_atoms`` (k x 49 measurements afford more atoms) ...

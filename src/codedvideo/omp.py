@@ -546,18 +546,6 @@ def _back_substitute(R: np.ndarray, qy: np.ndarray, count: np.ndarray) -> np.nda
     return x
 
 
-def synthesize(result: OmpResult, D: np.ndarray) -> np.ndarray:
-    """Patch estimates ``E_p = D alpha_p``, shape (P, D.shape[0]) float32."""
-    from .omp_kernel import synthesize_into  # compiled; imports this module
-
-    # only the selected atoms are added: count * N*m multiply-adds a patch, not a dense product
-    Dt = np.ascontiguousarray(np.asarray(D, dtype=np.float32).T)
-    out = np.empty((result.count.size, Dt.shape[1]), np.float32)
-    synthesize_into(np.ascontiguousarray(result.index), np.ascontiguousarray(result.coef, dtype=np.float32),
-                    np.ascontiguousarray(result.count), Dt, out)
-    return out
-
-
 def omp_reference(A: np.ndarray, y: np.ndarray, *, max_atoms: int, tol: float = 0.0) -> np.ndarray:
     """Textbook OMP for one problem ``A alpha ~ y`` (for tests).
 

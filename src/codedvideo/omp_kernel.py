@@ -834,8 +834,6 @@ def load_kernels() -> float:
     """
     import time
 
-    from .omp import synthesize
-
     t = time.perf_counter()
     D = np.eye(8, 12, dtype=np.float32)
     table = TableOMP(np.eye(2, dtype=np.float32), D, 4)
@@ -1186,3 +1184,13 @@ def scatter_patches(est, where, wgt, wp, patch, summed, weight):
         for dy in range(patch):
             for dx in range(patch):
                 weight[r0 + dy, c0 + dx] += wv
+
+
+def synthesize(result: OmpResult, D: np.ndarray) -> np.ndarray:
+    """Patch estimates ``E_p = D alpha_p``, shape (P, D.shape[0]) float32."""
+    # only the selected atoms are added: count * N*m multiply-adds a patch, not a dense product
+    Dt = np.ascontiguousarray(np.asarray(D, dtype=np.float32).T)
+    out = np.empty((result.count.size, Dt.shape[1]), np.float32)
+    synthesize_into(np.ascontiguousarray(result.index), np.ascontiguousarray(result.coef, dtype=np.float32),
+                    np.ascontiguousarray(result.count), Dt, out)
+    return out

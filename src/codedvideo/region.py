@@ -15,11 +15,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import patches as P
-from .omp import (GroupedOperator, MaskedOperator, is_binary, masked_operator, omp, periodic_groups, pixel_patterns,
-                  synthesize)
-from .omp_kernel import MAX_TABLE_BYTES, TableOMP, WeightsOMP, still_kernel, table_fits
+from .omp import GroupedOperator, MaskedOperator, is_binary, masked_operator, omp, periodic_groups, pixel_patterns
+from .omp_kernel import MAX_TABLE_BYTES, TableOMP, WeightsOMP, still_kernel, synthesize, table_fits
 
 #: Names of the per-tile statistics, in the order of the stats vector.
+#: Search radius of the non-local method's block matching (:mod:`codedvideo.nonlocal_sc`), in pixels: a
+#: tile's halo reaches this far (:func:`tile_halo`).  Chosen on the benchmark (tasks/bench_nonlocal.py).
+WINDOW = 6
+
 STAT_NAMES = (
     "patches",
     "patches_static",
@@ -81,8 +84,6 @@ def tile_halo(settings: OmpSettings, patch: int = P.PATCH) -> int:
     assembled from stages of their own, :mod:`codedvideo.parallel`).
     """
     if settings.method == "nonlocal":
-        from .nonlocal_sc import WINDOW
-
         return 2 * (patch - 1) + 2 * WINDOW
     return patch - 1
 

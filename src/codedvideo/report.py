@@ -6,7 +6,7 @@ training scene), through the pipeline's own stages
 :func:`~codedvideo.stages.simulate_capture`,
 :func:`~codedvideo.stages.train_dictionary`,
 :func:`~codedvideo.stages.reconstruct_volume` via
-:func:`~codedvideo.baselines.reconstruct_method`):
+:func:`~codedvideo.stages.reconstruct_method`):
 
 * Table 1 of Hitomi et al. (2011): PSNR against bump length L and read noise
   sigma (hitomi code, learned dictionary, OMP with ``tol_rms = max(sigma, 2)``);
@@ -51,7 +51,7 @@ from .cache import RECON_VERSION, content_key, report_record_problem
 from .volumes import write_json
 from .scenes import load_video
 from .stages import (ADAPT_ITERATIONS, ADAPT_REFINE_STEP, ADAPT_SAMPLES, ADAPT_SPARSITY, ADAPT_SURVEY_STEP,
-                     SPARSE_METHODS, reconstruct_capture, simulate_capture, train_dictionary)
+                     SPARSE_METHODS, reconstruct_capture, reconstruct_method, simulate_capture, train_dictionary)
 from .store import load_dictionary
 from .units import infer_data_range
 
@@ -204,7 +204,7 @@ class Runner:
                                                        tile=self.cfg.reconstruct.tile,
                                                        workers=self.cfg.reconstruct.workers, progress=False)
                 else:
-                    volume, info = baselines.reconstruct_method(method, cap["coded"], cap["mask"], dictionary=D,
+                    volume, info = reconstruct_method(method, cap["coded"], cap["mask"], dictionary=D,
                                                                 dictionary_key=dkey, settings=omp, cache=tmp,
                                                                 tile=self.cfg.reconstruct.tile,
                                                                 workers=self.cfg.reconstruct.workers)
@@ -311,11 +311,6 @@ def pareto_front(points: list[tuple[float, float]]) -> list[bool]:
     for i, (t, q) in enumerate(points):
         out.append(not any(j != i and t2 <= t and q2 >= q and (t2 < t or q2 > q) for j, (t2, q2) in enumerate(points)))
     return out
-
-
-def verdict(holds: bool | None) -> str:
-    """How a finding reads: reproduced, NOT reproduced, or not tested."""
-    return "not tested (this config cannot test it)" if holds is None else "reproduced" if holds else "NOT reproduced"
 
 
 def findings(table: dict, best: dict, fig7: dict, fig4: dict, rc) -> list[dict]:

@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from . import io as cio
-from .report import verdict
 from .stages import simulate_capture
 
 CSV_FIELDS = ("experiment", "label", "scene", "frames", "code", "bump", "sigma", "method", "max_atoms", "tol_rms",
@@ -262,3 +261,8 @@ code (patch stride {r.stride}). Dashed: the Pareto front (no other point is both
     with cio.atomic_output(html_path) as tmp:
         Path(tmp).write_text(page)
     return dict(html=html_path, csv=csv_path, video=video, figures=figs)
+
+
+def verdict(holds: bool | None) -> str:
+    """How a finding reads: reproduced, NOT reproduced, or not tested."""
+    return "not tested (this config cannot test it)" if holds is None else "reproduced" if holds else "NOT reproduced"

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import baselines
 from . import io as cio
 from . import patches as P
 from . import physics
@@ -34,6 +35,7 @@ from .parallel import GraphRunner, build_graph, plan_store, plan_tiles, store_vo
 from .patches import PATCH
 from .region import STAT_NAMES, OmpSettings
 from .scenes import load_video, training_videos
+from .shipped import check_dictionary, init_dictionary
 from .store import WorkStore, entry_lock, load_dictionary, save_dictionary
 from .volumes import CAPTURE_FILES, metrics_path, write_capture, write_json, write_volume
 
@@ -126,13 +128,6 @@ def _cached_dictionary(cached: Path, key: str, *, warn: bool = False) -> tuple[n
             log.warning("dictionary cache %s is unreadable (%s); training again", cached, exc)
         return None
     return D, meta
-
-
-def check_dictionary(meta: dict, frames: int, path) -> None:
-    if meta.get("patch") != PATCH:
-        raise InputError(f"dictionary {path}: patch size {meta.get('patch')} != {PATCH}")
-    if meta.get("frames") != frames:
-        raise InputError(f"dictionary {path}: built for N = {meta.get('frames')} sub-frames, the mask has N = {frames}")
 
 
 def _progress_bar(total: int, desc: str):
@@ -242,20 +237,6 @@ def sensor_model(noise) -> physics.SensorModel | None:
     return physics.SensorModel(shot_noise=noise.shot_noise, full_well=noise.full_well, gain=noise.gain,
                                read_sigma=noise.sigma, bits=noise.bits, white_level=noise.white_level,
                                black_level=noise.black_level)
-
-
-def init_dictionary(init: str, frames: int) -> tuple[np.ndarray, dict]:
-    """The dictionary a K-SVD starts from (``dictionary.init``): ``shipped`` (the one shipped for N) or a
-    store, checked against N."""
-    from . import shipped
-
-    path = shipped.verified(frames) if init == "shipped" else Path(init)
-    if path is None:
-        raise ConfigError(f"dictionary.init shipped (--init): no dictionary is shipped for N = {frames} "
-                          f"(N = {', '.join(map(str, shipped.available()))} are)")
-    D, meta = load_dictionary(path)
-    check_dictionary(meta, frames, path)
-    return D, meta
 
 
 def _check_training_memory(samples: int, frames: int) -> None:
@@ -771,11 +752,10 @@ def reconstruct_captures(
     ``(i, volume (N, H, W) float32, info)`` for i = 0 .. T-1, each as soon as
     it is done; the sparse methods run every capture's tiles in one graph.
     """
-    from .baselines import METHODS, reconstruct_method
     from .sequence import erode_to_patches, normalised
 
-    if method not in METHODS:
-        raise InputError(f"method {method!r}: unknown; choose one of {', '.join(METHODS)}")
+    if method not in baselines.METHODS:
+        raise InputError(f"method {method!r}: unknown; choose one of {', '.join(baselines.METHODS)}")
     scale = np.float32(data_range.scale)
     count = len(codeds)
 
@@ -1126,3 +1106,70 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     report["metrics_path"] = str(mpath)
     return report
 
+
+def reconstruct_method(
+    method: str,
+    coded: np.ndarray,
+    mask: np.ndarray,
+    *,
+    dictionary: np.ndarray | None = None,
+    dictionary_key: str = "",
+    dictionary_name: str = "",
+    settings=None,
+    tile: int = 128,
+    cache: str = "cache",
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = False,
+) -> tuple[np.ndarray, dict]:
+    """Reconstruct with any method of :data:`codedvideo.baselines.METHODS` on the same forward model.
+
+    ``omp`` runs :func:`codedvideo.stages.reconstruct_volume` with
+    ``dictionary``; ``dct`` runs it with the complete 3D DCT
+    (:func:`codedvideo.dictionaries.dct_dictionary`); ``thinout``,
+    ``interp`` and ``gaptv`` run the functions of this module with their
+    defaults.
+
+    Parameters
+    ----------
+    method : str
+        One of :data:`codedvideo.baselines.METHODS`.
+    coded : ndarray of shape (H, W)
+    mask : ndarray of shape (N, H, W)
+    dictionary : ndarray of shape (N * 49, K), optional
+        Required for ``omp``; ignored otherwise.  Atoms of any nonzero norm
+        give the same answer: it goes through
+        :func:`~codedvideo.dictionaries.prepare_dictionary` (unit norm, zero
+        atoms dropped with a warning, all-zero refused).
+    dictionary_name : str
+        Names the dictionary in those messages (e.g. its path).
+    dictionary_key, settings, tile, cache, scheduler, workers, progress
+        Passed to :func:`~codedvideo.stages.reconstruct_volume` (``settings``
+        an :class:`~codedvideo.region.OmpSettings`; default settings when None).
+
+    Returns
+    -------
+    volume : ndarray of shape (N, H, W), float32
+    info : dict
+        ``method``, ``patches``, ``patches_per_second``, ``seconds``
+        (``reconstruct``: wall time) and ``measurement_residual_rms``;
+        for ``omp``/``dct`` everything :func:`reconstruct_volume` reports.
+    """
+    physics.check_pair(np.shape(coded), np.shape(mask))
+    if method not in baselines.METHODS:
+        raise InputError(f"method {method!r}: unknown; choose one of {', '.join(baselines.METHODS)}")
+    if method in ("omp", "nonlocal", "dct"):
+        settings, dictionary, dictionary_key = sparse_method(method, settings or OmpSettings(), dictionary,
+                                                             dictionary_key, dictionary_name, frames=mask.shape[0])
+        volume, info = reconstruct_volume(coded, mask, dictionary, settings=settings, tile=tile,
+                                          cache=cache, scheduler=scheduler, workers=workers, progress=progress,
+                                          dictionary_key=dictionary_key)
+        return volume, dict(info, method=method, dictionary_atoms=int(dictionary.shape[1]))
+    solve = dict(thinout=baselines.thinout, interp=baselines.interp, gaptv=baselines.gap_tv)[method]
+    t0 = time.perf_counter()
+    volume = solve(coded, mask)
+    seconds = time.perf_counter() - t0
+    residual = physics.forward(volume, mask) - np.asarray(coded, np.float32)
+    info = dict(method=method, patches=0, patches_per_second=0.0, seconds=dict(reconstruct=seconds),
+                measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))))
+    return volume, info
