@@ -72,7 +72,8 @@ def test_check_code_flags_violations():
 # ----------------------------------------------------------------------------- every scheme
 from typing import get_args  # noqa: E402
 
-from codedvideo.codes import CODE_NAMES, grid_code, load_code_file, row_starts, thinout_code  # noqa: E402
+from codedvideo.codes import CODE_NAMES, grid_code, row_starts, thinout_code  # noqa: E402
+from codedvideo.volumes import load_code_file  # noqa: E402
 
 BUILT = [n for n in CODE_NAMES if n != "file"]
 RANDOM = ("hitomi", "hitomi-tiled", "rowwise", "flutter", "bernoulli", "shifting")
@@ -215,19 +216,19 @@ def test_file_code_npy_and_tiff(tmp_path):
     np.save(tmp_path / "m.npy", mask)
     write_multipage_tiff(tmp_path / "m.tif", mask)
     for path in (tmp_path / "m.npy", tmp_path / "m.tif"):
-        got = make_code("file", (20, 24), frames=8, path=path)
+        got = load_code_file(path, frames=8, shape=(20, 24))
         assert got.dtype == np.uint8 and np.array_equal(got, mask)
         assert np.array_equal(load_code_file(path), mask)
     with pytest.raises(InputError, match=r"m\.npy.*N = 8.*N = 4"):
         load_code_file(tmp_path / "m.npy", frames=4)
     with pytest.raises(InputError, match=r"m\.tif.*\(20, 24\).*\(20, 20\)"):
-        make_code("file", (20, 20), frames=8, path=tmp_path / "m.tif")
+        load_code_file(tmp_path / "m.tif", frames=8, shape=(20, 20))
     np.save(tmp_path / "bad.npy", mask * 3)
     with pytest.raises(InputError, match=r"bad\.npy.*outside \[0, 1\]"):
         load_code_file(tmp_path / "bad.npy")
     with pytest.raises(InputError, match=r"missing\.npy"):
         load_code_file(tmp_path / "missing.npy")
-    with pytest.raises(InputError, match="code file: no mask file"):
+    with pytest.raises(InputError, match="code file: a mask file is read by"):
         make_code("file", (20, 24), frames=8)
 
 

@@ -66,7 +66,6 @@ the same idea to rows: roles are ``y mod M``.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -280,43 +279,6 @@ def flutter_sequence(frames: int, *, rng: np.random.Generator | int | None = 0) 
     return seq
 
 
-def load_code_file(
-    path: str | os.PathLike,
-    *,
-    frames: int | None = None,
-    shape: tuple[int, int] | None = None,
-) -> np.ndarray:
-    """A user-supplied code: a .npy ``(N, H, W)`` array or a multi-page TIFF; or a .npy ``(K, N, H, W)`` of K codes,
-    one per capture in turn (a calibrated code that changes per capture; capture ``t`` takes code ``t mod K``).
-
-    Parameters
-    ----------
-    path : str or path
-    frames : int, optional
-        Required number of sub-frames N.
-    shape : (H, W), optional
-        Required image size.
-
-    Returns
-    -------
-    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
-
-    Raises
-    ------
-    InputError
-        Naming the file when it is missing, unreadable, not binary, or its
-        N or (H, W) differ from the ones asked for.
-    """
-    from .volumes import read_masks
-
-    mask = read_masks(path)
-    if frames is not None and mask.shape[-3] != frames:
-        raise InputError(f"code file {path}: has N = {mask.shape[-3]} sub-frames, expected N = {frames}")
-    if shape is not None and tuple(mask.shape[-2:]) != tuple(shape):
-        raise InputError(f"code file {path}: size {tuple(mask.shape[-2:])} does not match the video {tuple(shape)}")
-    return mask
-
-
 def make_code(
     name: str,
     shape: tuple[int, int],
@@ -325,7 +287,6 @@ def make_code(
     bump: int = 2,
     p: float = 0.5,
     rng: np.random.Generator | int | None = 0,
-    path: str | os.PathLike | None = None,
 ) -> np.ndarray:
     """Build a named shutter code (see the table in the module docstring).
 
@@ -341,8 +302,8 @@ def make_code(
         pixel; ``bernoulli``: i.i.d. Bernoulli(p) per pixel and sub-frame (the
         snapshot-compressive-imaging benchmarks); ``shifting``: one
         Bernoulli(p) image shifted one pixel along x per sub-frame; ``global``:
-        an ordinary exposure, every pixel open in every sub-frame; ``file``: the
-        mask stored at ``path`` (checked against ``frames`` and ``shape``).
+        an ordinary exposure, every pixel open in every sub-frame.  (``file``,
+        a mask stored in a file, is read by :func:`codedvideo.volumes.load_code_file`.)
     shape : (H, W)
     frames : int
         Number of sub-frames N.
@@ -352,12 +313,10 @@ def make_code(
         Open probability of ``bernoulli`` and ``shifting``.
     rng : Generator or int
         Seed or generator of the random codes.
-    path : str or path, optional
-        The mask file of code ``file``.
 
     Returns
     -------
-    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
+    mask : ndarray of shape (N, H, W), uint8
     """
     if name in ("hitomi", "hitomi-tiled"):
         starts = bump_starts(shape, frames=frames, bump=bump, rng=rng, tiled=name == "hitomi-tiled")
@@ -371,9 +330,7 @@ def make_code(
     if name == "grid":
         return grid_code(shape, frames=frames)
     if name == "file":
-        if path is None:
-            raise InputError("code file: no mask file given (set the code's path / --code-file)")
-        return load_code_file(path, frames=frames, shape=shape)
+        raise InputError("code file: a mask file is read by codedvideo.volumes.load_code_file, not made")
     if name == "flutter":
         seq = flutter_sequence(frames, rng=rng)
         return np.ascontiguousarray(np.broadcast_to(seq[:, None, None], (frames, *shape)))

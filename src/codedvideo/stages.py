@@ -37,7 +37,7 @@ from .region import STAT_NAMES, OmpSettings
 from .scenes import load_video, training_videos
 from .shipped import check_dictionary, init_dictionary
 from .store import WorkStore, entry_lock, load_dictionary, save_dictionary
-from .volumes import CAPTURE_FILES, metrics_path, write_capture, write_json, write_volume
+from .volumes import CAPTURE_FILES, load_code_file, metrics_path, write_capture, write_json, write_volume
 
 log = logging.getLogger("codedvideo")
 
@@ -206,8 +206,9 @@ def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: 
     warned = False
     for t, clip in enumerate(clips):
         if masks is None:  # every code is drawn first, from its own stream
-            masks = [make_code(code, clip.shape[1:], frames=clip.shape[0], bump=bump, p=p, rng=code_rng,
-                               path=code_path) for _ in range(captures if new_code_per_capture else 1)]
+            masks = [load_code_file(code_path, frames=clip.shape[0], shape=clip.shape[1:]) if code == "file" else
+                     make_code(code, clip.shape[1:], frames=clip.shape[0], bump=bump, p=p, rng=code_rng)
+                     for _ in range(captures if new_code_per_capture else 1)]
             if masks[0].ndim == 4:  # a code file of one code per capture, in turn
                 if new_code_per_capture:
                     raise InputError(f"code file {code_path}: holds {masks[0].shape[0]} codes, one per capture; "

@@ -612,3 +612,38 @@ def spilled(results, folder: str | Path | None = None):
             del volume
     finally:
         getattr(results, "close", lambda: None)()
+
+
+def load_code_file(
+    path: str | os.PathLike,
+    *,
+    frames: int | None = None,
+    shape: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """A user-supplied code: a .npy ``(N, H, W)`` array or a multi-page TIFF; or a .npy ``(K, N, H, W)`` of K codes,
+    one per capture in turn (a calibrated code that changes per capture; capture ``t`` takes code ``t mod K``).
+
+    Parameters
+    ----------
+    path : str or path
+    frames : int, optional
+        Required number of sub-frames N.
+    shape : (H, W), optional
+        Required image size.
+
+    Returns
+    -------
+    mask : ndarray of shape (N, H, W) or (K, N, H, W), uint8 (float32 when calibrated)
+
+    Raises
+    ------
+    InputError
+        Naming the file when it is missing, unreadable, not binary, or its
+        N or (H, W) differ from the ones asked for.
+    """
+    mask = read_masks(path)
+    if frames is not None and mask.shape[-3] != frames:
+        raise InputError(f"code file {path}: has N = {mask.shape[-3]} sub-frames, expected N = {frames}")
+    if shape is not None and tuple(mask.shape[-2:]) != tuple(shape):
+        raise InputError(f"code file {path}: size {tuple(mask.shape[-2:])} does not match the video {tuple(shape)}")
+    return mask
