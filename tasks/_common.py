@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from codedvideo.config import load_config
+from codedvideo.engine.config import load_config
 
 
 def config_path(default: str = "pipeline.yaml") -> str:
@@ -16,8 +16,8 @@ def config_from_argv(default: str = "pipeline.yaml"):
 
 
 def guarded(fn) -> int:
-    """Run a stage as the command line runs a command (:func:`codedvideo.cli.guarded`): an error, Ctrl-C or
+    """Run a stage as the command line runs a command (:func:`codedvideo.app.cli.guarded`): an error, Ctrl-C or
     SIGTERM is one line on stderr and its exit status (2, 130, 143)."""
-    from codedvideo.cli import guarded as as_command
+    from codedvideo.app.cli import guarded as as_command
 
     return as_command(fn)

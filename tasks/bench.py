@@ -78,9 +78,9 @@ def peak_rss_mb() -> float:
 def dictionary_for(frames: int):
     """The default dictionary for N = 8; for larger N (speed cases only) a shorter K-SVD run
     (20k samples, 10 iterations) with the same number of atoms, so training stays in minutes."""
-    from codedvideo.config import PipelineConfig
-    from codedvideo.stages import train_dictionary
-    from codedvideo.store import load_dictionary
+    from codedvideo.engine.config import PipelineConfig
+    from codedvideo.engine.stages import train_dictionary
+    from codedvideo.formats.store import load_dictionary
 
     cfg = PipelineConfig(frames=frames, cache=str(ROOT / "cache"))
     if frames != 8:
@@ -91,8 +91,8 @@ def dictionary_for(frames: int):
 
 
 def capture(scene: str, frames: int, size, code: str, bump: int, seed: int = 0):
-    from codedvideo.scenes import load_video
-    from codedvideo.stages import simulate_capture
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.stages import simulate_capture
 
     video = load_video(f"synth:{scene}", frames=frames, size=size, seed=seed)
     return simulate_capture(video, code=code, bump=bump, sigma=0.0, seed=seed)
@@ -100,9 +100,9 @@ def capture(scene: str, frames: int, size, code: str, bump: int, seed: int = 0):
 
 def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128, stride=1, repeats=1):
     """Reconstruct ``repeats`` times (each into a fresh store); seconds: the median, seconds_first: the first."""
-    from codedvideo.config import PipelineConfig, omp_settings
-    from codedvideo.metrics import evaluate
-    from codedvideo.stages import reconstruct_volume
+    from codedvideo.engine.config import PipelineConfig, omp_settings
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.engine.stages import reconstruct_volume
     import tempfile
 
     rc = PipelineConfig().reconstruct
@@ -124,8 +124,8 @@ def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128
 
 def timed_gaptv(cap, repeats=1):
     """GAP-TV timed like :func:`timed_reconstruct` (median of ``repeats``, and the first)."""
-    from codedvideo.baselines import gap_tv
-    from codedvideo.metrics import evaluate
+    from codedvideo.solvers.baselines import gap_tv
+    from codedvideo.model.metrics import evaluate
 
     times = []
     for _ in range(repeats):
@@ -138,11 +138,11 @@ def timed_gaptv(cap, repeats=1):
 
 def naive_omp(cap, D, *, crop=48):
     """The naive implementation: per patch, build S_p D in Python loops and run textbook OMP."""
-    from codedvideo import patches as P
-    from codedvideo.config import PipelineConfig, auto_tolerance, omp_settings
-    from codedvideo.metrics import evaluate
-    from codedvideo.omp import omp_reference
-    from codedvideo.region import reconstruct_region
+    from codedvideo.model import patches as P
+    from codedvideo.engine.config import PipelineConfig, auto_tolerance, omp_settings
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.solvers.omp import omp_reference
+    from codedvideo.solvers.region import reconstruct_region
 
     coded = cap["coded"][:crop, :crop]
     mask = cap["mask"][:, :crop, :crop]
@@ -242,12 +242,12 @@ def case_quality(quick: bool) -> dict:
     (same OMP, up to 16 atoms) on held-out real footage and synthetic test scenes, N = 8."""
     import tempfile
 
-    from codedvideo.baselines import gap_tv
-    from codedvideo.config import PipelineConfig, omp_settings
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.metrics import evaluate
-    from codedvideo.scenes import load_video
-    from codedvideo.stages import reconstruct_volume, simulate_capture
+    from codedvideo.solvers.baselines import gap_tv
+    from codedvideo.engine.config import PipelineConfig, omp_settings
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.stages import reconstruct_volume, simulate_capture
 
     D, meta = dictionary_for(8)
     Dd = dct_dictionary(8)
@@ -298,10 +298,10 @@ def case_bayer(quick: bool) -> dict:
     """Issue 14: a Bayer (RGGB) coded capture of synth:color-default, reconstructed in colour."""
     import tempfile
 
-    from codedvideo import bayer
-    from codedvideo.config import PipelineConfig, omp_settings
-    from codedvideo.metrics import evaluate
-    from codedvideo.units import infer_data_range, static_peak
+    from codedvideo.engine import bayer
+    from codedvideo.engine.config import PipelineConfig, omp_settings
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.model.units import infer_data_range, static_peak
 
     D, meta = dictionary_for(8)
     size = (96, 96) if quick else (256, 256)
@@ -324,7 +324,7 @@ def case_bayer(quick: bool) -> dict:
 
 def _cli(*args, cwd) -> tuple[float, float]:
     """Run the codedvideo CLI as a user would; its wall time (whole process) and peak resident MB."""
-    cmd = ["/usr/bin/time", "-f", "%M", sys.executable, "-m", "codedvideo.cli", "-q", *map(str, args)]
+    cmd = ["/usr/bin/time", "-f", "%M", sys.executable, "-m", "codedvideo.app.cli", "-q", *map(str, args)]
     t = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd)
     seconds = time.perf_counter() - t
@@ -334,7 +334,7 @@ def _cli(*args, cwd) -> tuple[float, float]:
 
 
 def _psnr(recon: np.ndarray, truth: np.ndarray, cols=slice(None)) -> float:
-    from codedvideo.metrics import evaluate
+    from codedvideo.model.metrics import evaluate
 
     return evaluate(recon[..., cols], truth[..., cols])["psnr"]
 
@@ -349,8 +349,8 @@ def case_sequence(quick: bool) -> dict:
     figure the whole CLI process; peak memory at T = 1, 10 and 100."""
     import tempfile
 
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     size, t_count = ((64, 64), 4) if quick else ((256, 256), 10)
     out = dict(case="sequence", size=list(size), frames=8, captures=t_count, sgemm_gflops=sgemm_gflops())
@@ -447,7 +447,7 @@ def case_sequence(quick: bool) -> dict:
 
 def _boundary_ratio(recon: np.ndarray, truth: np.ndarray, n: int) -> float:
     """Error of the frame-to-frame step across capture boundaries over the error inside captures."""
-    from codedvideo.sequence import StepErrors
+    from codedvideo.model.sequence import StepErrors
 
     steps = StepErrors()
     for t in range(len(recon) // n):
@@ -460,8 +460,8 @@ def case_video(quick: bool) -> dict:
     1280x720 with T = 30 captures (540 frames), and one 3840x2160 capture."""
     import tempfile
 
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     runs = (((128, 160), 3), ((216, 384), 1)) if quick else (((720, 1280), 30), ((2160, 3840), 1))
     out = dict(case="video", frames=18, sgemm_gflops=sgemm_gflops())
@@ -494,8 +494,8 @@ def case_outputs(quick: bool) -> dict:
     against the .npy path's."""
     import tempfile
 
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     size = (216, 384) if quick else (1080, 1920)
     out = dict(case="outputs", size=list(size), frames=18, sgemm_gflops=sgemm_gflops(), peaks={})
@@ -531,7 +531,7 @@ def case_footage(quick: bool) -> dict:
     how far the answer moves when only the input's last bit does, the yardstick for the [0, 1] difference."""
     import tempfile
 
-    from codedvideo import manifest
+    from codedvideo.data import manifest
 
     clips = ((("carphone", "skv-carphone", 1),) if quick
              else (("bikes", "skv-bikes", 1), ("carphone", "skv-carphone", SEQUENCE_REPEATS)))
@@ -591,8 +591,8 @@ def case_adapt(quick: bool) -> dict:
     (hitomi L = 2 and Bernoulli, sigma 0); the capture in 8-bit units and as [0, 1] floats."""
     import tempfile
 
-    from codedvideo.stages import simulate_capture
-    from codedvideo.scenes import load_video
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.scenes import load_video
 
     size = (96, 96) if quick else (256, 256)
     runs = (("default", ()), ("omp --adapt", ("--adapt",)), ("nonlocal", ("--method", "nonlocal")),
@@ -622,7 +622,7 @@ def case_startup(quick: bool) -> dict:
     (the metrics' total: reading, reconstructing, writing), median of 3, each into a fresh cache."""
     import tempfile
 
-    from codedvideo.volumes import write_capture
+    from codedvideo.formats.volumes import write_capture
 
     size = (96, 96) if quick else (256, 256)
     cap = capture("default", 8, size, "hitomi", 2)
@@ -669,7 +669,7 @@ def case_units(quick: bool) -> dict:
 def case_calibrated(quick: bool) -> dict:
     """Issue 14: a binary code whose optical response is misregistered by half a pixel (and blurred),
     reconstructed with the nominal binary mask and with the measured (float) mask."""
-    from codedvideo.physics import blur_shift_mask, simulate
+    from codedvideo.model.physics import blur_shift_mask, simulate
 
     D, meta = dictionary_for(8)
     size = (96, 96) if quick else (256, 256)
@@ -822,7 +822,7 @@ def main() -> int:
     a = ap.parse_args()
     (ROOT / "cache").mkdir(exist_ok=True)  # the cases' temporary stores live there (absent in a fresh clone)
     if a.child:
-        from codedvideo.omp_kernel import load_kernels
+        from codedvideo.solvers.omp_kernel import load_kernels
 
         load = load_kernels()  # once per process: reported, not inside the first timing
         print(json.dumps(dict(CASES[a.child](a.quick), kernel_load_seconds=load), default=float))

@@ -32,17 +32,17 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     The default and the non-local method run as the pipeline runs them (the tile graph on every
     core); with ``options`` (keyword arguments of ``nonlocal_region`` the pipeline does not take) the
     non-local step runs on the whole image in this thread after the default's tile graph."""
-    from codedvideo import shipped
-    from codedvideo.baselines import gap_tv
-    from codedvideo.config import PipelineConfig, omp_settings
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.metrics import evaluate
-    from codedvideo.nonlocal_sc import nonlocal_region
-    from codedvideo.omp_kernel import load_kernels
-    from codedvideo.scenes import load_video
-    from codedvideo.stages import reconstruct_capture, reconstruct_volume, simulate_capture
-    from codedvideo.store import load_dictionary
-    from codedvideo.units import infer_data_range
+    from codedvideo.data import shipped
+    from codedvideo.solvers.baselines import gap_tv
+    from codedvideo.engine.config import PipelineConfig, omp_settings
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.solvers.nonlocal_sc import nonlocal_region
+    from codedvideo.solvers.omp_kernel import load_kernels
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.stages import reconstruct_capture, reconstruct_volume, simulate_capture
+    from codedvideo.formats.store import load_dictionary
+    from codedvideo.model.units import infer_data_range
 
     load_kernels()
     D, _ = load_dictionary(shipped.verified(8))

@@ -11,8 +11,8 @@ import sys
 
 from _common import guarded
 
-from codedvideo.config import ReconstructConfig, load_config, validated
-from codedvideo.stages import run_pipeline
+from codedvideo.engine.config import ReconstructConfig, load_config, validated
+from codedvideo.engine.stages import run_pipeline
 
 
 def main() -> None:

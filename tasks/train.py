@@ -8,9 +8,10 @@ import sys
 
 from _common import config_from_argv, guarded
 
-from codedvideo import manifest, shipped
-from codedvideo.config import PipelineConfig
-from codedvideo.stages import train_dictionary
+from codedvideo.data import manifest
+from codedvideo.data import shipped
+from codedvideo.engine.config import PipelineConfig
+from codedvideo.engine.stages import train_dictionary
 
 
 def _shipped(frames: list[int]) -> None:

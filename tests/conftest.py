@@ -25,11 +25,11 @@ def random_dictionary(rng, n_features, atoms):
 def partly_still_capture(size, still_columns, seed):
     """A 4-frame coded capture of the default scene whose left ``still_columns`` are marked still, with the
     4-frame DCT dictionary and small OMP settings: ``(coded, mask, still, D, settings)``."""
-    from codedvideo.codes import make_code
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.physics import simulate
-    from codedvideo.region import OmpSettings
-    from codedvideo.synth import make_scene
+    from codedvideo.model.codes import make_code
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.physics import simulate
+    from codedvideo.solvers.region import OmpSettings
+    from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4, size=size)
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=seed)
@@ -57,7 +57,7 @@ def pytest_collection_modifyitems(session, config, items):
         return
     work = Path(tempfile.mkdtemp(prefix="codedvideo-regen-"))
     env = dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    cmd = [sys.executable, "-m", "codedvideo.cli", "-q", "train", "--frames", "8", "--retrain",
+    cmd = [sys.executable, "-m", "codedvideo.app.cli", "-q", "train", "--frames", "8", "--retrain",
            "--output", str(work / "regen.zarr"), "--cache", str(work / "cache")]
     config._codedvideo_regen = (subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                                  text=True), work)

@@ -5,14 +5,14 @@ import json
 import numpy as np
 import pytest
 
-from codedvideo import shipped
-from codedvideo.cli import main
-from codedvideo.config import PipelineConfig, omp_settings
-from codedvideo.metrics import evaluate
-from codedvideo.scenes import load_video
-from codedvideo.stages import adapt_dictionary, reconstruct_capture, reconstruct_captures, simulate_capture
-from codedvideo.store import load_dictionary
-from codedvideo.units import infer_data_range
+from codedvideo.data import shipped
+from codedvideo.app.cli import main
+from codedvideo.engine.config import PipelineConfig, omp_settings
+from codedvideo.model.metrics import evaluate
+from codedvideo.data.scenes import load_video
+from codedvideo.engine.stages import adapt_dictionary, reconstruct_capture, reconstruct_captures, simulate_capture
+from codedvideo.formats.store import load_dictionary
+from codedvideo.model.units import infer_data_range
 
 
 @pytest.fixture(scope="module")
@@ -59,8 +59,8 @@ def test_nonlocal_adapt_solves_its_groups_from_the_survey_not_from_default_tiles
     its blocks' sums, as the method's own tiles)."""
     import dataclasses
 
-    from codedvideo.nonlocal_sc import nonlocal_region
-    from codedvideo.stages import ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP, reconstruct_volume
+    from codedvideo.solvers.nonlocal_sc import nonlocal_region
+    from codedvideo.engine.stages import ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP, reconstruct_volume
 
     video, cap = carphone
     options = common(D, tmp_path / "a")
@@ -83,8 +83,8 @@ def test_a_second_pass_whose_survey_is_damaged_is_not_given_as_a_result(tmp_path
     the passes stops the job with a one-line error naming the store, never a video built on it."""
     import dataclasses
 
-    from codedvideo import stages
-    from codedvideo.store import WorkStore
+    from codedvideo.engine import stages
+    from codedvideo.formats.store import WorkStore
 
     _, cap = carphone
     options = common(D, tmp_path / "a")
@@ -110,7 +110,7 @@ def test_nonlocal_adapt_on_a_code_the_groups_cannot_solve_is_omp_adapt(tmp_path)
     """N = 16 Bernoulli: more pixel patterns than the groups' table holds.  The survey is then the default's
     result, and the second pass is the per-patch OMP with the adapted dictionary (what omp --adapt gives), not
     the survey's unadapted result; the metrics and a warning say that the groups were not used."""
-    from codedvideo.synth import make_scene
+    from codedvideo.data.synth import make_scene
 
     rng = np.random.default_rng(3)
     video = make_scene("default", frames=16, size=(48, 48))
@@ -229,8 +229,8 @@ def test_nonlocal_adapt_within_a_cache_budget_keeps_the_surveys_until_the_job_en
     folder (as the default, cache): the second pass still reads every capture's survey (kept until the job
     ends, then removed like the rest), to the bits of the unlimited job. (Found in review: the budget named the
     stores it found relative and the job's absolute, so a relative cache lost the surveys it needed.)"""
-    from codedvideo import stages
-    from codedvideo.cache import _folder_bytes
+    from codedvideo.engine import stages
+    from codedvideo.engine.cache import _folder_bytes
 
     monkeypatch.setattr(stages, "WINDOW_TILES", 1)
     monkeypatch.chdir(tmp_path)

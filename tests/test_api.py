@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import codedvideo as cv
-from codedvideo.cli import main
-from codedvideo.footage import footage_scene
+from codedvideo.app.cli import main
+from codedvideo.data.footage import footage_scene
 
 N, SIZE = 8, 48
 
@@ -80,7 +80,7 @@ def test_without_a_cache_nothing_is_left_on_disk(tmp_path, monkeypatch, footage0
 def test_a_dask_array_is_reconstructed_lazily_and_equals_numpy(footage01, monkeypatch):
     import dask.array as da
 
-    from codedvideo import stages
+    from codedvideo.engine import stages
 
     video, masks, coded = footage01
     calls = []

@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from codedvideo import io as cio
-from codedvideo.cli import main
-from codedvideo.codes import make_code
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.errors import InputError
-from codedvideo.physics import simulate
-from codedvideo.volumes import read_volume, write_volume
-from codedvideo.store import load_dictionary, save_dictionary
-from codedvideo.synth import make_scene
+from codedvideo.formats import io as cio
+from codedvideo.app.cli import main
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.model.errors import InputError
+from codedvideo.model.physics import simulate
+from codedvideo.formats.volumes import read_volume, write_volume
+from codedvideo.formats.store import load_dictionary, save_dictionary
+from codedvideo.data.synth import make_scene
 
 N, H, W = 4, 24, 30
 
@@ -311,7 +311,7 @@ def test_read_only_output_folder(files, tmp_path, capsys):
         assert shutil.which("setpriv"), "setpriv (util-linux) is needed to test permissions as root"
         before = files_under(tmp_path)
         done = subprocess.run(["setpriv", "--bounding-set=-dac_override,-dac_read_search", "--inh-caps=-all", "--",
-                               sys.executable, "-m", "codedvideo.cli", "-q", *map(str, args)],
+                               sys.executable, "-m", "codedvideo.app.cli", "-q", *map(str, args)],
                               capture_output=True, text=True)
         err = done.stderr.strip()
         assert done.returncode == 2 and len(err.splitlines()) == 1, err
@@ -332,7 +332,7 @@ def test_read_only_folder_through_os_access(files, tmp_path, capsys, monkeypatch
 
 def test_write_failure_midway_leaves_the_old_output_and_no_temporary(files, tmp_path, monkeypatch):
     """A disk-full style OSError inside a writer: a one-line OutputError, the old file intact, no temporary."""
-    from codedvideo.errors import OutputError
+    from codedvideo.model.errors import OutputError
 
     target = tmp_path / "out" / "r.npy"
     cio.write_array(target, np.arange(3))
@@ -390,8 +390,8 @@ def test_training_options_given_to_a_dct_dictionary_are_refused_not_ignored(tmp_
 
 def test_learning_more_atoms_than_its_samples_can_give_is_one_line_from_the_api_too():
     """(The report's dictionaries, and any caller that builds its settings without the config model.)"""
-    from codedvideo.dictionaries import learn_dictionary
-    from codedvideo.errors import InputError
+    from codedvideo.solvers.dictionaries import learn_dictionary
+    from codedvideo.model.errors import InputError
 
     video = np.random.default_rng(0).uniform(0, 255, (4, 16, 16)).astype(np.float32)
     with pytest.raises(InputError, match="other 300 among the training patches, but only 200 were drawn"):

@@ -7,14 +7,14 @@ import time
 import numpy as np
 import pytest
 
-from codedvideo.baselines import METHODS, gap_tv, interp, normalized_fill, thinout
-from codedvideo.stages import reconstruct_method
-from codedvideo.codes import make_code
-from codedvideo.errors import InputError
-from codedvideo.metrics import evaluate
-from codedvideo.physics import forward, static_estimate
-from codedvideo.scenes import load_video
-from codedvideo.stages import simulate_capture
+from codedvideo.solvers.baselines import METHODS, gap_tv, interp, normalized_fill, thinout
+from codedvideo.engine.stages import reconstruct_method
+from codedvideo.model.codes import make_code
+from codedvideo.model.errors import InputError
+from codedvideo.model.metrics import evaluate
+from codedvideo.model.physics import forward, static_estimate
+from codedvideo.data.scenes import load_video
+from codedvideo.engine.stages import simulate_capture
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +117,7 @@ def test_cli_reconstruct_method_without_dictionary(tmp_path, scene):
     cap = simulate_capture(scene, code="grid", bump=1, sigma=0.0, seed=0)
     for name in ("coded", "mask", "truth"):
         np.save(tmp_path / f"{name}.npy", cap[name])
-    cli = [sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),
+    cli = [sys.executable, "-m", "codedvideo.app.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),
            "--mask", str(tmp_path / "mask.npy"), "--truth", str(tmp_path / "truth.npy"), "--cache", str(tmp_path / "c")]
     for method in ("interp", "dct"):
         out = tmp_path / f"{method}.npy"

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from codedvideo.ksvd import ksvd
-from codedvideo.omp import PlainOperator, omp
-from codedvideo.omp_kernel import batch_omp, row_energy, subtract_codes, update_atoms
+from codedvideo.solvers.ksvd import ksvd
+from codedvideo.solvers.omp import PlainOperator, omp
+from codedvideo.solvers.omp_kernel import batch_omp, row_energy, subtract_codes, update_atoms
 from conftest import random_dictionary
 
 

@@ -4,8 +4,8 @@ import json
 import numpy as np
 import pytest
 
-from codedvideo import bayer
-from codedvideo.cli import main
+from codedvideo.engine import bayer
+from codedvideo.app.cli import main
 
 # ----------------------------------------------------------------------------- mosaic and demosaic
 

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from codedvideo.cli import main
-from codedvideo.metrics import evaluate
-from codedvideo.sequence import StepErrors, join_captures
+from codedvideo.app.cli import main
+from codedvideo.model.metrics import evaluate
+from codedvideo.model.sequence import StepErrors, join_captures
 
 N, H, W, T = 8, 96, 96, 4
 
@@ -146,7 +146,7 @@ def test_the_compiled_warp_samples_as_linear_map_coordinates_with_edges_repeated
     the border; scipy's map_coordinates(order=1, mode="nearest") within the rounding of the coordinates."""
     from scipy import ndimage
 
-    from codedvideo.sequence import _warp
+    from codedvideo.model.sequence import _warp
 
     frames = rng.random((3, 23, 31)).astype(np.float32) * 255
     vy, vx = (rng.normal(size=(2, 23, 31)) * 4).astype(np.float32)  # many samples fall outside the frame
@@ -161,7 +161,7 @@ def test_the_compiled_warp_samples_as_linear_map_coordinates_with_edges_repeated
 def test_a_join_works_only_near_what_changes_and_gives_the_whole_frames_values(stream, monkeypatch):
     """Where the frames around a boundary are still, a join leaves the pixels exactly as they were; near the
     part that moves it gives what the join over the whole frame gives (to float roundoff)."""
-    from codedvideo import sequence
+    from codedvideo.model import sequence
 
     captures, coded, mask, _ = stream
     still = 64  # the left 64 columns still in both captures, alike
@@ -184,7 +184,7 @@ def test_a_join_works_only_near_what_changes_and_gives_the_whole_frames_values(s
 def test_the_streaming_join_reads_only_the_boundary_frames_and_gives_the_whole_captures_bits(stream):
     """joined() hands join_captures the last / first frames it reads, not whole captures (4K, N = 18: 0.8 GB of
     copies at a boundary); the result is join_captures' on the whole captures, bit for bit, data range found too."""
-    from codedvideo.sequence import joined
+    from codedvideo.model.sequence import joined
 
     captures, coded, mask, _ = stream
     expected = [c.copy() for c in captures]

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import zarr
 
-from codedvideo.codes import make_code
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.physics import simulate
-from codedvideo.stages import reconstruct_volume
-from codedvideo.region import OmpSettings
-from codedvideo.synth import make_scene
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.model.physics import simulate
+from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.solvers.region import OmpSettings
+from codedvideo.data.synth import make_scene
 
 SETTINGS = dict(max_atoms=6, tol_rms=2.0)
 TILE = 16  # a 48x48 scene: 3 x 3 tiles, one volume chunk each
@@ -37,17 +37,17 @@ for i in range(reps):
         time.sleep(0.001)
     try:
         if job == "train":
-            from codedvideo.config import PipelineConfig
-            from codedvideo.stages import train_dictionary
-            from codedvideo.store import load_dictionary
+            from codedvideo.engine.config import PipelineConfig
+            from codedvideo.engine.stages import train_dictionary
+            from codedvideo.formats.store import load_dictionary
             cfg = PipelineConfig.model_validate(dict(frames=4, cache=str(root / f"cache-{i}"), dictionary=dict(
                 kind="learned", atoms=60, samples=1500, iterations=2, sparsity=3, clips=3)))
             path, meta = train_dictionary(cfg, progress=False)
             np.save(root / f"{tag}-{i}.npy", load_dictionary(path)[0])
             row = dict(ok=True, computed=not meta["reused"])
         else:
-            from codedvideo.stages import reconstruct_volume
-            from codedvideo.region import OmpSettings
+            from codedvideo.engine.stages import reconstruct_volume
+            from codedvideo.solvers.region import OmpSettings
             d = np.load(root / "scene.npz")
             vol, info = reconstruct_volume(d["coded"], d["mask"], d["D"], settings=OmpSettings(**json.loads(sys.argv[5])),
                                            tile=int(sys.argv[6]), cache=root / f"cache-{i}", workers=1, progress=False,
@@ -219,9 +219,9 @@ def test_a_damaged_zarr_json_or_input_array_rebuilds_the_entry(scene, reference,
 
 def test_a_dictionary_entry_copied_over_another_is_trained_again(tmp_path):
     """A dictionary cache entry replaced by another (intact, checksum and all) is not taken for this one."""
-    from codedvideo.config import PipelineConfig
-    from codedvideo.stages import train_dictionary
-    from codedvideo.store import load_dictionary
+    from codedvideo.engine.config import PipelineConfig
+    from codedvideo.engine.stages import train_dictionary
+    from codedvideo.formats.store import load_dictionary
 
     cfgs = [PipelineConfig.model_validate(dict(frames=n, cache=str(tmp_path), dictionary=dict(kind="dct")))
             for n in (4, 2)]
@@ -235,9 +235,9 @@ def test_a_dictionary_entry_copied_over_another_is_trained_again(tmp_path):
 
 # ----------------------------------------------------------------------------- verify and clean
 def test_verify_reports_a_damaged_entry_and_clean_removes_only_that_one(scene, reference, tmp_path):
-    from codedvideo.cache import clean_cache, verify_cache
-    from codedvideo.config import PipelineConfig
-    from codedvideo.stages import train_dictionary
+    from codedvideo.engine.cache import clean_cache, verify_cache
+    from codedvideo.engine.config import PipelineConfig
+    from codedvideo.engine.stages import train_dictionary
 
     coded, mask, D = scene
     cache = tmp_path / "cache"
@@ -285,7 +285,7 @@ def test_verify_reports_a_damaged_entry_and_clean_removes_only_that_one(scene, r
 
 def test_verify_calls_an_entry_of_an_older_layout_stale_and_clean_removes_it(scene, tmp_path):
     """An entry written by another codedvideo version (here: the layout version changed) is never reused."""
-    from codedvideo.cache import clean_cache, verify_cache
+    from codedvideo.engine.cache import clean_cache, verify_cache
 
     coded, mask, D = scene
     reconstruct_volume(coded, mask, D, settings=OmpSettings(**SETTINGS), tile=TILE, cache=tmp_path, progress=False)
@@ -302,7 +302,7 @@ def test_verify_calls_an_entry_of_an_older_layout_stale_and_clean_removes_it(sce
 def test_tile_tasks_share_an_opened_store_until_the_entry_is_rebuilt(scene, tmp_path):
     """WorkStore.opened hands the tasks of a process one opened store per entry; an entry rebuilt under the
     same name (other inputs) is opened afresh, so no task reads a stale layout."""
-    from codedvideo.store import WorkStore
+    from codedvideo.formats.store import WorkStore
 
     coded, mask, _ = scene
     path = tmp_path / "recon-x.zarr"
@@ -319,11 +319,11 @@ def test_tile_tasks_share_an_opened_store_until_the_entry_is_rebuilt(scene, tmp_
 
 def test_a_dictionary_trained_on_a_video_is_keyed_by_what_the_video_holds(tmp_path):
     """The same name with other frames trains again; the same frames under another name reuse the entry."""
-    from codedvideo import io as cio
-    from codedvideo.config import PipelineConfig
-    from codedvideo.stages import train_dictionary
-    from codedvideo.store import load_dictionary
-    from codedvideo.synth import make_scene
+    from codedvideo.formats import io as cio
+    from codedvideo.engine.config import PipelineConfig
+    from codedvideo.engine.stages import train_dictionary
+    from codedvideo.formats.store import load_dictionary
+    from codedvideo.data.synth import make_scene
 
     def train(video):
         cfg = PipelineConfig.model_validate(dict(frames=4, cache=str(tmp_path / "cache"), dictionary=dict(
@@ -346,7 +346,7 @@ def test_a_dictionary_trained_on_a_video_is_keyed_by_what_the_video_holds(tmp_pa
 
 # ----------------------------------------------------------------------------- a budget for working stores
 def test_sizes_are_read_in_powers_of_1024_and_anything_else_is_refused():
-    from codedvideo.cache import parse_size
+    from codedvideo.engine.cache import parse_size
 
     assert [parse_size(t) for t in ("0", "123", "500M", "20G", "1.5T", "2GiB", ".5k", 7)] == [
         0, 123, 500 * 2**20, 20 * 2**30, int(1.5 * 2**40), 2 * 2**30, 512, 7]
@@ -357,7 +357,7 @@ def test_sizes_are_read_in_powers_of_1024_and_anything_else_is_refused():
 
 def _stores(tmp_path, count):
     """``count`` working stores of distinct 48x48 captures in one cache, made one after another."""
-    from codedvideo.stages import sparse_volumes
+    from codedvideo.engine.stages import sparse_volumes
 
     video = make_scene("default", frames=4 * count, size=(48, 48))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
@@ -372,8 +372,8 @@ def _stores(tmp_path, count):
 def test_a_cache_budget_removes_the_least_recently_used_stores_and_never_one_in_use(tmp_path):
     """Four stores and a budget for one and a half: the oldest go first, a store another run holds (or this
     job still uses) stays however old it is, and the dictionaries beside them are never touched."""
-    from codedvideo.cache import CacheBudget, _folder_bytes
-    from codedvideo.store import entry_lock
+    from codedvideo.engine.cache import CacheBudget, _folder_bytes
+    from codedvideo.formats.store import entry_lock
 
     _, _, stores = _stores(tmp_path, 4)
     (tmp_path / "c" / "dict-0123456789abcdef.zarr").mkdir()  # (not a working store: never sized nor removed)
@@ -396,8 +396,8 @@ def test_a_stream_within_a_cache_budget_gives_the_same_bits_and_reruns_from_what
     """Six captures in windows of one with a budget of about two stores: the result is bit for bit the
     unlimited job's, the cache stays within the budget, and a rerun computes again what was removed (least
     recently used first: in a rerun that is the stores it is about to reach) to the same bits."""
-    from codedvideo import stages
-    from codedvideo.cache import _folder_bytes
+    from codedvideo.engine import stages
+    from codedvideo.engine.cache import _folder_bytes
 
     codeds, mask, stores = _stores(tmp_path, 6)  # the unlimited job, capture by capture
     unlimited = [np.asarray(v) for _, v, _ in stages.sparse_volumes(
@@ -408,7 +408,7 @@ def test_a_stream_within_a_cache_budget_gives_the_same_bits_and_reruns_from_what
     bounded = tmp_path / "bounded"
 
     def job():
-        from codedvideo.cache import CacheBudget
+        from codedvideo.engine.cache import CacheBudget
 
         budget = CacheBudget(bounded, 2 * size + size // 2)
         got = list(stages.sparse_volumes(6, lambda i: (codeds[i], mask, None), dct_dictionary(4),
@@ -431,7 +431,7 @@ def test_a_cache_budget_that_is_not_a_size_is_one_line_before_any_work(tmp_path)
     rng = np.random.default_rng(0)
     np.save(tmp_path / "coded.npy", rng.uniform(0, 255, (2, 16, 16)).astype(np.float32))
     np.save(tmp_path / "mask.npy", (rng.random((2, 16, 16)) < 0.5).astype(np.uint8))
-    proc = subprocess.run([sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded",
+    proc = subprocess.run([sys.executable, "-m", "codedvideo.app.cli", "-q", "reconstruct", "--coded",
                            str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"), "--output",
                            str(tmp_path / "r.npy"), "--cache", str(tmp_path / "c"), "--cache-budget", "20X"],
                           capture_output=True, text=True)
@@ -446,7 +446,7 @@ def test_a_job_whose_stores_may_not_fit_the_disk_is_said_before_any_work(tmp_pat
     import shutil as sh
     from collections import namedtuple
 
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     rng = np.random.default_rng(0)
     np.save(tmp_path / "coded.npy", rng.uniform(0, 255, (4, 16, 16)).astype(np.float32))
@@ -464,7 +464,7 @@ def test_a_job_whose_stores_may_not_fit_the_disk_is_said_before_any_work(tmp_pat
     assert len(said) == 1 and "--cache-budget" in said[0] and str(tmp_path / "c") in said[0]
     assert "about 15 KiB (4 stores of about 3.8 KiB)" in said[0] and "12 KiB free" in said[0]
     # a budget counts what a job holds at once: the budget and the stores in use beside it
-    from codedvideo.cache import cache_room_problem
+    from codedvideo.engine.cache import cache_room_problem
 
     assert cache_room_problem(tmp_path / "c", 1000, 2, 16, 16, None) is not None
     assert cache_room_problem(tmp_path / "c", 1000, 2, 16, 16, 1, in_use=3) is None  # 1 B + 3 x 3840 B

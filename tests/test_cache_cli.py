@@ -3,7 +3,7 @@ import json
 
 import numpy as np
 
-from codedvideo.cli import main
+from codedvideo.app.cli import main
 from test_bad_input import files, reconstruct_args  # noqa: F401  (files is a fixture)
 
 

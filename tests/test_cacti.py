@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import scipy.io
 
-from codedvideo import cacti
-from codedvideo.cli import main
-from codedvideo.errors import InputError, OutputError
+from codedvideo.formats import cacti
+from codedvideo.app.cli import main
+from codedvideo.model.errors import InputError, OutputError
 
 H, W, N, Q = 24, 30, 4, 2  # H != W so that a transposed read cannot pass
 

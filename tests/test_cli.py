@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-CLI = [sys.executable, "-m", "codedvideo.cli"]
+CLI = [sys.executable, "-m", "codedvideo.app.cli"]
 
 
 def run(*args, cwd, check=True):
@@ -66,7 +66,7 @@ def test_reconstruct_beats_trivial_estimate_and_writes_metrics(workdir, dictiona
 
 
 def test_reconstruct_to_mp4_and_tiff_mask(workdir, dictionary, capture):
-    from codedvideo.io import read_video, write_multipage_tiff
+    from codedvideo.formats.io import read_video, write_multipage_tiff
 
     write_multipage_tiff(workdir / "mask.tif", np.load(capture / "mask.npy"))
     run("reconstruct", "--coded", capture / "coded.tif", "--mask", workdir / "mask.tif", "--dictionary", dictionary,

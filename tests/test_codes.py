@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from codedvideo.codes import bump_starts, check_code, make_code, window_coverage
-from codedvideo.errors import InputError
+from codedvideo.model.codes import bump_starts, check_code, make_code, window_coverage
+from codedvideo.model.errors import InputError
 
 
 @settings(max_examples=40, deadline=None)
@@ -72,8 +72,8 @@ def test_check_code_flags_violations():
 # ----------------------------------------------------------------------------- every scheme
 from typing import get_args  # noqa: E402
 
-from codedvideo.codes import CODE_NAMES, grid_code, row_starts, thinout_code  # noqa: E402
-from codedvideo.volumes import load_code_file  # noqa: E402
+from codedvideo.model.codes import CODE_NAMES, grid_code, row_starts, thinout_code  # noqa: E402
+from codedvideo.formats.volumes import load_code_file  # noqa: E402
 
 BUILT = [n for n in CODE_NAMES if n != "file"]
 RANDOM = ("hitomi", "hitomi-tiled", "rowwise", "flutter", "bernoulli", "shifting")
@@ -210,7 +210,7 @@ def test_bernoulli_codes_open_fraction_and_p_check(name):
 
 
 def test_file_code_npy_and_tiff(tmp_path):
-    from codedvideo.io import write_multipage_tiff
+    from codedvideo.formats.io import write_multipage_tiff
 
     mask = make_code("hitomi", (20, 24), frames=8, bump=2, rng=4)
     np.save(tmp_path / "m.npy", mask)
@@ -254,8 +254,8 @@ def test_check_code_counts_uncovered_windows():
 
 
 def test_names_are_selectable_everywhere():
-    from codedvideo.cli import _parser
-    from codedvideo.config import CodeConfig, CodeName
+    from codedvideo.app.cli import _parser
+    from codedvideo.engine.config import CodeConfig, CodeName
 
     assert set(get_args(CodeName)) == set(CODE_NAMES)
     sim = next(a for a in _parser()._subparsers._group_actions[0].choices["simulate"]._actions if a.dest == "code")
@@ -271,7 +271,7 @@ def test_codes_check_reads_the_per_capture_masks_simulate_writes(tmp_path, capsy
     """simulate --new-code-per-capture writes (T, N, H, W): codes check reports every capture (it refused it)."""
     import json
 
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     assert main(["-q", "simulate", "synth:default", "--frames", "8", "--size", "32", "32", "--captures", "3",
                  "--new-code-per-capture", "--output", str(tmp_path / "cap")]) == 0
@@ -286,7 +286,7 @@ def test_codes_check_reads_the_per_capture_masks_simulate_writes(tmp_path, capsy
 
 def test_codes_check_reads_a_calibrated_mask_with_leakage_by_its_openings(tmp_path, capsys):
     """Reported: a hitomi L = 2 mask measured with 2 % leakage was called a global shutter (bump length 8)."""
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     code = make_code("hitomi", (32, 32), frames=8, bump=2, rng=0).astype(np.float32)
     rep = check_code(code * 0.9 + 0.02)

@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 
-from codedvideo.cli import main
+from codedvideo.app.cli import main
 
 N, T, SIZE = 8, 5, 64
 
 
 def _capture(video, sigma=0.0):
-    from codedvideo.stages import simulate_capture
+    from codedvideo.engine.stages import simulate_capture
 
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=sigma, seed=0, captures=len(video) // N)
     return np.asarray(cap["coded"], np.float32), np.asarray(cap["mask"]), np.asarray(video, np.float32)
@@ -33,7 +33,7 @@ def _reconstruct(tmp_path, name, coded, mask, truth, *flags, sigma=0.0):
 
 
 def _psnr(volume, truth):
-    from codedvideo.metrics import evaluate
+    from codedvideo.model.metrics import evaluate
 
     return [evaluate(volume[t * N:(t + 1) * N], truth[t * N:(t + 1) * N], data_range=255)["psnr"]
             for t in range(len(volume) // N)]
@@ -59,7 +59,7 @@ def _check_split(tmp_path, coded, mask, truth, parts, *, sigma=0.0, reasons, nea
 
 
 def _scene(frames, size=SIZE):
-    from codedvideo.synth import make_scene
+    from codedvideo.data.synth import make_scene
 
     return make_scene("default", frames=frames, size=(size, size))
 
@@ -91,7 +91,7 @@ def test_a_jump_of_exposure_is_not_joined(tmp_path, gain):
 
 
 def _footage(name, frames, size=SIZE):
-    from codedvideo.footage import footage_scene
+    from codedvideo.data.footage import footage_scene
 
     return footage_scene(name, frames=frames, size=(size, size))
 
@@ -128,8 +128,8 @@ def test_ordinary_moving_footage_is_still_joined_and_gains(tmp_path, name):
 
 def _clip_captures(entry, captures):
     """The first ``captures`` captures of a whole held-out clip, N = 8, read noise 2: (coded, mask)."""
-    from codedvideo import io as cio
-    from codedvideo import manifest
+    from codedvideo.formats import io as cio
+    from codedvideo.data import manifest
 
     video = cio.read_video(manifest.verify(manifest.lookup(entry)), max_frames=captures * N)
     coded, mask, _ = _capture(video[: captures * N], sigma=2.0)
@@ -141,7 +141,7 @@ def test_no_boundary_of_whole_real_clips_is_a_cut_but_where_the_shot_changes():
     a car crossing the frame at 25 fps) only those beside a capture within which the film cuts to another shot
     (captures 3, 9, 17, 23 and 30 from 0) may be cuts; the first (a street to a man in traffic, the mean
     falling by 40 %) is one."""
-    from codedvideo.sequence import Cuts
+    from codedvideo.model.sequence import Cuts
 
     coded, mask = _clip_captures("skv-carphone", 15)
     cuts = Cuts(coded, lambda i: mask)
@@ -157,7 +157,7 @@ def test_no_boundary_of_whole_real_clips_is_a_cut_but_where_the_shot_changes():
 @pytest.mark.parametrize("case", ["dark", "blown", "flat", "exposure", "scene", "same"])
 def test_each_kind_of_disagreement_is_named(case):
     """Cuts on two captures of one still-moving scene, the second changed."""
-    from codedvideo.sequence import Cuts
+    from codedvideo.model.sequence import Cuts
 
     coded, mask, _ = _capture(_scene(2 * N), sigma=1.0)
     white = None

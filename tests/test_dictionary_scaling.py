@@ -1,7 +1,7 @@
 """Dictionary scaling: atoms of any nonzero norm give the same answer; zero atoms are dropped or refused.
 
-Reconstruction goes through :func:`codedvideo.dictionaries.prepare_dictionary`
-(:func:`codedvideo.stages.reconstruct_method`), and the OMP kernels' own
+Reconstruction goes through :func:`codedvideo.solvers.dictionaries.prepare_dictionary`
+(:func:`codedvideo.engine.stages.reconstruct_method`), and the OMP kernels' own
 floors are relative, so a globally scaled dictionary works even without it.
 """
 import warnings
@@ -9,18 +9,18 @@ import warnings
 import numpy as np
 import pytest
 
-from codedvideo import patches as P
-from codedvideo import synth
-from codedvideo.stages import reconstruct_method
-from codedvideo.codes import make_code
-from codedvideo.dictionaries import UNIT_NORM_TOL, dct_dictionary, learn_dictionary, prepare_dictionary
-from codedvideo.errors import InputError
-from codedvideo.metrics import evaluate
-from codedvideo.omp import MaskedOperator, omp
-from codedvideo.physics import simulate, static_estimate
-from codedvideo.stages import reconstruct_volume
-from codedvideo.region import OmpSettings
-from codedvideo.synth import make_scene
+from codedvideo.model import patches as P
+from codedvideo.data import synth
+from codedvideo.engine.stages import reconstruct_method
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.dictionaries import UNIT_NORM_TOL, dct_dictionary, learn_dictionary, prepare_dictionary
+from codedvideo.model.errors import InputError
+from codedvideo.model.metrics import evaluate
+from codedvideo.solvers.omp import MaskedOperator, omp
+from codedvideo.model.physics import simulate, static_estimate
+from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.solvers.region import OmpSettings
+from codedvideo.data.synth import make_scene
 
 H, W, N = 32, 40, 8
 SETTINGS = OmpSettings(max_atoms=8, tol_rms=2.0)

@@ -4,12 +4,12 @@ import os
 import numpy as np
 import pytest
 
-from codedvideo.codes import make_code
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.physics import simulate
-from codedvideo.stages import reconstruct_volume
-from codedvideo.region import OmpSettings
-from codedvideo.synth import make_scene
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.model.physics import simulate
+from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.solvers.region import OmpSettings
+from codedvideo.data.synth import make_scene
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +143,7 @@ def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_p
 def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_path):
     """A sequence of captures as one graph on two worker processes; one is SIGKILLed while tiles of the
     sequence run: its tasks are rescheduled, and every capture equals the local run bit for bit."""
-    from codedvideo.stages import sparse_volumes
+    from codedvideo.engine.stages import sparse_volumes
 
     video = make_scene("default", frames=4 * 4, size=(64, 96))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
@@ -173,7 +173,7 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_the_rerun_resumes(tmp_path):
 
     import distributed  # noqa: F401  (a pinned dependency: a broken install fails, never skips)
     coded, mask, D = _scene((96, 128))
-    from codedvideo.store import save_dictionary
+    from codedvideo.formats.store import save_dictionary
 
     np.save(tmp_path / "coded.npy", coded)
     np.save(tmp_path / "mask.npy", mask)
@@ -192,7 +192,7 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_the_rerun_resumes(tmp_path):
         assert address, "the scheduler did not start"
         worker = subprocess.Popen([os.path.join(bin_dir, "dask"), "worker", address, "--nthreads", "1",
                                    "--no-dashboard"], stderr=subprocess.DEVNULL)
-        args = [sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),
+        args = [sys.executable, "-m", "codedvideo.app.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),
                 "--mask", str(tmp_path / "mask.npy"), "--dictionary", str(tmp_path / "d.zarr"), "--tile", "8",
                 "--static-atoms", "0", "--tol-rms", "0.5", "--cache", str(tmp_path / "cache")]
         run = subprocess.Popen([*args, "--output", str(tmp_path / "out" / "r.npy"), "--scheduler", address],
@@ -224,10 +224,10 @@ def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(c
     """--adapt on a cluster: the adaptation runs in the client, the dictionaries travel in the graph; reported
     up to 3.4 grey levels apart from the local run when an adaptation ran beside a local graph.  With the
     non-local method the second pass's tasks read the survey's tiles from its working store in the workers."""
-    from codedvideo import shipped
-    from codedvideo.stages import reconstruct_captures, simulate_capture
-    from codedvideo.store import load_dictionary
-    from codedvideo.units import infer_data_range
+    from codedvideo.data import shipped
+    from codedvideo.engine.stages import reconstruct_captures, simulate_capture
+    from codedvideo.formats.store import load_dictionary
+    from codedvideo.model.units import infer_data_range
 
     D = load_dictionary(shipped.verified(8))[0]
     video = make_scene("default", frames=24, size=(48, 48))

@@ -8,15 +8,15 @@ operator on request), the static estimate and the hole filling.
 import numpy as np
 import pytest
 
-from codedvideo import physics
-from codedvideo.codes import check_code, make_code
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.metrics import evaluate
-from codedvideo.omp import MaskedOperator, is_binary, patch_code_groups, pixel_patterns
-from codedvideo.parallel import plan_tiles
-from codedvideo.patches import extract
-from codedvideo.region import OmpSettings, reconstruct_region
-from codedvideo.synth import make_scene
+from codedvideo.model import physics
+from codedvideo.model.codes import check_code, make_code
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.model.metrics import evaluate
+from codedvideo.solvers.omp import MaskedOperator, is_binary, patch_code_groups, pixel_patterns
+from codedvideo.engine.parallel import plan_tiles
+from codedvideo.model.patches import extract
+from codedvideo.solvers.region import OmpSettings, reconstruct_region
+from codedvideo.data.synth import make_scene
 
 N, H, W = 8, 48, 52
 SETTINGS = OmpSettings(max_atoms=8, tol_rms=1.0)
@@ -37,8 +37,8 @@ def learned():
     """The shipped N = 8 dictionary.  Through a blurred code, weak dictionaries invent motion: measured on
     64x64 of the default scene, a 128- or 256-atom K-SVD of a few seconds gains 0.3 to 1.5 dB less from the
     measured mask than this one, and the 3D DCT loses 6 dB against the nominal mask."""
-    from codedvideo import shipped
-    from codedvideo.store import load_dictionary
+    from codedvideo.data import shipped
+    from codedvideo.formats.store import load_dictionary
 
     path = shipped.path_for(N)
     if not path.exists():

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from codedvideo import manifest
-from codedvideo.errors import InputError
-from codedvideo.footage import SCENES, footage_scene
-from codedvideo.scenes import load_video
+from codedvideo.data import manifest
+from codedvideo.model.errors import InputError
+from codedvideo.data.footage import SCENES, footage_scene
+from codedvideo.data.scenes import load_video
 
 
 def test_package_clips_are_listed_as_test_data_and_verify():

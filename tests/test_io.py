@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from codedvideo import io as cio
-from codedvideo.errors import InputError
+from codedvideo.formats import io as cio
+from codedvideo.model.errors import InputError
 
 
 @pytest.fixture
@@ -209,7 +209,7 @@ def test_colour_lossy_video(tmp_path, smooth, suffix, tol):
 @pytest.mark.parametrize("name,tol", [("v.npy", 0), ("v.zarr", 0), ("v.mat", 0), ("v.tif", 0), ("v.mkv", 0.5),
                                       ("frames", 255 / 65535), ("v.mp4", 3.0), ("v.gif", 0.5)])
 def test_volume_outputs_round_trip(tmp_path, smooth, name, tol):
-    from codedvideo.volumes import read_volume, write_volume
+    from codedvideo.formats.volumes import read_volume, write_volume
 
     write_volume(smooth, tmp_path / name)
     back = read_volume(tmp_path / name)
@@ -221,7 +221,7 @@ def test_volume_outputs_round_trip(tmp_path, smooth, name, tol):
 
 
 def test_colour_volume_outputs(tmp_path, smooth):
-    from codedvideo.volumes import read_volume, write_volume
+    from codedvideo.formats.volumes import read_volume, write_volume
 
     colour = np.stack([smooth, smooth[:, ::-1], 255 - smooth])
     for name in ("c.npy", "c.zarr", "c.mat"):
@@ -236,7 +236,7 @@ def test_colour_volume_outputs(tmp_path, smooth):
 @pytest.mark.parametrize("name", ["i.png", "i.tif", "i.exr", "i.dpx", "s.tif", "v.npy", "v.mat", "v.mp4", "v.mkv", "v.gif"])
 @pytest.mark.parametrize("frac", [0.02, 0.5, 0.7])  # (a stream cut within its last frame can pass)
 def test_truncated_files_give_one_line_errors(tmp_path, smooth, name, frac):
-    from codedvideo.volumes import read_volume, write_volume
+    from codedvideo.formats.volumes import read_volume, write_volume
 
     if name.startswith("i."):
         cio.write_image(tmp_path / name, smooth[0], dtype=np.uint16 if name.endswith(".dpx") else None)
@@ -253,7 +253,7 @@ def test_truncated_files_give_one_line_errors(tmp_path, smooth, name, frac):
 
 
 def test_corrupt_zarr_and_garbage_files(tmp_path, smooth):
-    from codedvideo.volumes import read_volume, write_volume
+    from codedvideo.formats.volumes import read_volume, write_volume
 
     write_volume(smooth, tmp_path / "v.zarr")
     meta = next(p for p in (tmp_path / "v.zarr").rglob("zarr.json"))
@@ -271,8 +271,8 @@ def test_corrupt_zarr_and_garbage_files(tmp_path, smooth):
 def test_cli_reconstruct_colour_channels(tmp_path, smooth, capsys):
     import json
 
-    from codedvideo import physics
-    from codedvideo.cli import main
+    from codedvideo.model import physics
+    from codedvideo.app.cli import main
 
     n = 4
     video = np.stack([np.rint(smooth[:n]), np.rint(smooth[:n, ::-1]), np.rint(255 - smooth[:n])])  # (3, N, H, W)
@@ -307,8 +307,8 @@ def test_cli_reconstruct_colour_channels(tmp_path, smooth, capsys):
 @pytest.mark.parametrize("fmt,tol", [("tiff16", 255 / 65535), ("png", 0.5), ("exr", 0.0)])
 def test_frame_folders_read_back_in_frame_units(tmp_path, fmt, tol):
     """evaluate on a folder of frames compares like with like: stored full scale maps back to data_range."""
-    from codedvideo.io import write_frames
-    from codedvideo.volumes import read_volume
+    from codedvideo.formats.io import write_frames
+    from codedvideo.formats.volumes import read_volume
 
     vol = np.random.default_rng(0).uniform(0, 255, (3, 9, 11)).astype(np.float32)
     write_frames(tmp_path / "f", vol, fmt=fmt)
@@ -318,7 +318,7 @@ def test_frame_folders_read_back_in_frame_units(tmp_path, fmt, tol):
 
 
 def test_a_stack_written_part_by_part_refuses_a_page_of_another_size_and_leaves_nothing(tmp_path):
-    from codedvideo.errors import OutputError
+    from codedvideo.model.errors import OutputError
 
     with pytest.raises(OutputError, match="page 3 is 8x9x1"):
         with cio.stack_writer(tmp_path / "s.tif", 4) as write:
@@ -341,7 +341,7 @@ def test_an_image_written_again_later_is_the_same_bytes(tmp_path, name):
     """Reported: coded.tif embedded the time it was written (TIFF DateTime), so two runs of one seed differed."""
     import time
 
-    from codedvideo.io import write_image
+    from codedvideo.formats.io import write_image
 
     image = np.linspace(0, 1, 64, dtype=np.float32).reshape(8, 8) * (255 if name.endswith(".png") else 1)
     written = []

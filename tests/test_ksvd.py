@@ -1,7 +1,7 @@
 import numpy as np
 
-from codedvideo.dictionaries import dct_dictionary, training_patches
-from codedvideo.ksvd import ksvd
+from codedvideo.solvers.dictionaries import dct_dictionary, training_patches
+from codedvideo.solvers.ksvd import ksvd
 from conftest import random_dictionary
 
 

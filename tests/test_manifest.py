@@ -2,8 +2,10 @@ import shutil
 
 import pytest
 
-from codedvideo import manifest, shipped, synth
-from codedvideo.errors import InputError
+from codedvideo.data import manifest
+from codedvideo.data import shipped
+from codedvideo.data import synth
+from codedvideo.model.errors import InputError
 
 
 def test_repository_manifest_loads_and_verifies():

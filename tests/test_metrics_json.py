@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from codedvideo.metrics import evaluate, json_safe
+from codedvideo.model.metrics import evaluate, json_safe
 
 
 def test_psnr_of_identical_volumes_is_strict_json():
@@ -85,9 +85,9 @@ def test_an_exact_frame_leaves_the_mean_psnr_finite():
 
 def test_a_rerun_from_the_cache_reports_no_patches_solved(tmp_path, capsys):
     """Reported: a stream reconstructed again from its cached tiles claimed 0.9 to 1.3 M patches a second."""
-    from codedvideo.cli import main
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.app.cli import main
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     cap = simulate_capture(make_scene("default", frames=12, size=(32, 32)), code="hitomi", bump=2, sigma=0, seed=0,
                            captures=3)
@@ -104,9 +104,9 @@ def test_a_rerun_from_the_cache_reports_no_patches_solved(tmp_path, capsys):
 
 
 def test_the_metrics_say_the_quality_is_the_volumes_and_when_the_file_is_lossy(tmp_path, capsys):
-    from codedvideo.cli import main
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.app.cli import main
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4, size=(24, 24))
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=0, seed=0)
@@ -122,7 +122,7 @@ def test_the_metrics_say_the_quality_is_the_volumes_and_when_the_file_is_lossy(t
 
 
 def _evaluate(capsys, recon, truth):
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     capsys.readouterr()
     assert main(["-q", "evaluate", "--recon", str(recon), "--truth", str(truth)]) == 0
@@ -132,8 +132,8 @@ def _evaluate(capsys, recon, truth):
 def test_a_colour_truth_scores_alike_in_any_container(tmp_path, capsys):
     """Reported: a colour truth in a video, frame folder or TIFF was read as luma: the score depended on the
     container (26.98 dB over 24 frames against a .npy truth, 26.77 over 8 against the same truth in a .mkv)."""
-    from codedvideo.synth import make_scene
-    from codedvideo.volumes import write_volume
+    from codedvideo.data.synth import make_scene
+    from codedvideo.formats.volumes import write_volume
 
     t = np.rint(make_scene("default", frames=4, size=(32, 32))).astype(np.float32)
     r = np.clip(t + np.random.default_rng(0).normal(0, 6, t.shape), 0, 255).astype(np.float32)
@@ -175,9 +175,9 @@ def test_a_dark_scene_in_the_same_units_as_its_truth_is_not_warned(tmp_path, cap
 def test_an_output_sharing_a_stem_with_another_says_it_replaces_its_record(tmp_path, capsys):
     """Reported: rec.npy and rec.mp4 share rec.metrics.json; the second run replaced the first's figures in
     silence."""
-    from codedvideo.cli import main
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.app.cli import main
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code="hitomi", bump=2, sigma=0, seed=0)
     for name in ("coded", "mask"):
@@ -192,9 +192,9 @@ def test_an_output_sharing_a_stem_with_another_says_it_replaces_its_record(tmp_p
 def test_the_same_output_named_relative_then_absolute_is_not_said_to_replace_another(tmp_path, capsys, monkeypatch,
                                                                                     recwarn):
     """Reported: rec.npy, then /abs/rec.npy, warned that the metrics file held the record of another output."""
-    from codedvideo.cli import main
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.app.cli import main
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code="hitomi", bump=2, sigma=0, seed=0)
     for name in ("coded", "mask"):

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from codedvideo.nonlocal_sc import joint_omp, match_groups, nonlocal_region
-from codedvideo.region import OmpSettings, reconstruct_region
+from codedvideo.solvers.nonlocal_sc import joint_omp, match_groups, nonlocal_region
+from codedvideo.solvers.region import OmpSettings, reconstruct_region
 
 from conftest import random_dictionary
 
@@ -145,7 +145,7 @@ def test_a_tile_with_a_halo_gives_the_whole_image_answer(rng, D):
 def test_passes_over_boxes_of_references_add_up_to_the_whole_pass(rng, D):
     """``refs=`` boxes that partition the corners, ``sums=True``: their sums add up to the whole pass's,
     and :func:`finish` of the total is the whole region's answer."""
-    from codedvideo.nonlocal_sc import finish
+    from codedvideo.solvers.nonlocal_sc import finish
 
     video = smooth_scene(rng, 40, 44)
     coded, mask = capture(video, rng, sigma=1.0)
@@ -171,12 +171,12 @@ def test_the_method_through_the_tiled_graph_equals_one_whole_tile(tmp_path):
     (reconstruct.tile_halo) give the whole image's answer."""
     import dataclasses
 
-    from codedvideo.codes import make_code
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.physics import simulate
-    from codedvideo.region import tile_halo
-    from codedvideo.stages import reconstruct_volume
-    from codedvideo.synth import make_scene
+    from codedvideo.model.codes import make_code
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.physics import simulate
+    from codedvideo.solvers.region import tile_halo
+    from codedvideo.engine.stages import reconstruct_volume
+    from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4, size=(72, 88))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=2)
@@ -197,7 +197,7 @@ def test_the_method_through_the_tiled_graph_equals_one_whole_tile(tmp_path):
 def test_the_method_runs_from_pipeline_yaml(tmp_path):
     import yaml
 
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     cfg = dict(frames=8, cache=str(tmp_path / "cache"), stages=["reconstruct", "evaluate"],
                scene=dict(video="synth:default", size=[48, 48]), reconstruct=dict(method="nonlocal"),
@@ -224,8 +224,8 @@ def test_the_three_stages_give_the_same_bits_on_one_thread_and_on_two(tmp_path, 
     """Blocks' sums are added in block order, whatever order the tasks finish in."""
     import dataclasses
 
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.stages import reconstruct_volume
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.engine.stages import reconstruct_volume
 
     coded, mask, _ = _periodic_capture(rng, period=23, reps=3)
     s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=1.0), method="nonlocal")
@@ -243,8 +243,8 @@ def test_tiles_of_equal_inputs_share_an_answer_only_where_the_reference_grid_agr
     which has no grid, solves them once."""
     import dataclasses
 
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.stages import reconstruct_volume
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.engine.stages import reconstruct_volume
 
     coded, mask, _ = _periodic_capture(rng)
     D = dct_dictionary(N)
@@ -265,8 +265,8 @@ def test_the_progress_bar_counts_the_stages_and_ends_full(tmp_path, rng, monkeyp
 
     import tqdm.auto
 
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.stages import reconstruct_volume
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.engine.stages import reconstruct_volume
 
     bars = []
 
@@ -293,8 +293,8 @@ def test_a_tile_is_keyed_by_everything_its_blocks_read(rng):
     corner, so pixels beyond the tile's halo still decide, in the last bits, which of two equally similar
     patches joins a group. A pixel beyond what the blocks read leaves the key alone (still regions far
     away keep being shared)."""
-    from codedvideo.parallel import nonlocal_blocks, nonlocal_reach, plan_tiles, tile_content
-    from codedvideo.region import tile_halo
+    from codedvideo.engine.parallel import nonlocal_blocks, nonlocal_reach, plan_tiles, tile_content
+    from codedvideo.solvers.region import tile_halo
 
     shape, size = (96, 96), 32
     settings = OmpSettings(method="nonlocal")
@@ -325,8 +325,8 @@ def test_captures_of_one_job_come_out_as_each_alone(tmp_path, rng):
     give each capture exactly what it gets alone."""
     import dataclasses
 
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.stages import reconstruct_volume, sparse_volumes
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.engine.stages import reconstruct_volume, sparse_volumes
 
     video = 100 + np.tile(rng.uniform(0, 3, (N, 4, 4)).astype(np.float32), (1, 24, 24))
     mask = np.tile((rng.random((N, 8, 8)) < 0.5).astype(np.uint8), (1, 12, 12))
@@ -348,7 +348,7 @@ def test_captures_of_one_job_come_out_as_each_alone(tmp_path, rng):
 def test_patches_still_across_captures_take_the_still_answer_and_join_no_group(rng):
     """The still map of a sequence: wholly still patches are neither solved nor members of a group, and the
     pixels that only they cover keep coded / open count exactly, as the default's tiles do."""
-    from codedvideo.region import _still_answer
+    from codedvideo.solvers.region import _still_answer
 
     video = smooth_scene(rng, h=30, w=30)
     coded, mask = capture(video, rng)
@@ -375,9 +375,9 @@ def test_still_tiles_of_a_sequence_are_shared_and_come_out_as_each_capture_alone
     their halo decides), and each capture equals its reconstruction alone with the same still map."""
     import dataclasses
 
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.region import _still_answer
-    from codedvideo.stages import reconstruct_volume, sparse_volumes
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.solvers.region import _still_answer
+    from codedvideo.engine.stages import reconstruct_volume, sparse_volumes
 
     mask = (rng.random((N, 64, 96)) < 0.5).astype(np.uint8)
     mask[0] = 1
@@ -405,12 +405,12 @@ def test_still_tiles_of_a_sequence_are_shared_and_come_out_as_each_capture_alone
 def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms):
     """Every member fits its own 49 measurements: a group support as large as them fitted the noise and the
     code (max_atoms 49, tolerance 0: values -220..496 for 0..255, 21 dB against the default's 30.6)."""
-    from codedvideo import shipped
-    from codedvideo.metrics import evaluate
-    from codedvideo.nonlocal_sc import group_atoms
-    from codedvideo.stages import simulate_capture
-    from codedvideo.store import load_dictionary
-    from codedvideo.synth import make_scene
+    from codedvideo.data import shipped
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.solvers.nonlocal_sc import group_atoms
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.formats.store import load_dictionary
+    from codedvideo.data.synth import make_scene
 
     assert group_atoms(8) == 16 and group_atoms(16) == 24 and group_atoms(32) == 32 and group_atoms(49) == 39
     D, _ = load_dictionary(shipped.verified(8))
@@ -426,8 +426,8 @@ def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms
 def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
     """N = 16 Bernoulli: more pixel patterns than the groups' table holds; the tiles give the default's answer,
     and the metrics and a warning say so (it was silent, with method: nonlocal)."""
-    from codedvideo.stages import reconstruct_capture
-    from codedvideo.units import infer_data_range
+    from codedvideo.engine.stages import reconstruct_capture
+    from codedvideo.model.units import infer_data_range
 
     rng = np.random.default_rng(3)
     mask = (rng.random((16, 40, 40)) < 0.5).astype(np.uint8)
@@ -446,10 +446,10 @@ def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
 def test_a_noisy_stream_whose_blocks_have_no_still_reference_runs(tmp_path, capsys):
     """Reported: a 2-capture noisy stack at tile 32 ended in a traceback ("cannot reshape array of size 0 into
     shape (0, newaxis)"): a block without a calm reference asked for the still answers of no patch."""
-    from codedvideo.cli import main
-    from codedvideo.region import still_answers
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.app.cli import main
+    from codedvideo.solvers.region import still_answers
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     assert still_answers(np.zeros((0, 49), np.float32), np.ones((0, 49), np.float32), 8).shape == (0, 8 * 49)
     video = make_scene("default", frames=16, size=(256, 256))[:, 96:160, 96:160]

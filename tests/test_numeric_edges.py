@@ -10,11 +10,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from codedvideo import cli
-from codedvideo.cli import main
-from codedvideo.codes import make_code
-from codedvideo.physics import simulate
-from codedvideo.synth import make_scene
+from codedvideo.app import cli
+from codedvideo.app.cli import main
+from codedvideo.model.codes import make_code
+from codedvideo.model.physics import simulate
+from codedvideo.data.synth import make_scene
 
 N, H, W = 4, 32, 32
 
@@ -175,7 +175,7 @@ def test_every_numeric_option_gives_a_finite_answer_or_one_line(capture, tmp_pat
     command, option, nargs = which
     tmp = tmp_path_factory.mktemp("opt")
     if command == "train":  # K-SVD itself is not run (a valid --samples 10000000 would take minutes): the options'
-        from codedvideo import stages  # checks all come before it
+        from codedvideo.engine import stages  # checks all come before it
 
         trained = []
         monkeypatch.setattr(stages, "train_dictionary", lambda cfg, **kw: trained.append(cfg) or (

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from codedvideo import patches as P
-from codedvideo.codes import make_code
-from codedvideo.omp import MaskedOperator, PlainOperator, omp, omp_reference
-from codedvideo.omp_kernel import synthesize
+from codedvideo.model import patches as P
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.omp import MaskedOperator, PlainOperator, omp, omp_reference
+from codedvideo.solvers.omp_kernel import synthesize
 from conftest import random_dictionary
 
 
@@ -87,7 +87,7 @@ def test_duplicate_and_zero_atoms_stay_finite(rng):
 
 
 def test_grouped_operator_equals_masked_on_tiled_code(rng):
-    from codedvideo.omp import GroupedOperator, masked_operator
+    from codedvideo.solvers.omp import GroupedOperator, masked_operator
 
     n, K = 6, 150
     D = random_dictionary(rng, n * 49, K)

@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from codedvideo import patches as P
-from codedvideo.codes import make_code
-from codedvideo.omp import MaskedOperator, omp, omp_reference, pixel_patterns
-from codedvideo.omp_kernel import synthesize
-from codedvideo.omp_kernel import TableOMP, table_fits
-from codedvideo.region import OmpSettings, reconstruct_region
+from codedvideo.model import patches as P
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.omp import MaskedOperator, omp, omp_reference, pixel_patterns
+from codedvideo.solvers.omp_kernel import synthesize
+from codedvideo.solvers.omp_kernel import TableOMP, table_fits
+from codedvideo.solvers.region import OmpSettings, reconstruct_region
 from conftest import random_dictionary
 
 
@@ -96,7 +96,7 @@ def test_table_size_limit_falls_back_for_many_patterns():
 @pytest.mark.parametrize("code", ["hitomi", "bernoulli"])
 def test_region_through_kernel_equals_numpy_operator(rng, code, monkeypatch):
     """reconstruct_region gives the same volume whichever exact OMP path runs."""
-    from codedvideo import region as reconstruct
+    from codedvideo.solvers import region as reconstruct
 
     n, K = 6, 120
     D = random_dictionary(rng, n * 49, K)
@@ -113,7 +113,7 @@ def test_region_through_kernel_equals_numpy_operator(rng, code, monkeypatch):
 
 def test_more_than_64_subframes_use_the_dense_path(rng, monkeypatch):
     """Patterns are 64-bit integers: beyond N = 64 the numpy operator (exact norms) takes over."""
-    from codedvideo import omp as omp_module
+    from codedvideo.solvers import omp as omp_module
 
     tables = []
     real_table = omp_module.pattern_table
@@ -135,8 +135,8 @@ def test_more_than_64_subframes_use_the_dense_path(rng, monkeypatch):
 # ----------------------------------------------------------------------------- codes with many patterns
 def test_compiled_table_equals_the_numpy_pattern_table(rng):
     """build_table gives pattern_table's bits: binary codes with many patterns, and calibrated weights."""
-    from codedvideo.omp import pattern_table
-    from codedvideo.omp_kernel import build_table
+    from codedvideo.solvers.omp import pattern_table
+    from codedvideo.solvers.omp_kernel import build_table
 
     D = random_dictionary(rng, 8 * 49, 70) * np.float32(3.0)
     patterns, _ = pixel_patterns(make_code("bernoulli", (40, 40), frames=8, rng=2))
@@ -148,7 +148,7 @@ def test_compiled_table_equals_the_numpy_pattern_table(rng):
 
 
 def test_shared_table_is_reused_only_for_the_same_patterns_and_dictionary(rng):
-    from codedvideo.omp_kernel import build_table, shared_table
+    from codedvideo.solvers.omp_kernel import build_table, shared_table
 
     D = random_dictionary(rng, 6 * 49, 40)
     patterns, _ = pixel_patterns(make_code("bernoulli", (20, 20), frames=6, rng=4))
@@ -166,7 +166,7 @@ def test_shared_table_is_reused_only_for_the_same_patterns_and_dictionary(rng):
 
 def test_kernel_on_a_bernoulli_code_at_n8_matches_the_other_exact_paths(rng):
     """256 patterns: the table kernel gives the per-patch kernel's bits and the numpy operator's atoms."""
-    from codedvideo.omp_kernel import WeightsOMP
+    from codedvideo.solvers.omp_kernel import WeightsOMP
 
     n, K = 8, 160
     D, mask, patterns, pat, S = _problem(rng, "bernoulli", n, K, (7 + 9, 7 + 13))
@@ -188,7 +188,7 @@ def test_kernel_on_a_bernoulli_code_at_n8_matches_the_other_exact_paths(rng):
 def test_kernel_column_norms_round_every_square(rng):
     """The norms are sums of the float32 squares B * B in pixel order, as the table of squares gave them:
     no fused multiply-add from the kernel's contraction flag (it changed atoms of a Bernoulli code)."""
-    from codedvideo.omp_kernel import column_norms2
+    from codedvideo.solvers.omp_kernel import column_norms2
 
     B = rng.normal(size=(49, 3, 4096)).astype(np.float32) * rng.uniform(0.5, 5, (49, 3, 1)).astype(np.float32)
     pat = rng.integers(0, 3, 49).astype(np.int32)

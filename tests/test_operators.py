@@ -1,9 +1,9 @@
 """Forward model and patch operators: brute force and dot tests."""
 import numpy as np
 
-from codedvideo import patches as P
-from codedvideo.codes import make_code
-from codedvideo.physics import adjoint, forward, simulate, static_estimate
+from codedvideo.model import patches as P
+from codedvideo.model.codes import make_code
+from codedvideo.model.physics import adjoint, forward, simulate, static_estimate
 
 
 def test_forward_matches_brute_force_loop(rng):

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import scipy.io
 
-from codedvideo import io as cio
-from codedvideo.store import load_array
-from codedvideo.volumes import FrameFile, spilled, volume_writer, write_volume
+from codedvideo.formats import io as cio
+from codedvideo.formats.store import load_array
+from codedvideo.formats.volumes import FrameFile, spilled, volume_writer, write_volume
 
 #: A volume of two captures of N = 6 (odd width: H.264's padding), values past both ends of the data range.
 N, H, W, RANGE = 6, 96, 131, 200.0
@@ -205,8 +205,8 @@ def test_spilled_stream_holds_files_and_gives_the_same_bits(tmp_path, volume):
 def test_the_join_of_spilled_captures_gives_the_same_bits(tmp_path):
     """sequence.joined over captures kept on disk (spilled, as reconstruct does) gives the bits it gives over
     captures in memory: the join reads and writes back only its boundary frames."""
-    from codedvideo.physics import forward
-    from codedvideo.sequence import joined
+    from codedvideo.model.physics import forward
+    from codedvideo.model.sequence import joined
 
     rng = np.random.default_rng(3)
     n, t, h, w = 8, 3, 64, 72

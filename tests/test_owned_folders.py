@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-from codedvideo.cli import main
-from codedvideo.outputs import record_path, written_by_codedvideo
+from codedvideo.app.cli import main
+from codedvideo.formats.outputs import record_path, written_by_codedvideo
 from test_bad_input import N, files, reconstruct_args  # noqa: F401  (files is a fixture)
 from test_owned_outputs import refused, tree
 

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from codedvideo.cli import main
-from codedvideo.outputs import record_path, written_by_codedvideo
+from codedvideo.app.cli import main
+from codedvideo.formats.outputs import record_path, written_by_codedvideo
 from test_bad_input import H, N, W, fails, files, reconstruct_args  # noqa: F401  (files is a fixture)
 
 
@@ -36,7 +36,7 @@ def refused(capsys, args, *names, root: Path):
 @pytest.mark.parametrize("which", ["coded", "mask", "truth", "dictionary", "coded-tif", "cache", "in-cache",
                                    "in-dictionary", "input-folder", "parent-of-inputs"])
 def test_output_that_is_contains_or_lies_inside_an_input_is_refused(files, tmp_path, capsys, which):
-    from codedvideo import io as cio
+    from codedvideo.formats import io as cio
 
     cio.write_image(files / "coded.tif", np.load(files / "coded.npy"))
     cache = tmp_path / "cache"
@@ -65,7 +65,7 @@ def test_an_input_given_through_a_symbolic_link_is_still_that_input(files, tmp_p
 
 
 def test_cacti_file_and_training_video_are_inputs_too(files, tmp_path, capsys):
-    from codedvideo.cacti import write_cacti
+    from codedvideo.formats.cacti import write_cacti
 
     mat = tmp_path / "scene.mat"
     write_cacti(mat, mask=np.load(files / "mask.npy"), meas=np.load(files / "coded.npy")[None],
@@ -158,8 +158,8 @@ def test_simulate_writes_into_a_folder_but_not_over_the_users_files(tmp_path, ca
 
 def test_a_file_never_replaces_a_folder_inside_the_writer_either(tmp_path):
     """The last line of defence (io.atomic_output), whatever the caller checked."""
-    from codedvideo import io as cio
-    from codedvideo.errors import OutputError
+    from codedvideo.formats import io as cio
+    from codedvideo.model.errors import OutputError
 
     folder = tmp_path / "v.npy"
     folder.mkdir()
@@ -292,7 +292,7 @@ def test_a_run_stopped_after_its_capture_is_written_does_not_block_the_next(tmp_
     its capture files leaves files that the next run replaces, not the user's files to refuse."""
     import yaml
 
-    from codedvideo import stages
+    from codedvideo.engine import stages
 
     cfg = tmp_path / "p.yaml"
     cfg.write_text(yaml.safe_dump(dict(cache=str(tmp_path / "cache"), scene=dict(size=[32, 32]),

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from codedvideo.codes import check_code, make_code
-from codedvideo.errors import InputError
-from codedvideo.physics import (
+from codedvideo.model.codes import check_code, make_code
+from codedvideo.model.errors import InputError
+from codedvideo.model.physics import (
     SensorModel,
     add_read_noise,
     add_shot_noise,
@@ -38,8 +38,8 @@ def test_plain_read_noise_is_bit_identical_to_before(scene):
 
 
 def test_default_capture_is_bit_identical_to_before():
-    from codedvideo.config import NoiseConfig
-    from codedvideo.stages import sensor_model, simulate_capture
+    from codedvideo.engine.config import NoiseConfig
+    from codedvideo.engine.stages import sensor_model, simulate_capture
 
     video = np.random.default_rng(0).uniform(0, 255, (8, 16, 16)).astype(np.float32)
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=2.0, seed=5)
@@ -165,7 +165,7 @@ def test_saturated_as_missing(scene):
 
 # ----------------------------------------------------------------------------- command line and pipeline
 def _cli(*args):
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     return main(["-q", *map(str, args)])
 
@@ -218,8 +218,8 @@ def test_cli_simulate_code_file_and_errors(tmp_path, capsys):
 def test_cli_simulate_a_code_file_of_one_code_per_capture(tmp_path, capsys):
     """A calibrated code that changes per capture (K, N, H, W): capture t takes code t mod K, in memory and from a
     video file alike, and mask.npy holds the code of every capture (a (T, N, H, W) code file was refused)."""
-    from codedvideo import io as cio
-    from codedvideo.synth import make_scene
+    from codedvideo.formats import io as cio
+    from codedvideo.data.synth import make_scene
 
     codes = np.stack([make_code("hitomi", (24, 24), frames=4, bump=2, rng=k) for k in range(2)])
     codes = codes.astype(np.float32) * 0.9 + 0.05  # calibrated: leakage and a response below 1
@@ -271,12 +271,12 @@ def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_pat
     worse than leaving them out alone (measured +0.03 to +0.83 dB)."""
     import warnings
 
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.metrics import evaluate
-    from codedvideo.region import OmpSettings
-    from codedvideo.stages import drop_saturated, reconstruct_capture
-    from codedvideo.synth import make_scene
-    from codedvideo.units import infer_data_range
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.solvers.region import OmpSettings
+    from codedvideo.engine.stages import drop_saturated, reconstruct_capture
+    from codedvideo.data.synth import make_scene
+    from codedvideo.model.units import infer_data_range
 
     video = make_scene("default", frames=8, size=(48, 48))
     mask = make_code(code, (48, 48), frames=8, bump=2, rng=1)
@@ -296,8 +296,8 @@ def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_pat
 
 
 def test_pipeline_white_level_and_shot_noise(tmp_path):
-    from codedvideo.config import PipelineConfig
-    from codedvideo.stages import run_pipeline
+    from codedvideo.engine.config import PipelineConfig
+    from codedvideo.engine.stages import run_pipeline
 
     cfg = PipelineConfig.model_validate(dict(
         frames=4, cache=str(tmp_path / "c"), stages=["simulate", "reconstruct"],

@@ -4,13 +4,13 @@ import json
 import numpy as np
 import pytest
 
-from codedvideo.config import PipelineConfig
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.metrics import evaluate
-from codedvideo.scenes import load_video
-from codedvideo.stages import reconstruct_volume, simulate_capture, train_dictionary, trivial_estimate
-from codedvideo.region import OmpSettings
-from codedvideo.store import load_dictionary
+from codedvideo.engine.config import PipelineConfig
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.model.metrics import evaluate
+from codedvideo.data.scenes import load_video
+from codedvideo.engine.stages import reconstruct_volume, simulate_capture, train_dictionary, trivial_estimate
+from codedvideo.solvers.region import OmpSettings
+from codedvideo.formats.store import load_dictionary
 
 
 @pytest.fixture(scope="module")

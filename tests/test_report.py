@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from codedvideo.config import load_config
-from codedvideo.errors import ConfigError
-from codedvideo.report import pareto_front, run_report
+from codedvideo.engine.config import load_config
+from codedvideo.model.errors import ConfigError
+from codedvideo.app.report import pareto_front, run_report
 
 MINI = dict(
     seed=0,
@@ -109,8 +109,8 @@ def test_report_config_rejects_training_scenes_and_unknown_keys(tmp_path):
 def test_a_report_that_fails_midway_marks_what_it_wrote(mini, tmp_path, monkeypatch):
     """The figures written before a failure are codedvideo's: the rerun replaces them rather than
     refusing them as the user's."""
-    from codedvideo import report_html
-    from codedvideo.outputs import written_by_codedvideo
+    from codedvideo.app import report_html
+    from codedvideo.formats.outputs import written_by_codedvideo
 
     root, _, _ = mini
     cfg = load_config(root / "mini.yaml")
@@ -134,7 +134,7 @@ def test_damaged_records_and_volumes_are_computed_again(mini, tmp_path):
     import json
     import shutil
 
-    from codedvideo.cache import verify_cache
+    from codedvideo.engine.cache import verify_cache
 
     root, first, _ = mini
     shutil.copytree(root / "cache", tmp_path / "cache")
@@ -158,8 +158,8 @@ def test_a_claim_one_noise_level_cannot_test_is_not_tested_not_refuted():
     """Reported: with table_sigmas [0] the report said "NOT reproduced: longer bumps win as noise grows"."""
     from types import SimpleNamespace
 
-    from codedvideo.report import findings
-    from codedvideo.report_html import verdict
+    from codedvideo.app.report import findings
+    from codedvideo.app.report_html import verdict
 
     rc = SimpleNamespace(table_sigmas=[0.0], table_bumps=[1, 2], bump=2, frames=4)
     table = {(1, 0.0): 20.0, (2, 0.0): 21.0}
@@ -177,7 +177,7 @@ def test_a_claim_one_noise_level_cannot_test_is_not_tested_not_refuted():
 def test_report_settings_it_cannot_use_are_refused_before_any_work(tmp_path, change, named):
     """Reported: fig7_frames without report.frames ran every experiment, then a StopIteration traceback left a
     half-written report; an unknown video_scene trained the dictionary and ran Table 1 before its error."""
-    from codedvideo.errors import CodedVideoError
+    from codedvideo.model.errors import CodedVideoError
 
     raw = dict(MINI, cache=str(tmp_path / "cache"))
     raw["report"] = dict(MINI["report"], dir=str(tmp_path / "out"), **change)
@@ -192,7 +192,7 @@ def test_report_settings_it_cannot_use_are_refused_before_any_work(tmp_path, cha
 def test_the_noise_trend_reads_the_sigmas_in_order_and_needs_two_bumps():
     from types import SimpleNamespace
 
-    from codedvideo.report import findings
+    from codedvideo.app.report import findings
 
     table = {(2, 0): 30, (3, 0): 29, (5, 0): 28, (2, 8): 27, (3, 8): 28, (5, 8): 26, (2, 40): 20, (3, 40): 21,
              (5, 40): 22}
@@ -224,7 +224,7 @@ def test_one_experiment_has_one_timing_in_the_csv(mini):
 def test_the_report_dictionaries_ignore_the_pipeline_init_and_augment(tmp_path):
     """Reported: dictionary.init leaked into the report's dictionaries (the speed study's small ones were the
     512-atom init dictionary; Fig. 7 at an N with none shipped failed after Table 1)."""
-    from codedvideo.report import Runner
+    from codedvideo.app.report import Runner
 
     raw = dict(MINI, frames=8, cache=str(tmp_path / "cache"), dictionary=dict(init="shipped", augment=False))
     raw["report"] = dict(MINI["report"], dir=str(tmp_path / "out"), frames=8, fig7_frames=[4, 8])

@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from codedvideo.cli import main
-from codedvideo.synth import make_scene
+from codedvideo.app.cli import main
+from codedvideo.data.synth import make_scene
 
 
 @pytest.fixture
@@ -68,7 +68,7 @@ def test_config_values_the_run_would_ignore_are_refused(tmp_path, capsys, sectio
 
 def test_defaults_listed_beside_a_setting_that_ignores_them_are_accepted(tmp_path):
     """pipeline.yaml lists every key with its default: switching the code or the training set alone runs."""
-    from codedvideo.config import PipelineConfig
+    from codedvideo.engine.config import PipelineConfig
 
     from pydantic import ValidationError
 
@@ -109,7 +109,7 @@ def test_make_targets_take_a_config_path_with_a_space(tmp_path):
 
 
 def test_a_stage_script_interrupted_says_so_in_one_line(capsys):
-    from codedvideo.cli import guarded
+    from codedvideo.app.cli import guarded
 
     def stopped():
         raise KeyboardInterrupt
@@ -121,8 +121,8 @@ def test_a_stage_script_interrupted_says_so_in_one_line(capsys):
 def test_simulating_again_keeps_the_last_reconstructions_record_and_says_it_is_stale(tmp_path, capsys):
     """Reported: `make simulate` after `run` rewrote recon.metrics.json without its PSNR, beside a recon.mp4
     that was no longer of the capture in capture/."""
-    from codedvideo.config import load_config
-    from codedvideo.stages import run_pipeline
+    from codedvideo.engine.config import load_config
+    from codedvideo.engine.stages import run_pipeline
 
     out = tmp_path / "out"
     cfg_text = (f"frames: 4\ncache: {tmp_path / 'cache'}\nscene: {{video: synth:default, size: [24, 24]}}\n"
@@ -147,7 +147,7 @@ def test_values_report_uses_are_taken_by_report_and_still_refused_by_run(tmp_pat
                                                                          value):
     """Reported: report's Bernoulli runs read code.p and its dictionaries train with the dictionary: section
     (never dictionary.path), yet the config was refused for them at load."""
-    import codedvideo.report
+    import codedvideo.app.report
 
     class Loaded(Exception):
         pass
@@ -156,7 +156,7 @@ def test_values_report_uses_are_taken_by_report_and_still_refused_by_run(tmp_pat
         assert value(cfg)
         raise Loaded
 
-    monkeypatch.setattr(codedvideo.report, "run_report", loaded)
+    monkeypatch.setattr(codedvideo.app.report, "run_report", loaded)
     cfg = tmp_path / "p.yaml"
     cfg.write_text(f"frames: 4\n{section}\noutput: {{dir: {tmp_path / 'out'}}}\n")
     with pytest.raises(Loaded):

@@ -8,14 +8,15 @@ import warnings
 import numpy as np
 import pytest
 
-from codedvideo import physics, sensor
-from codedvideo.codes import make_code
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.errors import InputError
-from codedvideo.metrics import evaluate
-from codedvideo.stages import reconstruct_volume
-from codedvideo.region import OmpSettings
-from codedvideo.synth import make_scene
+from codedvideo.model import physics
+from codedvideo.model import sensor
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.model.errors import InputError
+from codedvideo.model.metrics import evaluate
+from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.solvers.region import OmpSettings
+from codedvideo.data.synth import make_scene
 
 N, H, W = 8, 64, 64
 SETTINGS = OmpSettings(max_atoms=8, tol_rms=2.0)

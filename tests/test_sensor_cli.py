@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from codedvideo.cli import main
+from codedvideo.app.cli import main
 
 N, H, W = 8, 64, 64
 
@@ -67,7 +67,7 @@ def test_a_bad_pixel_list_out_of_range_is_one_line(tmp_path, capsys, clean):
 
 def test_a_calibrated_mask_reconstructs_through_the_cli(tmp_path, capsys, clean):
     """A measured (blurred, shifted) response: accepted as the exact forward model, reported non-binary."""
-    from codedvideo.physics import blur_shift_mask, simulate
+    from codedvideo.model.physics import blur_shift_mask, simulate
 
     truth = np.load(clean / "truth.npy")
     measured = blur_shift_mask(np.load(clean / "mask.npy"), shift=(0.5, 0.5), sigma=0.5)
@@ -86,8 +86,9 @@ def test_raw_correction_of_a_stream_holds_one_capture_at_a_time():
     and the corrections equal the stack's."""
     import argparse
 
-    from codedvideo import cli, sensor
-    from codedvideo.config import NoiseConfig
+    from codedvideo.app import cli
+    from codedvideo.model import sensor
+    from codedvideo.engine.config import NoiseConfig
 
     rng = np.random.default_rng(2)
     t = 6
@@ -137,7 +138,7 @@ def test_a_warning_is_one_line_that_says_saturated_pixels_are_left_out(tmp_path,
     import subprocess
     import sys
 
-    proc = subprocess.run([sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded",
+    proc = subprocess.run([sys.executable, "-m", "codedvideo.app.cli", "-q", "reconstruct", "--coded",
                            str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"), "--method", "dct",
                            "--white-level", "255", "--output", str(tmp_path / "r.npy"), "--cache",
                            str(tmp_path / "cache")], capture_output=True, text=True)

@@ -9,11 +9,11 @@ import time
 import numpy as np
 import pytest
 
-from codedvideo.cli import main
+from codedvideo.app.cli import main
 from conftest import partly_still_capture
 
 N, H, W, T = 4, 40, 44, 3
-CLI = [sys.executable, "-m", "codedvideo.cli", "-q"]
+CLI = [sys.executable, "-m", "codedvideo.app.cli", "-q"]
 
 
 def _run(capsys, *args):
@@ -40,8 +40,8 @@ def test_simulate_writes_a_stream_of_captures(sequence):
     masks = np.load(sequence / "cap2" / "mask.npy")
     assert masks.shape == (T, N, H, W) and not (masks[0] == masks[1]).all()
     # the first capture is the single capture of the same seed
-    from codedvideo.scenes import load_video
-    from codedvideo.stages import simulate_capture
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.stages import simulate_capture
 
     one = simulate_capture(load_video("synth:default", frames=N, size=(H, W)), code="hitomi", bump=2, sigma=0, seed=0)
     np.testing.assert_array_equal(np.load(cap / "coded.npy")[0], one["coded"])
@@ -72,7 +72,7 @@ STREAMED = ("s.tif", "s.mkv", "s.zarr", "s_frames", "s.mat")  # besides .npy: ev
 
 
 def test_streamed_output_equals_the_output_written_at_once(sequence, tmp_path, capsys):
-    from codedvideo.volumes import read_volume, write_volume
+    from codedvideo.formats.volumes import read_volume, write_volume
 
     cap = sequence / "cap"
     for out in ("s.npy", *STREAMED):
@@ -94,7 +94,7 @@ def test_streamed_output_equals_the_output_written_at_once(sequence, tmp_path, c
 
 @pytest.mark.parametrize("out", ["s.npy", *STREAMED])
 def test_a_stream_cut_short_leaves_no_output(tmp_path, out):
-    from codedvideo.volumes import volume_writer
+    from codedvideo.formats.volumes import volume_writer
 
     parts = np.random.default_rng(0).uniform(0, 255, (2, N, H, W)).astype(np.float32)
     with pytest.raises(RuntimeError, match="capture 2 failed"):
@@ -108,7 +108,7 @@ def test_a_stream_cut_short_leaves_no_output(tmp_path, out):
 @pytest.mark.parametrize("out", [*STREAMED])
 def test_a_streamed_output_never_gathers_the_whole_volume(tmp_path, out, monkeypatch):
     """Every grey output is written part by part: the write-at-once path is never taken."""
-    from codedvideo import volumes
+    from codedvideo.formats import volumes
 
     def whole(*args, **kwargs):
         raise AssertionError("the whole volume was gathered")
@@ -176,8 +176,8 @@ def test_sigkill_mid_sequence_then_rerun_equals_a_clean_run(tmp_path):
 @pytest.mark.parametrize("new_code", [False, True])
 def test_the_still_path_is_exact_for_a_still_scene(tmp_path, capsys, new_code):
     """Nothing moves (a tripod on a still scene): every frame is coded / open count, exactly, with no sparse coding."""
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * N, axis=0)
     cap = simulate_capture(still, code="hitomi", bump=2, sigma=0, seed=1, captures=T, new_code_per_capture=new_code)
@@ -216,12 +216,12 @@ def test_a_partly_still_sequence_leaves_the_still_part_out_and_gains(tmp_path, c
 def test_a_tile_equal_to_one_already_solved_reuses_its_result(tmp_path):
     """Captures that differ in one corner only: the unchanged tiles are solved once for all captures (one task per
     distinct tile content), and every capture equals its reconstruction on its own, bit for bit."""
-    from codedvideo.codes import make_code
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.physics import simulate
-    from codedvideo.region import OmpSettings
-    from codedvideo.stages import reconstruct_volume, sparse_volumes
-    from codedvideo.synth import make_scene
+    from codedvideo.model.codes import make_code
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.physics import simulate
+    from codedvideo.solvers.region import OmpSettings
+    from codedvideo.engine.stages import reconstruct_volume, sparse_volumes
+    from codedvideo.data.synth import make_scene
 
     frames = make_scene("default", frames=4, size=(48, 48))
     mask = make_code("hitomi", frames.shape[1:], frames=4, bump=2, rng=3)
@@ -242,12 +242,12 @@ def test_a_tile_equal_to_one_already_solved_reuses_its_result(tmp_path):
 
 def test_captures_are_handed_out_in_order_while_later_ones_still_compute(tmp_path):
     """One graph over (capture, tile), streamed: the first capture arrives before the last capture's tiles are done."""
-    from codedvideo.codes import make_code
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.physics import simulate
-    from codedvideo.region import OmpSettings
-    from codedvideo.stages import sparse_volumes
-    from codedvideo.synth import make_scene
+    from codedvideo.model.codes import make_code
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.physics import simulate
+    from codedvideo.solvers.region import OmpSettings
+    from codedvideo.engine.stages import sparse_volumes
+    from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4 * 6, size=(48, 48))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
@@ -268,7 +268,7 @@ def test_captures_are_handed_out_in_order_while_later_ones_still_compute(tmp_pat
 def test_a_stream_is_read_capture_by_capture_and_checked_before_any_work(sequence, tmp_path, capsys):
     """A (T, H, W) .npy is read one capture at a time (never whole); a NaN in any capture is a one-line error naming
     the file and the capture, before anything is written."""
-    from codedvideo.volumes import NpyStack, read_coded_stack
+    from codedvideo.formats.volumes import NpyStack, read_coded_stack
 
     coded = np.load(sequence / "cap" / "coded.npy")
     stack = read_coded_stack(sequence / "cap" / "coded.npy")
@@ -289,8 +289,8 @@ def test_a_stream_is_read_capture_by_capture_and_checked_before_any_work(sequenc
 def test_still_patches_give_the_same_bits_at_every_tile_size(tmp_path):
     """Patches wholly inside the still map take coded / open count; the pixels only they cover are that value
     exactly, whether their tile is wholly still (answered without patches) or not: tile sizes agree bit for bit."""
-    from codedvideo.sequence import erode_to_patches, normalised
-    from codedvideo.stages import sparse_volumes
+    from codedvideo.model.sequence import erode_to_patches, normalised
+    from codedvideo.engine.stages import sparse_volumes
 
     coded, mask, still, D, s = partly_still_capture((64, 72), 40, seed=5)
     runs = {}
@@ -310,8 +310,8 @@ def test_still_patches_give_the_same_bits_at_every_tile_size(tmp_path):
 def test_a_streams_truth_is_read_capture_by_capture_with_the_same_figures(sequence, tmp_path, capsys):
     """A (T*N, H, W) .npy truth is read N frames at a time: the same figures as the same truth read whole (a
     multi-page TIFF); a NaN in it is a one-line error naming the file and the frame, before any work."""
-    from codedvideo.io import write_stack
-    from codedvideo.volumes import NpyStack, read_truth_stack
+    from codedvideo.formats.io import write_stack
+    from codedvideo.formats.volumes import NpyStack, read_truth_stack
 
     cap = sequence / "cap"
     truth = np.load(cap / "truth.npy")
@@ -342,8 +342,8 @@ def test_a_folder_or_tiff_of_coded_images_is_read_capture_by_capture(sequence, t
     """A camera's stream as a folder of float TIFF files (one capture each), or as one multi-page TIFF, is read
     one capture at a time and gives the video of the same stack as one .npy; a file of another size is a one-line
     error naming it, before any work."""
-    from codedvideo.io import write_image, write_stack
-    from codedvideo.volumes import ImageStack, read_coded_stack
+    from codedvideo.formats.io import write_image, write_stack
+    from codedvideo.formats.volumes import ImageStack, read_coded_stack
 
     cap = sequence / "cap"
     coded = np.load(cap / "coded.npy")
@@ -376,8 +376,8 @@ def test_a_folder_or_tiff_of_coded_images_is_read_capture_by_capture(sequence, t
 def test_a_lossless_video_of_coded_images_is_decoded_capture_by_capture(sequence, tmp_path, capsys):
     """A coded camera's FFV1 stream (a frame a capture) is decoded on demand, in any order a job asks for its
     captures, and gives the video of the same stack as a .npy."""
-    from codedvideo.io import write_video
-    from codedvideo.volumes import VideoStack, read_coded_stack
+    from codedvideo.formats.io import write_video
+    from codedvideo.formats.volumes import VideoStack, read_coded_stack
 
     cap = sequence / "cap"
     coded = np.rint(np.load(cap / "coded.npy") / 4).astype(np.float32)  # 8-bit frames: the FFV1 stream is exact
@@ -397,8 +397,8 @@ def test_a_lossless_video_of_coded_images_is_decoded_capture_by_capture(sequence
 def test_evaluate_reads_long_videos_a_block_of_frames_at_a_time(tmp_path, capsys):
     """`codedvideo evaluate` on (T*N, H, W) .npy videos longer than a block compares them block by block: the same
     figures as the arrays in memory; a NaN in frame k of the reconstruction names the file and the frame."""
-    from codedvideo.metrics import EVALUATE_BLOCK, evaluate
-    from codedvideo.volumes import NpyStack, read_truth_stack
+    from codedvideo.model.metrics import EVALUATE_BLOCK, evaluate
+    from codedvideo.formats.volumes import NpyStack, read_truth_stack
 
     rng = np.random.default_rng(5)
     truth = rng.uniform(0, 255, (2 * EVALUATE_BLOCK + 3, 24, 20)).astype(np.float32)
@@ -426,11 +426,11 @@ def test_evaluate_reads_long_videos_a_block_of_frames_at_a_time(tmp_path, capsys
 def test_simulate_streams_a_video_file_capture_by_capture_with_the_same_files(tmp_path, capsys, source, new_code):
     """`simulate VIDEO --captures T` reads, codes and writes a video file (or a frame folder) capture by capture:
     the files equal a simulation of the whole clip at once, bit for bit."""
-    from codedvideo.io import write_frames, write_video
-    from codedvideo.scenes import read_clip
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
-    from codedvideo.volumes import read_volume
+    from codedvideo.formats.io import write_frames, write_video
+    from codedvideo.data.scenes import read_clip
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
+    from codedvideo.formats.volumes import read_volume
 
     frames = np.rint(make_scene("default", frames=4 * N, size=(H + 4, W + 6)))
     write_video(tmp_path / "video.mkv", frames) if source == "video.mkv" else write_frames(tmp_path / "frames", frames)
@@ -447,8 +447,8 @@ def test_simulate_streams_a_video_file_capture_by_capture_with_the_same_files(tm
 
 def test_simulate_of_a_video_too_short_for_its_captures_leaves_nothing(tmp_path, capsys):
     """Found only once the stream runs out: a one-line error naming the video, and no output folder or file."""
-    from codedvideo.io import write_video
-    from codedvideo.synth import make_scene
+    from codedvideo.formats.io import write_video
+    from codedvideo.data.synth import make_scene
 
     write_video(tmp_path / "v.mkv", np.rint(make_scene("default", frames=2 * N + 1, size=(H, W))))
     capsys.readouterr()
@@ -476,7 +476,7 @@ def test_a_job_of_more_captures_than_open_files_allows_runs(tmp_path):
     def run(soft, hard_limit, name):
         limit = (soft, hard_limit)
         return subprocess.run(
-            [sys.executable, "-m", "codedvideo.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),
+            [sys.executable, "-m", "codedvideo.app.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),
              "--mask", str(tmp_path / "mask.npy"), "--method", "dct", "--independent-captures", "--output",
              str(tmp_path / f"{name}.npy"), "--cache", str(tmp_path / f"cache-{name}")],
             capture_output=True, text=True, preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, limit))
@@ -494,7 +494,7 @@ def test_a_job_of_more_captures_than_open_files_allows_runs(tmp_path):
 def test_a_capture_where_nothing_moves_fills_its_never_open_pixels(tmp_path, capsys):
     """Every measured pixel still: the capture is coded / open count without sparse coding, and pixels
     the code never opens take their nearest measured neighbour's value (not 0), counted in the metrics."""
-    from codedvideo.synth import make_scene
+    from codedvideo.data.synth import make_scene
 
     rng = np.random.default_rng(4)
     frame = make_scene("default", frames=1, size=(H, W))[0]
@@ -521,8 +521,8 @@ def test_pixels_never_open_in_several_captures_are_one_warning(tmp_path, capsys)
     the job (it was one line per capture)."""
     import warnings
 
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4 * N, size=(H, W))
     cap = simulate_capture(video, code="bernoulli", bump=2, sigma=0, seed=2, captures=4, new_code_per_capture=True)
@@ -542,12 +542,12 @@ def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"
     """Six 48x48 captures (9 tiles of 16 each), capture 3 equal to capture 2 and capture 5 to capture 0, done
     with windows of ``window_tiles`` tiles; the volumes, the open-file room asked for and what each planning of a
     capture saw finished."""
-    from codedvideo import stages
-    from codedvideo.codes import make_code
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.physics import simulate
-    from codedvideo.region import OmpSettings
-    from codedvideo.synth import make_scene
+    from codedvideo.engine import stages
+    from codedvideo.model.codes import make_code
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.physics import simulate
+    from codedvideo.solvers.region import OmpSettings
+    from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4 * 6, size=(48, 48))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
@@ -556,7 +556,7 @@ def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"
     cache = tmp_path / name
     monkeypatch.setattr(stages, "WINDOW_TILES", window_tiles)
     asked, planned, solved = [], {}, []
-    from codedvideo import parallel
+    from codedvideo.engine import parallel
 
     tile_task = parallel._tile_task
     monkeypatch.setattr(parallel, "_tile_task", lambda *a: (solved.append(1), tile_task(*a))[1])
@@ -614,14 +614,14 @@ def test_a_job_never_waits_for_a_busy_entry_while_it_holds_another(tmp_path, mon
     job holds when it asks for A: the job puts A off until it holds nothing, and both finish."""
     import threading
 
-    from codedvideo import stages
-    from codedvideo.cache import RECON_VERSION, content_key
-    from codedvideo.codes import make_code
-    from codedvideo.dictionaries import dct_dictionary
-    from codedvideo.physics import simulate
-    from codedvideo.region import OmpSettings
-    from codedvideo.store import entry_lock
-    from codedvideo.synth import make_scene
+    from codedvideo.engine import stages
+    from codedvideo.engine.cache import RECON_VERSION, content_key
+    from codedvideo.model.codes import make_code
+    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.model.physics import simulate
+    from codedvideo.solvers.region import OmpSettings
+    from codedvideo.formats.store import entry_lock
+    from codedvideo.data.synth import make_scene
 
     monkeypatch.setattr(stages, "WINDOW_TILES", 1)
     video = make_scene("default", frames=8, size=(48, 48))
@@ -665,7 +665,7 @@ def test_heavy_read_noise_leaves_the_sequence_no_worse_than_its_captures_one_by_
     """At sigma 40 the still answer coded / open count is noisier than OMP's estimate and a second capture cannot
     tell slow motion from noise: no pixel is taken as still, so the job is no worse than capture by capture,
     overall and on the moving part (it lost 4 dB overall and 3 dB there when the still answer was taken)."""
-    from codedvideo.metrics import evaluate
+    from codedvideo.model.metrics import evaluate
 
     cap, w = tmp_path / "cap", 96
     _run(capsys, "simulate", "synth:default-static70", "--frames", 8, "--size", 64, w, "--captures", T,
@@ -686,9 +686,9 @@ def test_heavy_read_noise_leaves_the_sequence_no_worse_than_its_captures_one_by_
 
 def test_a_pixel_is_still_only_where_its_still_answer_is_quiet_enough():
     """sigma / open count above STILL_NOISE_MAX: never still; below it a still scene agrees (with a changing code)."""
-    from codedvideo.sequence import STILL_NOISE_MAX, agreeing_pixels
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.model.sequence import STILL_NOISE_MAX, agreeing_pixels
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * 8, axis=0)
     for bump in (2, 3):
@@ -704,8 +704,8 @@ def test_the_still_answer_averages_the_captures_it_agrees_with_and_leaves_the_mo
     """Under read noise the still answer is coded / open count averaged over the captures a pixel agrees with:
     less noise than the capture's own value where only still patches cover a pixel, and the very same bits
     wherever a patch that moves does (N = 3: no join)."""
-    from codedvideo import sequence
-    from codedvideo.sequence import erode_to_patches, normalised
+    from codedvideo.model import sequence
+    from codedvideo.model.sequence import erode_to_patches, normalised
 
     cap, n, sigma = tmp_path / "cap", 3, 2
     _run(capsys, "simulate", "synth:default-static70", "--frames", n, "--size", 64, 96, "--captures", T,
@@ -740,9 +740,9 @@ def test_the_still_answer_averages_the_captures_it_agrees_with_and_leaves_the_mo
 def test_a_clipped_neighbour_is_never_averaged_into_a_still_answer():
     """--white-level: where the capture after (a longer exposure) is clipped, its value does not pull the still
     answer down (it did, by 3 grey levels on a half-saturated neighbour); the capture before still counts."""
-    from codedvideo.sequence import still_values
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.model.sequence import still_values
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * 8, axis=0)
     short = simulate_capture(still, code="hitomi", bump=2, sigma=5, seed=1, captures=T)
@@ -761,7 +761,7 @@ def test_a_clipped_neighbour_is_never_averaged_into_a_still_answer():
 
 def test_reconstruct_capture_refuses_a_map_of_still_pixels_for_still_values():
     """A bool map where still values are asked would make every pixel still (its 0s and 1s the answer)."""
-    from codedvideo.stages import reconstruct_capture
+    from codedvideo.engine.stages import reconstruct_capture
 
     coded, mask = np.ones((16, 16), np.float32), np.ones((4, 16, 16), np.uint8)
     with pytest.raises(TypeError, match="still values"):
@@ -771,9 +771,9 @@ def test_reconstruct_capture_refuses_a_map_of_still_pixels_for_still_values():
 def test_a_flat_still_background_under_noise_is_no_worse_than_its_captures_one_by_one(tmp_path, capsys):
     """A plain still background at sigma 5: the still answer keeps the noise that the single-capture still test
     removes, so flat regions are left to that test (the background was 10 dB worse than capture by capture)."""
-    from codedvideo.metrics import evaluate
-    from codedvideo.stages import simulate_capture
-    from codedvideo.synth import make_scene
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.data.synth import make_scene
 
     video = np.full((T * 8, 48, 64), 100.0, np.float32)
     video[..., 40:] = make_scene("default", frames=T * 8, size=(48, 24))  # something moves on the right
@@ -794,7 +794,7 @@ def test_a_clipped_capture_does_not_pull_its_neighbours_through_the_join(tmp_pat
     """A still bright scene whose third capture (a longer bump) is half clipped at --white-level: the join drew
     the captures beside it toward its frames (2.7 and 2.4 grey levels RMS against 0.64 capture by capture); now
     pixels clipped in either capture keep both captures' values."""
-    from codedvideo.codes import make_code
+    from codedvideo.model.codes import make_code
 
     n, size, white = 8, 48, 500.0
     rng = np.random.default_rng(1)

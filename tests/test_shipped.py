@@ -4,13 +4,14 @@ import json
 import numpy as np
 import pytest
 
-from codedvideo import manifest, shipped
-from codedvideo.cli import main
-from codedvideo.config import PipelineConfig
-from codedvideo.errors import InputError
-from codedvideo.cache import dictionary_key
-from codedvideo.stages import simulate_capture, train_dictionary
-from codedvideo.store import load_dictionary
+from codedvideo.data import manifest
+from codedvideo.data import shipped
+from codedvideo.app.cli import main
+from codedvideo.engine.config import PipelineConfig
+from codedvideo.model.errors import InputError
+from codedvideo.engine.cache import dictionary_key
+from codedvideo.engine.stages import simulate_capture, train_dictionary
+from codedvideo.formats.store import load_dictionary
 from conftest import REGENERATE_TEST
 
 
@@ -47,7 +48,7 @@ def test_a_damaged_shipped_dictionary_is_refused(tmp_path, monkeypatch):
 
 
 def test_reconstruct_without_dictionary_uses_the_shipped_one_or_names_the_train_command(tmp_path, capsys):
-    from codedvideo.synth import make_scene
+    from codedvideo.data.synth import make_scene
 
     for n in (8, 5):
         cap = simulate_capture(make_scene("default", frames=n, size=(32, 32)), code="hitomi", bump=2, sigma=0, seed=0)
@@ -70,10 +71,10 @@ def test_shipped_dictionary_regenerates_from_its_listed_settings(regenerated_dic
     """Trained again with the listed settings (started at collection, see conftest), the N = 8 dictionary
     reconstructs the default scene within 0.05 dB of the shipped one."""
     assert REGENERATE_TEST == "test_shipped_dictionary_regenerates_from_its_listed_settings"
-    from codedvideo.config import omp_settings
-    from codedvideo.metrics import evaluate
-    from codedvideo.scenes import load_video
-    from codedvideo.stages import reconstruct_volume
+    from codedvideo.engine.config import omp_settings
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.stages import reconstruct_volume
 
     cfg = PipelineConfig()
     video = load_video(cfg.scene.video, frames=8, size=cfg.scene.size, seed=0)

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from codedvideo.cli import main
+from codedvideo.app.cli import main
 from test_bad_input import fails, files, reconstruct_args  # noqa: F401  (files is a fixture)
 
 
@@ -49,7 +49,7 @@ def test_tiles_that_fail_their_checksum_are_a_codedvideo_warning_line(files, tmp
     data = bytearray(chunk.read_bytes())
     data[len(data) // 2] ^= 0xFF
     chunk.write_bytes(bytes(data))
-    proc = subprocess.run([sys.executable, "-m", "codedvideo.cli", "-q", *map(str, reconstruct_args(files, tmp_path))],
+    proc = subprocess.run([sys.executable, "-m", "codedvideo.app.cli", "-q", *map(str, reconstruct_args(files, tmp_path))],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     lines = [line for line in proc.stderr.splitlines() if "computing them again" in line]

@@ -11,19 +11,19 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from codedvideo import patches as P
-from codedvideo.codes import make_code
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.errors import InputError
-from codedvideo.ksvd import DUPLICATE_COS, ksvd
-from codedvideo.metrics import evaluate
-from codedvideo.omp import MaskedOperator, omp
-from codedvideo.omp_kernel import synthesize
-from codedvideo.physics import forward, simulate, static_estimate
-from codedvideo.volumes import read_coded, read_mask
-from codedvideo.stages import reconstruct_volume
-from codedvideo.region import STAT_NAMES, OmpSettings, reconstruct_region
-from codedvideo.synth import make_scene
+from codedvideo.model import patches as P
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.model.errors import InputError
+from codedvideo.solvers.ksvd import DUPLICATE_COS, ksvd
+from codedvideo.model.metrics import evaluate
+from codedvideo.solvers.omp import MaskedOperator, omp
+from codedvideo.solvers.omp_kernel import synthesize
+from codedvideo.model.physics import forward, simulate, static_estimate
+from codedvideo.formats.volumes import read_coded, read_mask
+from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.solvers.region import STAT_NAMES, OmpSettings, reconstruct_region
+from codedvideo.data.synth import make_scene
 
 H, W = 32, 40
 
@@ -132,7 +132,7 @@ def test_ksvd_on_all_zero_training_data_stays_finite(rng):
 
 def test_training_on_a_flat_video_is_refused_not_a_dictionary_of_one_atom():
     """(It trained, silently, a dictionary whose every atom was the flat one: 21 dB against 23.6 trivial.)"""
-    from codedvideo.dictionaries import learn_dictionary
+    from codedvideo.solvers.dictionaries import learn_dictionary
 
     with pytest.raises(InputError, match="training patches drawn is flat"):
         learn_dictionary([np.full((24, 32, 32), 128.0, np.float32)], frames=4, atoms=40, samples=500, iterations=1)

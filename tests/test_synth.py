@@ -1,6 +1,6 @@
 import numpy as np
 
-from codedvideo import synth
+from codedvideo.data import synth
 
 
 def test_scenes_are_seeded_in_range_and_moving():

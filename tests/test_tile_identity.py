@@ -10,15 +10,15 @@ import warnings
 import numpy as np
 import pytest
 
-from codedvideo import patches as P
+from codedvideo.model import patches as P
 from conftest import partly_still_capture
-from codedvideo.codes import make_code
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.omp import pattern_table, pixel_patterns
-from codedvideo.physics import simulate
-from codedvideo.stages import reconstruct_volume
-from codedvideo.region import OmpSettings, reconstruct_region
-from codedvideo.synth import make_scene
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.solvers.omp import pattern_table, pixel_patterns
+from codedvideo.model.physics import simulate
+from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.solvers.region import OmpSettings, reconstruct_region
+from codedvideo.data.synth import make_scene
 
 N, H, W = 8, 61, 70
 
@@ -116,7 +116,7 @@ def test_fold_leaves_out_the_skipped_patches(rng):
 def test_still_patches_no_other_patch_overlaps_are_not_summed_and_change_nothing(monkeypatch):
     """Patches of the still map that only still patches overlap are left out of the sum (their pixels take the
     still answer): the volume is the same bit for bit as when every patch is summed."""
-    from codedvideo import region as R
+    from codedvideo.solvers import region as R
 
     coded, mask, still, D, s = partly_still_capture((40, 44), 26, seed=3)
     skipped = []

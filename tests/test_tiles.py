@@ -2,12 +2,12 @@
 import numpy as np
 import pytest
 
-from codedvideo.codes import make_code
-from codedvideo.dictionaries import dct_dictionary
-from codedvideo.parallel import plan_tiles
-from codedvideo.physics import simulate
-from codedvideo.stages import reconstruct_volume
-from codedvideo.region import OmpSettings, reconstruct_region
+from codedvideo.model.codes import make_code
+from codedvideo.solvers.dictionaries import dct_dictionary
+from codedvideo.engine.parallel import plan_tiles
+from codedvideo.model.physics import simulate
+from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.solvers.region import OmpSettings, reconstruct_region
 
 
 @pytest.fixture(scope="module")
@@ -57,8 +57,8 @@ def test_rerun_reuses_finished_tiles(capture, tmp_path):
 
 
 def test_reconstruction_beats_trivial_estimate(capture, tmp_path):
-    from codedvideo.metrics import evaluate
-    from codedvideo.physics import static_estimate
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.model.physics import static_estimate
 
     coded, mask, video = capture
     vol, _ = reconstruct_volume(coded, mask, dct_dictionary(4), settings=OmpSettings(max_atoms=8, tol_rms=0.5),
@@ -68,7 +68,7 @@ def test_reconstruction_beats_trivial_estimate(capture, tmp_path):
 
 def test_still_patches_take_the_cheap_path_with_the_same_answer():
     """A still, smooth scene is accepted by the still-scene test and matches full OMP within the noise."""
-    from codedvideo.region import STAT_NAMES
+    from codedvideo.solvers.region import STAT_NAMES
 
     n, h, w = 6, 30, 34
     yy, xx = np.mgrid[0:h, 0:w]
@@ -93,10 +93,10 @@ def test_still_patches_take_the_cheap_path_with_the_same_answer():
 @pytest.mark.parametrize("code", ["hitomi", "hitomi-tiled", "bernoulli"])
 def test_still_test_equals_omp_over_the_still_dictionary(code):
     """The closed-form still test (no dictionary search) agrees with OMP over the still atoms."""
-    from codedvideo import patches as P
-    from codedvideo.omp import MaskedOperator, omp
-    from codedvideo.omp_kernel import synthesize
-    from codedvideo.region import static_dictionary, still_patches
+    from codedvideo.model import patches as P
+    from codedvideo.solvers.omp import MaskedOperator, omp
+    from codedvideo.solvers.omp_kernel import synthesize
+    from codedvideo.solvers.region import static_dictionary, still_patches
 
     rng = np.random.default_rng(11)
     n, h, w = 6, 24, 26
@@ -139,7 +139,7 @@ def test_never_open_regions_are_filled_from_neighbours_not_zeros(side, tmp_path)
 
 def test_one_shutter_pattern_for_all_pixels_gives_the_static_estimate(capture, tmp_path):
     """A flutter code (one temporal sequence for every pixel) holds no per-pixel timing: no invented motion."""
-    from codedvideo.physics import static_estimate
+    from codedvideo.model.physics import static_estimate
 
     _, mask, video = capture
     flutter = make_code("flutter", video.shape[1:], frames=video.shape[0], rng=3)
@@ -154,7 +154,7 @@ def test_one_shutter_pattern_for_all_pixels_gives_the_static_estimate(capture, t
 @pytest.mark.parametrize("stride", [2, 3, 7])
 def test_patch_stride_covers_every_pixel_and_chunking_does_not_matter(capture, stride, tmp_path):
     """A stride solves fewer patches, counted from the image's corner, so tiles agree with the whole image."""
-    from codedvideo.region import STAT_NAMES
+    from codedvideo.solvers.region import STAT_NAMES
 
     coded, mask, video = capture
     D = dct_dictionary(4)
@@ -184,7 +184,7 @@ def test_a_runner_chains_its_graphs_and_lets_go_of_those_done(scheduler):
 
     import dask
 
-    from codedvideo.parallel import GraphRunner
+    from codedvideo.engine.parallel import GraphRunner
 
     ran, lock = [], threading.Lock()
 

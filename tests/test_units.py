@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from codedvideo.cli import main
-from codedvideo.codes import make_code
-from codedvideo.physics import simulate
-from codedvideo.synth import make_scene
-from codedvideo.units import infer_data_range, static_peak
+from codedvideo.app.cli import main
+from codedvideo.model.codes import make_code
+from codedvideo.model.physics import simulate
+from codedvideo.data.synth import make_scene
+from codedvideo.model.units import infer_data_range, static_peak
 
 N, H, W = 4, 32, 36
 
@@ -93,7 +93,7 @@ def test_any_float_scale_with_its_data_range(tmp_path_factory, capsys, capture, 
 
 @pytest.mark.parametrize("scale", [1 / 255, 4095 / 255])
 def test_cacti_files_in_any_units(tmp_path, capsys, capture, scale):
-    from codedvideo.cacti import write_cacti
+    from codedvideo.formats.cacti import write_cacti
 
     truth, mask, coded = capture
     psnr = []
@@ -141,7 +141,7 @@ def test_a_video_written_from_unit_floats_evaluates_in_their_units(tmp_path, cap
     the 8-bit run's, not a negative number."""
     import json
 
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     cap = tmp_path / "cap"
     assert main(["-q", "simulate", "synth:default", "--frames", "4", "--size", "32", "32", "--output", str(cap)]) == 0
@@ -165,7 +165,7 @@ def test_a_metrics_file_that_another_output_of_the_stem_replaced_is_not_taken_fo
     second run's data range (255) for the range it was written with (1), and says why it leaves it out."""
     import json
 
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     cap = tmp_path / "cap"
     assert main(["-q", "simulate", "synth:default", "--frames", "4", "--size", "32", "32", "--output", str(cap)]) == 0
@@ -191,7 +191,7 @@ def test_a_noisy_8_bit_capture_keeps_its_range_and_one_just_past_8_bits_is_warne
     taken as 4095, which scored the same result 24 dB higher); without, a warning says why it is 4095."""
     import json
 
-    from codedvideo.cli import main
+    from codedvideo.app.cli import main
 
     cap = tmp_path / "cap"
     assert main(["-q", "simulate", "synth:default", "--frames", "8", "--size", "64", "64", "--noise-sigma", "40",
@@ -241,7 +241,7 @@ def test_a_data_range_given_below_the_values_is_warned(tmp_path, capsys, capture
 def test_the_tolerance_warning_counts_the_patches_whose_coded_rms_is_within_the_tolerance():
     """A coded image that is dark except for a bright block: the share of 7x7 patches within the tolerance,
     counted patch by patch, decides whether the warning is given and the share it names."""
-    from codedvideo.units import tolerance_warning
+    from codedvideo.model.units import tolerance_warning
 
     rng = np.random.default_rng(3)
     coded = rng.uniform(0.0, 1.0, (40, 50))

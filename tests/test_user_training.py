@@ -6,9 +6,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from codedvideo.cli import main
-from codedvideo.store import load_dictionary
-from codedvideo.synth import make_scene
+from codedvideo.app.cli import main
+from codedvideo.formats.store import load_dictionary
+from codedvideo.data.synth import make_scene
 
 N = 4
 
@@ -109,7 +109,7 @@ def test_samples_that_would_not_fit_in_memory_are_refused_in_one_line(tmp_path, 
 
 
 def test_an_allocation_that_fails_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch, video8):
-    from codedvideo import dictionaries
+    from codedvideo.solvers import dictionaries
 
     def no_memory(*args, **kwargs):
         raise MemoryError("Unable to allocate 350. GiB")
@@ -128,9 +128,9 @@ def test_a_test_scene_named_for_training_says_what_to_name(tmp_path, capsys):
 
 def test_a_dictionary_adapted_to_a_scene_starts_from_the_one_given(tmp_path, capsys, video8):
     """train --init shipped --no-augment: K-SVD from the shipped N = 8 dictionary, on the patches as they are."""
-    from codedvideo import shipped
-    from codedvideo.cache import dictionary_key
-    from codedvideo.config import PipelineConfig
+    from codedvideo.data import shipped
+    from codedvideo.engine.cache import dictionary_key
+    from codedvideo.engine.config import PipelineConfig
 
     d, v = video8
     np.save(d / "scene.npy", v)
@@ -166,7 +166,7 @@ def test_init_options_that_do_not_apply_are_refused(tmp_path, capsys, video8, ex
 
 def test_a_reconstruction_that_overshoots_its_range_keeps_it(tmp_path, video8):
     """A [0, 1] or 8-bit reconstruction with ~1 % of values up to 1.14 times its range keeps that range."""
-    from codedvideo.scenes import training_videos
+    from codedvideo.data.scenes import training_videos
 
     _, v = video8
     over = v.copy()

@@ -16,7 +16,7 @@ __all__ = ["Reconstruction", "evaluate", "load_dictionary", "make_code", "recons
 
 def __getattr__(name: str):
     if name in __all__:
-        from . import api
+        from codedvideo import api
 
         return getattr(api, name)
     raise AttributeError(f"module 'codedvideo' has no attribute {name!r}")

@@ -13,7 +13,7 @@ True
 
 Every function takes and returns numpy arrays (:func:`reconstruct` also dask arrays).  Units are the
 caller's: a capture in [0, 1] floats, 8-bit, 12-bit or 16-bit gives the same video in its own units
-(:mod:`codedvideo.units` finds the data range once, as the command line does).
+(:mod:`codedvideo.model.units` finds the data range once, as the command line does).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError, InputError
+from codedvideo.model.errors import ConfigError, InputError
 
 __all__ = ["Reconstruction", "evaluate", "load_dictionary", "make_code", "reconstruct", "simulate",
            "synthetic_scene", "train"]
@@ -59,7 +59,7 @@ def make_code(name: str, shape: tuple[int, int], *, frames: int, bump: int | Non
     >>> make_code("hitomi", (14, 14), frames=8, bump=2).sum(0).min()  # every pixel open for L sub-frames
     np.uint64(2)
     """
-    from .codes import make_code as _make_code
+    from codedvideo.model.codes import make_code as _make_code
 
     if name == "file":
         raise ConfigError("make_code: 'file' reads a mask file; load the mask with numpy instead")
@@ -82,7 +82,7 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     noise_sigma : float
         Gaussian read noise, in the video's units.
     shot_noise : bool
-        Poisson photon noise (the 8-bit sensor model of :class:`codedvideo.physics.SensorModel`).
+        Poisson photon noise (the 8-bit sensor model of :class:`codedvideo.model.physics.SensorModel`).
     bits : int, optional
         Quantise the coded image to this many bits.
     seed : int
@@ -97,7 +97,7 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     >>> simulate(np.ones((2, 4, 4)), mask)[0, 0]
     np.float32(2.0)
     """
-    from .physics import SensorModel, simulate as _simulate
+    from codedvideo.model.physics import SensorModel, simulate as _simulate
 
     video = np.asarray(video, np.float32)
     mask = np.asarray(mask)
@@ -121,7 +121,7 @@ def synthetic_scene(name: str = "default", *, frames: int = 8, size: tuple[int, 
     >>> synthetic_scene(frames=4, size=(16, 16)).shape
     (4, 16, 16)
     """
-    from .synth import make_scene
+    from codedvideo.data.synth import make_scene
 
     return make_scene(name, frames=frames, size=tuple(size))
 
@@ -136,8 +136,8 @@ def load_dictionary(frames: int | None = None, path: str | Path | None = None) -
     >>> load_dictionary(8).shape
     (392, 512)
     """
-    from . import shipped
-    from .store import load_dictionary as _load
+    from codedvideo.data import shipped
+    from codedvideo.formats.store import load_dictionary as _load
 
     if (frames is None) == (path is None):
         raise ConfigError("load_dictionary: give frames (the shipped dictionary) or path, one of them")
@@ -168,8 +168,8 @@ def train(videos, *, frames: int, atoms: int = 512, samples: int = 80000, iterat
     -------
     D : ndarray of shape (N * 49, atoms), float32
     """
-    from .dictionaries import learn_dictionary
-    from .scenes import working_units
+    from codedvideo.solvers.dictionaries import learn_dictionary
+    from codedvideo.data.scenes import working_units
 
     clips = [working_units(np.array(v, np.float32), what=f"training video {i + 1}") for i, v in enumerate(videos)]
     if not clips:
@@ -184,7 +184,7 @@ class Reconstruction:
     """What :func:`reconstruct` found: the frames, the data range it worked with, and each capture's record."""
 
     frames: np.ndarray
-    #: The data range of the capture (:class:`codedvideo.units.DataRange`: value, how it was found).
+    #: The data range of the capture (:class:`codedvideo.model.units.DataRange`: value, how it was found).
     data_range: object
     #: Per capture: patches, atoms, seconds, the statistics the metrics JSON holds.
     info: list[dict] = field(default_factory=list)
@@ -202,7 +202,7 @@ def _layout(coded, mask) -> tuple[int, int, bool]:
 
 
 def _settings(method: str, adapt: bool, workers, noise_sigma: float, scale: float):
-    from .config import ReconstructConfig, omp_settings, validated
+    from codedvideo.engine.config import ReconstructConfig, omp_settings, validated
 
     rc = validated(ReconstructConfig, dict(method=method if method in ("omp", "nonlocal") else "omp", adapt=adapt,
                                            workers=workers))
@@ -211,16 +211,16 @@ def _settings(method: str, adapt: bool, workers, noise_sigma: float, scale: floa
 
 def _dictionary(method: str, dictionary, frames: int) -> tuple[np.ndarray | None, str, str]:
     """(D, its key, its name) for the sparse methods; (None, "", "") for the others."""
-    from .shipped import check_dictionary
+    from codedvideo.data.shipped import check_dictionary
 
     if method not in ("omp", "nonlocal"):
         return None, "", ""
     if dictionary is None:
-        from . import shipped
+        from codedvideo.data import shipped
 
         D, name = load_dictionary(frames), str(shipped.path_for(frames))
     elif isinstance(dictionary, (str, Path)):
-        from .store import load_dictionary as _load
+        from codedvideo.formats.store import load_dictionary as _load
 
         D, meta = _load(dictionary)
         check_dictionary(meta, frames, dictionary)
@@ -268,7 +268,7 @@ def reconstruct(coded, mask, *, dictionary=None, method: str = "omp", adapt: boo
     >>> reconstruct(simulate(video, mask), mask).shape
     (8, 32, 32)
     """
-    from .units import capture_units
+    from codedvideo.model.units import capture_units
 
     if _is_dask(coded):
         return _reconstruct_lazy(coded, mask, dictionary=dictionary, method=method, adapt=adapt,
@@ -288,7 +288,7 @@ def reconstruct(coded, mask, *, dictionary=None, method: str = "omp", adapt: boo
     D, key, name = _dictionary(method, dictionary, n)
     with contextlib.ExitStack() as stack:
         folder = cache if cache is not None else stack.enter_context(tempfile.TemporaryDirectory(prefix="codedvideo-"))
-        from .stages import reconstruct_stream
+        from codedvideo.engine.stages import reconstruct_stream
 
         results = reconstruct_stream(method, codeds, mask_of, join=not independent_captures, data_range=units,
                                      spill=folder, noise_sigma=sigma, settings=settings, dictionary=D, dictionary_key=key,
@@ -317,7 +317,7 @@ def _one_capture(block, mask, index, options) -> np.ndarray:
 def _reconstruct_lazy(coded, mask, *, dictionary, method, adapt, noise_sigma, data_range, workers, cache):
     import dask.array as da
 
-    from .units import capture_units
+    from codedvideo.model.units import capture_units
 
     mask = np.asarray(mask)
     single = coded.ndim == 2
@@ -360,8 +360,8 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
     >>> round(evaluate(v + 0.01, v)["psnr"], 1)
     40.0
     """
-    from .metrics import evaluate as _evaluate
-    from .units import check_range, infer_data_range
+    from codedvideo.model.metrics import evaluate as _evaluate
+    from codedvideo.model.units import check_range, infer_data_range
 
     recon, truth = np.asarray(recon, np.float32), np.asarray(truth, np.float32)
     if recon.shape != truth.shape:

@@ -1,0 +1,1 @@
+"""The application: the command line, `codedvideo run` and the report."""

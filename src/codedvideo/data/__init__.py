@@ -1,0 +1,1 @@
+"""Data: synthetic scenes, held-out footage, the manifest, the shipped dictionaries."""

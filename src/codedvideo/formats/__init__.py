@@ -1,0 +1,1 @@
+"""File formats: images, videos, npy, CACTI .mat, Zarr stores, outputs that never clobber."""

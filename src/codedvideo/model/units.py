@@ -1,0 +1,231 @@
+"""Units of a capture: its data range, found once and reported, and the scale codedvideo works in.
+
+A capture may come as [0, 1] floats, 0..255 (uint8 or float), 12-bit 0..4095,
+uint16 0..65535 or any float scale.  The data range (the peak value of a
+frame) is, in order of precedence:
+
+1. ``--data-range`` (``output.data_range``) when given;
+2. 255 for 8-bit integer files;
+3. from the values: the peak ``p`` of ``coded / open count`` (the static
+   estimate, which no frame can exceed without noise) rounded up to the first
+   of 1 (floats only), 255, 4095 and 65535 that holds it (with 5 % room
+   for noise), else (floats) to the first of those times a power of ten that holds it (a video in
+   thousandths of 8-bit units peaks near 255000: its range is 255000, and every figure, PSNR included,
+   is the 8-bit run's; the next ``2**b - 1``, 262143, made its PSNR 0.23 dB higher), and (integers
+   wider than 16 bits) to the next ``2**b - 1``.
+
+Every number is bounded (:data:`DATA_RANGE_MIN` ...): float32 holds 7 digits at any scale, but the
+sums of a patch's squares must stay finite, so values beyond those bounds are refused before any work.
+
+Reconstruction then runs in *working units*, the capture scaled so that its
+data range is 255 (8-bit captures are not rescaled at all), and the result is
+scaled back.  Every setting in grey levels (``--noise-sigma``, ``--tol-rms``,
+``--white-level``) is given in the capture's own units and scaled with it, so
+the same capture in any units gives the same video, multiplied by the scale.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: The data range working units map to (the units every default was tuned in).
+WORKING_RANGE = 255.0
+#: Data ranges the values are rounded up to, with the room left for noise.
+COMMON_RANGES = (1.0, 255.0, 4095.0, 65535.0)
+NOISE_ROOM = 1.05
+
+#: The bounds of every number in the capture's units, shared by pipeline.yaml's fields (codedvideo.engine.config)
+#: and the command line's options.  Work is in float32 (about 3.4e38 at most, 1.2e-38 the smallest normal):
+#: a patch's sum of squares reaches (64 frames x 1e12)**2 x 49 x 64, about 1e31, within it, and a range of
+#: 1e-6 keeps squared differences a million times the float32 step apart from its smallest normal.
+DATA_RANGE_MIN, DATA_RANGE_MAX = 1e-6, 1e12
+#: Grey-level settings (noise sigma, tolerance, white and black level) in the capture's units: at most this.
+LEVEL_MAX = 1e12
+#: ... and at most this many times the data range, once it is known (so that in working units, the
+#: data range at 255, every one of them stays below 2.55e8 and its square finite in float32).
+LEVELS_PER_RANGE = 1e6
+
+
+@dataclass(frozen=True)
+class DataRange:
+    """A capture's data range and how it was found (recorded in the metrics JSON)."""
+
+    value: float
+    source: str
+    #: Peak of coded / open count, in the capture's units.
+    peak: float
+
+    @property
+    def scale(self) -> float:
+        """Factor from the capture's units to working units."""
+        return 1.0 if self.value == WORKING_RANGE else WORKING_RANGE / self.value
+
+    def as_dict(self) -> dict:
+        return dict(value=self.value, source=self.source, peak=self.peak, working_scale=self.scale)
+
+
+def open_ratios(coded: np.ndarray, mask: np.ndarray, step: int = 1) -> np.ndarray:
+    """``coded / open count`` of every pixel ever open (every ``step``-th row and column), flat."""
+    counts = np.asarray(mask[..., ::step, ::step], np.float32).sum(-3)
+    coded = np.asarray(coded[..., ::step, ::step], np.float32)
+    if counts.shape != coded.shape[-2:]:
+        counts = np.broadcast_to(counts, coded.shape)
+    open_ = counts > 0
+    return coded[open_] / counts[open_]
+
+
+def static_peak(coded: np.ndarray, mask: np.ndarray) -> float:
+    """Largest ``coded / open count`` over the pixels that are ever open (0 when none is)."""
+    return float(open_ratios(coded, mask).max(initial=0.0))
+
+
+def static_quantile(coded: np.ndarray, mask: np.ndarray, q: float = 0.99, step: int = 3) -> float:
+    """The ``q`` quantile of ``coded / open count`` over the pixels ever open (every ``step``-th row and
+    column: a percentile of a 4K frame in milliseconds); 0 when none is."""
+    ratios = open_ratios(coded, mask, step)
+    return float(np.quantile(ratios, q)) if ratios.size else 0.0
+
+
+def share_above(coded: np.ndarray, mask: np.ndarray, level: float) -> float:
+    """The share of the pixels ever open whose ``coded / open count`` lies above ``level``."""
+    ratios = open_ratios(coded, mask)
+    return float(np.mean(ratios > level)) if ratios.size else 0.0
+
+
+#: Standard deviations of read noise (``noise``, the capture's units) also allowed above a range.
+NOISE_SIGMAS = 5.0
+#: A float capture whose values lie in [0, 1] but for a few (``OUTLIER_SHARE`` at most, up to
+#: ``OUTLIER_PEAK``: hot pixels, noise on white) is a [0, 1] capture, not an 8-bit one.
+OUTLIER_SHARE = 0.01
+OUTLIER_PEAK = 8.0
+
+
+def infer_data_range(peak: float, *, dtype=None, given: float | None = None, what: str = "coded / open count",
+                     noise: float = 0.0, quantile=None, outlier_ranges: tuple[float, ...] = (1.0,)) -> DataRange:
+    """The data range of a capture whose frames peak at ``peak`` (:func:`static_peak`; module docstring).
+
+    ``noise``: the read noise the capture is known to have (``--noise-sigma``), whose peaks may lie above
+    the range by more than the 5 % room (sigma 30 on 8-bit frames peaked at 268 and was taken as 12-bit).
+    ``quantile``: a function giving the ``1 - OUTLIER_SHARE`` quantile of the same values
+    (:func:`static_quantile`), asked only for float values that peak just above 1: when that quantile is
+    within [0, 1] the few above are outliers and the range is 1 (one hot pixel at 2.5 made a [0, 1]
+    capture 8-bit: a black video, its PSNR 50 dB too high).  ``outlier_ranges``: the ranges this applies
+    to (up to ``OUTLIER_PEAK`` times each); training videos add 255, since a reconstruction overshoots its
+    range (an 8-bit one peaking at 290 was taken as 12-bit).
+    """
+    peak = float(peak)
+    if given is not None:
+        return DataRange(float(given), "given (--data-range)", peak)
+    kind = np.dtype(dtype) if dtype is not None else None
+    if kind is not None and kind.kind in "iu" and kind.itemsize == 1:
+        return DataRange(255.0, f"dtype {kind.name}", peak)
+    integer = kind is not None and kind.kind in "iub"
+    room = NOISE_SIGMAS * max(float(noise), 0.0)
+    for value in outlier_ranges if not integer and quantile is not None else ():
+        if value * NOISE_ROOM + room < peak <= value * OUTLIER_PEAK:
+            typical = float(quantile())
+            if typical <= value * NOISE_ROOM + room:
+                return DataRange(value, f"values ({1 - OUTLIER_SHARE:.0%} of {what} at most {typical:.4g}; its "
+                                        f"peak {peak:.4g} taken as outliers)", peak)
+            break
+    for value in COMMON_RANGES:
+        if integer and value == 1.0:
+            continue
+        if peak <= value * NOISE_ROOM + room:
+            return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
+    if not integer and peak > 0:  # a standard range in other decimal units (255000: thousandths of 8 bits)
+        value = min((v * 10.0**k for v in COMMON_RANGES for k in range(1, 40)
+                     if peak <= v * 10.0**k * NOISE_ROOM + room), default=peak)
+        return DataRange(float(value), f"values (peak of {what} {peak:.4g})", peak)
+    value = float(2 ** math.ceil(math.log2(peak + 1)) - 1)
+    return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
+
+
+def check_range(units: DataRange, levels: dict[str, float | None], where: str) -> None:
+    """Refuse a data range outside [:data:`DATA_RANGE_MIN`, :data:`DATA_RANGE_MAX`] (one found from values
+    too large), values more than :data:`LEVELS_PER_RANGE` times the range, and grey-level settings
+    (``levels``: option name -> value in the capture's units) that far above it; one line naming them."""
+    from codedvideo.model.errors import ConfigError, InputError
+
+    if not DATA_RANGE_MIN <= units.value <= DATA_RANGE_MAX:
+        raise InputError(f"{where}: data range {units.value:.4g} ({units.source}) lies outside [{DATA_RANGE_MIN:g}, "
+                         f"{DATA_RANGE_MAX:g}], the values codedvideo works with in float32; scale the capture")
+    most = LEVELS_PER_RANGE * units.value
+    if units.peak > most:
+        raise InputError(f"{where}: values (coded / open count) reach {units.peak:.4g}, more than {LEVELS_PER_RANGE:g} "
+                         f"times the data range {units.value:.4g} ({units.source}); give the data range of the frames")
+    for option, value in levels.items():
+        if value is not None and value > most:
+            raise ConfigError(f"option {option} {value:g}: more than {LEVELS_PER_RANGE:g} times the data range "
+                              f"{units.value:.4g} ({units.source}); allowed [0, {most:g}] for this capture")
+
+
+def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str | None:
+    """A one-line warning when the residual tolerance is met before the first atom on most patches.
+
+    ``coded`` and ``tol_rms`` in the same (working) units.  OMP's residual
+    starts as the patch's coded values, so a patch whose coded RMS is within
+    the tolerance gets no atom at all (it takes its still answer, coded / open count: no motion).
+    """
+    coded = np.asarray(coded, np.float64)
+    if not 0 < tol_rms < 1e150:  # (its square must be a float64)
+        return None
+    if tol_rms <= 0 or min(coded.shape) < patch:
+        return None
+    # each patch's mean square from running sums (no scipy.ndimage: a run of one capture starts 0.05 s sooner)
+    c = np.pad((coded**2).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    sums = c[patch:, patch:] - c[:-patch, patch:] - c[patch:, :-patch] + c[:-patch, :-patch]
+    share = float(np.mean(np.maximum(sums, 0) / patch**2 <= tol_rms**2))
+    if share <= 0.5:
+        return None
+    return (f"the residual tolerance (--tol-rms / --noise-sigma) is met before the first atom on {share:.0%} of "
+            "the patches: they take their still answer (coded / open count), with no motion recovered; check the "
+            "data range (--data-range) and the tolerance")
+
+
+def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, noise_sigma: float = 0.0,
+                  levels: dict[str, float | None] | None = None, where: str = "coded image") -> DataRange:
+    """The data range of a job's captures, found once, checked and warned about: the one inference that the
+    command line, ``codedvideo run`` and the Python API all use.
+
+    Parameters
+    ----------
+    codeds : sequence of T coded images (H, W), in the capture's units
+    mask_of : callable ``mask_of(i)`` -> the (N, H, W) mask of capture ``i``
+    dtype : the captures' type as stored (8-bit integers are 0..255 whatever their values)
+    given : the data range the user gave (``--data-range``), or None to find it from the values
+    noise_sigma : the read noise in the capture's units (its peaks may lie above the range)
+    levels : option name -> grey-level setting in the capture's units, refused when far above the range
+    where : what the captures are called in messages (the file)
+
+    Raises :class:`codedvideo.model.errors.InputError` for a capture with nothing above 0 (and no range given) or
+    values beyond float32's working bounds; warns (one line each) when values lie above the range found or
+    given, and when a range just past 8 bits was found.
+    """
+    import warnings
+
+    from codedvideo.model.errors import InputError
+
+    count = len(codeds)
+    peak = max(static_peak(codeds[i], mask_of(i)) for i in range(count))
+    # a sum of frames is never negative: the wrong file, or a black level taken off twice
+    if peak <= 0 and given is None:
+        raise InputError(f"{where}: no coded value above 0 where the code is open; nothing to reconstruct "
+                         "(check the file and the black level)")
+    units = infer_data_range(peak, dtype=dtype, given=given, noise=noise_sigma, quantile=lambda: max(
+        static_quantile(codeds[i], mask_of(i), 1 - OUTLIER_SHARE) for i in range(count)))
+    check_range(units, levels or {}, where)
+    level = units.value * NOISE_ROOM + NOISE_SIGMAS * noise_sigma
+    if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
+        share = max(share_above(codeds[i], mask_of(i), level) for i in range(count))
+        warnings.warn(f"{where}: {share:.2%} of the pixels (coded / open count, up to {peak:.4g}) lie above the "
+                      f"data range {units.value:g} ({units.source}); they are clipped in videos and frames",
+                      stacklevel=2)
+    if given is None and units.value > 255 and peak <= 2 * 255:  # just past 8 bits: noise, or a dark frame?
+        warnings.warn(f"{where}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
+                      "just above 8-bit; if the frames are 8-bit with noise, give --noise-sigma or --data-range 255",
+                      stacklevel=2)
+    return units

@@ -1,0 +1,373 @@
+"""The per-tile reconstruction kernel (arrays in, arrays out; no I/O, no dask).
+
+For a coded image region and its code, every overlapping 7x7 patch is solved by
+OMP (Eq. 3), its space-time estimate ``E_p = D alpha_p`` is added back at its
+place, and every pixel is divided by the exact number of patches covering it
+(Sec. 5.1: the ``M^2`` estimates of a pixel are averaged).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from codedvideo.model import patches as P
+from codedvideo.solvers.omp import GroupedOperator, MaskedOperator, is_binary, masked_operator, omp, periodic_groups, pixel_patterns
+from codedvideo.solvers.omp_kernel import MAX_TABLE_BYTES, TableOMP, WeightsOMP, still_kernel, synthesize, table_fits
+
+#: Names of the per-tile statistics, in the order of the stats vector.
+#: Search radius of the non-local method's block matching (:mod:`codedvideo.solvers.nonlocal_sc`), in pixels: a
+#: tile's halo reaches this far (:func:`tile_halo`).  Chosen on the benchmark (tasks/bench_nonlocal.py).
+WINDOW = 6
+
+STAT_NAMES = (
+    "patches",
+    "patches_static",
+    "atoms_total",
+    "atoms_max_hit",
+    "dependent_stops",
+    "seconds_omp",
+    "seconds_total",
+)
+
+
+@dataclass(frozen=True)
+class OmpSettings:
+    """Settings of the sparse-coding step.
+
+    Attributes
+    ----------
+    max_atoms : int
+        Maximum sparsity of a patch (Eq. 3).
+    tol_rms : float
+        Residual tolerance of Eq. 3 as an RMS per measured pixel (frame units):
+        OMP stops once ``||A alpha - y||^2 <= n_open * tol_rms**2``.
+    batch : int
+        Patches solved together (bounds memory: about ``batch * K * 8`` bytes).
+    static_atoms : int
+        Still-scene test: 2D DCT atoms allowed (0: off), see :func:`still_patches`.
+    stride : int
+        Patch stride (1 to the patch size): ``stride**2`` times fewer patches.
+    weighting : {"uniform", "fit"}
+        How the overlapping estimates of a pixel are averaged.
+    """
+
+    max_atoms: int = 8
+    tol_rms: float = 1.0
+    batch: int = 4096
+    static_atoms: int = 8
+    #: Solve every ``stride``-th patch along each axis (1: every overlapping patch, the paper);
+    #: at most the patch size, so that every pixel stays covered.
+    stride: int = 1
+    #: "uniform": every overlapping estimate counts the same (the paper's average);
+    #: "fit": each counts ``1 / (1 + e**2 / tol_rms**2)``, ``e`` the RMS misfit of its
+    #: patch to the measurement, so estimates that explain their data poorly weigh less.
+    weighting: str = "uniform"
+    #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved
+    #: together under their own codes (:mod:`codedvideo.solvers.nonlocal_sc`).
+    method: str = "omp"
+    #: "nonlocal": stride of its groups' reference patches (0: :data:`codedvideo.solvers.nonlocal_sc.STEP`).
+    #: ``--adapt`` surveys with a sparser grid first (:data:`codedvideo.engine.stages.ADAPT_SURVEY_STEP`).
+    group_step: int = 0
+
+
+def tile_halo(settings: OmpSettings, patch: int = P.PATCH) -> int:
+    """Pixels beyond a tile's core that its answer depends on (what keys a tile's content, and what a
+    per-patch tile reads so that its core comes out as in the whole image).
+
+    Per-patch OMP: ``patch - 1`` (every patch over a core pixel).  Non-local: the
+    first estimate's ``patch - 1`` plus what a core pixel's groups reach,
+    ``patch - 1 + 2 * window`` (:mod:`codedvideo.solvers.nonlocal_sc`; its tiles are
+    assembled from stages of their own, :mod:`codedvideo.engine.parallel`).
+    """
+    if settings.method == "nonlocal":
+        return 2 * (patch - 1) + 2 * WINDOW
+    return patch - 1
+
+
+def static_dictionary(frames: int, patch: int = P.PATCH) -> np.ndarray:
+    """Atoms of a still scene: the 2D DCT of a patch, constant over the N sub-frames.
+
+    Shape ``(frames * patch**2, patch**2)``, unit-norm columns, ordered from low
+    to high spatial frequency (the first atom is the flat patch).
+    """
+    from codedvideo.solvers.dictionaries import dct_dictionary
+
+    C = dct_dictionary(1, patch=patch)  # (m, m): 2D DCT basis
+    fy, fx = np.meshgrid(np.arange(patch), np.arange(patch), indexing="ij")
+    C = C[:, np.argsort((fy + fx).ravel(), kind="stable")]
+    return (np.tile(C, (frames, 1)) / np.sqrt(frames)).astype(np.float32)
+
+
+@functools.lru_cache(maxsize=4)
+def _still_basis(patch: int) -> np.ndarray:
+    """:func:`static_dictionary` for one sub-frame in float64, built once per patch size (read-only).
+
+    Made orthonormal to float64 precision (the nearest orthonormal matrix, which
+    keeps the order and signs of the columns): the still test's residuals are
+    computed by Parseval's identity, which a float32 basis would break by ~1e-7
+    of the patch energy.
+    """
+    u, _, vt = np.linalg.svd(static_dictionary(1, patch).astype(np.float64))
+    C = np.ascontiguousarray(u @ vt)
+    C.setflags(write=False)
+    return C
+
+
+def still_answers(y: np.ndarray, n_pix: np.ndarray, frames: int) -> np.ndarray:
+    """The still answer of patches ``y`` (P, m): ``coded / open count`` of every pixel in each of the
+    ``frames`` sub-frames, as rows of ``frames * m`` (a pixel never open: 0)."""
+    q = y / np.maximum(n_pix, 1e-12).astype(np.float32)
+    # (the row length spelled out: none of them, 0 x -1, is ambiguous to numpy)
+    return np.broadcast_to(q[:, None, :], (q.shape[0], frames, q.shape[1])).reshape(q.shape[0], frames * q.shape[1])
+
+
+def still_patches(
+    y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, atoms: int, *, frames: int, patch: int = P.PATCH
+) -> tuple[np.ndarray, np.ndarray]:
+    """The still-scene test: which patches a still, spatially sparse scene explains.
+
+    A still scene has every sub-frame equal to one image ``s``, so pixel ``i``
+    records ``y_i = n_i s_i`` (``n_i`` its open sub-frames) and ``s = y / n``.
+    A patch passes when ``s`` keeps the residual ``||n * (s - s_k)||^2`` within
+    the tolerance, ``s_k`` holding at most ``atoms`` of the largest coefficients
+    of ``s`` in the orthonormal 2D DCT (a flat patch needs one); it then gets
+    ``s_k`` in every sub-frame.  Where ``n_i`` is the same over the patch (every
+    fixed-bump code) this is exactly OMP over :func:`static_dictionary` seen
+    through the code, whose atoms are then orthogonal with equal norms; for
+    other codes it is the same greedy choice with the residual measured
+    exactly.  No dictionary search is run (compiled:
+    :func:`codedvideo.solvers.omp_kernel.still_kernel`, a few per cent of a patch's OMP).
+    Patches with a pixel that is never open are left to the full dictionary.
+
+    Parameters
+    ----------
+    y : ndarray of shape (P, m)
+    n_pix : ndarray of shape (P, m)
+        Open sub-frames of every pixel of every patch (``S.sum(1)``); for a
+        calibrated mask the sum of the pixel's weights (a still scene records
+        ``y_i = n_i s_i`` all the same).
+    tol : ndarray of shape (P,)
+        Squared residual tolerance.
+    atoms : int
+    frames : int
+        N, the sub-frames of the estimate.
+
+    Returns
+    -------
+    ok : ndarray of shape (P,), bool
+    estimate : ndarray of shape (ok.sum(), N * m), float32
+    """
+    count = y.shape[0]
+    ok = np.zeros(count, np.bool_)
+    frame = np.zeros((count, patch * patch), np.float64)
+    still_kernel(np.ascontiguousarray(y, dtype=np.float32), np.ascontiguousarray(n_pix, dtype=np.float64),
+                 _still_basis(patch), np.ascontiguousarray(tol, dtype=np.float64),
+                 int(atoms), ok, frame)
+    return ok, np.tile(frame[ok].astype(np.float32), (1, frames))
+
+
+def _few_patterns(mask: np.ndarray, D: np.ndarray, m: int) -> bool:
+    """Whether a calibrated mask might have few enough distinct pixel patterns for a pattern table.
+
+    A random projection of every pixel's weights counts at most as many
+    values as there are patterns (equal patterns project equally), so more
+    values than a table holds settles it in about a millisecond, without
+    sorting the patterns themselves (a blurred code: every pixel its own).
+    """
+    limit = MAX_TABLE_BYTES // (m * D.shape[1] * 4)  # the most patterns that table_fits accepts
+    probe = np.random.default_rng(0).random(mask.shape[0])
+    return np.unique(np.tensordot(probe, mask, axes=(0, 0))).size <= limit
+
+
+def _still_answer(coded: np.ndarray, mask: np.ndarray, binary: bool) -> np.ndarray:
+    """``coded / open count`` (a calibrated mask: over the sum of its weights), 0 where never open; (h, w) float32."""
+    k = mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(k > 0, coded / np.maximum(k, 1e-12).astype(np.float32), 0).astype(np.float32)
+
+
+def reconstruct_region(
+    coded: np.ndarray, mask: np.ndarray, D: np.ndarray, settings: OmpSettings, *, patch: int = P.PATCH,
+    origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None, operator: str = "auto",
+    still: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reconstruct every pixel of a region from the patches inside it.
+
+    Parameters
+    ----------
+    coded : ndarray of shape (h, w)
+    mask : ndarray of shape (N, h, w)
+        A binary code, or a calibrated mask: each pixel's measured response in
+        every sub-frame, weights in [0, 1] (the exact forward model
+        ``coded = sum_t mask[t] * frame[t]``).  A pixel is measured when its
+        weights sum to more than 0.
+    D : ndarray of shape (N * patch**2, K)
+    settings : OmpSettings
+    origin, image_shape : the region's top-left corner in the image and the image's (H, W)
+        (default: the region is the image); a patch stride counts from the image's corner.
+    operator : {"auto", "dense", "patch"}
+        "auto": periodic codes use the grouped operator; codes whose distinct
+        per-pixel patterns fit a pattern table (every binary single-bump code;
+        a calibrated mask with few distinct weight vectors) the compiled table
+        kernel; a calibrated mask with more patterns (a blurred, misregistered
+        code: every pixel its own weights) the compiled kernel with a table per
+        patch (:class:`codedvideo.solvers.omp_kernel.WeightsOMP`); binary codes with too
+        many patterns the dense numpy operator ``D^T (Phi_p^T r)``.  "patch":
+        the per-patch compiled kernel for every patch (bit for bit the table
+        kernel's answers, so the choice between the two never shows);
+        "dense": the dense numpy operator for every patch (the same answers
+        within float roundoff).  Both for tests and timings.
+    still : ndarray of shape (h, w), bool, optional
+        Pixels known to be still (their ``coded / open count`` agrees with a
+        neighbouring capture, :mod:`codedvideo.model.sequence`).  A patch whose
+        every pixel is still takes the still answer, ``coded / open count``
+        in every sub-frame, with no dictionary search (counted in
+        ``patches_static``); every other patch is solved with all of its
+        measurements.
+
+    Patches that a still scene explains (:func:`still_patches`: at most
+    ``settings.static_atoms`` atoms of the 2D DCT, constant in time, reach the
+    residual tolerance; a flat patch needs one) keep that answer and skip the
+    full dictionary.  A moving scene leaves a pixel-random, code-dependent
+    residual that few smooth still atoms cannot explain, so this test only
+    accepts patches whose motion is below the noise level.
+
+    Returns
+    -------
+    volume : ndarray of shape (N, h, w), float32
+        Average of the estimates of all patches inside the region covering each
+        pixel.  Pixels near the region's border see fewer patches than in the
+        whole image, so callers keep only pixels at least ``patch - 1`` away
+        from a border that is not the image's own border.
+    stats : ndarray of shape (len(STAT_NAMES),), float64
+    """
+    t_start = time.perf_counter()
+    n, h, w = mask.shape
+    if h < patch or w < patch:
+        raise ValueError(f"region {h}x{w} is smaller than one {patch}x{patch} patch")
+    m = patch * patch
+    if operator not in ("auto", "dense", "patch"):
+        raise ValueError(f"operator {operator!r}: choose auto, dense or patch")
+    coded = np.asarray(coded, dtype=np.float32)
+    binary = is_binary(mask)
+    if not binary:  # a calibrated mask: the weights themselves, in float32 as everywhere else
+        mask = np.asarray(mask, dtype=np.float32)
+        if not np.isfinite(mask).all() or (mask < 0).any():
+            raise ValueError("mask weights must be finite and >= 0")
+    open_any = mask.any(0)
+    hp, wp = P.grid_shape((h, w), patch)
+    if still is not None and settings.stride == 1 and np.all(still) and open_any.all():
+        # a wholly still region: every patch takes the still answer, so every pixel is coded / open count
+        q = _still_answer(coded, mask, binary)
+        stats = np.array([hp * wp, hp * wp, 0, 0, 0, 0.0, time.perf_counter() - t_start], dtype=np.float64)
+        return np.repeat(q[None], n, axis=0), stats
+    y_all = P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch)  # (Pn, m)
+    # every patch's code, (Pn, N, m): the largest array here, made only where a path reads it
+    S_all = functools.cache(lambda: P.extract(mask.astype(np.uint8) if binary else mask, patch))
+    groups = None if operator != "auto" else periodic_groups(mask, patch)
+    # periodic codes: the few distinct patch operators are built once for the region, however
+    # few its patches, so that small edge tiles solve them with the same arithmetic as large ones
+    grouped = None if groups is None else masked_operator(S_all(), D, groups=groups, min_share=0)
+    if not isinstance(grouped, GroupedOperator):
+        grouped = None
+    # any other code whose pixels take few shutter patterns (every single-bump code):
+    # the compiled OMP over the region's pixel-pattern table
+    table = pat_all = weights = None
+    if grouped is None and operator == "auto" and (n <= 64 or not binary) and (binary or _few_patterns(mask, D, m)):
+        patterns, which = pixel_patterns(mask)
+        if table_fits(len(patterns), D, m):
+            table, pat_all = TableOMP(patterns, D, m), P.extract(which, patch)
+    # calibrated masks beyond a table: the compiled kernel with one table per patch
+    if grouped is None and table is None and (operator == "patch" or (operator == "auto" and not binary)):
+        weights = WeightsOMP(D, m)
+    # open sub-frames of every patch pixel (a calibrated mask: the sum of its weights)
+    n_pix = P.extract(mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64), patch)
+    n_open = (n_pix > 0).sum(1).astype(np.float32)
+    # a patch without any measured pixel has nothing to say: it is left out of the
+    # average, and pixels no patch with a measurement covers are NaN (filled later)
+    valid = n_open > 0
+    taken = y_all.shape[0]  # the patches this region solves or takes the still answer of (its statistics' count)
+    if settings.stride > 1:
+        if not 1 <= settings.stride <= patch:
+            raise ValueError(f"stride {settings.stride}: must be 1 to {patch} (the patch size)")
+        ih, iw = image_shape or (h, w)
+        rows_on = P.stride_rows(origin[0], hp, ih - patch + 1, settings.stride)
+        cols_on = P.stride_rows(origin[1], wp, iw - patch + 1, settings.stride)
+        on_grid = (rows_on[:, None] & cols_on[None, :]).ravel()
+        valid &= on_grid
+        taken = int(on_grid.sum())  # (every patch was counted: atoms_mean a quarter, patches/s 4x, at stride 2)
+    if settings.weighting not in ("uniform", "fit"):
+        raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
+    still_rows = skip = None
+    if still is not None and np.any(still):  # patches wholly still: the still answer, no search
+        still_rows = P.extract(np.asarray(still, np.uint8), patch).all(1) & valid
+        # still patches that no other patch overlaps: their pixels take the still answer below, unsummed
+        from scipy import ndimage  # lazy: only a job of several captures has still maps
+
+        near = ndimage.maximum_filter((valid & ~still_rows).reshape(hp, wp), size=2 * patch - 1, mode="constant")
+        skip = still_rows & ~near.ravel()
+    summed = np.zeros((n, h, w), np.float32)
+    weight = np.zeros((1, h, w), np.float32)
+    atoms = hit = dep = n_static = 0
+    t_omp = 0.0
+    band = max(1, settings.batch // wp)  # whole rows of patches, folded as they finish
+    for r0 in range(0, hp, band):
+        r1 = min(hp, r0 + band)
+        s = r0 * wp
+        sl = slice(s, r1 * wp)
+        y, tol = y_all[sl], n_open[sl] * settings.tol_rms**2
+        est = np.zeros((y.shape[0], n * m), np.float32)
+        t0 = time.perf_counter()
+        rows = np.flatnonzero(valid[sl])
+        if still_rows is not None and rows.size:
+            calm = still_rows[sl][rows]
+            if calm.any():
+                est[rows[calm]] = still_answers(y[rows[calm]], n_pix[sl][rows[calm]], n)
+                n_static += int(calm.sum())
+                rows = rows[~calm]
+        if settings.static_atoms > 0 and rows.size:
+            ok, still = still_patches(y[rows], n_pix[sl][rows], tol[rows], settings.static_atoms, frames=n, patch=patch)
+            est[rows[ok]] = still
+            n_static += int(ok.sum())
+            rows = rows[~ok]
+        if rows.size:
+            if table is not None:
+                res = table.solve(y[rows], pat_all[sl][rows], max_atoms=settings.max_atoms, tol=tol[rows])
+            elif weights is not None:
+                res = weights.solve(y[rows], S_all()[sl][rows], max_atoms=settings.max_atoms, tol=tol[rows])
+            else:
+                # periodic codes share few patch operators; any other code has its own per patch
+                op = MaskedOperator(S_all()[sl][rows], D) if grouped is None else grouped.subset(s + rows)
+                res = omp(y[rows], op, max_atoms=settings.max_atoms, tol=tol[rows])
+            est[rows] = synthesize(res, D)
+            dark = res.count == 0  # coded values within the tolerance: the still answer, not 0
+            if dark.any():
+                est[rows[dark]] = still_answers(y[rows[dark]], n_pix[sl][rows[dark]], n)
+            atoms += int(res.count.sum())
+            hit += int((res.count >= settings.max_atoms).sum())
+            dep += int(res.dependent.sum())
+        t_omp += time.perf_counter() - t0
+        wp_ = valid[sl].astype(np.float32)
+        if settings.weighting == "fit":
+            misfit = y - (S_all()[sl] * est.reshape(-1, n, m)).sum(1)
+            e2 = np.einsum("pm,pm->p", misfit, misfit) / np.maximum(n_open[sl], 1)
+            wp_ = wp_ / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
+            est *= wp_[:, None]
+        P.fold_rows(est, summed, r0, patch, skip=None if skip is None else skip[sl])
+        P.fold_rows(wp_, weight, r0, patch)
+    weight = weight[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
+    if still_rows is not None:  # pixels only still patches cover: the still answer exactly, as a still tile gives
+        others = P.fold((valid & ~still_rows).astype(np.float32), (h, w), patch)[0]
+        inner = (others == 0) & (weight > 0)
+        volume[:, inner] = _still_answer(coded, mask, binary)[inner]
+    stats = np.array(
+        [taken, n_static, atoms, hit, dep, t_omp, time.perf_counter() - t_start],
+        dtype=np.float64,
+    )
+    return volume, stats
