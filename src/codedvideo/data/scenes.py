@@ -12,6 +12,7 @@ from codedvideo.formats import io as cio
 from codedvideo.data import manifest
 from codedvideo.data import synth
 from codedvideo.model.errors import InputError
+from codedvideo.model.patches import PATCH
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,7 @@ TRAINING_PIXELS = 2**27
 
 
 def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max_speed: float = synth.MAX_SPEED,
-                    patch: int = 7) -> tuple[list[np.ndarray], list[str]]:
+                    patch: int = PATCH) -> tuple[list[np.ndarray], list[str]]:
     """Training clips: ``synth:train`` (generated) and/or user video paths; and the sources used.
 
     A user's video is taken in working units (:mod:`codedvideo.model.units`: its data range, found from its

@@ -42,6 +42,7 @@ from dask.highlevelgraph import HighLevelGraph
 from codedvideo.model.errors import CodedVideoError, SchedulerError
 from codedvideo.solvers.region import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
 from codedvideo.formats.store import WorkStore, write_tiles
+from codedvideo.model.patches import PATCH
 
 log = logging.getLogger("codedvideo")
 
@@ -58,7 +59,7 @@ class Tile:
     halo: tuple[int, int, int, int]
 
 
-def plan_tiles(shape: tuple[int, int], tile: int, *, patch: int = 7, halo: int | None = None) -> list[Tile]:
+def plan_tiles(shape: tuple[int, int], tile: int, *, patch: int = PATCH, halo: int | None = None) -> list[Tile]:
     """Cut an image into ``tile x tile`` cores (the last ones smaller) with halos.
 
     The halo is ``patch - 1`` pixels on every side (or ``halo``:
@@ -363,7 +364,7 @@ class TileWork:
     first: str | None = None
 
 
-def build_graph(works: list[TileWork], D: np.ndarray | list[np.ndarray], settings: OmpSettings, *, patch: int = 7):
+def build_graph(works: list[TileWork], D: np.ndarray | list[np.ndarray], settings: OmpSettings, *, patch: int = PATCH):
     """One delayed task per distinct tile content over every store, one node per distinct dictionary.
 
     ``D`` is the dictionary of every store, or a list of one per work (a
@@ -717,7 +718,7 @@ class StorePlan:
 
 
 def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.ndarray | None,
-               settings: OmpSettings, *, tile: int, patch: int = 7, first: str | None = None) -> StorePlan:
+               settings: OmpSettings, *, tile: int, patch: int = PATCH, first: str | None = None) -> StorePlan:
     """Plan a working store's tiles from its inputs in memory (as :meth:`WorkStore.create` was given them).
 
     A store made afresh has no tile done; a reused one has each tile that
@@ -754,7 +755,7 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
     return StorePlan(tiles, damaged, TileWork(str(store.path), todo, contents, first))
 
 
-def store_volume(store: WorkStore, plan: StorePlan, D: np.ndarray, settings: OmpSettings, *, patch: int = 7,
+def store_volume(store: WorkStore, plan: StorePlan, D: np.ndarray, settings: OmpSettings, *, patch: int = PATCH,
                  scheduler: str | None = None, workers: int | None = None) -> tuple[np.ndarray, dict]:
     """A working store's volume once the tasks of its plan have finished, and its summary.
 

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo.model.errors import InputError, OutputError
+from codedvideo.model.units import EIGHT_BIT
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".dpx", ".jpg", ".jpeg")
 #: Prefix of the container comment in which write_video records the frame size (H x W).
@@ -624,7 +625,7 @@ def _frames_last(frames: np.ndarray, path, what: str) -> np.ndarray:
     return frames
 
 
-def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: float = 255.0, fps: int = 30) -> Path:
+def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: float = EIGHT_BIT, fps: int = 30) -> Path:
     """Write frames as a video: .mp4 (H.264), .mkv/.avi (FFV1, lossless), .gif.
 
     Parameters
@@ -657,7 +658,7 @@ def gif_rate_problem(fps: int) -> str | None:
 
 
 @contextlib.contextmanager
-def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool = False, data_range: float = 255.0,
+def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool = False, data_range: float = EIGHT_BIT,
                  fps: int = 30):
     """Encode a video part by part (:func:`write_video`'s formats): yields ``write(frames)``.
 
@@ -879,7 +880,7 @@ def write_multipage_tiff(path: str | os.PathLike, stack: np.ndarray) -> Path:
 
 
 def write_frames(
-    directory: str | os.PathLike, frames: np.ndarray, *, fmt: str = "tiff16", data_range: float = 255.0, prefix: str = "frame"
+    directory: str | os.PathLike, frames: np.ndarray, *, fmt: str = "tiff16", data_range: float = EIGHT_BIT, prefix: str = "frame"
 ) -> list[Path]:
     """One file per frame in a folder, written as a whole (temporary folder, then rename).
 
@@ -908,7 +909,7 @@ _FRAME_FORMATS = {"tiff16": ("tif", "uint16", 65535.0), "exr": ("exr", "float", 
 
 
 @contextlib.contextmanager
-def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_range: float = 255.0,
+def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_range: float = EIGHT_BIT,
                   prefix: str = "frame", total: int | None = None):
     """Write a folder of frames (:func:`write_frames`) part by part: yields ``write(frames)`` -> their paths.
 

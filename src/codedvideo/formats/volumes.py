@@ -19,6 +19,7 @@ from codedvideo.model.errors import InputError
 from codedvideo.formats.io import VIDEO_SUFFIXES
 from codedvideo.model.patches import PATCH
 from codedvideo.formats.store import array_writer, load_array, save_array
+from codedvideo.model.units import EIGHT_BIT
 
 
 def write_json(path: Path, payload: dict) -> Path:
@@ -312,7 +313,7 @@ def _checked_mask(mask: np.ndarray, path) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0, fps: int = 30,
+def volume_writer(output: str | Path, shape: tuple, *, data_range: float = EIGHT_BIT, fps: int = 30,
                   part: int | None = None):
     """Write a volume part by part, as its parts are reconstructed: yields ``put(index, part)``.
 
@@ -379,7 +380,7 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = 255.0
     write_volume(gathered[0] if gathered else np.empty(tuple(shape), np.float32), output, data_range=data_range, fps=fps)
 
 
-def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 255.0, fps: int = 30) -> Path:
+def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = EIGHT_BIT, fps: int = 30) -> Path:
     """Write a volume by the output's suffix.
 
     Parameters

@@ -11,6 +11,7 @@ import math
 import numpy as np
 
 from codedvideo.model.errors import InputError
+from codedvideo.model.units import EIGHT_BIT
 
 
 #: Frames compared at a time: a long video (or a lazy stack of one, :class:`codedvideo.formats.volumes.NpyStack`)
@@ -27,7 +28,7 @@ def mean_psnr(per_frame) -> float:
     return float(np.mean(finite)) if finite.size else float("inf")
 
 
-def evaluate(recon, truth, *, data_range: float = 255.0) -> dict:
+def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
     """Per-frame and mean PSNR/SSIM of a reconstruction.
 
     Parameters

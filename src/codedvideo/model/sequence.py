@@ -32,6 +32,8 @@ import time
 import numpy as np
 from numba import njit
 
+from codedvideo.model.patches import PATCH
+
 #: Smallest difference of ``coded / open count`` taken as change, in working units (data range 255).
 STILL_FLOOR = 0.5
 #: Noise multiple: a still pixel's two normalised values differ by more with probability about 3e-3.
@@ -56,7 +58,7 @@ def normalised(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.where(k > 0, np.asarray(coded, np.float32) / np.maximum(k, 1e-12), 0).astype(np.float32), k
 
 
-def erode_to_patches(agree: np.ndarray, patch: int = 7) -> np.ndarray:
+def erode_to_patches(agree: np.ndarray, patch: int = PATCH) -> np.ndarray:
     """The pixels of ``agree`` every ``patch x patch`` patch over which lies inside ``agree``."""
     # every patch containing the pixel lies inside the still region (patches lie inside the image)
     from scipy import ndimage  # lazy: only a job of several captures looks for still pixels
@@ -240,7 +242,7 @@ class Cuts:
         return [dict(boundary=i, **why) for i, why in sorted(self._boundary.items()) if why is not None]
 
 
-def _flat(q: np.ndarray, noise: np.ndarray, patch: int = 7) -> np.ndarray:
+def _flat(q: np.ndarray, noise: np.ndarray, patch: int = PATCH) -> np.ndarray:
     """Pixels whose ``patch x patch`` window of ``q`` varies no more than its noise does (``FLAT_VARIANCE``)."""
     from scipy import ndimage  # lazy (see erode_to_patches)
 

@@ -31,8 +31,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from codedvideo.model.patches import PATCH
+
+#: The data range of 8-bit frames: the default of every writer and score that is not told another.
+EIGHT_BIT = 255.0
 #: The data range working units map to (the units every default was tuned in).
-WORKING_RANGE = 255.0
+WORKING_RANGE = EIGHT_BIT
 #: Data ranges the values are rounded up to, with the room left for noise.
 COMMON_RANGES = (1.0, 255.0, 4095.0, 65535.0)
 NOISE_ROOM = 1.05
@@ -163,7 +167,7 @@ def check_range(units: DataRange, levels: dict[str, float | None], where: str) -
                               f"{units.value:.4g} ({units.source}); allowed [0, {most:g}] for this capture")
 
 
-def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = 7) -> str | None:
+def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = PATCH) -> str | None:
     """A one-line warning when the residual tolerance is met before the first atom on most patches.
 
     ``coded`` and ``tol_rms`` in the same (working) units.  OMP's residual

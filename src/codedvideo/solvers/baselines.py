@@ -41,6 +41,7 @@ import math
 import numpy as np
 from codedvideo.model.errors import InputError
 from codedvideo.model.physics import adjoint, check_pair, forward, static_estimate
+from codedvideo.model.units import EIGHT_BIT
 
 #: Names of ``codedvideo reconstruct --method``: per-patch OMP with the learned
 #: dictionary (``omp``) or the 3D DCT (``dct``), and the baselines of this module.
@@ -208,7 +209,7 @@ def gap_tv(
     tv_weight: float = 0.3,
     tv_iterations: int = 5,
     temporal: bool = True,
-    data_range: float = 255.0,
+    data_range: float = EIGHT_BIT,
     accelerate: bool = True,
     x0: np.ndarray | None = None,
 ) -> np.ndarray:
