@@ -470,7 +470,10 @@ def join_captures(
     linear resamplings (compiled, :func:`_warp`) over the box around the
     pixels that change in those frames, grown by :func:`_join_reach` (41
     pixels at N = 8); about 0.025 s for a whole 256 x 256 frame.  Where the
-    scene is still the join leaves the pixels exactly as they were.
+    scene is still the join leaves the pixels exactly as they were.  The box
+    is worked out :data:`JOIN_BAND_ROWS` rows at a time (:func:`_join_region`):
+    beyond the two results, the working memory is a band's whatever the frame's
+    height, and the values are the same bits as in one band.
     """
     from .units import static_peak
 
