@@ -144,11 +144,8 @@ def load_dictionary(frames: int | None = None, path: str | Path | None = None) -
     if path is not None:
         D, meta = _load(path)
         return D
-    found = shipped.verified(int(frames))
-    if found is None:
-        have = ", ".join(map(str, shipped.available())) or "none"
-        raise InputError(f"load_dictionary: no dictionary is shipped for N = {frames} (shipped: N = {have}); train "
-                         f"one with codedvideo.train(videos, frames={frames}) or `{shipped.train_command(frames)}`")
+    found = shipped.required(int(frames), "load_dictionary", f"codedvideo.train(videos, frames={frames}) or "
+                             f"`{shipped.train_command(frames)}`")
     return _load(found)[0]
 
 
@@ -361,11 +358,10 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
     40.0
     """
     from codedvideo.model.metrics import evaluate as _evaluate
-    from codedvideo.model.units import check_range, infer_data_range
+    from codedvideo.model.units import truth_range
 
     recon, truth = np.asarray(recon, np.float32), np.asarray(truth, np.float32)
     if recon.shape != truth.shape:
         raise InputError(f"evaluate: reconstruction {recon.shape} and truth {truth.shape} differ in shape")
-    units = infer_data_range(float(truth.max(initial=0.0)), given=data_range, what="the truth")
-    check_range(units, {}, "evaluate: truth")
+    units = truth_range(float(truth.max(initial=0.0)), given=data_range, where="evaluate: truth")
     return dict(_evaluate(recon, truth, data_range=units.value), psnr_peak=dict(value=units.value, source=units.source))

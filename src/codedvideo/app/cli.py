@@ -848,11 +848,8 @@ def _method_dictionary(a, frames: int):
     if a.method not in ("omp", "nonlocal"):
         return None, {}
     if not a.dictionary:  # the shipped dictionary for this N
-        a.dictionary = shipped.verified(frames)
-        if a.dictionary is None:
-            have = ", ".join(map(str, shipped.available())) or "none"
-            raise InputError(f"reconstruct: no dictionary is shipped for N = {frames} (shipped: N = {have}); train one "
-                             f"with `{shipped.train_command(frames)}` and give --dictionary dict-N{frames}.zarr")
+        a.dictionary = shipped.required(frames, "reconstruct", f"`{shipped.train_command(frames)}` and give "
+                                        f"--dictionary dict-N{frames}.zarr")
     D, meta = load_dictionary(a.dictionary)
     check_dictionary(meta, frames, a.dictionary)
     return D, meta
@@ -885,7 +882,7 @@ def _cmd_evaluate(a) -> int:
     from codedvideo.formats.io import VIDEO_SUFFIXES
     from codedvideo.model.metrics import EVALUATE_BLOCK, evaluate, json_safe
     from codedvideo.formats.volumes import write_json
-    from codedvideo.model.units import infer_data_range
+    from codedvideo.model.units import truth_range
 
     out = validated(OutputConfig, dict(data_range=a.data_range))
     if a.output:
@@ -909,10 +906,7 @@ def _cmd_evaluate(a) -> int:
                    default=0.0)
 
     peak = peak_of(truth)
-    units = infer_data_range(peak, given=out.data_range, what="the truth")
-    from codedvideo.model.units import check_range
-
-    check_range(units, {}, f"truth {a.truth}")
+    units = truth_range(peak, given=out.data_range, where=f"truth {a.truth}")
     extra = {}
     if Path(a.recon).suffix.lower() in VIDEO_SUFFIXES:  # 8-bit frames: 255 was the data range they were written with
         written = _written_range(a.recon) or units.value

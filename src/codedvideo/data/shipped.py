@@ -72,6 +72,17 @@ def verified(frames: int) -> Path | None:
     return path
 
 
+def required(frames: int, where: str, how: str) -> Path:
+    """The shipped dictionary for ``frames`` (verified), or an :class:`InputError` naming ``where`` the need
+    arose, the N that are shipped and ``how`` to give a dictionary of one's own (besides training it)."""
+    found = verified(frames)
+    if found is None:
+        have = ", ".join(map(str, available())) or "none"
+        raise InputError(f"{where}: no dictionary is shipped for N = {frames} (shipped: N = {have}); train one "
+                         f"with {how}")
+    return found
+
+
 def matching(frames: int, key: str) -> Path | None:
     """The shipped dictionary that training with settings ``key`` would make, if any (verified)."""
     if settings_key(frames) != key:

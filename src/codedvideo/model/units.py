@@ -167,6 +167,14 @@ def check_range(units: DataRange, levels: dict[str, float | None], where: str) -
                               f"{units.value:.4g} ({units.source}); allowed [0, {most:g}] for this capture")
 
 
+def truth_range(peak: float, *, given: float | None = None, where: str = "truth") -> DataRange:
+    """The data range a reconstruction is scored against: ``given``, or found from the truth's ``peak`` (so the
+    same video scores the same in any float scale), checked as :func:`check_range` checks a capture's."""
+    units = infer_data_range(peak, given=given, what="the truth")
+    check_range(units, {}, where)
+    return units
+
+
 def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = PATCH) -> str | None:
     """A one-line warning when the residual tolerance is met before the first atom on most patches.
 
