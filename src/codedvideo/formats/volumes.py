@@ -597,6 +597,11 @@ class FrameFile:
     def close(self) -> None:
         self._fh.close()
 
+    def __del__(self) -> None:  # its file closed with it, as said (not left to the collector's ResourceWarning)
+        fh = getattr(self, "_fh", None)
+        if fh is not None:
+            fh.close()
+
 
 def spilled(results, folder: str | Path | None = None):
     """A stream of ``(i, volume, info)`` with each (N, H, W) volume moved to a :class:`FrameFile` as it comes.

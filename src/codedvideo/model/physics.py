@@ -70,10 +70,23 @@ def forward(video: np.ndarray, mask: np.ndarray) -> np.ndarray:
     -------
     coded : ndarray of shape (H, W), float32
     """
-    video = np.asarray(video, dtype=np.float32)
-    if video.shape != np.shape(mask):
-        raise InputError(f"forward: video shape {video.shape} != mask shape {np.shape(mask)}")
-    return np.einsum("thw,thw->hw", video, np.asarray(mask, dtype=np.float32), dtype=np.float32)
+    video, mask = np.asanyarray(video), np.asanyarray(mask)
+    if video.shape != mask.shape:
+        raise InputError(f"forward: video shape {video.shape} != mask shape {mask.shape}")
+    n, h, w = video.shape
+    coded = np.empty((h, w), np.float32)
+    # a band of rows at a time: the float32 copies of a band of the mask (and of a video in another type) stay
+    # small (a whole 4K N = 18 mask's copy was a second 600 MB volume); each pixel's sum is the same either way
+    rows = max(1, _BAND_ELEMENTS // max(n * w, 1))
+    for y in range(0, h, rows):
+        band = (slice(None), slice(y, y + rows))
+        np.einsum("thw,thw->hw", np.asarray(video[band], np.float32), np.asarray(mask[band], np.float32),
+                  out=coded[y:y + rows], dtype=np.float32)
+    return coded
+
+
+#: Elements of a band of :func:`forward`'s rows (its float32 copies of the mask and video: 16 MB each).
+_BAND_ELEMENTS = 1 << 22
 
 
 def adjoint(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
