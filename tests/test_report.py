@@ -70,6 +70,15 @@ def test_every_csv_number_is_finite(mini):
         assert [r["scene"] for r in nonlocal_rows] == ["default", "mean"]
         assert all(r["method"] in ("nonlocal", "") and float(r["seconds"]) > 0 for r in nonlocal_rows)
         assert nonlocal_rows[0]["method"] == "nonlocal"
+    # each preset a point of its own (issue 31): fast, default and best, on the scene and as the mean
+    for name in ("fast", "default", "best"):
+        preset_rows = [r for r in rows if r["experiment"] == "speed" and r["label"] == f"preset {name}"]
+        assert [r["scene"] for r in preset_rows] == ["default", "mean"], name
+        assert float(preset_rows[0]["seconds"]) > 0 and float(preset_rows[1]["psnr"]) > 0
+    best = next(r for r in rows if r["label"] == "preset best" and r["scene"] == "default")
+    assert best["method"] == "nonlocal"
+    default = next(r for r in rows if r["label"] == "preset default" and r["scene"] == "default")
+    assert default["method"] == "omp" and float(best["psnr"]) > float(default["psnr"])
     numbers = 0
     for r in rows:
         assert r["psnr"] != ""
@@ -79,6 +88,19 @@ def test_every_csv_number_is_finite(mini):
                 assert math.isfinite(float(r[k])), (k, r)
                 numbers += 1
     assert numbers > 50
+
+
+def test_the_frame_strips_show_the_best_preset(mini):
+    """Beside the truth and the Fig. 7 methods, the frames figure shows --preset best (its volume kept)."""
+    from codedvideo.app.report import Runner, run_experiments
+
+    root, _, _ = mini
+    runner = Runner(load_config(root / "mini.yaml"))
+    results = run_experiments(runner)
+    assert runner.computed == 0  # all from the first run's cache
+    (strip,) = results["strips"]
+    assert strip["label"].startswith("preset best") and strip["scene"] == "default" and strip["method"] == "nonlocal"
+    assert (runner.folder / f"{strip['key']}.npy").exists()
 
 
 def test_second_run_hits_the_cache(mini):

@@ -198,12 +198,24 @@ def _layout(coded, mask) -> tuple[int, int, bool]:
     return count, mask.shape[-3], coded.ndim == 2
 
 
-def _settings(method: str, adapt: bool, workers, noise_sigma: float, scale: float):
+def _settings(options: dict, workers, noise_sigma: float, scale: float):
+    """The ``reconstruct:`` model and OMP settings of a preset's resolved ``options`` (method, adapt, stride, ...)."""
     from codedvideo.engine.config import ReconstructConfig, omp_settings, validated
 
-    rc = validated(ReconstructConfig, dict(method=method if method in ("omp", "nonlocal") else "omp", adapt=adapt,
+    method = options["method"]
+    rc = validated(ReconstructConfig, dict(options, method=method if method in ("omp", "nonlocal") else "omp",
                                            workers=workers))
     return rc, omp_settings(rc, noise_sigma, scale=scale)
+
+
+def _preset(preset: str | None, method: str | None, adapt: bool | None) -> tuple[dict, dict | None]:
+    """The options of ``preset`` with ``method`` and ``adapt`` (None: not given) over them, and the preset's
+    record (:func:`codedvideo.engine.config.preset_record`; a warning says what it left out)."""
+    from codedvideo.engine.config import preset_record, resolve_preset
+
+    given = {k: v for k, v in dict(method=method, adapt=adapt).items() if v is not None}
+    options, left_out = resolve_preset(preset, given)
+    return options, preset_record(preset, options, given, left_out)
 
 
 def _dictionary(method: str, dictionary, frames: int) -> tuple[np.ndarray | None, str, str]:
@@ -229,8 +241,9 @@ def _dictionary(method: str, dictionary, frames: int) -> tuple[np.ndarray | None
     return D, hashlib.sha256(D.tobytes()).hexdigest(), name
 
 
-def reconstruct(coded, mask, *, dictionary=None, method: str = "omp", adapt: bool = False,
-                noise_sigma: float | None = None, data_range: float | None = None, workers: int | None = None,
+def reconstruct(coded, mask, *, dictionary=None, method: str | None = None, adapt: bool | None = None,
+                preset: str | None = None, noise_sigma: float | None = None, data_range: float | None = None,
+                workers: int | None = None,
                 progress: bool = False, cache: str | Path | None = None, independent_captures: bool = False,
                 full_output: bool = False):
     """Coded image(s) -> their video, in the input's units: the command line's ``reconstruct``, on arrays.
@@ -240,8 +253,12 @@ def reconstruct(coded, mask, *, dictionary=None, method: str = "omp", adapt: boo
     coded : ndarray (H, W) for one capture, or (T, H, W) for a stream; or a dask array of either
     mask : ndarray (N, H, W), or (T, N, H, W) for a code per capture
     dictionary : ndarray (N*49, K), a path to a dictionary store, or None for the shipped one for N
-    method : ``omp`` (the paper), ``nonlocal``, or a baseline: ``dct``, ``thinout``, ``interp``, ``gaptv``
-    adapt : adapt the dictionary to each capture's first result, then reconstruct again
+    method : ``omp`` (the paper; the default), ``nonlocal``, or a baseline: ``dct``, ``thinout``, ``interp``,
+        ``gaptv``
+    adapt : adapt the dictionary to each capture's first result, then reconstruct again (default False)
+    preset : ``fast``, ``default`` or ``best``: named settings, as ``--preset``
+        (:data:`codedvideo.engine.config.PRESETS`); ``method`` and ``adapt`` given beside it win, and a setting
+        of the preset the method cannot take is left out with a warning
     noise_sigma : read noise in the input's units (sets the residual tolerance as ``--noise-sigma`` does)
     data_range : the frames' peak value in the input's units; None: found from the values as the CLI does
     workers : threads (default: every core)
@@ -267,8 +284,10 @@ def reconstruct(coded, mask, *, dictionary=None, method: str = "omp", adapt: boo
     """
     from codedvideo.model.units import capture_units
 
+    options, record = _preset(preset, method, adapt)
+    method, adapt = options["method"], options["adapt"]
     if _is_dask(coded):
-        return _reconstruct_lazy(coded, mask, dictionary=dictionary, method=method, adapt=adapt,
+        return _reconstruct_lazy(coded, mask, dictionary=dictionary, method=method, adapt=adapt, preset=preset,
                                  noise_sigma=noise_sigma, data_range=data_range, workers=workers, cache=cache)
     coded = np.asarray(coded)
     mask = np.asarray(mask)
@@ -281,7 +300,7 @@ def reconstruct(coded, mask, *, dictionary=None, method: str = "omp", adapt: boo
     sigma = 0.0 if noise_sigma is None else float(noise_sigma)
     units = capture_units(codeds, mask_of, dtype=coded.dtype, given=data_range, noise_sigma=sigma,
                           where="reconstruct")
-    rc, settings = _settings(method, adapt, workers, sigma, units.scale)
+    rc, settings = _settings(options, workers, sigma, units.scale)
     D, key, name = _dictionary(method, dictionary, n)
     with contextlib.ExitStack() as stack:
         folder = cache if cache is not None else stack.enter_context(tempfile.TemporaryDirectory(prefix="codedvideo-"))
@@ -296,7 +315,7 @@ def reconstruct(coded, mask, *, dictionary=None, method: str = "omp", adapt: boo
         with contextlib.closing(results):
             for i, volume, info in results:
                 out[i * n:(i + 1) * n] = np.asarray(volume)  # (a capture the join kept on disk: read back)
-                infos.append(info)
+                infos.append(dict(info, preset=record) if record else info)
     return Reconstruction(out, units, infos) if full_output else out
 
 
@@ -311,7 +330,7 @@ def _one_capture(block, mask, index, options) -> np.ndarray:
     return reconstruct(np.asarray(block)[0], m, independent_captures=True, **options)
 
 
-def _reconstruct_lazy(coded, mask, *, dictionary, method, adapt, noise_sigma, data_range, workers, cache):
+def _reconstruct_lazy(coded, mask, *, dictionary, method, adapt, preset, noise_sigma, data_range, workers, cache):
     import dask.array as da
 
     from codedvideo.model.units import capture_units
@@ -326,7 +345,7 @@ def _reconstruct_lazy(coded, mask, *, dictionary, method, adapt, noise_sigma, da
                                    dtype=stack.dtype, noise_sigma=noise_sigma or 0.0, where="reconstruct").value
     if dictionary is None and method in ("omp", "nonlocal"):
         dictionary = load_dictionary(n)
-    options = dict(dictionary=dictionary, method=method, adapt=adapt, noise_sigma=noise_sigma,
+    options = dict(dictionary=dictionary, method=method, adapt=adapt, preset=preset, noise_sigma=noise_sigma,
                    data_range=data_range, workers=1 if workers is None else workers, cache=cache)
     stack = stack.rechunk((1, -1, -1))
     h, w = stack.shape[-2:]

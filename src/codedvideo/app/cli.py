@@ -31,8 +31,9 @@ from codedvideo.solvers.baselines import METHODS
 from codedvideo.engine.bayer import PATTERNS as BAYER_PATTERNS
 from codedvideo.model.codes import CODE_NAMES
 from codedvideo.engine.config import (
-    BUMP_CODES, P_CODES, CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig, ReconstructConfig,
-    SceneConfig, check_scheduler, load_config, omp_settings, validated,
+    BUMP_CODES, P_CODES, PRESET_KEYS, PRESETS, CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig,
+    ReconstructConfig, SceneConfig, check_scheduler, load_config, omp_settings, preset_options, preset_record,
+    resolve_preset, validated,
 )
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.formats.outputs import Output, check_outputs, mark_written
@@ -142,11 +143,14 @@ def _parser() -> argparse.ArgumentParser:
                    help="the coded image is a Bayer mosaic (RGGB, BGGR, GRBG, GBRG): write the colour video (3, N, H, W)")
     r.add_argument("--dictionary", default=None,
                    help="dictionary store (.zarr) for --method omp (default: the one shipped for the mask's N)")
-    r.add_argument("--method", choices=METHODS, default="omp",
+    r.add_argument("--preset", choices=tuple(PRESETS), default=None,
+                   help="named settings: fast (" + preset_options("fast") + "), default (the paper's method), best ("
+                        + preset_options("best") + "); an option given beside it wins (docs/quality.md, Presets)")
+    r.add_argument("--method", choices=METHODS, default=None,
                    help="omp: learned dictionary, every patch on its own (default); nonlocal: then groups of "
                         "similar patches solved together under their own codes (better, about 4x the time); "
                         "dct: 3D DCT dictionary, same OMP; thinout, interp, gaptv: baselines (see README)")
-    r.add_argument("--adapt", action="store_true",
+    r.add_argument("--adapt", action="store_true", default=None,
                    help="adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, "
                         "reconstruct again with it (omp, nonlocal, dct; omp: about twice the time; nonlocal: a sparse survey "
                         "first, about 1.2x nonlocal's time, +0.6 dB on real footage)")
@@ -155,7 +159,7 @@ def _parser() -> argparse.ArgumentParser:
                         "suffix (or ending .d): a folder of 16-bit TIFF frames (--cacti: all measurements, time-first)")
     r.add_argument("--truth", default=None,
                    help="ground truth for PSNR/SSIM in the metrics: (T*N, H, W) frames, (3, N, H, W) for colour")
-    r.add_argument("--max-atoms", type=int, default=PipelineConfig().reconstruct.max_atoms,
+    r.add_argument("--max-atoms", type=int, default=None,
                    help=f"OMP's atoms per patch at most (default {PipelineConfig().reconstruct.max_atoms})")
     r.add_argument("--tol-rms", type=float, default=None, help="residual tolerance, RMS per pixel (default: from --noise-sigma)")
     r.add_argument("--noise-sigma", type=float, default=0.0, help="read noise of the capture, grey levels")
@@ -170,8 +174,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="defective pixels, missing measurements: text rows 'y x', or .npy (K, 2) or an (H, W) map")
     r.add_argument("--detect-bad-pixels", action="store_true",
                    help="find hot or dead pixels as outliers against their neighbourhood (across all captures)")
-    r.add_argument("--stride", type=int, default=PipelineConfig().reconstruct.stride,
-                   help="patch stride 1..7: 1 solves every overlapping patch (the paper), s about s*s times fewer")
+    r.add_argument("--stride", type=int, default=None,
+                   help="patch stride 1..7: 1 solves every overlapping patch (the paper, the default), s about s*s "
+                        "times fewer")
     r.add_argument("--weighting", choices=("uniform", "fit"), default=PipelineConfig().reconstruct.weighting,
                    help="average of overlapping estimates: uniform (the paper) or weighted by each patch's misfit")
     r.add_argument("--static-atoms", type=int, default=PipelineConfig().reconstruct.static_atoms,
@@ -399,8 +404,10 @@ _RECONSTRUCT_OPTIONS = {"sigma": "--noise-sigma", "data_range": "--data-range"}
 def _reconstruct_options(a):
     """Validate reconstruct's options and its outputs before any work.
 
-    Returns ``(rc, noise, out)``: the ``reconstruct:`` model, the noise
-    model (sigma, white level) and the output model (fps, data range).
+    Returns ``(rc, noise, out, preset)``: the ``reconstruct:`` model, the noise
+    model (sigma, white level), the output model (fps, data range) and what the
+    metrics say of ``--preset`` (None without one).  The options a preset sets
+    (:data:`~codedvideo.engine.config.PRESETS`) are set on ``a`` as resolved.
     """
     from codedvideo.data import shipped
     from codedvideo.formats.io import check_cache, gif_rate_problem
@@ -410,6 +417,11 @@ def _reconstruct_options(a):
         raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
     if a.measurement is not None and not a.cacti:
         raise InputError("reconstruct: --measurement applies to --cacti only")
+    given = {k: getattr(a, k) for k in PRESET_KEYS if getattr(a, k) is not None}
+    options, left_out = resolve_preset(a.preset, given, bayer=a.bayer)  # (an option given and refused: an error)
+    for key, value in options.items():
+        setattr(a, key, value)
+    preset = preset_record(a.preset, options, given, left_out)
     if a.dictionary and a.method not in ("omp", "nonlocal"):
         raise ConfigError(f"option --dictionary {a.dictionary}: used by --method omp and nonlocal only "
                           f"(--method {a.method} {'has its own DCT atoms' if a.method == 'dct' else 'has no dictionary'})")
@@ -418,12 +430,6 @@ def _reconstruct_options(a):
                          "(drop --coded, --mask and --truth)")
     if a.cacti and a.color != "luma":
         raise InputError(f"reconstruct --cacti {a.cacti}: CACTI files are grey; --color channels does not apply")
-    if a.adapt and a.method not in ("omp", "nonlocal", "dct"):
-        raise ConfigError(f"option --adapt: adapts the dictionary of --method omp, nonlocal or dct (--method {a.method} "
-                          "has none)")
-    if a.adapt and a.bayer:
-        raise ConfigError(f"option --adapt: not available with --bayer {a.bayer} (its colour dictionary is lifted from "
-                          "the grey one)")
     if a.bayer and (a.cacti or a.color != "luma"):
         raise InputError(f"reconstruct --bayer {a.bayer}: reads one single-channel mosaic (--coded); "
                          f"{'--cacti' if a.cacti else '--color channels'} does not apply")
@@ -443,7 +449,7 @@ def _reconstruct_options(a):
                   overwrite=a.overwrite)
     check_cache(a.cache)
     check_scheduler(rc.scheduler)
-    return rc, noise, out
+    return rc, noise, out, preset
 
 
 @dataclasses.dataclass
@@ -583,7 +589,7 @@ def _cmd_reconstruct(a) -> int:
     from codedvideo.engine.stages import SPARSE_METHODS, cache_room, reconstruct_stream, trivial_estimate
     from codedvideo.model.units import capture_units, tolerance_warning
 
-    rc, noise, out = _reconstruct_options(a)  # before any work
+    rc, noise, out, preset = _reconstruct_options(a)  # before any work
     t_all = t0 = time.perf_counter()
     job = _read_captures(a)
     count, n = len(job.labels), job.masks[0].shape[0]
@@ -672,7 +678,7 @@ def _cmd_reconstruct(a) -> int:
         settings=dict(settings.__dict__, tol_rms=settings.tol_rms / units.scale, method=a.method, adapt=rc.adapt,
                       tile=rc.tile, scheduler=rc.scheduler, workers=rc.workers,
                       dictionary_atoms=entries[0]["reconstruction"].get("dictionary_atoms")),
-        data_range=units.as_dict(),
+        data_range=units.as_dict(), preset=preset,
     )
     if cuts is not None:  # the boundaries not joined, and why (each was asked by the join already)
         metrics["cuts"] = [dict(c, captures=[job.labels[c["boundary"] + d].get("capture", c["boundary"] + d + 1)

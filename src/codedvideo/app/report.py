@@ -44,7 +44,8 @@ import numpy as np
 
 from codedvideo.solvers import baselines
 from codedvideo.formats import io as cio
-from codedvideo.engine.config import PipelineConfig, auto_tolerance, omp_settings
+from codedvideo.engine.config import (PRESETS, PipelineConfig, auto_tolerance, omp_settings, preset_options,
+                                      resolve_preset)
 from codedvideo.model.metrics import evaluate
 from codedvideo.model.errors import InputError
 from codedvideo.engine.cache import RECON_VERSION, content_key, report_record_problem
@@ -232,7 +233,7 @@ def run_experiments(runner: Runner) -> dict:
     """Every experiment of the report; returns the records grouped by experiment."""
     rc = runner.cfg.report
     n, L = rc.frames, rc.bump
-    out: dict = dict(table1=[], fig7=[], fig4=[], speed=[])
+    out: dict = dict(table1=[], fig7=[], fig4=[], speed=[], strips=[])
     for bump in rc.table_bumps:
         for sigma in rc.table_sigmas:
             for scene in rc.scenes:
@@ -270,6 +271,16 @@ def run_experiments(runner: Runner) -> dict:
                              atoms=v.get("atoms"), stride=v.get("stride"), timed=True, adapt=v.get("adapt", False))
             name = "OMP" if v["method"] == "omp" else "non-local OMP"
             out["speed"].append(dict(rec, label=f"{name} {v['label']}", in_mean=True))
+    for name in PRESETS:  # each preset a point (the same experiment as a variant above is reused from the cache)
+        o, _ = resolve_preset(name, {})
+        for scene in rc.scenes + ([rc.video_scene] if name == "best" and rc.video_scene not in rc.scenes else []):
+            keep = name == "best" and scene == rc.video_scene  # best's frames beside the baselines' (the strips)
+            rec = runner.run(scene=scene, frames=n, code="hitomi", bump=L, sigma=0.0, method=o["method"],
+                             max_atoms=o["max_atoms"], stride=o["stride"], adapt=o["adapt"], timed=True, keep=keep)
+            if scene in rc.scenes:
+                out["speed"].append(dict(rec, label=f"preset {name}", in_mean=True))
+            if keep:
+                out["strips"].append(dict(rec, label=f"preset best ({preset_options(name)})"))
     return out
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from codedvideo.engine.config import PRESETS, preset_options
 from codedvideo.formats import io as cio
 from codedvideo.engine.stages import simulate_capture
 
@@ -83,7 +84,8 @@ def fig_speed(summary: dict, folder: Path) -> str:
     for ax, metric, unit in ((axes[0], "psnr", "PSNR (dB)"), (axes[1], "ssim", "SSIM")):
         colours = plt.get_cmap("tab20")
         for i, (label, v) in enumerate(items):
-            ax.plot(v["seconds"], v[metric], "o" if label.startswith("OMP") else "s", color=colours(i % 20), label=label)
+            marker = "o" if label.startswith("OMP") else "*" if label.startswith("preset") else "s"
+            ax.plot(v["seconds"], v[metric], marker, color=colours(i % 20), label=label, ms=11 if marker == "*" else 6)
         front = sorted((v["seconds"], v[metric]) for _, v in items if v[f"pareto_{metric}"])
         ax.step([t for t, _ in front], [q for _, q in front], "k--", where="post", lw=1, label="Pareto front")
         ax.set_xscale("log")
@@ -117,6 +119,7 @@ def fig_fig4(runner, results: dict, rc, folder: Path) -> str:
 def fig_strips(runner, results: dict, rc, folder: Path) -> str:
     plt = _plt()
     recs = [r for r in results["fig7"] if r["scene"] == rc.video_scene and r["frames"] == rc.frames]
+    recs += results.get("strips", [])  # the best preset's frames beside them
     truth = runner.video(rc.video_scene, rc.frames)
     idx = sorted({int(round(x)) for x in np.linspace(0, rc.frames - 1, min(rc.frames, 4))})
     rows = [("truth", truth)] + [(f"{r['label']}".replace(" (", "\n(") + f"\n{r['psnr']:.2f} dB", _volume(runner, r))
@@ -219,6 +222,7 @@ def write_report(cfg, runner, results: dict, summary: dict, *, seconds: float) -
     dict_desc = (f"K-SVD, {runner.main_atoms()} atoms, {d.dictionary.samples} samples, {d.dictionary.iterations} "
                  f"iterations, trained on synth:train (training photographs only), one per N")
     r = cfg.reconstruct
+    presets = "; ".join(f"{name}: {preset_options(name) or 'the defaults'}" for name in PRESETS)
     t1_html = _table(["L \\ sigma"] + [f"{s:g}" for s in rc.table_sigmas], t1_rows)
     page = f"""<!doctype html><html><head><meta charset="utf-8"><title>codedvideo report</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto;line-height:1.4}}
@@ -247,7 +251,8 @@ tens of percent); OMP and DCT run through the Dask tile graph, the baselines in 
 <h2>Error against run time, N = {rc.frames}</h2>
 <p>Every method on its natural code (the baselines' points are the Fig. 7 runs at N = {rc.frames}), and OMP with
 one setting changed at a time from max_atoms {r.max_atoms}, tol_rms 2, {runner.main_atoms()} atoms, hitomi (sliding)
-code (patch stride {r.stride}). Dashed: the Pareto front (no other point is both faster and better).</p>
+code (patch stride {r.stride}); "preset NAME" is <code>--preset NAME</code> ({html.escape(presets)}). Dashed: the
+Pareto front (no other point is both faster and better).</p>
 {_table(["method / setting", "seconds", "PSNR (dB)", "SSIM", "Pareto (PSNR)", "Pareto (SSIM)"], sp_rows)}
 {_img(f_sp, "error against run time")}
 <h2>Frames: {rc.video_scene}, N = {rc.frames}</h2>

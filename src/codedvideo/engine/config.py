@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -168,7 +169,26 @@ class DictionaryConfig(_Strict):
         return self
 
 
+#: The named settings of ``reconstruct`` (issue 31): ``--preset``, ``reconstruct.preset`` in pipeline.yaml and
+#: ``codedvideo.reconstruct(preset=...)``, each the ``reconstruct:`` keys it sets (the rest keep their defaults).
+#: A key given beside a preset wins over it.  Measured on held-out real footage: docs/quality.md, "Presets".
+PRESETS: dict[str, dict] = {
+    # the best mean PSNR among the settings measured at most about 0.6x the default's whole-process time
+    "fast": dict(stride=2),
+    # the paper's method, the defaults: nothing changed
+    "default": {},
+    # the best quality measured (GAP-TV + 3.67 dB on the 24 held-out real cases, 4.8x the default's time)
+    "best": dict(method="nonlocal", adapt=True),
+}
+#: The names of :data:`PRESETS` (a test keeps them equal).
+PresetName = Literal["fast", "default", "best"]
+#: The keys a preset may set, and the options that give them on the command line.
+PRESET_KEYS = {"method": "--method", "adapt": "--adapt", "stride": "--stride", "max_atoms": "--max-atoms"}
+
+
 class ReconstructConfig(_Strict):
+    #: Named settings (:data:`PRESETS`): the keys it sets unless given here (null: none).
+    preset: PresetName | None = None
     max_atoms: int = Field(8, ge=1, le=49)
     #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
     tol_rms: Annotated[float, Field(ge=0, le=LEVEL_MAX)] | Literal["auto"] = "auto"  # (also within 1e6 data ranges)
@@ -194,6 +214,22 @@ class ReconstructConfig(_Strict):
     #: A long coded video makes a store per capture (about 550 MB each at 3840x2160, N = 18): the stores least
     #: recently used are removed as the job goes (a rerun computes their tiles again).
     cache_budget: int | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _preset(cls, data):
+        """A preset's keys under those given beside it (an explicit key wins); an unknown name is left to the
+        field's own check, which names the allowed ones."""
+        if isinstance(data, dict) and isinstance(data.get("preset"), str) and data["preset"] in PRESETS:
+            return {**PRESETS[data["preset"]], **data}
+        return data
+
+    def preset_used(self) -> dict | None:
+        """What the metrics say of this section's preset (:func:`preset_record`; None: no preset): the keys set
+        beside it are those that differ from the preset's (or that it does not set)."""
+        sets = PRESETS.get(self.preset, {})
+        beside = [k for k in PRESET_KEYS if k in self.model_fields_set and (k not in sets or sets[k] != getattr(self, k))]
+        return preset_record(self.preset, {k: getattr(self, k) for k in PRESET_KEYS}, beside)
 
     @field_validator("cache_budget", mode="before")
     @classmethod
@@ -409,6 +445,75 @@ def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
                        stride=rc.stride, weighting=rc.weighting, method=rc.method)
 
 
+def _refusal(key: str, options: dict, bayer: str | None) -> str | None:
+    """Why the value of ``key`` in ``options`` cannot be used in a run (None: it can): ``adapt`` needs a method
+    with a dictionary and no Bayer mosaic, the non-local method no Bayer mosaic."""
+    method = options["method"]
+    if key == "method" and method == "nonlocal" and bayer:
+        return f"not available with --bayer {bayer} (the colour video is solved patch by patch)"
+    if key == "adapt" and options["adapt"]:
+        if method not in ("omp", "nonlocal", "dct"):
+            return f"adapts the dictionary of --method omp, nonlocal or dct (--method {method} has none)"
+        if bayer:
+            return f"not available with --bayer {bayer} (its colour dictionary is lifted from the grey one)"
+    return None
+
+
+def as_option(key: str, value) -> str:
+    """A preset's key as the command line gives it: ``--adapt``, ``--method nonlocal``."""
+    return PRESET_KEYS[key] + ("" if value is True else f" {value}")
+
+
+def preset_options(name: str) -> str:
+    """Preset ``name``'s options as the command line gives them (``--method nonlocal --adapt``)."""
+    return " ".join(as_option(k, v) for k, v in PRESETS[name].items())
+
+
+def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None) -> tuple[dict, dict[str, str]]:
+    """The values of :data:`PRESET_KEYS` for a run: those ``given`` beside the preset, then preset ``name``'s
+    (None: no preset), then the defaults of ``reconstruct:``.
+
+    An option given that the run cannot take raises :class:`ConfigError` naming it, with or without a
+    preset.  One the preset set is left out instead (its default taken): ``best`` with ``--bayer`` gives the
+    per-patch OMP that a Bayer mosaic allows rather than failing.
+
+    Returns
+    -------
+    options : dict
+        Every key of :data:`PRESET_KEYS` and its value.
+    left_out : dict
+        The preset's keys left out, each with the reason (empty: none).
+    """
+    if name is not None and name not in PRESETS:
+        raise ConfigError(f"preset {name!r}: unknown; choose one of {', '.join(PRESETS)}")
+    defaults = {k: ReconstructConfig.model_fields[k].default for k in PRESET_KEYS}
+    options = {**defaults, **(PRESETS[name] if name else {}), **given}
+    left_out = {}
+    for key in PRESET_KEYS:  # method before adapt: adapt may be refused with the method left
+        problem = _refusal(key, options, bayer)
+        if problem is None:
+            continue
+        if key in given:
+            raise ConfigError(f"option {as_option(key, given[key])}: {problem}")
+        options[key] = defaults[key]
+        left_out[key] = problem
+    return options, left_out
+
+
+def preset_record(name: str | None, options: dict, given=(), left_out: dict | None = None) -> dict | None:
+    """What the metrics JSON says of a run's preset (None: no preset): its name, the options it resolved to, the
+    keys given beside it, and the preset's keys left out with their reasons.  With ``left_out`` a warning says
+    so, once."""
+    if name is None:
+        return None
+    if left_out:
+        warnings.warn(f"preset {name}: " + "; ".join(f"{as_option(k, PRESETS[name][k])} is left out: {why}"
+                                                     for k, why in left_out.items())
+                      + "; the defaults are taken in their place (preset.left_out in the metrics)", stacklevel=2)
+    return dict(name=name, options={k: options[k] for k in PRESET_KEYS}, given=sorted(given),
+                left_out=dict(left_out or {}))
+
+
 def auto_tolerance(sigma: float) -> float:
     """Default RMS residual tolerance of Eq. 3 for read noise ``sigma``, both in working units (data range 255).
 
@@ -522,7 +627,7 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
         raise ConfigError(f"config {path}: expected a mapping at the top level")
     try:
         # JSON mode: YAML lists are valid tuples, and strict types still apply
-        return PipelineConfig.model_validate_json(json.dumps(raw, default=str), context=dict(use=use))
+        cfg = PipelineConfig.model_validate_json(json.dumps(raw, default=str), context=dict(use=use))
     except ValidationError as exc:
         msg, err = _first_error(exc, PipelineConfig)
         # the location without pydantic's names of union branches ("constrained-float", ...)
@@ -531,6 +636,14 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
         value = "" if err["type"] == "extra_forbidden" or isinstance(err.get("input"), dict) \
             else f" = {err.get('input')!r}"
         raise ConfigError(f"config {path}: {where}{value}: {msg.removeprefix('Value error, ')}") from exc
+    name, section = cfg.reconstruct.preset, raw.get("reconstruct")
+    beside = {k: v for k, v in section.items() if k in PRESETS.get(name, {}) and v != PRESETS[name][k]} \
+        if name and isinstance(section, dict) else {}
+    if beside:  # (a pipeline.yaml that lists every key at its default would leave the preset nothing to set)
+        warnings.warn(f"config {path}: " + ", ".join(f"reconstruct.{k} {v}" for k, v in beside.items())
+                      + f" given beside reconstruct.preset {name} {'wins' if len(beside) == 1 else 'win'} over the "
+                      + "preset's " + ", ".join(f"{PRESETS[name][k]}" for k in beside), stacklevel=2)
+    return cfg
 
 
 def validated(model: type[BaseModel], values: dict, options: dict[str, str] | None = None):

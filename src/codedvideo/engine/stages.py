@@ -1064,6 +1064,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         from codedvideo.model.units import capture_units
 
         rc = cfg.reconstruct
+        report["preset"] = rc.preset_used()
         sensor = sensor_model(cfg.noise)
         # with shot noise / quantisation: the RMS noise at the mean coded level
         sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma

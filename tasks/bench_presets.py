@@ -1,0 +1,234 @@
+"""Issue 31: `reconstruct --preset fast|default|best` as whole CLI processes on held-out real footage.
+
+Two parts, each a whole ``codedvideo reconstruct`` process per run, each into a fresh cache folder,
+on the 256x256 N = 8 captures of ``footage:bikes-a``, ``bikes-b``, ``carphone`` and ``bunny``
+under a hitomi L = 2 and a Bernoulli(0.5) code, without noise:
+
+  --candidates   the settings `fast` was chosen among (``FAST_CANDIDATES``) beside the default, 8-bit
+                 captures, the median of ``--repeats`` runs a case (the runs of a case interleaved);
+                 the choice: the highest mean PSNR among those at most about ``FAST_BUDGET`` of the
+                 default's mean whole-process time (:func:`choose_fast`)
+  (default)      GAP-TV, ``--preset fast``, ``--preset default`` and ``--preset best``, each capture in
+                 8-bit units and again as [0, 1] float32 files (capture and truth / 255): PSNR and SSIM
+                 from the run's metrics JSON (``--truth``), and seconds
+
+Results go to bench/results/presets.json (each part kept when the other is run) and a table is printed.
+
+    python tasks/bench_presets.py [--candidates] [--repeats R] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tasks"))
+from bench import _cli  # noqa: E402
+
+RESULTS = ROOT / "bench" / "results"
+SCENES = ("footage:bikes-a", "footage:bikes-b", "footage:carphone", "footage:bunny")
+CODES = ("hitomi", "bernoulli")  # hitomi with L = 2; Bernoulli with p = 0.5
+#: What `fast` was chosen among (the options of each), beside the default.
+FAST_CANDIDATES = {
+    "stride 2": ("--stride", "2"),
+    "stride 3": ("--stride", "3"),
+    "max-atoms 4": ("--max-atoms", "4"),
+    "stride 2, max-atoms 6": ("--stride", "2", "--max-atoms", "6"),
+}
+#: `fast` is the best of the candidates that take at most about this share of the default's whole-process time
+#: ("about": up to ``FAST_ABOUT`` times it; measured, none of the four was within 0.6x itself, stride 3 at 0.62 to
+#: 0.63x and stride 2 at 0.66x, 0.7 dB better: docs/quality.md, "Presets").
+FAST_BUDGET = 0.6
+FAST_ABOUT = 1.1
+#: The runs of the preset table: GAP-TV and the three presets.
+PRESET_RUNS = {
+    "gaptv": ("--method", "gaptv"),
+    "fast": ("--preset", "fast"),
+    "default": ("--preset", "default"),
+    "best": ("--preset", "best"),
+}
+#: The target of one 256x256 N = 8 `--preset best` whole process, seconds.
+BEST_TARGET = 30.0
+
+
+def write_captures(folder: Path, size) -> list[dict]:
+    """Each case's capture, mask and truth in 8-bit units and as [0, 1] floats: a dict of paths per case."""
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.stages import simulate_capture
+
+    cases = []
+    for scene in SCENES:
+        video = load_video(scene, frames=8, size=size)
+        for code in CODES:
+            cap = simulate_capture(video, code=code, bump=2, sigma=0.0, seed=0)
+            where = folder / f"{scene.split(':')[1]}-{code}"
+            where.mkdir(parents=True)
+            np.save(where / "mask.npy", cap["mask"])
+            for units, scale in (("8-bit", 1.0), ("[0, 1]", 255.0)):
+                tag = "8" if scale == 1.0 else "01"
+                np.save(where / f"coded{tag}.npy", (cap["coded"] / np.float32(scale)).astype(np.float32))
+                np.save(where / f"truth{tag}.npy", (cap["truth"] / np.float32(scale)).astype(np.float32))
+            cases.append(dict(scene=scene, code=code, folder=where))
+    return cases
+
+
+def reconstruct(case: dict, options, *, units: str, work: Path) -> dict:
+    """One whole ``codedvideo reconstruct`` process into a fresh cache: seconds, PSNR, SSIM (metrics JSON)."""
+    tag = "8" if units == "8-bit" else "01"
+    folder = case["folder"]
+    cache = work / "cache"
+    shutil.rmtree(cache, ignore_errors=True)
+    out = work / "r.npy"
+    seconds, peak = _cli("reconstruct", "--coded", folder / f"coded{tag}.npy", "--mask", folder / "mask.npy",
+                         "--truth", folder / f"truth{tag}.npy", "--cache", cache, "--overwrite", *options,
+                         "--output", out, cwd=ROOT)
+    metrics = json.loads((work / "r.metrics.json").read_text())
+    shutil.rmtree(cache, ignore_errors=True)
+    return dict(seconds=seconds, psnr=metrics["quality"]["psnr"], ssim=metrics["quality"]["ssim"],
+                data_range=metrics["data_range"]["value"], peak_rss_mb=peak,
+                settings={k: metrics["settings"].get(k) for k in ("method", "adapt", "stride", "max_atoms")},
+                preset=metrics.get("preset"))
+
+
+def warm_up(work: Path) -> None:
+    """One small run of each method first: the compiled kernels' on-disk caches filled outside the timings."""
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.stages import simulate_capture
+
+    cap = simulate_capture(load_video("footage:carphone", frames=8, size=(32, 32)), code="hitomi", bump=2, sigma=0.0,
+                           seed=0)
+    folder = work / "warm"
+    folder.mkdir()
+    for name in ("coded", "mask", "truth"):
+        np.save(folder / (name + ("8" if name != "mask" else "") + ".npy"), cap[name])
+    for options in (("--method", "nonlocal", "--adapt"), ("--method", "gaptv"), ()):
+        reconstruct(dict(folder=folder), options, units="8-bit", work=work)
+
+
+def _mean(rows: list[dict], label: str, key: str) -> float:
+    return float(np.mean([r[label][key] for r in rows]))
+
+
+def candidates(cases: list[dict], work: Path, repeats: int) -> dict:
+    """The default and every candidate of `fast` on the 8-bit captures; the median seconds of ``repeats``."""
+    runs = {"default": (), **FAST_CANDIDATES}
+    rows = []
+    for case in cases:
+        times = {label: [] for label in runs}
+        row = dict(scene=case["scene"], code=case["code"])
+        for _ in range(repeats):  # interleaved: a busy spell of the machine falls on every setting alike
+            for label, options in runs.items():
+                result = reconstruct(case, options, units="8-bit", work=work)
+                times[label].append(result["seconds"])
+                row[label] = dict(result, seconds_runs=times[label])
+        for label in runs:
+            row[label]["seconds"] = float(np.median(times[label]))
+        rows.append(row)
+        print(f"  {case['scene']} {case['code']}: " + ", ".join(
+            f"{k} {row[k]['psnr']:.2f} dB {row[k]['seconds']:.2f} s" for k in runs), file=sys.stderr, flush=True)
+    base = _mean(rows, "default", "seconds")
+    summary = {label: dict(psnr=_mean(rows, label, "psnr"), ssim=_mean(rows, label, "ssim"),
+                           seconds=_mean(rows, label, "seconds"), of_default=_mean(rows, label, "seconds") / base)
+               for label in runs}
+    return dict(rows=rows, summary=summary, budget=FAST_BUDGET, budget_about=FAST_BUDGET * FAST_ABOUT,
+                chosen=choose_fast(summary), repeats=repeats, options={k: list(v) for k, v in FAST_CANDIDATES.items()})
+
+
+def choose_fast(summary: dict) -> str | None:
+    """The candidate of the highest mean PSNR among those at most about ``FAST_BUDGET`` of the default's time."""
+    within = [k for k in FAST_CANDIDATES if summary[k]["of_default"] <= FAST_BUDGET * FAST_ABOUT]
+    return max(within, key=lambda k: summary[k]["psnr"]) if within else None
+
+
+def presets(cases: list[dict], work: Path) -> dict:
+    """GAP-TV and the three presets, 8-bit and [0, 1] captures, one run each."""
+    rows = []
+    for case in cases:
+        for units in ("8-bit", "[0, 1]"):
+            row = dict(scene=case["scene"], code=case["code"], units=units)
+            for label, options in PRESET_RUNS.items():
+                row[label] = reconstruct(case, options, units=units, work=work)
+            rows.append(row)
+            print(f"  {case['scene']} {case['code']} ({units}): " + ", ".join(
+                f"{k} {row[k]['psnr']:.2f} dB {row[k]['seconds']:.2f} s" for k in PRESET_RUNS), file=sys.stderr,
+                flush=True)
+    summary = {}
+    for units in ("8-bit", "[0, 1]"):
+        sel = [r for r in rows if r["units"] == units]
+        base = _mean(sel, "default", "seconds")
+        summary[units] = {label: dict(psnr=_mean(sel, label, "psnr"), ssim=_mean(sel, label, "ssim"),
+                                      seconds=_mean(sel, label, "seconds"),
+                                      of_default=_mean(sel, label, "seconds") / base,
+                                      over_gaptv=_mean(sel, label, "psnr") - _mean(sel, "gaptv", "psnr"))
+                          for label in PRESET_RUNS}
+    slowest_best = max(r["best"]["seconds"] for r in rows)
+    return dict(rows=rows, summary=summary, best_seconds_max=slowest_best, best_target_seconds=BEST_TARGET)
+
+
+def table(results: dict) -> str:
+    lines = []
+    c = results.get("candidates")
+    if c:
+        lines.append(f"fast, candidates ({len(c['rows'])} cases, 8-bit, median of {c['repeats']} whole processes; "
+                     f"budget about {c['budget']:g}x the default's time, up to {c['budget'] * FAST_ABOUT:.2f}x):")
+        lines.append(f"  {'setting':<24}{'PSNR dB':>9}{'SSIM':>8}{'seconds':>9}{'x default':>11}")
+        for label, v in c["summary"].items():
+            lines.append(f"  {label:<24}{v['psnr']:>9.2f}{v['ssim']:>8.4f}{v['seconds']:>9.2f}{v['of_default']:>11.2f}")
+        lines.append(f"  chosen: {c['chosen']}")
+    p = results.get("presets")
+    if p:
+        lines.append(f"presets ({len(p['rows']) // 2} cases; whole processes, one run each):")
+        lines.append(f"  {'':<10}{'units':<8}{'PSNR dB':>9}{'SSIM':>8}{'seconds':>9}{'x default':>11}{'- GAP-TV':>10}")
+        for units, summary in p["summary"].items():
+            for label, v in summary.items():
+                lines.append(f"  {label:<10}{units:<8}{v['psnr']:>9.2f}{v['ssim']:>8.4f}{v['seconds']:>9.2f}"
+                             f"{v['of_default']:>11.2f}{v['over_gaptv']:>+10.2f}")
+        for r in p["rows"]:
+            lines.append(f"  {r['scene']:<18}{r['code']:<10}{r['units']:<8}" + "  ".join(
+                f"{k} {r[k]['psnr']:.2f}/{r[k]['ssim']:.4f}/{r[k]['seconds']:.2f}s" for k in PRESET_RUNS))
+        lines.append(f"  --preset best, slowest 256x256 N = 8 process: {p['best_seconds_max']:.2f} s "
+                     f"(target {p['best_target_seconds']:g} s: {'met' if p['best_seconds_max'] <= BEST_TARGET else 'NOT met'})")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--candidates", action="store_true", help="measure the settings `fast` is chosen among")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of each candidate a case (the median is kept)")
+    ap.add_argument("--quick", action="store_true", help="96x96 crops, one case (a smoke run; not saved)")
+    a = ap.parse_args()
+    (ROOT / "cache").mkdir(exist_ok=True)
+    size = (96, 96) if a.quick else (256, 256)
+    path = RESULTS / "presets.json"
+    results = json.loads(path.read_text()) if path.exists() and not a.quick else {}
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache", prefix="bench-presets-") as tmp:
+        work = Path(tmp)
+        cases = write_captures(work / "captures", size)[: 1 if a.quick else None]
+        warm_up(work)
+        part = "candidates" if a.candidates else "presets"
+        result = candidates(cases, work, a.repeats) if a.candidates else presets(cases, work)
+    result.update(date=time.strftime("%Y-%m-%d %H:%M:%S"), size=list(size), frames=8,
+                  machine=dict(platform=platform.platform(), cpus=os.cpu_count(), python=platform.python_version(),
+                               load_average=os.getloadavg()))
+    results[part] = result
+    if not a.quick:
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(results, indent=2, default=str) + "\n")
+    print(table({part: result}))
+    if not a.quick:
+        print(f"results: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

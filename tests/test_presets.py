@@ -1,0 +1,174 @@
+"""`reconstruct --preset fast|default|best` (issue 31): one table for the command line, pipeline.yaml and the API;
+options given beside a preset win; a preset's setting the run cannot take is left out with a warning."""
+import json
+import warnings
+from typing import get_args
+
+import numpy as np
+import pytest
+
+import codedvideo as cv
+from codedvideo.app.cli import main
+from codedvideo.engine.config import (PRESET_KEYS, PRESETS, PresetName, ReconstructConfig, load_config,
+                                      resolve_preset)
+from codedvideo.model.errors import ConfigError
+
+
+def _run(capsys, *args) -> tuple[int, str]:
+    capsys.readouterr()
+    rc = main(["-q", *map(str, args)])
+    return rc, capsys.readouterr().err.strip()
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    work = tmp_path_factory.mktemp("presets")
+    assert main(["-q", "simulate", "synth:default", "--frames", "8", "--bump", "2", "--size", "64", "64", "--seed",
+                 "0", "--output", str(work / "sim")]) == 0
+    return work
+
+
+def reconstruct(capsys, capture, name: str, *options) -> tuple[np.ndarray, dict, str]:
+    """``reconstruct`` of the module's capture into its own fresh cache: the frames, the metrics and stderr."""
+    sim = capture / "sim"
+    rc, err = _run(capsys, "reconstruct", "--coded", sim / "coded.npy", "--mask", sim / "mask.npy", "--truth",
+                   sim / "truth.npy", "--cache", capture / f"cache-{name}", "--tile", 32, "--output",
+                   capture / f"{name}.npy", *options)
+    assert rc == 0, err
+    return np.load(capture / f"{name}.npy"), json.loads((capture / f"{name}.metrics.json").read_text()), err
+
+
+def test_each_preset_resolves_to_its_options_in_every_front_end():
+    assert get_args(PresetName) == tuple(PRESETS)
+    defaults = ReconstructConfig()
+    assert resolve_preset("default", {}) == ({k: getattr(defaults, k) for k in PRESET_KEYS}, {})
+    assert resolve_preset(None, {}) == resolve_preset("default", {})
+    best, left_out = resolve_preset("best", {})
+    assert best["method"] == "nonlocal" and best["adapt"] is True and not left_out
+    fast, _ = resolve_preset("fast", {})
+    assert fast != resolve_preset("default", {})[0] and fast["method"] == "omp" and not fast["adapt"]
+    for name in PRESETS:  # pipeline.yaml's section resolves as the command line and the API do
+        section = ReconstructConfig.model_validate(dict(preset=name))
+        assert {k: getattr(section, k) for k in PRESET_KEYS} == resolve_preset(name, {})[0], name
+        assert section.preset_used()["options"] == resolve_preset(name, {})[0]
+    with pytest.raises(ConfigError, match="preset 'quick'"):
+        resolve_preset("quick", {})
+
+
+def test_options_given_beside_a_preset_win(tmp_path, capsys, capture):
+    options, left_out = resolve_preset("best", dict(method="omp"))
+    assert options["method"] == "omp" and options["adapt"] is True and not left_out
+    assert resolve_preset("fast", dict(stride=1))[0] == resolve_preset("default", {})[0]
+    # the command line: omp with best's other settings, said in the metrics
+    _, metrics, _ = reconstruct(capsys, capture, "best-omp", "--preset", "best", "--method", "omp")
+    assert metrics["settings"]["method"] == "omp" and metrics["settings"]["adapt"] is True
+    assert metrics["preset"] == dict(name="best", options=dict(resolve_preset("best", {})[0], method="omp"),
+                                     given=["method"], left_out={})
+    # pipeline.yaml: a key set beside the preset wins (model_fields_set), with a warning that says so
+    path = tmp_path / "p.yaml"
+    path.write_text("reconstruct: {preset: best, method: omp}\n")
+    with pytest.warns(UserWarning, match="reconstruct.method omp given beside reconstruct.preset best wins"):
+        section = load_config(path).reconstruct
+    assert section.method == "omp" and section.adapt is True and section.preset_used()["given"] == ["method"]
+    path.write_text("reconstruct: {preset: best, adapt: true}\n")  # the preset's own value: nothing to say
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        section = load_config(path).reconstruct
+    assert section.method == "nonlocal" and section.preset_used()["given"] == []
+
+
+def test_a_bad_preset_is_one_line_naming_the_key_and_the_names(tmp_path, capsys, capture):
+    path = tmp_path / "p.yaml"
+    path.write_text(f"reconstruct: {{preset: quick}}\noutput: {{dir: {tmp_path / 'out'}}}\n")
+    rc, err = _run(capsys, "run", path)
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "reconstruct.preset" in err and "quick" in err
+    assert all(f"'{name}'" in err for name in PRESETS), err
+    assert not (tmp_path / "out").exists()
+    sim = capture / "sim"
+    rc, err = _run(capsys, "reconstruct", "--coded", sim / "coded.npy", "--mask", sim / "mask.npy", "--preset",
+                   "quick", "--output", tmp_path / "r.npy")
+    assert rc == 2 and len(err.splitlines()) == 1 and "--preset" in err and "best" in err, err
+
+
+def test_preset_default_is_the_default_bit_for_bit(capsys, capture):
+    plain, plain_metrics, _ = reconstruct(capsys, capture, "plain")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing to say
+        default, metrics, _ = reconstruct(capsys, capture, "default", "--preset", "default")
+    np.testing.assert_array_equal(default, plain)
+    assert plain_metrics["preset"] is None and metrics["preset"]["name"] == "default"
+    assert metrics["settings"] == plain_metrics["settings"]
+
+
+def test_preset_best_is_nonlocal_adapt_bit_for_bit(capsys, capture):
+    best, metrics, _ = reconstruct(capsys, capture, "best", "--preset", "best")
+    spelt, _, _ = reconstruct(capsys, capture, "nonlocal-adapt", "--method", "nonlocal", "--adapt")
+    np.testing.assert_array_equal(best, spelt)
+    assert metrics["settings"]["method"] == "nonlocal" and metrics["reconstruction"]["adapted"]["adapted"]
+    plain, plain_metrics, _ = reconstruct(capsys, capture, "plain-b")
+    assert not np.array_equal(best, plain)
+    assert metrics["quality"]["psnr"] > plain_metrics["quality"]["psnr"]
+
+
+def test_preset_fast_is_its_options(capsys, capture):
+    fast, metrics, _ = reconstruct(capsys, capture, "fast", "--preset", "fast")
+    options = [x for k, v in PRESETS["fast"].items() for x in (PRESET_KEYS[k], v)]
+    spelt, _, _ = reconstruct(capsys, capture, "fast-spelt", *options)
+    np.testing.assert_array_equal(fast, spelt)
+    plain, plain_metrics, _ = reconstruct(capsys, capture, "plain-f")
+    assert not np.array_equal(fast, plain)
+    assert metrics["reconstruction"]["patches"] < plain_metrics["reconstruction"]["patches"]
+    assert all(metrics["settings"][k] == v for k, v in PRESETS["fast"].items())
+
+
+def test_best_with_a_bayer_mosaic_leaves_out_what_it_cannot_take(tmp_path, capsys):
+    """--adapt (and the non-local method) are refused with --bayer when given; the preset leaves them out with
+    one warning and says so in the metrics, and gives what the options left give."""
+    assert main(["-q", "simulate", "synth:color-default", "--frames", "8", "--bump", "2", "--bayer", "RGGB", "--size",
+                 "32", "32", "--output", str(tmp_path / "cap")]) == 0
+    cap = tmp_path / "cap"
+    common = ["reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--bayer", "RGGB", "--tile", 32]
+    with pytest.warns(UserWarning) as said:
+        rc, err = _run(capsys, *common, "--preset", "best", "--cache", tmp_path / "c1", "--output",
+                       tmp_path / "best.npy")
+    assert rc == 0, err
+    (warning,) = [str(w.message) for w in said if "preset" in str(w.message)]  # said once
+    assert "preset best" in warning and "--adapt is left out" in warning and "--bayer RGGB" in warning, warning
+    metrics = json.loads((tmp_path / "best.metrics.json").read_text())
+    assert set(metrics["preset"]["left_out"]) == {"method", "adapt"}
+    assert metrics["settings"]["adapt"] is False and metrics["settings"]["method"] == "omp"
+    rc, err = _run(capsys, *common, "--cache", tmp_path / "c2", "--output", tmp_path / "plain.npy")
+    assert rc == 0, err
+    np.testing.assert_array_equal(np.load(tmp_path / "best.npy"), np.load(tmp_path / "plain.npy"))
+    for given in (["--preset", "best", "--adapt"], ["--method", "nonlocal"]):  # given: refused as before
+        rc, err = _run(capsys, *common, *given, "--cache", tmp_path / "c3", "--output", tmp_path / "no.npy")
+        assert rc == 2 and len(err.splitlines()) == 1 and "--bayer RGGB" in err and given[-1] in err, err
+        assert not (tmp_path / "no.npy").exists()
+
+
+def test_the_api_takes_the_same_presets():
+    video = cv.synthetic_scene("default", frames=8, size=(48, 48)) / 255
+    mask = cv.make_code("hitomi", (48, 48), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    np.testing.assert_array_equal(cv.reconstruct(coded, mask, preset="default"), cv.reconstruct(coded, mask))
+    best = cv.reconstruct(coded, mask, preset="best", full_output=True)
+    np.testing.assert_array_equal(best.frames, cv.reconstruct(coded, mask, method="nonlocal", adapt=True))
+    assert best.info[0]["preset"]["options"]["method"] == "nonlocal"
+    with pytest.warns(UserWarning, match="--adapt is left out"):
+        gaptv = cv.reconstruct(coded, mask, preset="best", method="gaptv")
+    np.testing.assert_array_equal(gaptv, cv.reconstruct(coded, mask, method="gaptv"))
+    with pytest.raises(ConfigError, match="preset 'quick'"):
+        cv.reconstruct(coded, mask, preset="quick")
+
+
+def test_run_records_the_preset_it_resolved(tmp_path, capsys):
+    out = tmp_path / "out"
+    (tmp_path / "p.yaml").write_text(
+        f"frames: 8\ncache: {tmp_path / 'cache'}\nscene: {{video: synth:default, size: [32, 32]}}\n"
+        f"reconstruct: {{preset: fast, tile: 32}}\noutput: {{dir: {out}, frames: none}}\n")
+    rc, err = _run(capsys, "run", tmp_path / "p.yaml")
+    assert rc == 0, err
+    record = json.loads((out / "recon.metrics.json").read_text())
+    assert record["preset"] == dict(name="fast", options=resolve_preset("fast", {})[0], given=[], left_out={})
+    assert all(record["config"]["reconstruct"][k] == v for k, v in PRESETS["fast"].items())
