@@ -64,6 +64,10 @@ def test_options_given_beside_a_preset_win(tmp_path, capsys, capture):
     assert metrics["settings"]["method"] == "omp" and metrics["settings"]["adapt"] is True
     assert metrics["preset"] == dict(name="best", options=dict(resolve_preset("best", {})[0], method="omp"),
                                      given=["method"], left_out={})
+    # a flag's "no" beside the preset: best's non-local method without its adaptation
+    _, metrics, _ = reconstruct(capsys, capture, "best-no-adapt", "--preset", "best", "--no-adapt")
+    assert metrics["settings"]["method"] == "nonlocal" and metrics["settings"]["adapt"] is False
+    assert metrics["preset"]["given"] == ["adapt"] and "adapted" not in metrics["reconstruction"]
     # pipeline.yaml: a key set beside the preset wins (model_fields_set), with a warning that says so
     path = tmp_path / "p.yaml"
     path.write_text("reconstruct: {preset: best, method: omp}\n")

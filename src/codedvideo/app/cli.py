@@ -150,10 +150,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="omp: learned dictionary, every patch on its own (default); nonlocal: then groups of "
                         "similar patches solved together under their own codes (better, about 4x the time); "
                         "dct: 3D DCT dictionary, same OMP; thinout, interp, gaptv: baselines (see README)")
-    r.add_argument("--adapt", action="store_true", default=None,
+    r.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=None,
                    help="adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, "
                         "reconstruct again with it (omp, nonlocal, dct; omp: about twice the time; nonlocal: a sparse survey "
-                        "first, about 1.2x nonlocal's time, +0.6 dB on real footage)")
+                        "first, about 1.2x nonlocal's time, +0.6 dB on real footage); --no-adapt: not (over --preset best)")
     r.add_argument("--output", "-o", required=True,
                    help=".npy, .zarr, .mat, .tif/.tiff, .mp4/.mov (H.264), .mkv/.avi (FFV1), .gif, or a name without "
                         "suffix (or ending .d): a folder of 16-bit TIFF frames (--cacti: all measurements, time-first)")
