@@ -78,6 +78,38 @@ def test_nonlocal_adapt_solves_its_groups_from_the_survey_not_from_default_tiles
     assert evaluate(adapted, video)["psnr"] > evaluate(plain, video)["psnr"] + 0.3
 
 
+def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path, D, carphone):
+    """--adapt-rounds 2 (--preset best): the second pass's result adapted again (K-SVD from the first adaptation)
+    and a third pass of the groups of every 3rd reference matched on and solved from it: one whole-image call of
+    the method from the same estimates gives the same video, and it is better than one round."""
+    import dataclasses
+
+    from codedvideo.engine.stages import (ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP,
+                                          reconstruct_volume)
+    from codedvideo.solvers.nonlocal_sc import nonlocal_region
+
+    video, cap = carphone
+    options = common(D, tmp_path / "a")
+    settings = dataclasses.replace(options["settings"], method="nonlocal")
+    two, info = reconstruct_capture("nonlocal", cap["coded"], cap["mask"], **dict(options, settings=settings),
+                                    adapt=True, adapt_rounds=2)
+    one, _ = reconstruct_capture("nonlocal", cap["coded"], cap["mask"], **dict(options, settings=settings),
+                                 adapt=True)
+    survey, _ = reconstruct_volume(cap["coded"], cap["mask"], D, tile=32, cache=tmp_path / "b", progress=False,
+                                   settings=dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP))
+    Da, _ = adapt_dictionary(survey, D)
+    second, _ = nonlocal_region(cap["coded"], cap["mask"], Da, survey,
+                                dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP))
+    np.testing.assert_allclose(second, one, rtol=0, atol=1e-3)  # the first two passes are one round's
+    Db, record = adapt_dictionary(one, Da)
+    assert [r["final_rmse"] for r in info["adapted"]["rounds"]][1] == record["final_rmse"]
+    whole, _ = nonlocal_region(cap["coded"], cap["mask"], Db, one,
+                               dataclasses.replace(settings, group_step=ADAPT_LAST_STEP))
+    np.testing.assert_allclose(two, whole, rtol=0, atol=1e-3)
+    assert evaluate(two, video)["psnr"] > evaluate(one, video)["psnr"]
+    assert info["seconds"]["adapt"] == pytest.approx(sum(r["seconds"] for r in info["adapted"]["rounds"]))
+
+
 def test_a_second_pass_whose_survey_is_damaged_is_not_given_as_a_result(tmp_path, D, carphone):
     """The second pass reads the survey's tiles checked against their digests: a survey tile damaged between
     the passes stops the job with a one-line error naming the store, never a video built on it."""

@@ -105,11 +105,14 @@ def test_preset_default_is_the_default_bit_for_bit(capsys, capture):
     assert metrics["settings"] == plain_metrics["settings"]
 
 
-def test_preset_best_is_nonlocal_adapt_bit_for_bit(capsys, capture):
+def test_preset_best_is_nonlocal_adapt_in_two_rounds_bit_for_bit(capsys, capture):
     best, metrics, _ = reconstruct(capsys, capture, "best", "--preset", "best")
-    spelt, _, _ = reconstruct(capsys, capture, "nonlocal-adapt", "--method", "nonlocal", "--adapt")
+    spelt, _, _ = reconstruct(capsys, capture, "nonlocal-adapt-2", "--method", "nonlocal", "--adapt", "--adapt-rounds", "2")
     np.testing.assert_array_equal(best, spelt)
     assert metrics["settings"]["method"] == "nonlocal" and metrics["reconstruction"]["adapted"]["adapted"]
+    assert metrics["settings"]["adapt_rounds"] == 2 and len(metrics["reconstruction"]["adapted"]["rounds"]) == 2
+    one_round, one_metrics, _ = reconstruct(capsys, capture, "nonlocal-adapt", "--method", "nonlocal", "--adapt")
+    assert not np.array_equal(best, one_round) and one_metrics["settings"]["adapt_rounds"] == 1
     plain, plain_metrics, _ = reconstruct(capsys, capture, "plain-b")
     assert not np.array_equal(best, plain)
     assert metrics["quality"]["psnr"] > plain_metrics["quality"]["psnr"]
@@ -140,7 +143,7 @@ def test_best_with_a_bayer_mosaic_leaves_out_what_it_cannot_take(tmp_path, capsy
     (warning,) = [str(w.message) for w in said if "preset" in str(w.message)]  # said once
     assert "preset best" in warning and "--adapt is left out" in warning and "--bayer RGGB" in warning, warning
     metrics = json.loads((tmp_path / "best.metrics.json").read_text())
-    assert set(metrics["preset"]["left_out"]) == {"method", "adapt"}
+    assert set(metrics["preset"]["left_out"]) == {"method", "adapt", "adapt_rounds"}
     assert metrics["settings"]["adapt"] is False and metrics["settings"]["method"] == "omp"
     rc, err = _run(capsys, *common, "--cache", tmp_path / "c2", "--output", tmp_path / "plain.npy")
     assert rc == 0, err
@@ -157,7 +160,9 @@ def test_the_api_takes_the_same_presets():
     coded = cv.simulate(video, mask)
     np.testing.assert_array_equal(cv.reconstruct(coded, mask, preset="default"), cv.reconstruct(coded, mask))
     best = cv.reconstruct(coded, mask, preset="best", full_output=True)
-    np.testing.assert_array_equal(best.frames, cv.reconstruct(coded, mask, method="nonlocal", adapt=True))
+    np.testing.assert_array_equal(best.frames, cv.reconstruct(coded, mask, method="nonlocal", adapt=True,
+                                                              adapt_rounds=2))
+    assert not np.array_equal(best.frames, cv.reconstruct(coded, mask, preset="best", adapt_rounds=1))
     assert best.info[0]["preset"]["options"]["method"] == "nonlocal"
     with pytest.warns(UserWarning, match="--adapt is left out"):
         gaptv = cv.reconstruct(coded, mask, preset="best", method="gaptv")

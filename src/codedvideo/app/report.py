@@ -51,7 +51,7 @@ from codedvideo.model.errors import InputError
 from codedvideo.engine.cache import RECON_VERSION, content_key, report_record_problem
 from codedvideo.formats.volumes import write_json
 from codedvideo.data.scenes import load_video
-from codedvideo.engine.stages import (ADAPT_ITERATIONS, ADAPT_REFINE_STEP, ADAPT_SAMPLES, ADAPT_SPARSITY, ADAPT_SURVEY_STEP,
+from codedvideo.engine.stages import (ADAPT_ITERATIONS, ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SAMPLES, ADAPT_SPARSITY, ADAPT_SURVEY_STEP,
                      SPARSE_METHODS, reconstruct_capture, reconstruct_method, simulate_capture, train_dictionary)
 from codedvideo.formats.store import load_dictionary
 from codedvideo.model.units import infer_data_range
@@ -118,7 +118,8 @@ class Runner:
 
     def run(self, *, scene: str, frames: int, code: str, bump: int, sigma: float, method: str,
             max_atoms: int | None = None, tol_rms: float | None = None, atoms: int | None = None,
-            stride: int | None = None, keep: bool = False, timed: bool = False, adapt: bool = False) -> dict:
+            stride: int | None = None, keep: bool = False, timed: bool = False, adapt: bool = False,
+            adapt_rounds: int = 1) -> dict:
         """One experiment: capture, reconstruct, evaluate (or its cached record).
 
         Parameters
@@ -136,6 +137,8 @@ class Runner:
             (otherwise one run).
         adapt : bool
             A sparse method with its dictionary adapted to the capture (``--adapt``), both passes timed.
+        adapt_rounds : int
+            With ``adapt``: its rounds (``--adapt-rounds``).
 
         Returns
         -------
@@ -159,6 +162,8 @@ class Runner:
                 settings["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY,
                                          **(dict(survey_step=ADAPT_SURVEY_STEP, refine_step=ADAPT_REFINE_STEP)
                                             if method == "nonlocal" else {}))
+                if adapt_rounds != 1:  # (absent for one round: the earlier keys stand)
+                    settings["adapt"].update(rounds=adapt_rounds, last_step=ADAPT_LAST_STEP)
             if method != "dct":
                 D, meta = self.dictionary(frames, atoms)
                 dkey = meta["sha256"]
@@ -200,6 +205,7 @@ class Runner:
                 t0 = time.perf_counter()
                 if adapt:
                     volume, info = reconstruct_capture(method, cap["coded"], cap["mask"], adapt=True,
+                                                       adapt_rounds=adapt_rounds,
                                                        data_range=infer_data_range(255.0, given=255.0), settings=omp,
                                                        dictionary=D, dictionary_key=dkey, cache=tmp,
                                                        tile=self.cfg.reconstruct.tile,
@@ -276,7 +282,8 @@ def run_experiments(runner: Runner) -> dict:
         for scene in rc.scenes + ([rc.video_scene] if name == "best" and rc.video_scene not in rc.scenes else []):
             keep = name == "best" and scene == rc.video_scene  # best's frames beside the baselines' (the strips)
             rec = runner.run(scene=scene, frames=n, code="hitomi", bump=L, sigma=0.0, method=o["method"],
-                             max_atoms=o["max_atoms"], stride=o["stride"], adapt=o["adapt"], timed=True, keep=keep)
+                             max_atoms=o["max_atoms"], stride=o["stride"], adapt=o["adapt"],
+                             adapt_rounds=o["adapt_rounds"], timed=True, keep=keep)
             if scene in rc.scenes:
                 out["speed"].append(dict(rec, label=f"preset {name}", in_mean=True))
             if keep:

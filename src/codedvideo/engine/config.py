@@ -178,12 +178,13 @@ PRESETS: dict[str, dict] = {
     # the paper's method, the defaults: nothing changed
     "default": {},
     # the best quality measured (GAP-TV + 3.67 dB on the 24 held-out real cases, 4.8x the default's time)
-    "best": dict(method="nonlocal", adapt=True),
+    "best": dict(method="nonlocal", adapt=True, adapt_rounds=2),
 }
 #: The names of :data:`PRESETS` (a test keeps them equal).
 PresetName = Literal["fast", "default", "best"]
 #: The keys a preset may set, and the options that give them on the command line.
-PRESET_KEYS = {"method": "--method", "adapt": "--adapt", "stride": "--stride", "max_atoms": "--max-atoms"}
+PRESET_KEYS = {"method": "--method", "adapt": "--adapt", "adapt_rounds": "--adapt-rounds", "stride": "--stride",
+               "max_atoms": "--max-atoms"}
 
 
 class ReconstructConfig(_Strict):
@@ -204,6 +205,9 @@ class ReconstructConfig(_Strict):
     #: (omp: about twice the time; nonlocal: a sparse survey first, about 1.2x its time; README, "Adapting the
     #: dictionary").
     adapt: bool = False
+    #: With ``adapt``: 2 adapts again to the second pass's result and reconstructs a third time (``best``: +0.5 dB
+    #: on held-out real footage over one round, 1.8x its time; docs/quality.md, "Presets").
+    adapt_rounds: int = Field(1, ge=1, le=2)
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
     tile: int = Field(128, ge=8, le=4096)
     batch: int = Field(4096, ge=1, le=1 << 20)
@@ -221,7 +225,10 @@ class ReconstructConfig(_Strict):
         """A preset's keys under those given beside it (an explicit key wins); an unknown name is left to the
         field's own check, which names the allowed ones."""
         if isinstance(data, dict) and isinstance(data.get("preset"), str) and data["preset"] in PRESETS:
-            return {**PRESETS[data["preset"]], **data}
+            merged = {**PRESETS[data["preset"]], **data}
+            if merged.get("adapt") is False and "adapt_rounds" not in data:  # (adapt: false beside best)
+                merged.pop("adapt_rounds", None)
+            return merged
         return data
 
     def preset_used(self) -> dict | None:
@@ -451,6 +458,8 @@ def _refusal(key: str, options: dict, bayer: str | None) -> str | None:
     method = options["method"]
     if key == "method" and method == "nonlocal" and bayer:
         return f"not available with --bayer {bayer} (the colour video is solved patch by patch)"
+    if key == "adapt_rounds" and options["adapt_rounds"] != 1 and not options["adapt"]:
+        return "applies with --adapt only"
     if key == "adapt" and options["adapt"]:
         if method not in ("omp", "nonlocal", "dct"):
             return f"adapts the dictionary of --method omp, nonlocal or dct (--method {method} has none)"

@@ -497,13 +497,13 @@ WINDOW_TILES = 64
 
 
 def cache_room(cache, count: int, shape: tuple[int, int, int], *, tile: int, budget: int | None,
-               adapt: bool = False) -> str | None:
+               adapt: bool = False, adapt_rounds: int = 1) -> str | None:
     """Why the disk under ``cache`` may not hold the working stores of a job of ``count`` captures of
     ``shape`` (N, H, W) (None: it may; :func:`codedvideo.engine.cache.cache_room_problem`).  With ``adapt`` a
-    capture makes two; with a budget the job holds at most three windows' stores beside it."""
+    capture makes one more a round; with a budget the job holds at most three windows' stores beside it."""
     n, h, w = shape
     window = -(-WINDOW_TILES // len(plan_tiles((h, w), tile, patch=PATCH)))  # captures a window
-    return cache_room_problem(cache, count * (2 if adapt else 1), n, h, w, budget, in_use=3 * window)
+    return cache_room_problem(cache, count * (1 + adapt_rounds if adapt else 1), n, h, w, budget, in_use=3 * window)
 
 
 @dataclasses.dataclass
@@ -645,6 +645,14 @@ ADAPT_SAMPLES, ADAPT_ITERATIONS, ADAPT_SPARSITY = 7000, 4, 6
 #: two full passes (GAP-TV + 3.80 dB with a second pass of every 3rd, against + 3.84), in 5.5 to 5.9x the
 #: default's time against 9.2x; with a second pass of every 4th, + 3.66 dB in 4.3x (README).
 ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP = 7, 4
+#: ``--adapt-rounds 2`` (``--preset best``): the dictionary adapted again to the second pass's result (K-SVD
+#: started from the first adaptation, the same settings), then a third pass with it; the non-local method's
+#: third pass solves the groups of every 3rd reference, matched on the second pass's result.  Measured in one
+#: thread (tasks/research_best.py, 256x256, N = 8, hitomi L = 2 and Bernoulli, no noise; chosen on bikes-a and
+#: carphone, 2026-11-27): over ``nonlocal --adapt`` +0.46 dB on those, +0.48 dB on bikes-b and bunny (every
+#: case +0.18 or more) and +0.45 on their next 8 frames, in 1.8x its time; a third pass every 4th +0.38, a
+#: third adaptation and a fourth pass +0.51 (worst case +0.10) in 2.1x, denser second passes +0.13 to +0.20.
+ADAPT_LAST_STEP = 3
 
 
 def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0) -> tuple[np.ndarray, dict]:
@@ -718,6 +726,7 @@ def reconstruct_captures(
     workers: int | None = None,
     progress: bool = True,
     adapt: bool = False,
+    adapt_rounds: int = 1,
     cache_budget: int | None = None,
 ) -> Iterator[tuple[int, np.ndarray, dict]]:
     """Captures in their own units -> their videos in the same units, by any method, in order, as one job.
@@ -746,6 +755,9 @@ def reconstruct_captures(
         every capture again with its own (one job).  ``omp``: about twice the
         time; ``nonlocal``: a survey first (:data:`ADAPT_SURVEY_STEP`), about
         1.2x its time, +0.6 dB on held-out real footage (README).
+    adapt_rounds : int
+        With ``adapt``: 2 adapts the dictionary again to the second pass's result and reconstructs a
+        third time with it (:data:`ADAPT_LAST_STEP`; ``--preset best``).
     cache_budget : int, optional
         Bytes the cache's working stores may take (:class:`codedvideo.engine.cache.CacheBudget`): the least recently
         used are removed as the job's windows finish (with ``adapt``, the first passes' stores only after the
@@ -814,11 +826,13 @@ def reconstruct_captures(
     if adapt and not sparse:
         raise ConfigError(f"--adapt: method {method} has no dictionary to adapt (omp, nonlocal and dct have)")
     # --adapt with the non-local method: a first pass on a sparser grid of groups (a survey: what K-SVD learns
-    # from and the groups of the second pass are matched on), then the groups solved from it (no default tiles)
+    # from and the groups of the second pass are matched on), then the groups solved from it (no default tiles);
+    # with adapt_rounds 2 the second pass is learnt from and matched on in turn, and a third pass gives the result
     survey = settings.method == "nonlocal" and adapt
-    first_settings = dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP) if survey else settings
-    if survey:
-        settings = dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP)
+    steps = (ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP, ADAPT_LAST_STEP)[:adapt_rounds + 1] if survey else ()
+    pass_settings = [dataclasses.replace(settings, group_step=step) for step in steps] if survey \
+        else [settings] * (adapt_rounds + 1)
+    settings = pass_settings[-1]
     job = functools.partial(sparse_volumes, count, for_sparse, settings=settings, tile=tile, cache=cache,
                             scheduler=scheduler, workers=workers, progress=progress)
     budget = None if cache_budget is None or not sparse else CacheBudget(cache, cache_budget)
@@ -832,35 +846,53 @@ def reconstruct_captures(
             nonlocal_checked[code] = _nonlocal_unavailable(mask, dictionary)
         return nonlocal_checked[code]
 
-    adapted: dict[int, np.ndarray] = {}  # capture -> its adapted dictionary (until its second job is planned)
-    records: dict[int, dict] = {}  # capture -> what its adaptation did, and the first job's seconds
-    first_stores: dict[int, str] = {}  # capture -> the working store of its first pass (the survey's)
+    adapted: dict[int, np.ndarray] = {}  # capture -> its adapted dictionary (until its last job is planned)
+    records: dict[int, dict] = {}  # capture -> what its adaptation did, and the earlier jobs' seconds
+    first_stores: dict[int, str] = {}  # capture -> the working store its last pass is matched on (the survey's)
     for i in range(count) if sparse and adapt else ():
-        # A first job per capture, then its adaptation: no graph is in flight while K-SVD runs (a graph's thread
-        # limits BLAS threads, which changed an adaptation's bits when it ran beside one).  Its warnings
-        # (never-open pixels, dependent stops) are said by the second job, which gives the result.
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            first_job = sparse_volumes(1, lambda _, i=i: for_sparse(i), dictionary, settings=first_settings, tile=tile,
-                                       cache=cache, scheduler=scheduler, workers=workers, progress=progress,
-                                       dictionary_key=dictionary_key, desc=f"first pass {i + 1}/{count}")
-            with contextlib.closing(first_job):  # closed here: the graph's thread has ended
-                _, first, info = next(first_job)
-        if first is not None and info.get("method") != "static":  # (one pattern for all pixels: no tiles)
-            Da, record = adapt_dictionary(first, dictionary)
-            if record["adapted"]:
-                adapted[i] = Da
-                # (a code the groups cannot solve: the survey is the default's result, and the second pass
-                # its own per-patch OMP with the adapted dictionary, as with omp --adapt)
+        # The earlier jobs of a capture and their adaptations, one job at a time: no graph is in flight while
+        # K-SVD runs (a graph's thread limits BLAS threads, which changed an adaptation's bits when it ran beside
+        # one).  Their warnings (never-open pixels, dependent stops) are said by the last job, which gives the result.
+        D_i, store, done = dictionary, None, []
+        for k in range(adapt_rounds):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                pass_job = sparse_volumes(1, lambda _, i=i: for_sparse(i), dictionary if k == 0 else (lambda _, D=D_i: (D, "")),
+                                          settings=pass_settings[k], tile=tile, cache=cache, scheduler=scheduler,
+                                          workers=workers, progress=progress, dictionary_key=dictionary_key,
+                                          first_of=None if store is None else (lambda _, s=store: s),
+                                          desc=f"pass {k + 1} of {i + 1}/{count}")
+                with contextlib.closing(pass_job):  # closed here: the graph's thread has ended
+                    _, first, info = next(pass_job)
+            learnt = first is not None and info.get("method") != "static"  # (one pattern for all pixels: no tiles)
+            if learnt:
+                Da, record = adapt_dictionary(first, D_i)
+                done.append((info, record))
+                learnt = record["adapted"]  # (a result with nothing to learn from keeps the dictionary)
+            del first
+            if learnt:
+                D_i = Da
+                # (a code the groups cannot solve: the survey is the default's result, and the later passes their
+                # own per-patch OMP with the adapted dictionary, as with omp --adapt)
                 if survey and nonlocal_problem(for_sparse(i)[1]) is None:
-                    first_stores[i] = info["work_store"]
-                    if budget is not None:  # the second job reads it: kept until the job ends
-                        budget.keep.add(Path(info["work_store"]).absolute())
-            records[i] = dict(record, first_pass=dict(seconds=sum(info["seconds"].values()),
-                                                      tile_seconds=info["seconds_total"]))
-        if budget is not None and info.get("work_store"):  # (the first job was closed before its window ended)
-            budget.finished([info["work_store"]])
-        del first
+                    store = info["work_store"]
+                    if budget is not None:  # the next job reads it: kept until the job ends
+                        budget.keep.add(Path(store).absolute())
+            if budget is not None and (info or {}).get("work_store"):  # (closed before its window ended)
+                budget.finished([info["work_store"]])
+            if not learnt:
+                break
+        if D_i is not dictionary:
+            adapted[i] = D_i
+        if store is not None:
+            first_stores[i] = store
+        if done:
+            record = dict(done[-1][1], first_pass=dict(seconds=sum(sum(inf["seconds"].values()) for inf, _ in done),
+                                                       tile_seconds=sum(inf["seconds_total"] for inf, _ in done)))
+            if adapt_rounds > 1:  # each round's K-SVD, and the adaptations' time together
+                record.update(rounds=[r for _, r in done], seconds=sum(r["seconds"] for _, r in done),
+                              adapted=any(r["adapted"] for _, r in done))
+            records[i] = record
     if sparse and adapt:
         blown.clear()  # the warnings the first jobs swallowed are said by the second
         used.cache_clear()
@@ -1079,7 +1111,8 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
             rc.method, capture["coded"], capture["mask"], data_range=units, settings=omp_settings(rc, sigma, scale=units.scale),
             dictionary=D, dictionary_key=dmeta["sha256"], dictionary_name=str(dict_path),
             white_level=cfg.noise.white_level, where="simulated capture", tile=rc.tile, cache=cfg.cache,
-            scheduler=rc.scheduler, workers=rc.workers, progress=progress, adapt=rc.adapt, cache_budget=rc.cache_budget)
+            scheduler=rc.scheduler, workers=rc.workers, progress=progress, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds,
+            cache_budget=rc.cache_budget)
         report["seconds"]["reconstruct"] = time.perf_counter() - t0
         report["reconstruction"] = info
         t0 = time.perf_counter()
