@@ -108,6 +108,11 @@ def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path,
     np.testing.assert_allclose(two, whole, rtol=0, atol=1e-3)
     assert evaluate(two, video)["psnr"] > evaluate(one, video)["psnr"]
     assert info["seconds"]["adapt"] == pytest.approx(sum(r["seconds"] for r in info["adapted"]["rounds"]))
+    # a rerun (resume) reuses every pass from the cache and gives the same bits
+    again, info_again = reconstruct_capture("nonlocal", cap["coded"], cap["mask"], **dict(options, settings=settings),
+                                            adapt=True, adapt_rounds=2)
+    np.testing.assert_array_equal(again, two)
+    assert info["tiles_computed"] > 0 and info_again["tiles_computed"] == 0
 
 
 def test_a_second_pass_whose_survey_is_damaged_is_not_given_as_a_result(tmp_path, D, carphone):
