@@ -192,10 +192,10 @@ def table(results: dict) -> str:
     p = results.get("presets")
     if p:
         lines.append(f"presets ({len(p['rows']) // 2} cases; whole processes, one run each):")
-        lines.append(f"  {'':<10}{'units':<8}{'PSNR dB':>9}{'SSIM':>8}{'seconds':>9}{'x default':>11}{'- GAP-TV':>10}")
+        lines.append(f"  {'':<16}{'units':<8}{'PSNR dB':>9}{'SSIM':>8}{'seconds':>9}{'x default':>11}{'- GAP-TV':>10}")
         for units, summary in p["summary"].items():
             for label, v in summary.items():
-                lines.append(f"  {label:<10}{units:<8}{v['psnr']:>9.2f}{v['ssim']:>8.4f}{v['seconds']:>9.2f}"
+                lines.append(f"  {label:<16}{units:<8}{v['psnr']:>9.2f}{v['ssim']:>8.4f}{v['seconds']:>9.2f}"
                              f"{v['of_default']:>11.2f}{v['over_gaptv']:>+10.2f}")
         for r in p["rows"]:
             lines.append(f"  {r['scene']:<18}{r['code']:<10}{r['units']:<8}" + "  ".join(
