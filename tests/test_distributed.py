@@ -219,8 +219,8 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_the_rerun_resumes(tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "out" / "r.npy"), local)
 
 
-@pytest.mark.parametrize("method", ["omp", "nonlocal"])
-def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(cluster, tmp_path, method):
+@pytest.mark.parametrize("method,rounds", [("omp", 1), ("nonlocal", 1), ("nonlocal", 2)])
+def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(cluster, tmp_path, method, rounds):
     """--adapt on a cluster: the adaptation runs in the client, the dictionaries travel in the graph; reported
     up to 3.4 grey levels apart from the local run when an adaptation ran beside a local graph.  With the
     non-local method the second pass's tasks read the survey's tiles from its working store in the workers."""
@@ -233,10 +233,10 @@ def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(c
     video = make_scene("default", frames=24, size=(48, 48))
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=3)
     common = dict(data_range=infer_data_range(255.0), settings=OmpSettings(max_atoms=8, tol_rms=2.0), dictionary=D,
-                  tile=32, progress=False, adapt=True)
+                  tile=32, progress=False, adapt=True, adapt_rounds=rounds)  # (2: --preset best's third pass)
     local = list(reconstruct_captures(method, list(cap["coded"]), lambda i: cap["mask"], cache=tmp_path / "a", **common))
     remote = list(reconstruct_captures(method, list(cap["coded"]), lambda i: cap["mask"], cache=tmp_path / "b",
                                        scheduler=cluster.scheduler_address, **common))
     for (_, a, info), (_, b, _) in zip(local, remote):
-        assert info["adapted"]["adapted"]
+        assert info["adapted"]["adapted"] and len(info["adapted"].get("rounds", [None])) == rounds
         np.testing.assert_array_equal(a, b)

@@ -396,3 +396,34 @@ def test_never_open_pixels_are_filled_and_counted(tmp_path):
     assert np.isfinite(vol).all()
     err = np.abs(vol - video)[:, holes]
     assert err.mean() < 8 and err.max() < 40  # a smooth scene filled from its neighbours, not pulled to 0
+
+
+# ----------------------------------------------------------------------------- --preset best on extreme scenes
+@pytest.mark.parametrize("kind", ["dark", "saturated", "noise"])
+def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
+    """``--preset best`` (the non-local method, the dictionary adapted twice, three passes): an all-dark scene is
+    exactly dark, an all-white one flat white, and read noise of 80 grey levels no worse than the trivial
+    estimate."""
+    from codedvideo.data import shipped
+    from codedvideo.engine.stages import reconstruct_capture
+    from codedvideo.formats.store import load_dictionary
+    from codedvideo.model.units import infer_data_range
+
+    video, mask = scene8
+    truth = video if kind == "noise" else _scene(kind)
+    sigma = 80.0 if kind == "noise" else 0.0
+    coded = simulate(truth, mask, sigma=sigma, rng=2)
+    vol, info = reconstruct_capture("nonlocal", coded, mask, adapt=True, adapt_rounds=2,
+                                    data_range=infer_data_range(255.0, given=255.0),
+                                    settings=OmpSettings(max_atoms=8, tol_rms=max(sigma, 2.0)),
+                                    dictionary=load_dictionary(shipped.verified(8))[0], cache=tmp_path,
+                                    progress=False, tile=32)
+    assert np.isfinite(vol).all()
+    if kind == "dark":
+        assert (vol == 0).all()
+    elif kind == "saturated":
+        assert np.abs(vol - 255.0).max() < 0.01
+    else:
+        trivial = evaluate(static_estimate(coded, mask), video)["psnr"]
+        assert evaluate(vol, video)["psnr"] >= trivial - TRIVIAL_MARGIN_DB
+        assert len(info["adapted"]["rounds"]) == 2
