@@ -95,6 +95,23 @@ def test_a_bad_preset_is_one_line_naming_the_key_and_the_names(tmp_path, capsys,
     assert rc == 2 and len(err.splitlines()) == 1 and "--preset" in err and "best" in err, err
 
 
+def test_adapt_rounds_without_adapt_is_refused_not_ignored(tmp_path, capsys, capture):
+    path = tmp_path / "p.yaml"
+    path.write_text(f"reconstruct: {{adapt_rounds: 2}}\noutput: {{dir: {tmp_path / 'out'}}}\n")
+    rc, err = _run(capsys, "run", path)
+    assert rc == 2 and len(err.splitlines()) == 1 and "adapt_rounds 2 applies with adapt: true" in err, err
+    assert not (tmp_path / "out").exists()
+    path.write_text(f"reconstruct: {{preset: best, adapt: false}}\noutput: {{dir: {tmp_path / 'out'}}}\n")
+    with pytest.warns(UserWarning, match="reconstruct.adapt False given beside reconstruct.preset best"):
+        section = load_config(path).reconstruct  # (best's rounds go with its adaptation)
+    assert section.method == "nonlocal" and not section.adapt and section.adapt_rounds == 1
+    sim = capture / "sim"
+    rc, err = _run(capsys, "reconstruct", "--coded", sim / "coded.npy", "--mask", sim / "mask.npy", "--adapt-rounds",
+                   "2", "--output", tmp_path / "r.npy")
+    assert rc == 2 and len(err.splitlines()) == 1 and "--adapt-rounds 2: applies with --adapt only" in err, err
+    assert not (tmp_path / "r.npy").exists()
+
+
 def test_preset_default_is_the_default_bit_for_bit(capsys, capture):
     plain, plain_metrics, _ = reconstruct(capsys, capture, "plain")
     with warnings.catch_warnings():

@@ -177,7 +177,8 @@ PRESETS: dict[str, dict] = {
     "fast": dict(stride=2),
     # the paper's method, the defaults: nothing changed
     "default": {},
-    # the best quality measured (GAP-TV + 3.67 dB on the 24 held-out real cases, 4.8x the default's time)
+    # the best quality measured: nonlocal --adapt with a second round (GAP-TV + 4.72 dB on the 8 held-out real
+    # cases of docs/quality.md, + 0.41 over one round; about 3.4x the default's whole-process time)
     "best": dict(method="nonlocal", adapt=True, adapt_rounds=2),
 }
 #: The names of :data:`PRESETS` (a test keeps them equal).
@@ -230,6 +231,12 @@ class ReconstructConfig(_Strict):
                 merged.pop("adapt_rounds", None)
             return merged
         return data
+
+    @model_validator(mode="after")
+    def _rounds_of_adapt(self) -> "ReconstructConfig":
+        if self.adapt_rounds != 1 and not self.adapt:  # (not ignored: what a run would ignore is refused)
+            raise ValueError(f"adapt_rounds {self.adapt_rounds} applies with adapt: true only")
+        return self
 
     def preset_used(self) -> dict | None:
         """What the metrics say of this section's preset (:func:`preset_record`; None: no preset): the keys set
