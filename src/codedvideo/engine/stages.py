@@ -850,48 +850,16 @@ def reconstruct_captures(
     records: dict[int, dict] = {}  # capture -> what its adaptation did, and the earlier jobs' seconds
     first_stores: dict[int, str] = {}  # capture -> the working store its last pass is matched on (the survey's)
     for i in range(count) if sparse and adapt else ():
-        # The earlier jobs of a capture and their adaptations, one job at a time: no graph is in flight while
-        # K-SVD runs (a graph's thread limits BLAS threads, which changed an adaptation's bits when it ran beside
-        # one).  Their warnings (never-open pixels, dependent stops) are said by the last job, which gives the result.
-        D_i, store, done = dictionary, None, []
-        for k in range(adapt_rounds):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                pass_job = sparse_volumes(1, lambda _, i=i: for_sparse(i), dictionary if k == 0 else (lambda _, D=D_i: (D, "")),
-                                          settings=pass_settings[k], tile=tile, cache=cache, scheduler=scheduler,
-                                          workers=workers, progress=progress, dictionary_key=dictionary_key,
-                                          first_of=None if store is None else (lambda _, s=store: s),
-                                          desc=f"pass {k + 1} of {i + 1}/{count}")
-                with contextlib.closing(pass_job):  # closed here: the graph's thread has ended
-                    _, first, info = next(pass_job)
-            learnt = first is not None and info.get("method") != "static"  # (one pattern for all pixels: no tiles)
-            if learnt:
-                Da, record = adapt_dictionary(first, D_i)
-                done.append((info, record))
-                learnt = record["adapted"]  # (a result with nothing to learn from keeps the dictionary)
-            del first
-            if learnt:
-                D_i = Da
-                # (a code the groups cannot solve: the survey is the default's result, and the later passes their
-                # own per-patch OMP with the adapted dictionary, as with omp --adapt)
-                if survey and nonlocal_problem(for_sparse(i)[1]) is None:
-                    store = info["work_store"]
-                    if budget is not None:  # the next job reads it: kept until the job ends
-                        budget.keep.add(Path(store).absolute())
-            if budget is not None and (info or {}).get("work_store"):  # (closed before its window ended)
-                budget.finished([info["work_store"]])
-            if not learnt:
-                break
+        D_i, store, record = _adapt_capture(
+            i, count, for_sparse, dictionary, dictionary_key, pass_settings[:adapt_rounds],
+            matched=survey, nonlocal_problem=nonlocal_problem, budget=budget,
+            run=functools.partial(sparse_volumes, tile=tile, cache=cache, scheduler=scheduler, workers=workers,
+                                  progress=progress))
         if D_i is not dictionary:
             adapted[i] = D_i
         if store is not None:
             first_stores[i] = store
-        if done:
-            record = dict(done[-1][1], first_pass=dict(seconds=sum(sum(inf["seconds"].values()) for inf, _ in done),
-                                                       tile_seconds=sum(inf["seconds_total"] for inf, _ in done)))
-            if adapt_rounds > 1:  # each round's K-SVD, and the adaptations' time together
-                record.update(rounds=[r for _, r in done], seconds=sum(r["seconds"] for _, r in done),
-                              adapted=any(r["adapted"] for _, r in done))
+        if record is not None:
             records[i] = record
     if sparse and adapt:
         blown.clear()  # the warnings the first jobs swallowed are said by the second
@@ -949,6 +917,60 @@ def reconstruct_captures(
     if budget is not None and budget.keep:  # the job is over: the first passes' stores may go too
         budget.keep.clear()
         budget.finished([])
+
+
+def _adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictionary_key: str, pass_settings, *,
+                   matched: bool, nonlocal_problem, budget: CacheBudget | None,
+                   run) -> tuple[np.ndarray, str | None, dict | None]:
+    """Capture ``i``'s passes before its last (``--adapt``), each a job of its own followed by an adaptation of
+    the dictionary to its result (:func:`adapt_dictionary`), the next pass solved with that dictionary.
+
+    One job at a time: no graph is in flight while K-SVD runs (a graph's thread limits BLAS threads, which changed
+    an adaptation's bits when it ran beside one).  The passes' warnings (never-open pixels, dependent stops) are
+    swallowed: the last job, which gives the result, says them.  ``pass_settings``: one per pass before the last;
+    ``matched``: the non-local method's passes, each matched on and solved from the previous pass's working store
+    (where the code's groups can be solved: ``nonlocal_problem(mask)`` is None); ``run``: :func:`sparse_volumes`
+    with the job's tiles, cache and scheduler.  Stops early where a result has nothing to learn from.
+
+    Returns the dictionary for the last pass (``dictionary`` itself if none was adapted), the working store the
+    last pass is matched on (or None), and the record of the adaptations with the earlier jobs' seconds (or None).
+    """
+    D_i, store, done = dictionary, None, []
+    for k, settings in enumerate(pass_settings):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pass_job = run(1, lambda _: for_sparse(i), dictionary if k == 0 else (lambda _, D=D_i: (D, "")),
+                           settings=settings, dictionary_key=dictionary_key,
+                           first_of=None if store is None else (lambda _, s=store: s),
+                           desc=f"pass {k + 1} of {i + 1}/{count}")
+            with contextlib.closing(pass_job):  # closed here: the graph's thread has ended
+                _, first, info = next(pass_job)
+        learnt = first is not None and info.get("method") != "static"  # (one pattern for all pixels: no tiles)
+        if learnt:
+            Da, record = adapt_dictionary(first, D_i)
+            done.append((info, record))
+            learnt = record["adapted"]  # (a result with nothing to learn from keeps the dictionary)
+        del first
+        if learnt:
+            D_i = Da
+            # (a code the groups cannot solve: the survey is the default's result, and the later passes their
+            # own per-patch OMP with the adapted dictionary, as with omp --adapt)
+            if matched and nonlocal_problem(for_sparse(i)[1]) is None:
+                store = info["work_store"]
+                if budget is not None:  # the next job reads it: kept until the job ends
+                    budget.keep.add(Path(store).absolute())
+        if budget is not None and (info or {}).get("work_store"):  # (closed before its window ended)
+            budget.finished([info["work_store"]])
+        if not learnt:
+            break
+    if not done:
+        return D_i, store, None
+    record = dict(done[-1][1], first_pass=dict(seconds=sum(sum(inf["seconds"].values()) for inf, _ in done),
+                                               tile_seconds=sum(inf["seconds_total"] for inf, _ in done)))
+    if len(pass_settings) > 1:  # each round's K-SVD, and the adaptations' time together
+        record.update(rounds=[r for _, r in done], seconds=sum(r["seconds"] for _, r in done),
+                      adapted=any(r["adapted"] for _, r in done))
+    return D_i, store, record
 
 
 def reconstruct_stream(method: str, codeds, mask_of, *, join: bool, still: bool = True, cuts=None,
