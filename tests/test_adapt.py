@@ -115,6 +115,30 @@ def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path,
     assert info["tiles_computed"] > 0 and info_again["tiles_computed"] == 0
 
 
+
+def test_two_rounds_killed_in_the_last_pass_resume_with_the_same_bits(tmp_path, D, carphone):
+    """--preset best stopped while its third pass was writing (one tile's volume written, its statistics not):
+    the rerun takes both earlier passes and the other tiles from the cache, solves that tile again, and gives
+    the bits of the run that was not stopped."""
+    import dataclasses
+
+    from codedvideo.formats.store import WorkStore
+
+    _, cap = carphone
+    options = common(D, tmp_path / "a")
+    settings = dataclasses.replace(options["settings"], method="nonlocal")
+    run = lambda: reconstruct_capture("nonlocal", cap["coded"], cap["mask"],  # noqa: E731
+                                      **dict(options, settings=settings), adapt=True, adapt_rounds=2)
+    ref, info = run()
+    store = WorkStore(info["work_store"])  # the last pass's store
+    store.group["volume"][:, 32:64, 0:32] = 1e30  # tile 2's core, as if half-done
+    store.group["stats"][2:3, :] = np.nan
+    again, info_again = run()
+    assert info_again["work_store"] == info["work_store"]
+    assert info_again["tiles_computed"] == 1 and info_again["tiles_reused"] == info_again["tiles"] - 1
+    assert info_again["adapted"]["rounds"][1]["final_rmse"] == info["adapted"]["rounds"][1]["final_rmse"]
+    np.testing.assert_array_equal(again, ref)
+
 def test_a_second_pass_whose_survey_is_damaged_is_not_given_as_a_result(tmp_path, D, carphone):
     """The second pass reads the survey's tiles checked against their digests: a survey tile damaged between
     the passes stops the job with a one-line error naming the store, never a video built on it."""
