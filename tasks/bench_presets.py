@@ -8,13 +8,17 @@ under a hitomi L = 2 and a Bernoulli(0.5) code, without noise:
                  captures, the median of ``--repeats`` runs a case (the runs of a case interleaved);
                  the choice: the highest mean PSNR among those at most about ``FAST_BUDGET`` of the
                  default's mean whole-process time (:func:`choose_fast`)
+  --scaling      ``--preset default`` and ``--preset best`` on ``synth:default`` at 256x256, 512x512 and
+                 1024x1024 (N = 8, hitomi L = 2, 8-bit), the median of ``--repeats`` interleaved runs:
+                 seconds, peak memory and microseconds per pixel, to see whether `best` scales linearly
+                 with the pixel count (the issue's target)
   (default)      GAP-TV, ``--preset fast``, ``--preset default`` and ``--preset best``, each capture in
                  8-bit units and again as [0, 1] float32 files (capture and truth / 255): PSNR and SSIM
                  from the run's metrics JSON (``--truth``), and seconds
 
 Results go to bench/results/presets.json (each part kept when the other is run) and a table is printed.
 
-    python tasks/bench_presets.py [--candidates] [--repeats R] [--quick]
+    python tasks/bench_presets.py [--candidates | --scaling] [--repeats R] [--quick]
 """
 
 from __future__ import annotations
@@ -179,8 +183,53 @@ def presets(cases: list[dict], work: Path) -> dict:
                 best_over_one_round_min=worst)
 
 
+#: The image sides of the scaling part, and the presets timed at each.
+SCALING_SIDES = (256, 512, 1024)
+SCALING_RUNS = {"default": ("--preset", "default"), "best": ("--preset", "best")}
+
+
+def scaling(work: Path, repeats: int, sides=SCALING_SIDES) -> dict:
+    """``default`` and ``best`` at each side: median seconds, peak memory, microseconds per pixel."""
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.stages import simulate_capture
+
+    rows = []
+    for side in sides:
+        cap = simulate_capture(load_video("synth:default", frames=8, size=(side, side)), code="hitomi", bump=2,
+                               sigma=0.0, seed=0)
+        folder = work / f"synth-{side}"
+        folder.mkdir()
+        for name in ("coded", "mask", "truth"):
+            np.save(folder / (name + ("8" if name != "mask" else "") + ".npy"), cap[name])
+        case = dict(scene="synth:default", code="hitomi", folder=folder)
+        runs = {label: [] for label in SCALING_RUNS}
+        for _ in range(repeats):  # interleaved, as the candidates are
+            for label, options in SCALING_RUNS.items():
+                runs[label].append(reconstruct(case, options, units="8-bit", work=work))
+        row = dict(side=side, pixels=side * side)
+        for label, results in runs.items():
+            seconds = float(np.median([r["seconds"] for r in results]))
+            row[label] = dict(seconds=seconds, seconds_runs=[r["seconds"] for r in results],
+                              us_per_pixel=1e6 * seconds / (side * side), psnr=results[0]["psnr"],
+                              peak_rss_mb=max(r["peak_rss_mb"] for r in results))
+        rows.append(row)
+        print(f"  {side}x{side}: " + ", ".join(f"{k} {row[k]['psnr']:.2f} dB {row[k]['seconds']:.2f} s "
+                                               f"{row[k]['peak_rss_mb']:.0f} MB" for k in SCALING_RUNS),
+              file=sys.stderr, flush=True)
+    return dict(rows=rows, repeats=repeats)
+
+
 def table(results: dict) -> str:
     lines = []
+    s = results.get("scaling")
+    if s:
+        lines.append(f"scaling (synth:default, N = 8, hitomi L = 2; median of {s['repeats']} whole processes):")
+        lines.append(f"  {'side':>6}{'':>2}" + "".join(f"{k + ' s':>12}{'us/px':>8}{'MB':>7}" for k in SCALING_RUNS)
+                     + f"{'best/default':>14}")
+        for r in s["rows"]:
+            lines.append(f"  {r['side']:>6}{'':>2}" + "".join(
+                f"{r[k]['seconds']:>12.2f}{r[k]['us_per_pixel']:>8.1f}{r[k]['peak_rss_mb']:>7.0f}" for k in SCALING_RUNS)
+                + f"{r['best']['seconds'] / r['default']['seconds']:>14.2f}")
     c = results.get("candidates")
     if c:
         lines.append(f"fast, candidates ({len(c['rows'])} cases, 8-bit, median of {c['repeats']} whole processes; "
@@ -211,6 +260,7 @@ def table(results: dict) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--candidates", action="store_true", help="measure the settings `fast` is chosen among")
+    ap.add_argument("--scaling", action="store_true", help="time default and best at 256, 512 and 1024 pixels square")
     ap.add_argument("--repeats", type=int, default=3, help="runs of each candidate a case (the median is kept)")
     ap.add_argument("--quick", action="store_true", help="96x96 crops, one case (a smoke run; not saved)")
     a = ap.parse_args()
@@ -222,8 +272,11 @@ def main() -> int:
         work = Path(tmp)
         cases = write_captures(work / "captures", size)[: 1 if a.quick else None]
         warm_up(work)
-        part = "candidates" if a.candidates else "presets"
-        result = candidates(cases, work, a.repeats) if a.candidates else presets(cases, work)
+        part = "candidates" if a.candidates else "scaling" if a.scaling else "presets"
+        if a.scaling:
+            result = scaling(work, a.repeats, sides=(64, 128) if a.quick else SCALING_SIDES)
+        else:
+            result = candidates(cases, work, a.repeats) if a.candidates else presets(cases, work)
     result.update(date=time.strftime("%Y-%m-%d %H:%M:%S"), size=list(size), frames=8,
                   machine=dict(platform=platform.platform(), cpus=os.cpu_count(), python=platform.python_version(),
                                load_average=os.getloadavg()))

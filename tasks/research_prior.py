@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from codedvideo.solvers.omp_kernel import batch_omp, block_match, scatter_patches, synthesize_into
+from codedvideo.solvers.omp_kernel import batch_omp, block_match, match_references, scatter_patches, synthesize_into
 
 PATCH = 7
 
@@ -194,49 +194,8 @@ def refine(coded, mask, x0, *, data_range=255.0, variant="wnnm", iters=20, s_hi=
     return (x / scale).astype(np.float32)
 
 
-@njit(parallel=True, nogil=True, cache=True, fastmath=True)
-def match_refs(vol, refs, wp, hp, patch, window, k, idx):
-    """The ``k`` blocks closest to each reference block (raster ``refs``), corners within ``window``.
-
-    Whole ``patch x patch x N`` sums of squared differences; the reference itself first; ties to
-    the earlier offset (raster order of (dy, dx)).  Parallel over references."""
-    n = vol.shape[0]
-    for g in prange(refs.shape[0]):
-        p = refs[g]
-        r0 = p // wp
-        c0 = p % wp
-        best = np.full(k, np.inf)
-        bidx = np.full(k, -1, np.int64)
-        best[0] = -1.0
-        bidx[0] = p
-        for dy in range(-window, window + 1):
-            r = r0 + dy
-            if r < 0 or r >= hp:
-                continue
-            for dx in range(-window, window + 1):
-                cc = c0 + dx
-                if cc < 0 or cc >= wp or (dy == 0 and dx == 0):
-                    continue
-                s = 0.0
-                lim = best[k - 1]
-                for t in range(n):
-                    for yy in range(patch):
-                        for xx in range(patch):
-                            dd = vol[t, r0 + yy, c0 + xx] - vol[t, r + yy, cc + xx]
-                            s += dd * dd
-                    if s >= lim:
-                        break
-                if s >= lim:
-                    continue
-                j = k - 1
-                while j > 0 and best[j - 1] > s:
-                    best[j] = best[j - 1]
-                    bidx[j] = bidx[j - 1]
-                    j -= 1
-                best[j] = s
-                bidx[j] = r * wp + cc
-        for j in range(k):
-            idx[g, j] = bidx[j] if bidx[j] >= 0 else p
+# the matching of the reference blocks: the package's kernel (shipped with `--refine`; this prototype had its own copy)
+match_refs = match_references
 
 
 @njit(parallel=True, nogil=True, cache=True, fastmath=True)

@@ -209,12 +209,14 @@ def _settings(options: dict, workers, noise_sigma: float, scale: float):
 
 
 def _preset(preset: str | None, method: str | None, adapt: bool | None,
-            adapt_rounds: int | None) -> tuple[dict, dict | None]:
-    """The options of ``preset`` with ``method``, ``adapt`` and ``adapt_rounds`` (None: not given) over them, and
+            adapt_rounds: int | None, refine: int | None = None) -> tuple[dict, dict | None]:
+    """The options of ``preset`` with ``method``, ``adapt``, ``adapt_rounds`` and ``refine`` (None: not given) over
+    them, and
     the preset's record (:func:`codedvideo.engine.config.preset_record`; a warning says what it left out)."""
     from codedvideo.engine.config import preset_record, resolve_preset
 
-    given = {k: v for k, v in dict(method=method, adapt=adapt, adapt_rounds=adapt_rounds).items() if v is not None}
+    given = {k: v for k, v in dict(method=method, adapt=adapt, adapt_rounds=adapt_rounds, refine=refine).items()
+             if v is not None}
     options, left_out = resolve_preset(preset, given)
     return options, preset_record(preset, options, given, left_out)
 
@@ -243,7 +245,8 @@ def _dictionary(method: str, dictionary, frames: int) -> tuple[np.ndarray | None
 
 
 def reconstruct(coded, mask, *, dictionary=None, method: str | None = None, adapt: bool | None = None,
-                adapt_rounds: int | None = None, preset: str | None = None, noise_sigma: float | None = None, data_range: float | None = None,
+                adapt_rounds: int | None = None, refine: int | None = None, preset: str | None = None,
+                noise_sigma: float | None = None, data_range: float | None = None,
                 workers: int | None = None,
                 progress: bool = False, cache: str | Path | None = None, independent_captures: bool = False,
                 full_output: bool = False):
@@ -258,6 +261,7 @@ def reconstruct(coded, mask, *, dictionary=None, method: str | None = None, adap
         ``gaptv``
     adapt : adapt the dictionary to each capture's first result, then reconstruct again (default False)
     adapt_rounds : with ``adapt``, 2 adapts again to the second result and reconstructs a third time (default 1)
+    refine : iterations of GAP with a low-rank prior on groups of similar blocks after the result (default 0)
     preset : ``fast``, ``default`` or ``best``: named settings, as ``--preset``
         (:data:`codedvideo.engine.config.PRESETS`); ``method`` and ``adapt`` given beside it win, and a setting
         of the preset the method cannot take is left out with a warning
@@ -286,11 +290,12 @@ def reconstruct(coded, mask, *, dictionary=None, method: str | None = None, adap
     """
     from codedvideo.model.units import capture_units
 
-    options, record = _preset(preset, method, adapt, adapt_rounds)
+    options, record = _preset(preset, method, adapt, adapt_rounds, refine)
     method, adapt = options["method"], options["adapt"]
     if _is_dask(coded):
         return _reconstruct_lazy(coded, mask, dictionary=dictionary, method=method, adapt=adapt,
-                                 adapt_rounds=options["adapt_rounds"], preset=preset, noise_sigma=noise_sigma,
+                                 adapt_rounds=options["adapt_rounds"], refine=options["refine"], preset=preset,
+                                 noise_sigma=noise_sigma,
                                  data_range=data_range, workers=workers, cache=cache)
     coded = np.asarray(coded)
     mask = np.asarray(mask)
@@ -312,7 +317,8 @@ def reconstruct(coded, mask, *, dictionary=None, method: str | None = None, adap
         results = reconstruct_stream(method, codeds, mask_of, join=not independent_captures, data_range=units,
                                      spill=folder, noise_sigma=sigma, settings=settings, dictionary=D, dictionary_key=key,
                                      dictionary_name=name, where="reconstruct", tile=rc.tile, cache=folder,
-                                     workers=workers, progress=progress, adapt=adapt, adapt_rounds=rc.adapt_rounds)
+                                     workers=workers, progress=progress, adapt=adapt, adapt_rounds=rc.adapt_rounds,
+                                     refine=rc.refine)
         out = np.empty((count * n, *coded.shape[-2:]), np.float32)
         infos = []
         with contextlib.closing(results):
@@ -333,7 +339,8 @@ def _one_capture(block, mask, index, options) -> np.ndarray:
     return reconstruct(np.asarray(block)[0], m, independent_captures=True, **options)
 
 
-def _reconstruct_lazy(coded, mask, *, dictionary, method, adapt, adapt_rounds, preset, noise_sigma, data_range, workers, cache):
+def _reconstruct_lazy(coded, mask, *, dictionary, method, adapt, adapt_rounds, refine, preset, noise_sigma, data_range,
+                      workers, cache):
     import dask.array as da
 
     from codedvideo.model.units import capture_units
@@ -348,7 +355,8 @@ def _reconstruct_lazy(coded, mask, *, dictionary, method, adapt, adapt_rounds, p
                                    dtype=stack.dtype, noise_sigma=noise_sigma or 0.0, where="reconstruct").value
     if dictionary is None and method in ("omp", "nonlocal"):
         dictionary = load_dictionary(n)
-    options = dict(dictionary=dictionary, method=method, adapt=adapt, adapt_rounds=adapt_rounds, preset=preset, noise_sigma=noise_sigma,
+    options = dict(dictionary=dictionary, method=method, adapt=adapt, adapt_rounds=adapt_rounds, refine=refine,
+                   preset=preset, noise_sigma=noise_sigma,
                    data_range=data_range, workers=1 if workers is None else workers, cache=cache)
     stack = stack.rechunk((1, -1, -1))
     h, w = stack.shape[-2:]

@@ -119,7 +119,7 @@ class Runner:
     def run(self, *, scene: str, frames: int, code: str, bump: int, sigma: float, method: str,
             max_atoms: int | None = None, tol_rms: float | None = None, atoms: int | None = None,
             stride: int | None = None, keep: bool = False, timed: bool = False, adapt: bool = False,
-            adapt_rounds: int = 1) -> dict:
+            adapt_rounds: int = 1, refine: int = 0) -> dict:
         """One experiment: capture, reconstruct, evaluate (or its cached record).
 
         Parameters
@@ -139,6 +139,8 @@ class Runner:
             A sparse method with its dictionary adapted to the capture (``--adapt``), both passes timed.
         adapt_rounds : int
             With ``adapt``: its rounds (``--adapt-rounds``).
+        refine : int
+            Iterations of the refinement after the result (``--refine``; 0: none).
 
         Returns
         -------
@@ -164,6 +166,10 @@ class Runner:
                                             if method == "nonlocal" else {}))
                 if adapt_rounds != 1:  # (absent for one round: the earlier keys stand)
                     settings["adapt"].update(rounds=adapt_rounds, last_step=ADAPT_LAST_STEP)
+            if refine:  # (absent without: the earlier keys stand)
+                from codedvideo.solvers.refine import recipe
+
+                settings["refine"] = dict(recipe(), iterations=refine)
             if method != "dct":
                 D, meta = self.dictionary(frames, atoms)
                 dkey = meta["sha256"]
@@ -203,9 +209,9 @@ class Runner:
         for _ in range(repeats):  # best of `repeats` wall times
             with tempfile.TemporaryDirectory(dir=self.folder, prefix="work-") as tmp:  # fresh store: no reused tiles
                 t0 = time.perf_counter()
-                if adapt:
-                    volume, info = reconstruct_capture(method, cap["coded"], cap["mask"], adapt=True,
-                                                       adapt_rounds=adapt_rounds,
+                if adapt or refine:
+                    volume, info = reconstruct_capture(method, cap["coded"], cap["mask"], adapt=adapt,
+                                                       adapt_rounds=adapt_rounds, refine=refine,
                                                        data_range=infer_data_range(255.0, given=255.0), settings=omp,
                                                        dictionary=D, dictionary_key=dkey, cache=tmp,
                                                        tile=self.cfg.reconstruct.tile,
@@ -283,7 +289,7 @@ def run_experiments(runner: Runner) -> dict:
             keep = name == "best" and scene == rc.video_scene  # best's frames beside the baselines' (the strips)
             rec = runner.run(scene=scene, frames=n, code="hitomi", bump=L, sigma=0.0, method=o["method"],
                              max_atoms=o["max_atoms"], stride=o["stride"], adapt=o["adapt"],
-                             adapt_rounds=o["adapt_rounds"], timed=True, keep=keep)
+                             adapt_rounds=o["adapt_rounds"], refine=o["refine"], timed=True, keep=keep)
             if scene in rc.scenes:
                 out["speed"].append(dict(rec, label=f"preset {name}", in_mean=True))
             if keep:

@@ -177,15 +177,15 @@ PRESETS: dict[str, dict] = {
     "fast": dict(stride=2),
     # the paper's method, the defaults: nothing changed
     "default": {},
-    # the best quality measured: nonlocal --adapt with a second round (GAP-TV + 4.72 dB on the 8 held-out real
-    # cases of docs/quality.md, + 0.41 over one round; about 3.4x the default's whole-process time)
-    "best": dict(method="nonlocal", adapt=True, adapt_rounds=2),
+    # the best quality measured: nonlocal --adapt with a second round, then 24 iterations of GAP with a low-rank
+    # prior on groups (docs/quality.md, "Presets" and "Refinement")
+    "best": dict(method="nonlocal", adapt=True, adapt_rounds=2, refine=24),
 }
 #: The names of :data:`PRESETS` (a test keeps them equal).
 PresetName = Literal["fast", "default", "best"]
 #: The keys a preset may set, and the options that give them on the command line.
-PRESET_KEYS = {"method": "--method", "adapt": "--adapt", "adapt_rounds": "--adapt-rounds", "stride": "--stride",
-               "max_atoms": "--max-atoms"}
+PRESET_KEYS = {"method": "--method", "adapt": "--adapt", "adapt_rounds": "--adapt-rounds", "refine": "--refine",
+               "stride": "--stride", "max_atoms": "--max-atoms"}
 
 
 class ReconstructConfig(_Strict):
@@ -209,6 +209,9 @@ class ReconstructConfig(_Strict):
     #: With ``adapt``: 2 adapts again to the second pass's result and reconstructs a third time (``best``: +0.5 dB
     #: on held-out real footage over one round, 1.8x its time; docs/quality.md, "Presets").
     adapt_rounds: int = Field(1, ge=1, le=2)
+    #: Iterations of GAP with a low-rank prior on groups of similar blocks after the method's result (0: none;
+    #: ``best``: 24, +0.24 dB on held-out real footage over its two rounds; docs/quality.md, "Refinement").
+    refine: int = Field(0, ge=0, le=200)
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
     tile: int = Field(128, ge=8, le=4096)
     batch: int = Field(4096, ge=1, le=1 << 20)
@@ -461,17 +464,15 @@ def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
 
 def _refusal(key: str, options: dict, bayer: str | None) -> str | None:
     """Why the value of ``key`` in ``options`` cannot be used in a run (None: it can): ``adapt`` needs a method
-    with a dictionary and no Bayer mosaic, the non-local method no Bayer mosaic."""
+    with a dictionary, ``adapt_rounds`` other than 1 needs ``adapt``, ``refine`` no Bayer mosaic."""
     method = options["method"]
-    if key == "method" and method == "nonlocal" and bayer:
-        return f"not available with --bayer {bayer} (the colour video is solved patch by patch)"
+    if key == "refine" and options["refine"] and bayer:
+        return (f"not available with --bayer {bayer} (measured on a colour mosaic: no gain, 5x the time of the "
+                "passes before it)")
     if key == "adapt_rounds" and options["adapt_rounds"] != 1 and not options["adapt"]:
         return "applies with --adapt only"
-    if key == "adapt" and options["adapt"]:
-        if method not in ("omp", "nonlocal", "dct"):
-            return f"adapts the dictionary of --method omp, nonlocal or dct (--method {method} has none)"
-        if bayer:
-            return f"not available with --bayer {bayer} (its colour dictionary is lifted from the grey one)"
+    if key == "adapt" and options["adapt"] and method not in ("omp", "nonlocal", "dct"):
+        return f"adapts the dictionary of --method omp, nonlocal or dct (--method {method} has none)"
     return None
 
 
@@ -490,8 +491,9 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None) -
     (None: no preset), then the defaults of ``reconstruct:``.
 
     An option given that the run cannot take raises :class:`ConfigError` naming it, with or without a
-    preset.  One the preset set is left out instead (its default taken): ``best`` with ``--bayer`` gives the
-    per-patch OMP that a Bayer mosaic allows rather than failing.
+    preset.  One the preset set is left out instead (its default taken): ``--preset best --method gaptv`` gives
+    GAP-TV without ``adapt``, which it cannot take, and ``best`` with ``--bayer`` leaves out ``refine``, rather
+    than failing.
 
     Returns
     -------

@@ -727,6 +727,7 @@ def reconstruct_captures(
     progress: bool = True,
     adapt: bool = False,
     adapt_rounds: int = 1,
+    refine: int = 0,
     cache_budget: int | None = None,
 ) -> Iterator[tuple[int, np.ndarray, dict]]:
     """Captures in their own units -> their videos in the same units, by any method, in order, as one job.
@@ -758,6 +759,10 @@ def reconstruct_captures(
     adapt_rounds : int
         With ``adapt``: 2 adapts the dictionary again to the second pass's result and reconstructs a
         third time with it (:data:`ADAPT_LAST_STEP`; ``--preset best``).
+    refine : int
+        Iterations of GAP with a low-rank prior on groups after each capture's result (0: none;
+        :func:`codedvideo.solvers.refine.refine`, ``--preset best``), in the process, not cached; pixels that
+        only still patches cover keep their still answer.
     cache_budget : int, optional
         Bytes the cache's working stores may take (:class:`codedvideo.engine.cache.CacheBudget`): the least recently
         used are removed as the job's windows finish (with ``adapt``, the first passes' stores only after the
@@ -880,6 +885,9 @@ def reconstruct_captures(
                 volume, info = _static_volume(coded_used, mask_used)
             elif volume is None:
                 volume, info = reconstruct_method(method, coded_used, mask_used)
+            if refine and moving and info.get("method") != "static":
+                volume, info = _refined(coded_used, mask_used, volume, info, refine, still=still, where=where,
+                                        progress=progress, label=f"{i + 1}/{count}")
             if measured is not None:  # still answers averaged over captures: the residual of this capture's own
                 residual = physics.forward(volume, mask_used) - measured
                 info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
@@ -917,6 +925,25 @@ def reconstruct_captures(
     if budget is not None and budget.keep:  # the job is over: the first passes' stores may go too
         budget.keep.clear()
         budget.finished([])
+
+
+def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict, iterations: int, *,
+             still: np.ndarray | None, where: str, progress: bool, label: str) -> tuple[np.ndarray, dict]:
+    """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units), its
+    info with what the refinement did; the pixels that only still patches cover keep their values."""
+    from codedvideo.model.sequence import erode_to_patches
+    from codedvideo.solvers.refine import refine as gap_refine
+
+    with _progress_bar(iterations, f"refine {label}") if progress else contextlib.nullcontext() as bar:
+        refined, record = gap_refine(coded, mask, volume, iterations=iterations,
+                                     tick=None if bar is None else (lambda: bar.update(1)))
+    if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
+        raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
+    if still is not None:
+        inner = erode_to_patches(still, PATCH)
+        refined[:, inner] = volume[:, inner]
+    seconds = dict(info.get("seconds", {}), refine=record["seconds"])
+    return refined, dict(info, refine=record, seconds=seconds)
 
 
 def _adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictionary_key: str, pass_settings, *,
@@ -1134,7 +1161,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
             dictionary=D, dictionary_key=dmeta["sha256"], dictionary_name=str(dict_path),
             white_level=cfg.noise.white_level, where="simulated capture", tile=rc.tile, cache=cfg.cache,
             scheduler=rc.scheduler, workers=rc.workers, progress=progress, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds,
-            cache_budget=rc.cache_budget)
+            refine=rc.refine, cache_budget=rc.cache_budget)
         report["seconds"]["reconstruct"] = time.perf_counter() - t0
         report["reconstruction"] = info
         t0 = time.perf_counter()

@@ -1194,3 +1194,123 @@ def synthesize(result: OmpResult, D: np.ndarray) -> np.ndarray:
     synthesize_into(np.ascontiguousarray(result.index), np.ascontiguousarray(result.coef, dtype=np.float32),
                     np.ascontiguousarray(result.count), Dt, out)
     return out
+
+
+# --------------------------------------------------------------------------------------------
+# GAP refinement with a low-rank prior on groups (codedvideo.solvers.refine): matching of the reference
+# blocks only, each group's mean and Gram matrix, and the shrunk members' estimates.
+
+
+@njit(parallel=True, nogil=True, cache=True, fastmath={"reassoc", "contract"})
+def match_references(vol, refs, wp, hp, patch, window, k, idx):
+    """``idx[g]``: the ``k`` blocks of ``vol`` closest to reference block ``refs[g]`` (raster corners), corners
+    within ``window`` pixels, as whole ``patch x patch x N`` sums of squared differences.
+
+    The reference itself first; then offsets in raster order of ``(dy, dx)``, a candidate entering only when
+    strictly closer than the one it would displace (ties to the earlier offset); a sum stops once past the
+    current ``k``-th.  Fewer than ``k`` candidates: the reference fills the rest.  Every reference alone,
+    so the groups never depend on the threads."""
+    n = vol.shape[0]
+    for g in prange(refs.shape[0]):
+        p = refs[g]
+        r0 = p // wp
+        c0 = p % wp
+        best = np.full(k, np.inf)
+        bidx = np.full(k, -1, np.int64)
+        best[0] = -1.0
+        bidx[0] = p
+        for dy in range(-window, window + 1):
+            r = r0 + dy
+            if r < 0 or r >= hp:
+                continue
+            for dx in range(-window, window + 1):
+                cc = c0 + dx
+                if cc < 0 or cc >= wp or (dy == 0 and dx == 0):
+                    continue
+                lim = best[k - 1]
+                s = 0.0
+                for t in range(n):
+                    for yy in range(patch):
+                        for xx in range(patch):
+                            d = vol[t, r0 + yy, c0 + xx] - vol[t, r + yy, cc + xx]
+                            s += np.float64(d * d)
+                    if s >= lim:
+                        break
+                if s >= lim:
+                    continue
+                j = k - 1
+                while j > 0 and best[j - 1] > s:
+                    best[j] = best[j - 1]
+                    bidx[j] = bidx[j - 1]
+                    j -= 1
+                best[j] = s
+                bidx[j] = r * wp + cc
+        for j in range(k):
+            idx[g, j] = bidx[j] if bidx[j] >= 0 else p
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _gather_centred(vol, members, wp, patch, M, mu):
+    """``M`` (k, d): the members' blocks less their mean ``mu`` (d)."""
+    n = vol.shape[0]
+    m = patch * patch
+    k = members.size
+    mu[:] = 0.0
+    for i in range(k):
+        p = members[i]
+        r0 = p // wp
+        c0 = p % wp
+        for t in range(n):
+            for yy in range(patch):
+                for xx in range(patch):
+                    M[i, t * m + yy * patch + xx] = vol[t, r0 + yy, c0 + xx]
+                    mu[t * m + yy * patch + xx] += vol[t, r0 + yy, c0 + xx]
+    for e in range(mu.size):
+        mu[e] /= k
+    for i in range(k):
+        for e in range(mu.size):
+            M[i, e] -= mu[e]
+
+
+@njit(parallel=True, nogil=True, cache=True, fastmath={"reassoc", "contract"})
+def shrink_groups(vol, groups, wp, patch, sigma2, c, est):
+    """``est[g * k + i]``: member ``i`` of group ``g`` with the group shrunk by weighted nuclear norm.
+
+    The members less their mean ``M`` (k, d); the eigendecomposition ``M M^T = U diag(s^2) U^T`` of their Gram
+    matrix (float64); each singular value ``s`` lowered by ``c sqrt(k) sigma2 / s_hat`` (``s_hat^2 = max(s^2 -
+    d sigma2, 0)``, the clean value's estimate) and kept as ``f = max(s - threshold, 0) / s``; the estimate
+    the mean plus ``U diag(f) U^T M``.  :func:`codedvideo.solvers.refine.shrinkage` is the same rule in numpy.
+    Every group alone, so nothing depends on the threads."""
+    G, k = groups.shape
+    d = vol.shape[0] * patch * patch
+    for g in prange(G):
+        M = np.empty((k, d), np.float32)
+        mu = np.empty(d, np.float32)
+        _gather_centred(vol, groups[g], wp, patch, M, mu)
+        C = np.empty((k, k), np.float64)
+        for i in range(k):
+            for j in range(i, k):
+                acc = 0.0
+                for e in range(d):
+                    acc += np.float64(M[i, e]) * np.float64(M[j, e])
+                C[i, j] = acc
+                C[j, i] = acc
+        lam, U = np.linalg.eigh(C)
+        f = np.zeros(k)
+        for q in range(k):
+            if lam[q] > 0.0:
+                sq = np.sqrt(lam[q])
+                threshold = c * np.sqrt(k) * sigma2 / (np.sqrt(max(lam[q] - d * sigma2, 0.0)) + 1e-8)
+                f[q] = max(sq - threshold, 0.0) / sq
+        for i in range(k):
+            row = est[g * k + i]
+            for e in range(d):
+                row[e] = mu[e]
+            for j in range(k):
+                pij = 0.0
+                for q in range(k):
+                    pij += U[i, q] * f[q] * U[j, q]
+                if pij != 0.0:
+                    p32 = np.float32(pij)
+                    for e in range(d):
+                        row[e] += p32 * M[j, e]

@@ -1,0 +1,117 @@
+"""The refinement under the measurement (``--refine``, ``--preset best``): GAP iterations with a weighted-nuclear-
+norm prior on groups of similar blocks (codedvideo.solvers.refine)."""
+import numba
+import numpy as np
+import pytest
+
+from codedvideo.data.scenes import load_video
+from codedvideo.model.metrics import evaluate
+from codedvideo.model.patches import PATCH
+from codedvideo.model.physics import forward
+from codedvideo.engine.stages import simulate_capture
+from codedvideo.solvers import refine as R
+from codedvideo.solvers.omp_kernel import match_references, shrink_groups
+
+
+@pytest.fixture(scope="module")
+def carphone():
+    """A 64x64 crop of held-out real footage, hitomi L = 2, and the default's result from it."""
+    import codedvideo as cv
+
+    video = load_video("footage:carphone", frames=8, size=(64, 64))
+    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0)
+    start = cv.reconstruct(cap["coded"], cap["mask"], data_range=255.0)
+    return video, cap, start
+
+
+def test_the_compiled_shrinkage_is_the_numpy_rule():
+    """``shrink_groups`` (gather, Gram, eigendecomposition, shrinkage, synthesis in one kernel) gives what
+    :func:`refine.shrinkage` gives written out in numpy, at three noise levels (none, some, all shrunk)."""
+    rng = np.random.default_rng(0)
+    n, h, w = 4, 20, 22
+    base = rng.normal(100, 20, (n, h, w)).astype(np.float32)
+    x = (base + rng.normal(0, 3, base.shape)).astype(np.float32)
+    wp = w - PATCH + 1
+    refs = R.reference_grid(h, w, step=3)
+    groups = np.empty((refs.size, 6), np.int64)
+    match_references(x, refs, wp, h - PATCH + 1, PATCH, 4, 6, groups)
+    assert (groups[:, 0] == refs).all()  # the reference first
+    d = n * PATCH * PATCH
+    rows, cols = groups // wp, groups % wp
+    members = np.stack([x[:, r:r + PATCH, c:c + PATCH].reshape(-1) for r, c in zip(rows.ravel(), cols.ravel())])
+    members = members.reshape(groups.shape + (d,)).astype(np.float64)
+    mean = members.mean(1, keepdims=True)
+    centred = members - mean
+    for sigma in (0.0, 3.0, 1e4):
+        est = np.empty((groups.size, d), np.float32)
+        shrink_groups(x, groups, wp, PATCH, sigma * sigma, R.SHRINK, est)
+        P = R.shrinkage(np.einsum("gid,gjd->gij", centred, centred), d, sigma)
+        expected = mean + np.einsum("gij,gjd->gid", P, centred)
+        np.testing.assert_allclose(est, expected.reshape(est.shape), rtol=0, atol=2e-3)
+        if sigma == 0.0:  # nothing shrunk: every member as it was
+            np.testing.assert_allclose(est, members.reshape(est.shape), rtol=0, atol=2e-3)
+        if sigma == 1e4:  # everything shrunk: every member its group's mean
+            np.testing.assert_allclose(est, np.broadcast_to(mean, members.shape).reshape(est.shape), atol=2e-3)
+
+
+def test_refining_keeps_the_measurements_and_improves_held_out_footage(carphone):
+    video, cap, start = carphone
+    refined, info = R.refine(cap["coded"], cap["mask"], start, iterations=12)
+    assert refined.dtype == np.float32 and np.isfinite(refined).all()
+    residual = forward(refined, cap["mask"]) - cap["coded"]
+    start_residual = forward(start, cap["mask"]) - cap["coded"]
+    # the mean of two estimates that reproduce the measurements (the start to its own residual)
+    assert np.sqrt(np.mean(residual ** 2)) <= 0.5 * np.sqrt(np.mean(start_residual ** 2)) + 0.01
+    gain = evaluate(refined, video)["psnr"] - evaluate(start, video)["psnr"]
+    assert gain > 0.3, gain  # measured +0.9 dB here (from the default's result)
+    assert info["iterations"] == 12 and info["groups"] == R.reference_grid(64, 64).size
+
+
+def test_the_result_does_not_depend_on_the_threads_or_the_chunks(carphone, monkeypatch):
+    _, cap, start = carphone
+    ref, _ = R.refine(cap["coded"], cap["mask"], start, iterations=5)
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one, _ = R.refine(cap["coded"], cap["mask"], start, iterations=5)
+    finally:
+        numba.set_num_threads(threads)
+    np.testing.assert_array_equal(one, ref)
+    monkeypatch.setattr(R, "CHUNK", 7)  # groups solved and added seven at a time
+    np.testing.assert_array_equal(R.refine(cap["coded"], cap["mask"], start, iterations=5)[0], ref)
+
+
+@pytest.mark.parametrize("value", [0.0, 255.0])
+def test_flat_scenes_stay_exactly_flat(value):
+    """All dark, all white: nothing to shrink, every group its mean; the measurements hold the same value."""
+    mask = np.random.default_rng(1).random((8, 24, 24)) < 0.5
+    video = np.full((8, 24, 24), value, np.float32)
+    coded = forward(video, mask)
+    refined, _ = R.refine(coded, mask, video, iterations=4)
+    np.testing.assert_allclose(refined, value, atol=1e-3 * max(value, 1.0))
+
+
+def test_images_smaller_than_a_patch_and_no_iterations_return_the_start():
+    start = np.arange(8 * 5 * 9, dtype=np.float32).reshape(8, 5, 9)
+    mask = np.ones((8, 5, 9), np.uint8)
+    out, info = R.refine(forward(start, mask), mask, start, iterations=10)
+    np.testing.assert_array_equal(out, start)
+    assert info["iterations"] == 0
+    out, info = R.refine(np.zeros((9, 9), np.float32), np.ones((8, 9, 9)), np.zeros((8, 9, 9)), iterations=0)
+    assert info["iterations"] == 0 and not out.any()
+
+
+def test_a_pixel_never_open_is_not_held_to_a_measurement():
+    """Its ``Phi Phi^T`` is 0: no step to the measurements (no division by it), and the prior may only move it
+    towards its neighbours (from the 40 it was filled with towards their 50)."""
+    rng = np.random.default_rng(2)
+    video = np.full((4, 16, 16), 50.0, np.float32)
+    mask = (rng.random(video.shape) < 0.5).astype(np.uint8)
+    mask[:, 8, 8] = 0
+    coded = forward(video, mask)
+    start = video.copy()
+    start[:, 8, 8] = 40.0
+    refined, _ = R.refine(coded, mask, start, iterations=6)
+    assert np.isfinite(refined).all()
+    assert 40.0 - 1e-3 <= refined[:, 8, 8].min() and refined[:, 8, 8].max() <= 50.0 + 1e-3
+    np.testing.assert_allclose(np.delete(refined.reshape(4, -1), 8 * 16 + 8, axis=1), 50.0, atol=0.1)
