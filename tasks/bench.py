@@ -19,6 +19,9 @@ Cases (issue "Fast reconstruction"):
            case's scenes and codes (tasks/bench_nonlocal.py)
   adapt    reconstruct --adapt (the dictionary adapted to each capture in the same run) beside the
            default and the non-local method, whole CLI processes, 8-bit and [0, 1] captures
+  presets  issue 31: GAP-TV, --preset fast, default and best and nonlocal --adapt on the held-out real clips
+           (8 cases, 8-bit and [0, 1] captures), and default and best at 256, 512 and 1024 pixels square
+           (time against the pixel count), whole CLI processes (tasks/bench_presets.py)
   video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
            peak resident memory)
   outputs  issue 29: peak resident memory per output format (npy, mp4, mkv, gif, zarr, tif, mat, frames),
@@ -728,12 +731,32 @@ def case_calibrated(quick: bool) -> dict:
     return out
 
 
+def case_presets(quick: bool) -> dict:
+    """Issue 31: the presets on held-out real footage and best's time against the pixel count
+    (tasks/bench_presets.py; its own results file is kept as well)."""
+    import tempfile
+
+    import bench_presets as bp
+
+    size = (96, 96) if quick else (256, 256)
+    (ROOT / "cache").mkdir(exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache", prefix="bench-presets-") as tmp:
+        work = Path(tmp)
+        cases = bp.write_captures(work / "captures", size)[: 1 if quick else None]
+        bp.warm_up(work)
+        presets = dict(bp.presets(cases, work), size=list(size))
+        scaling = bp.scaling(work, 1, sides=(64, 128) if quick else bp.SCALING_SIDES)
+    return dict(case="presets", size=list(size), frames=8, presets=presets, scaling=scaling,
+                sgemm_gflops=sgemm_gflops())
+
+
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
              sequence=case_sequence, video=case_video, footage=case_footage, calibrated=case_calibrated, startup=case_startup, units=case_units)
 CASES["nonlocal"] = case_nonlocal  # a keyword: not a dict() argument
 CASES["adapt"] = case_adapt
 CASES["outputs"] = case_outputs
 CASES["outputs4k"] = case_outputs4k
+CASES["presets"] = case_presets
 
 
 def run_child(name: str, quick: bool) -> dict:
@@ -778,6 +801,10 @@ def table(results: dict) -> str:
                 rows.append(f"  --adapt, {x['scene']} {x['code']} ({x['units']}): " + ", ".join(
                     f"{k} {x[k]['psnr']:.2f} dB {x[k]['seconds']:.2f} s ({x[k]['seconds'] / base:.2f}x)"
                     for k in ("default", "omp --adapt", "nonlocal", "nonlocal --adapt")))
+        if name == "presets":
+            import bench_presets
+
+            rows.extend("  " + line for line in bench_presets.table(r).splitlines())
         if name == "startup":
             rows.append(f"  start-up: reconstruct {r['size']} as a whole process {r['process_seconds']:.2f} s, in-process "
                         f"{r['in_process_seconds']:.2f} s: {r['ratio']:.2f}x (target 1.5x)")

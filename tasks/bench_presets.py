@@ -249,7 +249,8 @@ def table(results: dict) -> str:
         for r in p["rows"]:
             lines.append(f"  {r['scene']:<18}{r['code']:<10}{r['units']:<8}" + "  ".join(
                 f"{k} {r[k]['psnr']:.2f}/{r[k]['ssim']:.4f}/{r[k]['seconds']:.2f}s" for k in PRESET_RUNS))
-        lines.append(f"  --preset best, slowest 256x256 N = 8 process: {p['best_seconds_max']:.2f} s "
+        side = "x".join(map(str, p.get("size", (256, 256))))
+        lines.append(f"  --preset best, slowest {side} N = 8 process: {p['best_seconds_max']:.2f} s "
                      f"(target {p['best_target_seconds']:g} s: {'met' if p['best_seconds_max'] <= BEST_TARGET else 'NOT met'})")
         if "best_over_one_round_min" in p:
             lines.append(f"  --preset best against nonlocal --adapt, worst case: {p['best_over_one_round_min']:+.2f} dB "

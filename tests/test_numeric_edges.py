@@ -158,7 +158,7 @@ def _base(command: str, option: str, capture, tmp):
     if command == "simulate":
         extra = ["--shot-noise"] if option in ("--full-well", "--gain") else []
         extra += ["--code", "bernoulli"] if option == "--p" else []
-        extra += [] if option in ("--frames", "--size") else ["--frames", N]
+        extra += [] if option == "--frames" else ["--frames", N]
         extra += [] if option == "--size" else ["--size", H, W]
         return ["simulate", "synth:default", "--output", tmp / "s", *extra]
     if command == "reconstruct":
