@@ -185,6 +185,21 @@ def test_best_with_a_bayer_mosaic_is_the_non_local_method_adapted_in_two_rounds(
     assert not (tmp_path / "no.npy").exists()
 
 
+def test_best_on_a_bayer_mosaic_whose_code_the_groups_cannot_hold_says_it_gave_omp(tmp_path, capsys):
+    """Bernoulli on a mosaic: more colour pixel patterns than the non-local method's table holds.  The joint OMP
+    adapted in two rounds is the answer, with a warning, and the metrics say ``omp``, not ``nonlocal``."""
+    assert main(["-q", "simulate", "synth:color-default", "--frames", "8", "--code", "bernoulli", "--bayer", "RGGB",
+                 "--size", "48", "48", "--output", str(tmp_path / "cap")]) == 0
+    cap = tmp_path / "cap"
+    with pytest.warns(UserWarning, match="distinct pixel shutter patterns"):
+        rc, err = _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--bayer",
+                       "RGGB", "--tile", 48, "--preset", "best", "--cache", tmp_path / "c", "--output", tmp_path / "b.npy")
+    assert rc == 0, err
+    record = json.loads((tmp_path / "b.metrics.json").read_text())["reconstruction"]
+    assert record["method"] == "omp" and "patterns" in record["nonlocal_unavailable"]
+    assert len(record["adapted"]["rounds"]) == 2
+
+
 def test_the_api_takes_the_same_presets():
     video = cv.synthetic_scene("default", frames=8, size=(48, 48)) / 255
     mask = cv.make_code("hitomi", (48, 48), frames=8, bump=2, seed=0)

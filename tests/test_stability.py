@@ -426,4 +426,4 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     else:
         trivial = evaluate(static_estimate(coded, mask), video)["psnr"]
         assert evaluate(vol, video)["psnr"] >= trivial - TRIVIAL_MARGIN_DB
-        assert len(info["adapted"]["rounds"]) == 2
+        assert len(info["adapted"]["rounds"]) == 2 and info["refine"]["iterations"] == 24

@@ -166,10 +166,6 @@ class Runner:
                                             if method == "nonlocal" else {}))
                 if adapt_rounds != 1:  # (absent for one round: the earlier keys stand)
                     settings["adapt"].update(rounds=adapt_rounds, last_step=ADAPT_LAST_STEP)
-            if refine:  # (absent without: the earlier keys stand)
-                from codedvideo.solvers.refine import recipe
-
-                settings["refine"] = dict(recipe(), iterations=refine)
             if method != "dct":
                 D, meta = self.dictionary(frames, atoms)
                 dkey = meta["sha256"]
@@ -181,6 +177,12 @@ class Runner:
             settings["version"] = content_key(inspect.getsource(baselines))
             settings["defaults"] = {k: v.default for k, v in inspect.signature(fn).parameters.items()
                                     if v.default is not inspect.Parameter.empty}
+        if refine and omp is None:
+            raise ValueError(f"report: refine is run after the sparse methods only, not {method}")
+        if refine:  # (absent without: the earlier keys stand)
+            from codedvideo.solvers.refine import recipe
+
+            settings["refine"] = dict(recipe(), iterations=refine)
         key = content_key(REPORT_VERSION, settings, dkey, cap["coded"], cap["mask"], cap["truth"])
         path = self.folder / f"{key}.json"
         vol_path = self.folder / f"{key}.npy"

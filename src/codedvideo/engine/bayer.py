@@ -377,7 +377,9 @@ def reconstruct_bayer(method: str, coded: np.ndarray, mask: np.ndarray, *, patte
                                               color_mask(mask, pattern), dictionary=lifted, white_level=white_level,
                                               **options)
             volume = stack.reshape((3, n) + coded.shape)
-            info = dict(info, method=method, dictionary_atoms=int(np.shape(dictionary)[1]))
+            # (a code the non-local method's table cannot hold gave the joint OMP: its record says so)
+            info = dict(info, method="omp" if info.get("nonlocal_unavailable") else method,
+                        dictionary_atoms=int(np.shape(dictionary)[1]))
             approach = "joint"
         else:
             cm = cfa_masks(pattern, coded.shape)

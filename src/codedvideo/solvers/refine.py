@@ -16,12 +16,13 @@ measurements of one patch (or of one group, once).  The refinement alternates, f
    under the measurement); every member's estimate averaged at its place.
 
 The last estimate is projected onto the measurements and averaged with ``x0`` (:data:`BLEND`): both
-reproduce the coded image, and the mean held every case of the research above ``x0`` (docs/quality.md).
+reproduce the coded image (``x0`` to its method's tolerance), and the mean held every case of the research
+above ``x0`` (docs/quality.md).  The noise levels are fixed: a capture's read noise does not change them.
 
 In working units (the grey levels of an 8-bit capture: the noise levels are in them).  Arrays in, arrays
 out, on the whole image: the groups of a chunk of references are solved and added in order, so the result
-does not depend on the threads.  Memory: three volumes (the estimate, the sum of the estimates, the start)
-and one chunk of groups (:data:`CHUNK`).
+does not depend on the threads.  Memory: three volumes (the estimate, the sum of the estimates, the start),
+one chunk of groups (:data:`CHUNK`), and a band of rows of the mask in float32 at a time (:data:`BAND`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,8 @@ SIGMA_END = 1.0
 BLEND = 0.5
 #: References whose groups are solved at once (their estimates: CHUNK * GROUP * N * 49 floats).
 CHUNK = 2048
+#: Elements of a band of rows in a step to the measurements (its float32 copy of the mask's band: 16 MB).
+BAND = 1 << 22
 
 
 def recipe() -> dict:
@@ -86,9 +89,11 @@ def shrinkage(gram: np.ndarray, d: int, sigma: float, c: float = SHRINK) -> np.n
     return np.einsum("giq,gq,gjq->gij", U, f, U)
 
 
-def denoise(x: np.ndarray, groups: np.ndarray, sigma: float, *, chunk: int = CHUNK) -> np.ndarray:
+def denoise(x: np.ndarray, groups: np.ndarray, sigma: float, *, chunk: int | None = None) -> np.ndarray:
     """The estimate ``x`` (N, H, W) float32 with every group shrunk (:func:`shrinkage`) and the members'
-    estimates averaged at their places; pixels no member covers keep their value."""
+    estimates averaged at their places; pixels no member covers keep their value.  ``chunk``: groups solved
+    at once (None: :data:`CHUNK`)."""
+    chunk = CHUNK if chunk is None else chunk
     n, h, w = x.shape
     wp = w - PATCH + 1
     k = groups.shape[1]
@@ -111,6 +116,26 @@ def sigmas(iterations: int, start: float = SIGMA_START, end: float = SIGMA_END) 
     return np.geomspace(start, end, iterations) if iterations > 1 else np.array([end], np.float64)
 
 
+def to_measurements(x: np.ndarray, mask: np.ndarray, coded: np.ndarray, inv: np.ndarray,
+                    accumulated: np.ndarray | None = None) -> None:
+    """In place, a band of rows at a time: ``x += S^T ((target - S x) / (S S^T))`` per pixel (``inv``: the
+    reciprocal of each pixel's summed squared shutter weights, 0 where it is never open).  ``target`` is
+    ``coded``, or with ``accumulated`` (accelerated GAP) that sum of the residuals, ``coded - S x`` added
+    to it first."""
+    n, h, w = x.shape
+    rows = max(1, BAND // max(n * w, 1))
+    for r in range(0, h, rows):
+        band = slice(r, r + rows)
+        s = np.asarray(mask[:, band], np.float32)
+        predicted = np.einsum("thw,thw->hw", x[:, band], s, dtype=np.float32)
+        if accumulated is None:
+            target = coded[band]
+        else:
+            accumulated[band] += coded[band] - predicted
+            target = accumulated[band]
+        x[:, band] += s * ((target - predicted) * inv[band])[None]
+
+
 def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
            sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
            tick=None) -> tuple[np.ndarray, dict]:
@@ -122,11 +147,11 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     """
     t0 = time.perf_counter()
     y = np.asarray(coded, np.float32)
-    s = np.asarray(mask, np.float32)
-    n, h, w = s.shape
+    mask = np.asarray(mask)
+    n, h, w = mask.shape
     if h < PATCH or w < PATCH or iterations < 1:
         return np.asarray(start, np.float32).copy(), dict(iterations=0, seconds=time.perf_counter() - t0)
-    open2 = physics.forward(s, s)
+    open2 = physics.forward(mask, mask)
     inv = np.divide(1.0, open2, out=np.zeros_like(open2), where=open2 > 0)
     x0 = np.ascontiguousarray(start, np.float32)
     x = x0.copy()
@@ -135,15 +160,13 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     accumulated = y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
     for i, sigma in enumerate(levels):
-        predicted = physics.forward(x, s)
-        accumulated += y - predicted
-        x += s * ((accumulated - predicted) * inv)[None]
+        to_measurements(x, mask, y, inv, accumulated)
         if i % REGROUP == 0:
             match_references(x, refs, w - PATCH + 1, h - PATCH + 1, PATCH, WINDOW, GROUP, groups)
         x = denoise(x, groups, float(sigma))
         if tick is not None:
             tick()
-    x += s * ((y - physics.forward(x, s)) * inv)[None]
+    to_measurements(x, mask, y, inv)
     x *= np.float32(1.0 - blend)
     x += np.float32(blend) * x0
     info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
