@@ -54,6 +54,7 @@ from codedvideo.data.scenes import load_video
 from codedvideo.engine.stages import (ADAPT_ITERATIONS, ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SAMPLES, ADAPT_SPARSITY, ADAPT_SURVEY_STEP,
                      SPARSE_METHODS, reconstruct_capture, reconstruct_method, simulate_capture, train_dictionary)
 from codedvideo.formats.store import load_dictionary
+from codedvideo.solvers.refine import recipe as refine_recipe
 from codedvideo.model.units import infer_data_range
 
 #: Part of every experiment key: bump it when what an experiment records changes.
@@ -180,9 +181,7 @@ class Runner:
         if refine and omp is None:
             raise ValueError(f"report: refine is run after the sparse methods only, not {method}")
         if refine:  # (absent without: the earlier keys stand)
-            from codedvideo.solvers.refine import recipe
-
-            settings["refine"] = dict(recipe(), iterations=refine)
+            settings["refine"] = dict(refine_recipe(), iterations=refine)
         key = content_key(REPORT_VERSION, settings, dkey, cap["coded"], cap["mask"], cap["truth"])
         path = self.folder / f"{key}.json"
         vol_path = self.folder / f"{key}.npy"

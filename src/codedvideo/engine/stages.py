@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo.solvers import baselines
+from codedvideo.solvers import refine as refinement
 from codedvideo.formats import io as cio
 from codedvideo.model import patches as P
 from codedvideo.model import physics
@@ -33,6 +34,7 @@ from codedvideo.model.errors import ConfigError, InputError, OutputError
 from codedvideo.model.metrics import evaluate
 from codedvideo.engine.parallel import GraphRunner, build_graph, plan_store, plan_tiles, store_volume
 from codedvideo.model.patches import PATCH
+from codedvideo.model.sequence import erode_to_patches, normalised
 from codedvideo.solvers.region import STAT_NAMES, OmpSettings
 from codedvideo.data.scenes import load_video, training_videos
 from codedvideo.data.shipped import check_dictionary, init_dictionary
@@ -773,8 +775,6 @@ def reconstruct_captures(
     ``(i, volume (N, H, W) float32, info)`` for i = 0 .. T-1, each as soon as
     it is done; the sparse methods run every capture's tiles in one graph.
     """
-    from codedvideo.model.sequence import erode_to_patches, normalised
-
     if method not in baselines.METHODS:
         raise InputError(f"method {method!r}: unknown; choose one of {', '.join(baselines.METHODS)}")
     scale = np.float32(data_range.scale)
@@ -931,11 +931,8 @@ def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict
              still: np.ndarray | None, where: str, progress: bool, label: str) -> tuple[np.ndarray, dict]:
     """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units), its
     info with what the refinement did; the pixels that only still patches cover keep their values."""
-    from codedvideo.model.sequence import erode_to_patches
-    from codedvideo.solvers.refine import refine as gap_refine
-
     with _progress_bar(iterations, f"refine {label}") if progress else contextlib.nullcontext() as bar:
-        refined, record = gap_refine(coded, mask, volume, iterations=iterations,
+        refined, record = refinement.refine(coded, mask, volume, iterations=iterations,
                                      tick=None if bar is None else (lambda: bar.update(1)))
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
         raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
