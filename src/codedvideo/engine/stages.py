@@ -933,7 +933,7 @@ def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict
     info with what the refinement did; the pixels that only still patches cover keep their values."""
     with _progress_bar(iterations, f"refine {label}") if progress else contextlib.nullcontext() as bar:
         refined, record = refinement.refine(coded, mask, volume, iterations=iterations,
-                                     tick=None if bar is None else (lambda: bar.update(1)))
+                                            tick=None if bar is None else (lambda: bar.update(1)))
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
         raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
     if still is not None:
