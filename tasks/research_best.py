@@ -157,13 +157,9 @@ def run_extra(scene, code, bump, D, settings, default_settings):
                 seconds=tot, ratio={k: tot[k] / tot["base"] for k in tot}, stages=T)
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--scenes", default=",".join(TUNE + HELD))
-    ap.add_argument("--check", action="store_true", help="also run the library's nonlocal --adapt")
-    ap.add_argument("--tag", default="")
-    ap.add_argument("--extra", action="store_true", help="candidate b's variants (run_extra)")
-    a = ap.parse_args()
+def research_settings():
+    """The kernels loaded; the shipped N = 8 dictionary, the non-local method's and the default's settings in
+    8-bit units, as the command line makes them."""
     from codedvideo.data import shipped
     from codedvideo.engine.config import PipelineConfig, omp_settings
     from codedvideo.formats.store import load_dictionary
@@ -174,8 +170,18 @@ def main():
     D, _ = load_dictionary(shipped.verified(8))
     rc = PipelineConfig().reconstruct
     scale = infer_data_range(255.0).scale
-    settings = omp_settings(rc.model_copy(update=dict(method="nonlocal")), 0.0, scale=scale)
-    default_settings = omp_settings(rc, 0.0, scale=scale)
+    return (D, omp_settings(rc.model_copy(update=dict(method="nonlocal")), 0.0, scale=scale),
+            omp_settings(rc, 0.0, scale=scale))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", default=",".join(TUNE + HELD))
+    ap.add_argument("--check", action="store_true", help="also run the library's nonlocal --adapt")
+    ap.add_argument("--tag", default="")
+    ap.add_argument("--extra", action="store_true", help="candidate b's variants (run_extra)")
+    a = ap.parse_args()
+    D, settings, default_settings = research_settings()
     # warm the compiled kernels outside the timings
     v, m, c = ri.case_input(a.scenes.split(",")[0], "hitomi", 2)
     from codedvideo.solvers.nonlocal_sc import nonlocal_region

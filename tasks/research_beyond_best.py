@@ -47,7 +47,7 @@ OUT = Path(os.environ.get("RESEARCH_BEYOND_OUT", "/tmp/research-beyond"))
 OUT.mkdir(parents=True, exist_ok=True)
 os.environ["RESEARCH_BEST_OUT"] = str(OUT)  # research_best puts its (and research_iterative's) input cache there
 
-import research_best as rb  # noqa: E402, F401  (its import points the input cache under OUT)
+import research_best as rb  # noqa: E402  (its import also points the input cache under OUT)
 import research_iterative as ri  # noqa: E402
 
 TUNE, HELD, CODES = ri.TUNE, ri.HELD, ri.CODES
@@ -148,22 +148,12 @@ def run_case(scene, code, bump, D, settings, default_settings, skip=()):
 
 
 def setup(first_scene):
-    from codedvideo.data import shipped
-    from codedvideo.engine.config import PipelineConfig, omp_settings
     from codedvideo.engine.stages import adapt_dictionary
-    from codedvideo.formats.store import load_dictionary
-    from codedvideo.model.units import infer_data_range
     from codedvideo.solvers.nonlocal_sc import nonlocal_region
-    from codedvideo.solvers.omp_kernel import load_kernels
 
     import research_prior as rp
 
-    load_kernels()
-    D, _ = load_dictionary(shipped.verified(8))
-    rc = PipelineConfig().reconstruct
-    scale = infer_data_range(255.0).scale
-    settings = omp_settings(rc.model_copy(update=dict(method="nonlocal")), 0.0, scale=scale)
-    default_settings = omp_settings(rc, 0.0, scale=scale)
+    D, settings, default_settings = rb.research_settings()
     # warm the compiled kernels outside the timings
     v, m, c = ri.case_input(first_scene, "hitomi", 2)
     nonlocal_region(c[:40, :40], m[:, :40, :40], D, v[:, :40, :40], settings, step=4)
