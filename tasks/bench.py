@@ -21,7 +21,8 @@ Cases (issue "Fast reconstruction"):
            default and the non-local method, whole CLI processes, 8-bit and [0, 1] captures
   presets  issue 31: GAP-TV, --preset fast, default and best and nonlocal --adapt on the held-out real clips
            (8 cases, 8-bit and [0, 1] captures), and default and best at 256, 512 and 1024 pixels square
-           (time against the pixel count), whole CLI processes (tasks/bench_presets.py)
+           (time against the pixel count), and GAP-TV, nonlocal --adapt and best on the issue's 24 cases (3
+           codes x read noise 0 and 4 x 4 clips), whole CLI processes (tasks/bench_presets.py)
   video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
            peak resident memory)
   outputs  issue 29: peak resident memory per output format (npy, mp4, mkv, gif, zarr, tif, mat, frames),
@@ -746,7 +747,9 @@ def case_presets(quick: bool) -> dict:
         bp.warm_up(work)
         presets = dict(bp.presets(cases, work), size=list(size))
         scaling = bp.scaling(work, 1, sides=(64, 128) if quick else bp.SCALING_SIDES)
-    return dict(case="presets", size=list(size), frames=8, presets=presets, scaling=scaling,
+        issue = bp.write_captures(work / "issue", size, bp.ISSUE_CODES, bp.ISSUE_SIGMAS)[: 1 if quick else None]
+        issue_cases = bp.issue_cases(issue, work)
+    return dict(case="presets", size=list(size), frames=8, presets=presets, scaling=scaling, issue_cases=issue_cases,
                 sgemm_gflops=sgemm_gflops())
 
 

@@ -12,13 +12,17 @@ under a hitomi L = 2 and a Bernoulli(0.5) code, without noise:
                  1024x1024 (N = 8, hitomi L = 2, 8-bit), the median of ``--repeats`` interleaved runs:
                  seconds, peak memory and microseconds per pixel, to see whether `best` scales linearly
                  with the pixel count (the issue's target)
+  --issue-cases  GAP-TV, ``nonlocal --adapt`` and ``--preset best`` on the issue's 24 cases: the four clips under
+                 hitomi L = 2, L = 3 and Bernoulli(0.5), without noise and with read noise sigma 4 (given as
+                 ``--noise-sigma 4``), 8-bit: each one's gain over GAP-TV by code and noise level, on all clips and
+                 on the held-out ones (bikes-b, bunny)
   (default)      GAP-TV, ``--preset fast``, ``--preset default`` and ``--preset best``, each capture in
                  8-bit units and again as [0, 1] float32 files (capture and truth / 255): PSNR and SSIM
                  from the run's metrics JSON (``--truth``), and seconds
 
 Results go to bench/results/presets.json (each part kept when the other is run) and a table is printed.
 
-    python tasks/bench_presets.py [--candidates | --scaling] [--repeats R] [--quick]
+    python tasks/bench_presets.py [--candidates | --scaling | --issue-cases] [--repeats R] [--quick]
 """
 
 from __future__ import annotations
@@ -67,24 +71,26 @@ PRESET_RUNS = {
 BEST_TARGET = 30.0
 
 
-def write_captures(folder: Path, size) -> list[dict]:
-    """Each case's capture, mask and truth in 8-bit units and as [0, 1] floats: a dict of paths per case."""
+def write_captures(folder: Path, size, codes=tuple((code, 2) for code in CODES), sigmas=(0.0,)) -> list[dict]:
+    """Each case's capture, mask and truth in 8-bit units and as [0, 1] floats: a dict of paths per case (every
+    scene under every ``(code, bump)`` of ``codes`` with Gaussian read noise of each of ``sigmas``, grey levels)."""
     from codedvideo.data.scenes import load_video
     from codedvideo.engine.stages import simulate_capture
 
     cases = []
     for scene in SCENES:
         video = load_video(scene, frames=8, size=size)
-        for code in CODES:
-            cap = simulate_capture(video, code=code, bump=2, sigma=0.0, seed=0)
-            where = folder / f"{scene.split(':')[1]}-{code}"
-            where.mkdir(parents=True)
-            np.save(where / "mask.npy", cap["mask"])
-            for units, scale in (("8-bit", 1.0), ("[0, 1]", 255.0)):
-                tag = "8" if scale == 1.0 else "01"
-                np.save(where / f"coded{tag}.npy", (cap["coded"] / np.float32(scale)).astype(np.float32))
-                np.save(where / f"truth{tag}.npy", (cap["truth"] / np.float32(scale)).astype(np.float32))
-            cases.append(dict(scene=scene, code=code, folder=where))
+        for code, bump in codes:
+            for sigma in sigmas:
+                cap = simulate_capture(video, code=code, bump=bump, sigma=sigma, seed=0)
+                where = folder / f"{scene.split(':')[1]}-{code}{bump if code == 'hitomi' else ''}-s{sigma:g}"
+                where.mkdir(parents=True)
+                np.save(where / "mask.npy", cap["mask"])
+                for units, scale in (("8-bit", 1.0), ("[0, 1]", 255.0)):
+                    tag = "8" if scale == 1.0 else "01"
+                    np.save(where / f"coded{tag}.npy", (cap["coded"] / np.float32(scale)).astype(np.float32))
+                    np.save(where / f"truth{tag}.npy", (cap["truth"] / np.float32(scale)).astype(np.float32))
+                cases.append(dict(scene=scene, code=code, bump=bump, sigma=sigma, folder=where))
     return cases
 
 
@@ -95,8 +101,9 @@ def reconstruct(case: dict, options, *, units: str, work: Path) -> dict:
     cache = work / "cache"
     shutil.rmtree(cache, ignore_errors=True)
     out = work / "r.npy"
+    noise = ("--noise-sigma", f"{case['sigma'] / (1.0 if units == '8-bit' else 255.0):g}") if case.get("sigma") else ()
     seconds, peak = _cli("reconstruct", "--coded", folder / f"coded{tag}.npy", "--mask", folder / "mask.npy",
-                         "--truth", folder / f"truth{tag}.npy", "--cache", cache, "--overwrite", *options,
+                         "--truth", folder / f"truth{tag}.npy", "--cache", cache, "--overwrite", *noise, *options,
                          "--output", out, cwd=ROOT)
     metrics = json.loads((work / "r.metrics.json").read_text())
     shutil.rmtree(cache, ignore_errors=True)
@@ -183,6 +190,39 @@ def presets(cases: list[dict], work: Path) -> dict:
                 best_over_one_round_min=worst)
 
 
+#: The issue's 24 real cases ("nonlocal --adapt is at + 3.67 today" is their mean): every clip under hitomi L = 2,
+#: L = 3 and Bernoulli(0.5), without noise and with Gaussian read noise of 4 grey levels (given as --noise-sigma).
+ISSUE_CODES = (("hitomi", 2), ("hitomi", 3), ("bernoulli", 2))
+ISSUE_SIGMAS = (0.0, 4.0)
+ISSUE_RUNS = {label: PRESET_RUNS[label] for label in ("gaptv", "nonlocal-adapt", "best")}
+#: The clips no choice of `best`'s settings was made on (the research chose on bikes-a and carphone).
+HELD_OUT = ("footage:bikes-b", "footage:bunny")
+
+
+def issue_cases(cases: list[dict], work: Path) -> dict:
+    """GAP-TV, ``nonlocal --adapt`` and ``--preset best`` on the 24 cases, 8-bit captures, one run each: the gain
+    of each over GAP-TV by code and noise level, on all clips and on the held-out ones."""
+    rows = []
+    for case in cases:
+        row = dict(scene=case["scene"], code=f"{case['code']}{case['bump'] if case['code'] == 'hitomi' else ''}",
+                   sigma=case["sigma"])
+        for label, options in ISSUE_RUNS.items():
+            row[label] = reconstruct(case, options, units="8-bit", work=work)
+        rows.append(row)
+        print(f"  {row['scene']} {row['code']} sigma {row['sigma']:g}: " + ", ".join(
+            f"{k} {row[k]['psnr']:.2f} dB {row[k]['seconds']:.2f} s" for k in ISSUE_RUNS), file=sys.stderr, flush=True)
+
+    def gains(sel):  # (None: no case)
+        return None if not sel else {label: float(np.mean([r[label]["psnr"] - r["gaptv"]["psnr"] for r in sel])) for label in ISSUE_RUNS
+                if label != "gaptv"}
+
+    groups = {f"{code} sigma {sigma:g}": gains([r for r in rows if r["code"] == code and r["sigma"] == sigma])
+              for code in dict.fromkeys(r["code"] for r in rows) for sigma in dict.fromkeys(r["sigma"] for r in rows)}
+    return dict(rows=rows, groups=groups, all=gains(rows), held_out=gains([r for r in rows if r["scene"] in HELD_OUT]),
+                best_over_one_round_min=min(r["best"]["psnr"] - r["nonlocal-adapt"]["psnr"] for r in rows),
+                best_seconds_max=max(r["best"]["seconds"] for r in rows))
+
+
 #: The image sides of the scaling part, and the presets timed at each.
 SCALING_SIDES = (256, 512, 1024)
 SCALING_RUNS = {"default": ("--preset", "default"), "best": ("--preset", "best")}
@@ -238,6 +278,15 @@ def table(results: dict) -> str:
         for label, v in c["summary"].items():
             lines.append(f"  {label:<24}{v['psnr']:>9.2f}{v['ssim']:>8.4f}{v['seconds']:>9.2f}{v['of_default']:>11.2f}")
         lines.append(f"  chosen: {c['chosen']}")
+    i = results.get("issue_cases")
+    if i:
+        lines.append(f"the issue's {len(i['rows'])} cases (8-bit, whole processes, one run each), gain over GAP-TV, dB:")
+        lines.append(f"  {'':<24}" + "".join(f"{k:>16}" for k in i["all"]))
+        for name, g in [*i["groups"].items(), ("all", i["all"]), ("held-out clips", i["held_out"])]:
+            if g is not None:
+                lines.append(f"  {name:<24}" + "".join(f"{v:>+16.2f}" for v in g.values()))
+        lines.append(f"  best against nonlocal --adapt, worst case: {i['best_over_one_round_min']:+.2f} dB; "
+                     f"slowest best process {i['best_seconds_max']:.2f} s")
     p = results.get("presets")
     if p:
         lines.append(f"presets ({len(p['rows']) // 2} cases; whole processes, one run each):")
@@ -262,6 +311,8 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--candidates", action="store_true", help="measure the settings `fast` is chosen among")
     ap.add_argument("--scaling", action="store_true", help="time default and best at 256, 512 and 1024 pixels square")
+    ap.add_argument("--issue-cases", action="store_true",
+                    help="GAP-TV, nonlocal --adapt and best on the issue's 24 cases (3 codes x 2 noise levels x 4 clips)")
     ap.add_argument("--repeats", type=int, default=3, help="runs of each candidate a case (the median is kept)")
     ap.add_argument("--quick", action="store_true", help="96x96 crops, one case (a smoke run; not saved)")
     a = ap.parse_args()
@@ -271,10 +322,16 @@ def main() -> int:
     results = json.loads(path.read_text()) if path.exists() and not a.quick else {}
     with tempfile.TemporaryDirectory(dir=ROOT / "cache", prefix="bench-presets-") as tmp:
         work = Path(tmp)
-        cases = write_captures(work / "captures", size)[: 1 if a.quick else None]
+        if a.issue_cases:
+            cases = write_captures(work / "captures", size, ISSUE_CODES, ISSUE_SIGMAS)[: 1 if a.quick else None]
+        else:
+            cases = write_captures(work / "captures", size)[: 1 if a.quick else None]
         warm_up(work)
-        part = "candidates" if a.candidates else "scaling" if a.scaling else "presets"
-        if a.scaling:
+        part = ("candidates" if a.candidates else "scaling" if a.scaling else "issue_cases" if a.issue_cases
+                else "presets")
+        if a.issue_cases:
+            result = issue_cases(cases, work)
+        elif a.scaling:
             result = scaling(work, a.repeats, sides=(64, 128) if a.quick else SCALING_SIDES)
         else:
             result = candidates(cases, work, a.repeats) if a.candidates else presets(cases, work)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from codedvideo.solvers.omp_kernel import batch_omp, block_match, match_references, scatter_patches, synthesize_into
+from codedvideo.solvers.omp_kernel import batch_omp, block_match, scatter_patches, synthesize_into
 
 PATCH = 7
 
@@ -194,8 +194,54 @@ def refine(coded, mask, x0, *, data_range=255.0, variant="wnnm", iters=20, s_hi=
     return (x / scale).astype(np.float32)
 
 
-# the matching of the reference blocks: the package's kernel (shipped with `--refine`; this prototype had its own copy)
-match_refs = match_references
+# the matching of the reference blocks (whole 7x7xN blocks; the package's `--refine` shipped it until its groups
+# became 2D patches across sub-frames, tasks/research_frames.py)
+@njit(parallel=True, nogil=True, cache=True, fastmath={"reassoc", "contract"})
+def match_refs(vol, refs, wp, hp, patch, window, k, idx):
+    """``idx[g]``: the ``k`` blocks of ``vol`` closest to reference block ``refs[g]`` (raster corners), corners
+    within ``window`` pixels, as whole ``patch x patch x N`` sums of squared differences.
+
+    The reference itself first; then offsets in raster order of ``(dy, dx)``, a candidate entering only when
+    strictly closer than the one it would displace (ties to the earlier offset); a sum stops once past the
+    current ``k``-th.  Fewer than ``k`` candidates: the reference fills the rest.  Every reference alone,
+    so the groups never depend on the threads."""
+    n = vol.shape[0]
+    for g in prange(refs.shape[0]):
+        p = refs[g]
+        r0 = p // wp
+        c0 = p % wp
+        best = np.full(k, np.inf)
+        bidx = np.full(k, -1, np.int64)
+        best[0] = -1.0
+        bidx[0] = p
+        for dy in range(-window, window + 1):
+            r = r0 + dy
+            if r < 0 or r >= hp:
+                continue
+            for dx in range(-window, window + 1):
+                cc = c0 + dx
+                if cc < 0 or cc >= wp or (dy == 0 and dx == 0):
+                    continue
+                lim = best[k - 1]
+                s = 0.0
+                for t in range(n):
+                    for yy in range(patch):
+                        for xx in range(patch):
+                            d = vol[t, r0 + yy, c0 + xx] - vol[t, r + yy, cc + xx]
+                            s += np.float64(d * d)
+                    if s >= lim:
+                        break
+                if s >= lim:
+                    continue
+                j = k - 1
+                while j > 0 and best[j - 1] > s:
+                    best[j] = best[j - 1]
+                    bidx[j] = bidx[j - 1]
+                    j -= 1
+                best[j] = s
+                bidx[j] = r * wp + cc
+        for j in range(k):
+            idx[g, j] = bidx[j] if bidx[j] >= 0 else p
 
 
 @njit(parallel=True, nogil=True, cache=True, fastmath=True)

@@ -126,9 +126,9 @@ def test_preset_default_is_the_default_bit_for_bit(capsys, capture):
 def test_preset_best_is_nonlocal_adapt_in_two_rounds_refined_bit_for_bit(capsys, capture):
     best, metrics, _ = reconstruct(capsys, capture, "best", "--preset", "best")
     spelt, _, _ = reconstruct(capsys, capture, "nonlocal-adapt-2", "--method", "nonlocal", "--adapt", "--adapt-rounds", "2",
-                              "--refine", "24")
+                              "--refine", "32")
     np.testing.assert_array_equal(best, spelt)
-    assert metrics["settings"]["refine"] == 24 and metrics["reconstruction"]["refine"]["iterations"] == 24
+    assert metrics["settings"]["refine"] == 32 and metrics["reconstruction"]["refine"]["iterations"] == 32
     unrefined, unrefined_metrics, _ = reconstruct(capsys, capture, "best-refine-0", "--preset", "best", "--refine", "0")
     assert "refine" not in unrefined_metrics["reconstruction"]
     assert metrics["quality"]["psnr"] > unrefined_metrics["quality"]["psnr"]
@@ -173,7 +173,7 @@ def test_best_with_a_bayer_mosaic_is_the_non_local_method_adapted_in_two_rounds(
         metrics[name] = json.loads((tmp_path / f"{name}.metrics.json").read_text())
         if name == "best":
             (warning,) = [str(w.message) for w in said if "preset" in str(w.message)]  # said once
-            assert "--refine 24 is left out" in warning and "--bayer RGGB" in warning, warning
+            assert "--refine 32 is left out" in warning and "--bayer RGGB" in warning, warning
     best = metrics["best"]
     assert list(best["preset"]["left_out"]) == ["refine"] and best["settings"]["method"] == "nonlocal"
     assert best["settings"]["adapt"] is True and len(best["reconstruction"]["adapted"]["rounds"]) == 2
@@ -207,12 +207,12 @@ def test_the_api_takes_the_same_presets():
     np.testing.assert_array_equal(cv.reconstruct(coded, mask, preset="default"), cv.reconstruct(coded, mask))
     best = cv.reconstruct(coded, mask, preset="best", full_output=True)
     np.testing.assert_array_equal(best.frames, cv.reconstruct(coded, mask, method="nonlocal", adapt=True,
-                                                              adapt_rounds=2, refine=24))
+                                                              adapt_rounds=2, refine=32))
     assert not np.array_equal(best.frames, cv.reconstruct(coded, mask, preset="best", adapt_rounds=1))
     assert best.info[0]["preset"]["options"]["method"] == "nonlocal"
     with pytest.warns(UserWarning, match="--adapt is left out"):
         gaptv = cv.reconstruct(coded, mask, preset="best", method="gaptv")
-    np.testing.assert_array_equal(gaptv, cv.reconstruct(coded, mask, method="gaptv", refine=24))  # (the rest applies)
+    np.testing.assert_array_equal(gaptv, cv.reconstruct(coded, mask, method="gaptv", refine=32))  # (the rest applies)
     with pytest.raises(ConfigError, match="preset 'quick'"):
         cv.reconstruct(coded, mask, preset="quick")
 

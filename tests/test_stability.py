@@ -401,7 +401,7 @@ def test_never_open_pixels_are_filled_and_counted(tmp_path):
 # ----------------------------------------------------------------------------- --preset best on extreme scenes
 @pytest.mark.parametrize("kind", ["dark", "saturated", "noise"])
 def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
-    """``--preset best`` (the non-local method, the dictionary adapted twice, three passes, 24 iterations of the
+    """``--preset best`` (the non-local method, the dictionary adapted twice, three passes, 32 iterations of the
     refinement): an all-dark scene is exactly dark, an all-white one flat white, and read noise of 80 grey levels
     no worse than the trivial estimate."""
     from codedvideo.data import shipped
@@ -413,7 +413,7 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     truth = video if kind == "noise" else _scene(kind)
     sigma = 80.0 if kind == "noise" else 0.0
     coded = simulate(truth, mask, sigma=sigma, rng=2)
-    vol, info = reconstruct_capture("nonlocal", coded, mask, adapt=True, adapt_rounds=2, refine=24,
+    vol, info = reconstruct_capture("nonlocal", coded, mask, adapt=True, adapt_rounds=2, refine=32,
                                     data_range=infer_data_range(255.0, given=255.0),
                                     settings=OmpSettings(max_atoms=8, tol_rms=max(sigma, 2.0)),
                                     dictionary=load_dictionary(shipped.verified(8))[0], cache=tmp_path,
@@ -426,4 +426,4 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     else:
         trivial = evaluate(static_estimate(coded, mask), video)["psnr"]
         assert evaluate(vol, video)["psnr"] >= trivial - TRIVIAL_MARGIN_DB
-        assert len(info["adapted"]["rounds"]) == 2 and info["refine"]["iterations"] == 24
+        assert len(info["adapted"]["rounds"]) == 2 and info["refine"]["iterations"] == 32

@@ -261,7 +261,7 @@ def reconstruct(coded, mask, *, dictionary=None, method: str | None = None, adap
         ``gaptv``
     adapt : adapt the dictionary to each capture's first result, then reconstruct again (default False)
     adapt_rounds : with ``adapt``, 2 adapts again to the second result and reconstructs a third time (default 1)
-    refine : iterations of GAP with a low-rank prior on groups of similar blocks after the result (default 0)
+    refine : iterations of GAP with a low-rank prior on groups of similar patches after the result (default 0)
     preset : ``fast``, ``default`` or ``best``: named settings, as ``--preset``
         (:data:`codedvideo.engine.config.PRESETS`); ``method`` and ``adapt`` given beside it win, and a setting
         of the preset the method cannot take is left out with a warning

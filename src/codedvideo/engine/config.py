@@ -177,9 +177,9 @@ PRESETS: dict[str, dict] = {
     "fast": dict(stride=2),
     # the paper's method, the defaults: nothing changed
     "default": {},
-    # the best quality measured: nonlocal --adapt with a second round, then 24 iterations of GAP with a low-rank
+    # the best quality measured: nonlocal --adapt with a second round, then 32 iterations of GAP with a low-rank
     # prior on groups (docs/quality.md, "Presets" and "Refinement")
-    "best": dict(method="nonlocal", adapt=True, adapt_rounds=2, refine=24),
+    "best": dict(method="nonlocal", adapt=True, adapt_rounds=2, refine=32),
 }
 #: The names of :data:`PRESETS` (a test keeps them equal).
 PresetName = Literal["fast", "default", "best"]
@@ -209,7 +209,7 @@ class ReconstructConfig(_Strict):
     #: With ``adapt``: 2 adapts again to the second pass's result and reconstructs a third time (``best``: +0.5 dB
     #: on held-out real footage over one round, 1.8x its time; docs/quality.md, "Presets").
     adapt_rounds: int = Field(1, ge=1, le=2)
-    #: Iterations of GAP with a low-rank prior on groups of similar blocks after the method's result (0: none;
+    #: Iterations of GAP with a low-rank prior on groups of similar patches after the method's result (0: none;
     #: ``best``: 24, +0.24 dB on held-out real footage over its two rounds; docs/quality.md, "Refinement").
     refine: int = Field(0, ge=0, le=200)
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).

@@ -730,6 +730,7 @@ def reconstruct_captures(
     adapt: bool = False,
     adapt_rounds: int = 1,
     refine: int = 0,
+    noise_sigma: float = 0.0,
     cache_budget: int | None = None,
 ) -> Iterator[tuple[int, np.ndarray, dict]]:
     """Captures in their own units -> their videos in the same units, by any method, in order, as one job.
@@ -765,6 +766,9 @@ def reconstruct_captures(
         Iterations of GAP with a low-rank prior on groups after each capture's result (0: none;
         :func:`codedvideo.solvers.refine.refine`, ``--preset best``), in the process, not cached; pixels that
         only still patches cover keep their still answer.
+    noise_sigma : float
+        The captures' read noise (capture units, ``--noise-sigma``): with ``refine``, a noisy capture's steps to
+        its measurements are relaxed by it (:func:`codedvideo.solvers.refine.refine`).
     cache_budget : int, optional
         Bytes the cache's working stores may take (:class:`codedvideo.engine.cache.CacheBudget`): the least recently
         used are removed as the job's windows finish (with ``adapt``, the first passes' stores only after the
@@ -887,7 +891,8 @@ def reconstruct_captures(
                 volume, info = reconstruct_method(method, coded_used, mask_used)
             if refine and moving and info.get("method") != "static":
                 volume, info = _refined(coded_used, mask_used, volume, info, refine, still=still, where=where,
-                                        progress=progress, label=f"{i + 1}/{count}")
+                                        noise_sigma=float(noise_sigma) * float(scale), progress=progress,
+                                        label=f"{i + 1}/{count}")
             if measured is not None:  # still answers averaged over captures: the residual of this capture's own
                 residual = physics.forward(volume, mask_used) - measured
                 info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
@@ -928,11 +933,13 @@ def reconstruct_captures(
 
 
 def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict, iterations: int, *,
-             still: np.ndarray | None, where: str, progress: bool, label: str) -> tuple[np.ndarray, dict]:
-    """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units), its
-    info with what the refinement did; the pixels that only still patches cover keep their values."""
+             still: np.ndarray | None, where: str, noise_sigma: float, progress: bool,
+             label: str) -> tuple[np.ndarray, dict]:
+    """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units, the
+    read noise ``noise_sigma`` too), its info with what the refinement did; the pixels that only still patches
+    cover keep their values."""
     with _progress_bar(iterations, f"refine {label}") if progress else contextlib.nullcontext() as bar:
-        refined, record = refinement.refine(coded, mask, volume, iterations=iterations,
+        refined, record = refinement.refine(coded, mask, volume, iterations=iterations, noise_sigma=noise_sigma,
                                             tick=None if bar is None else (lambda: bar.update(1)))
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
         raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
@@ -1012,7 +1019,7 @@ def reconstruct_stream(method: str, codeds, mask_of, *, join: bool, still: bool 
     count = len(codeds)
     if not join or count < 2:
         return reconstruct_captures(method, codeds, mask_of, data_range=data_range, white_level=white_level,
-                                    **options)
+                                    noise_sigma=noise_sigma, **options)
     from codedvideo.model.sequence import Cuts, joined, still_values
 
     if cuts is None:
@@ -1022,7 +1029,7 @@ def reconstruct_stream(method: str, codeds, mask_of, *, join: bool, still: bool 
         lambda i: still_values(codeds, mask_of, i, sigma=noise_sigma, scale=data_range.scale,
                                white_level=white_level, cut=cuts)) if still else None
     results = reconstruct_captures(method, codeds, mask_of, data_range=data_range, white_level=white_level,
-                                   still_of=still_of, **options)
+                                   still_of=still_of, noise_sigma=noise_sigma, **options)
     if spill is not None:
         from codedvideo.formats.volumes import spilled
 
@@ -1158,7 +1165,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
             dictionary=D, dictionary_key=dmeta["sha256"], dictionary_name=str(dict_path),
             white_level=cfg.noise.white_level, where="simulated capture", tile=rc.tile, cache=cfg.cache,
             scheduler=rc.scheduler, workers=rc.workers, progress=progress, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds,
-            refine=rc.refine, cache_budget=rc.cache_budget)
+            refine=rc.refine, noise_sigma=sigma, cache_budget=rc.cache_budget)
         report["seconds"]["reconstruct"] = time.perf_counter() - t0
         report["reconstruction"] = info
         t0 = time.perf_counter()

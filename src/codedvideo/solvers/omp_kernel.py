@@ -1197,96 +1197,93 @@ def synthesize(result: OmpResult, D: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# GAP refinement with a low-rank prior on groups (codedvideo.solvers.refine): matching of the reference
-# blocks only, each group's mean and Gram matrix, and the shrunk members' estimates.
+# GAP refinement with a low-rank prior on groups (codedvideo.solvers.refine): 2D patches of single frames, the
+# matching of the reference patches across neighbouring frames, each group shrunk in the eigenbasis of its Gram
+# matrix, and the members' estimates added frame by frame.  A patch is the flat index t * H * W + r * W + c of
+# its top-left corner.
 
 
 @njit(parallel=True, nogil=True, cache=True, fastmath={"reassoc", "contract"})
-def match_references(vol, refs, wp, hp, patch, window, k, idx):
-    """``idx[g]``: the ``k`` blocks of ``vol`` closest to reference block ``refs[g]`` (raster corners), corners
-    within ``window`` pixels, as whole ``patch x patch x N`` sums of squared differences.
+def match_frame_patches(vol, refs, side, window, frames, k, idx):
+    """``idx[g]``: the ``k`` ``side x side`` patches of ``vol`` (N, H, W) closest to the patch ``refs[g]`` (sum of
+    squared differences), among the patches of frames ``t - frames .. t + frames`` whose corners are within
+    ``window`` pixels of the reference's.
 
-    The reference itself first; then offsets in raster order of ``(dy, dx)``, a candidate entering only when
-    strictly closer than the one it would displace (ties to the earlier offset); a sum stops once past the
-    current ``k``-th.  Fewer than ``k`` candidates: the reference fills the rest.  Every reference alone,
-    so the groups never depend on the threads."""
-    n = vol.shape[0]
+    The reference itself first; then candidates in order of frame, row offset and column offset, one entering
+    only when strictly closer than the current ``k``-th (ties to the earlier candidate); a sum stops once past
+    it.  Fewer than ``k`` candidates: the reference fills the rest.  Every reference alone, so the groups never
+    depend on the threads."""
+    n, h, w = vol.shape
+    hw = h * w
     for g in prange(refs.shape[0]):
         p = refs[g]
-        r0 = p // wp
-        c0 = p % wp
+        t0 = p // hw
+        r0 = (p % hw) // w
+        c0 = p % w
         best = np.full(k, np.inf)
         bidx = np.full(k, -1, np.int64)
         best[0] = -1.0
         bidx[0] = p
-        for dy in range(-window, window + 1):
-            r = r0 + dy
-            if r < 0 or r >= hp:
-                continue
-            for dx in range(-window, window + 1):
-                cc = c0 + dx
-                if cc < 0 or cc >= wp or (dy == 0 and dx == 0):
-                    continue
-                lim = best[k - 1]
-                s = 0.0
-                for t in range(n):
-                    for yy in range(patch):
-                        for xx in range(patch):
-                            d = vol[t, r0 + yy, c0 + xx] - vol[t, r + yy, cc + xx]
-                            s += np.float64(d * d)
+        for t in range(max(0, t0 - frames), min(n, t0 + frames + 1)):
+            for r in range(max(0, r0 - window), min(h - side, r0 + window) + 1):
+                for cc in range(max(0, c0 - window), min(w - side, c0 + window) + 1):
+                    if t == t0 and r == r0 and cc == c0:
+                        continue
+                    lim = best[k - 1]
+                    s = 0.0
+                    for yy in range(side):
+                        row = np.float32(0.0)
+                        for xx in range(side):
+                            d = vol[t0, r0 + yy, c0 + xx] - vol[t, r + yy, cc + xx]
+                            row += d * d
+                        s += np.float64(row)
+                        if s >= lim:
+                            break
                     if s >= lim:
-                        break
-                if s >= lim:
-                    continue
-                j = k - 1
-                while j > 0 and best[j - 1] > s:
-                    best[j] = best[j - 1]
-                    bidx[j] = bidx[j - 1]
-                    j -= 1
-                best[j] = s
-                bidx[j] = r * wp + cc
+                        continue
+                    j = k - 1
+                    while j > 0 and best[j - 1] > s:
+                        best[j] = best[j - 1]
+                        bidx[j] = bidx[j - 1]
+                        j -= 1
+                    best[j] = s
+                    bidx[j] = t * hw + r * w + cc
         for j in range(k):
             idx[g, j] = bidx[j] if bidx[j] >= 0 else p
 
 
-@njit(nogil=True, cache=True, inline="always")
-def _gather_centred(vol, members, wp, patch, M, mu):
-    """``M`` (k, d): the members' blocks less their mean ``mu`` (d)."""
-    n = vol.shape[0]
-    m = patch * patch
-    k = members.size
-    mu[:] = 0.0
-    for i in range(k):
-        p = members[i]
-        r0 = p // wp
-        c0 = p % wp
-        for t in range(n):
-            for yy in range(patch):
-                for xx in range(patch):
-                    M[i, t * m + yy * patch + xx] = vol[t, r0 + yy, c0 + xx]
-                    mu[t * m + yy * patch + xx] += vol[t, r0 + yy, c0 + xx]
-    for e in range(mu.size):
-        mu[e] /= k
-    for i in range(k):
-        for e in range(mu.size):
-            M[i, e] -= mu[e]
-
-
 @njit(parallel=True, nogil=True, cache=True, fastmath={"reassoc", "contract"})
-def shrink_groups(vol, groups, wp, patch, sigma2, c, est):
-    """``est[g * k + i]``: member ``i`` of group ``g`` with the group shrunk by weighted nuclear norm.
+def shrink_frame_groups(vol, groups, side, sigma2, c, est):
+    """``est[g * k + i]`` (``side**2`` values): member ``i`` of group ``g`` with the group shrunk by weighted nuclear
+    norm.
 
-    The members less their mean ``M`` (k, d); the eigendecomposition ``M M^T = U diag(s^2) U^T`` of their Gram
-    matrix (float64); each singular value ``s`` lowered by ``c sqrt(k) sigma2 / s_hat`` (``s_hat^2 = max(s^2 -
-    d sigma2, 0)``, the clean value's estimate) and kept as ``f = max(s - threshold, 0) / s``; the estimate
-    the mean plus ``U diag(f) U^T M``.  :func:`codedvideo.solvers.refine.shrinkage` is the same rule in numpy.
-    Every group alone, so nothing depends on the threads."""
+    The members less their mean ``M`` (k, d), ``k <= d``; the eigendecomposition ``M M^T = U diag(s^2) U^T`` of
+    their Gram matrix (float64); each singular value ``s`` lowered by ``c sqrt(k) sigma2 / s_hat`` (``s_hat^2 =
+    max(s^2 - d sigma2, 0)``, the clean value's estimate) and kept as ``f = max(s - threshold, 0) / s``; the
+    estimate the mean plus ``U diag(f) U^T M``.  :func:`codedvideo.solvers.refine.shrinkage` is the same rule in
+    numpy.  Every group alone, so nothing depends on the threads."""
+    n, h, w = vol.shape
+    hw = h * w
     G, k = groups.shape
-    d = vol.shape[0] * patch * patch
+    d = side * side
     for g in prange(G):
         M = np.empty((k, d), np.float32)
-        mu = np.empty(d, np.float32)
-        _gather_centred(vol, groups[g], wp, patch, M, mu)
+        mu = np.zeros(d, np.float32)
+        for i in range(k):
+            p = groups[g, i]
+            t = p // hw
+            r0 = (p % hw) // w
+            c0 = p % w
+            for yy in range(side):
+                for xx in range(side):
+                    v = vol[t, r0 + yy, c0 + xx]
+                    M[i, yy * side + xx] = v
+                    mu[yy * side + xx] += v
+        for e in range(d):
+            mu[e] /= k
+        for i in range(k):
+            for e in range(d):
+                M[i, e] -= mu[e]
         C = np.empty((k, k), np.float64)
         for i in range(k):
             for j in range(i, k):
@@ -1296,21 +1293,45 @@ def shrink_groups(vol, groups, wp, patch, sigma2, c, est):
                 C[i, j] = acc
                 C[j, i] = acc
         lam, U = np.linalg.eigh(C)
-        f = np.zeros(k)
+        # the kept directions only (most are shrunk to nothing): V = diag(f) U_kept^T M, then U_kept V
+        V = np.zeros((k, d), np.float32)
+        kept = 0
         for q in range(k):
             if lam[q] > 0.0:
                 sq = np.sqrt(lam[q])
                 threshold = c * np.sqrt(k) * sigma2 / (np.sqrt(max(lam[q] - d * sigma2, 0.0)) + 1e-8)
-                f[q] = max(sq - threshold, 0.0) / sq
+                f = max(sq - threshold, 0.0) / sq
+                if f > 0.0:
+                    for j in range(k):
+                        U[j, kept] = U[j, q]
+                        uj = np.float32(U[j, q] * f)
+                        for e in range(d):
+                            V[kept, e] += uj * M[j, e]
+                    kept += 1
         for i in range(k):
             row = est[g * k + i]
             for e in range(d):
                 row[e] = mu[e]
-            for j in range(k):
-                pij = 0.0
-                for q in range(k):
-                    pij += U[i, q] * f[q] * U[j, q]
-                if pij != 0.0:
-                    p32 = np.float32(pij)
-                    for e in range(d):
-                        row[e] += p32 * M[j, e]
+            for q in range(kept):
+                u = np.float32(U[i, q])
+                for e in range(d):
+                    row[e] += u * V[q, e]
+
+
+@njit(parallel=True, nogil=True, cache=True)
+def scatter_frame_patches(est, where, order, bounds, side, summed, weight):
+    """Add the rows ``est[e]`` at their patches ``where[e]`` (flat corners), the frames in parallel: frame ``t``'s
+    entries are ``order[bounds[t]:bounds[t + 1]]``, added in that order (so nothing depends on the threads).
+    ``summed`` and ``weight`` (N, H, W) accumulate the estimates and their count."""
+    n, h, w = summed.shape
+    hw = h * w
+    for t in prange(n):
+        for o in range(bounds[t], bounds[t + 1]):
+            e = order[o]
+            p = where[e]
+            r0 = (p % hw) // w
+            c0 = p % w
+            for yy in range(side):
+                for xx in range(side):
+                    summed[t, r0 + yy, c0 + xx] += est[e, yy * side + xx]
+                    weight[t, r0 + yy, c0 + xx] += 1.0

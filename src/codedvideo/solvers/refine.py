@@ -1,4 +1,4 @@
-"""Refinement under the measurement: GAP iterations with a low-rank prior on groups of similar blocks (issue 31).
+"""Refinement under the measurement: GAP iterations with a low-rank prior on groups of similar patches (issue 31).
 
 A sparse method's result ``x0`` reproduces the coded image, but each of its patches was solved from the
 measurements of one patch (or of one group, once).  The refinement alternates, from ``x0``:
@@ -7,22 +7,28 @@ measurements of one patch (or of one group, once).  The refinement alternates, f
    coded exposure ``Phi Phi^T`` is diagonal (each pixel's summed squared shutter weights), so the step to
    the measurements is per pixel, with the residual accumulated over the iterations;
 2. a denoiser at a noise level annealed from :data:`SIGMA_START` to :data:`SIGMA_END` grey levels
-   (geometrically): for every :data:`STEP`-th block (in each direction) the :data:`GROUP` blocks of the
-   current estimate closest to it as whole ``7 x 7 x N`` blocks within :data:`WINDOW` pixels, matched again
-   every :data:`REGROUP` iterations (:func:`codedvideo.solvers.omp_kernel.match_references`); each group less
-   its mean shrunk by weighted nuclear norm (the singular values of the members' matrix, from the eigen-
-   decomposition of their ``k x k`` Gram matrix, lowered by ``SHRINK sqrt(k) sigma^2 / s``, the rule of
-   Gu et al., "Weighted nuclear norm minimization", CVPR 2014, that DeSCI (Liu et al., TPAMI 2019) iterates
-   under the measurement); every member's estimate averaged at its place.
+   (geometrically) on 2D patches of single sub-frames, as DeSCI (Liu et al., TPAMI 2019) groups them: for
+   every :data:`STEP`-th :data:`SIDE` x :data:`SIDE` patch of every sub-frame (each sub-frame's grid shifted, so
+   their references fall on different places), the :data:`GROUP` patches of the current estimate closest to
+   it in the sub-frames up to :data:`FRAMES` away, corners within :data:`WINDOW` pixels
+   (:func:`codedvideo.solvers.omp_kernel.match_frame_patches`), matched again every :data:`REGROUP`
+   iterations.  A group follows the motion from sub-frame to sub-frame, and its members were seen under
+   different shutter codes.  Each group less its mean is shrunk by weighted nuclear norm (the singular values
+   of the members' matrix, from the eigendecomposition of their ``k x k`` Gram matrix, lowered by
+   ``SHRINK sqrt(k) sigma^2 / s``, the rule of Gu et al., "Weighted nuclear norm minimization", CVPR 2014, that
+   DeSCI iterates under the measurement); every member's estimate averaged at its place.
 
 The last estimate is projected onto the measurements and averaged with ``x0`` (:data:`BLEND`): both
-reproduce the coded image (``x0`` to its method's tolerance), and the mean held every case of the research
-above ``x0`` (docs/quality.md).  The noise levels are fixed: a capture's read noise does not change them.
+reproduce the coded image (``x0`` to its method's tolerance).  The noise levels are fixed; a capture's read
+noise (``noise_sigma``) makes the steps plain GAP, relaxed (:func:`relaxed`), rather than exact.  The recipe was chosen on two clips and held out on two others (docs/quality.md,
+"Refinement under the measurement"); whole ``7 x 7 x N`` blocks as the groups' members, the recipe before it,
+gained a third as much.
 
 In working units (the grey levels of an 8-bit capture: the noise levels are in them).  Arrays in, arrays
-out, on the whole image: the groups of a chunk of references are solved and added in order, so the result
-does not depend on the threads.  Memory: three volumes (the estimate, the sum of the estimates, the start),
-one chunk of groups (:data:`CHUNK`), and a band of rows of the mask in float32 at a time (:data:`BAND`).
+out, on the whole image: the groups of a chunk of references are solved, then added frame by frame in a
+fixed order, so the result does not depend on the threads.  Memory: four volumes (the estimate, the sum of
+the estimates and their count, the start), one chunk of groups (:data:`CHUNK`), and a band of rows of the
+mask in float32 at a time (:data:`BAND`).
 """
 
 from __future__ import annotations
@@ -32,46 +38,57 @@ import time
 import numpy as np
 
 from codedvideo.model import physics
-from codedvideo.model.patches import PATCH
-from codedvideo.solvers.omp_kernel import match_references, scatter_patches, shrink_groups
+from codedvideo.solvers.omp_kernel import match_frame_patches, scatter_frame_patches, shrink_frame_groups
 
-#: Blocks a group holds, the reference first.
-GROUP = 16
+#: Side of a group's patches, pixels (one sub-frame each).
+SIDE = 8
+#: Patches a group holds, the reference first (at most ``SIDE**2``).
+GROUP = 20
+#: Stride of the reference patches in each direction of every sub-frame (the last row and column included).
+STEP = 10
+#: Sub-frames searched on each side of a reference's.
+FRAMES = 2
 #: Search radius of a group's members around its reference's corner, pixels.
 WINDOW = 6
-#: Stride of the reference blocks, in each direction (the last row and column of blocks always included).
-STEP = 4
 #: Iterations between two matchings of the groups on the current estimate.
-REGROUP = 4
+REGROUP = 6
 #: The weighted-nuclear-norm constant ``c`` of the threshold ``c sqrt(k) sigma^2 / s``.
 SHRINK = 2.8
 #: The denoiser's noise level in the first and the last iteration, grey levels of an 8-bit capture.
-SIGMA_START = 4.0
+SIGMA_START = 6.0
 SIGMA_END = 1.0
 #: The result's share of the start: ``(1 - BLEND) refined + BLEND x0``.
 BLEND = 0.5
-#: References whose groups are solved at once (their estimates: CHUNK * GROUP * N * 49 floats).
-CHUNK = 2048
+#: References whose groups are solved at once (their estimates: CHUNK * GROUP * SIDE**2 floats).
+CHUNK = 4096
+#: A noisy capture's relaxation of the steps to the measurements, ``RELAX noise_sigma^2 / sigma^2`` (:func:`relaxed`).
+RELAX = 0.25
 #: Elements of a band of rows in a step to the measurements (its float32 copy of the mask's band: 16 MB).
 BAND = 1 << 22
 
 
 def recipe() -> dict:
     """The refinement's settings but the iterations (what a record of its result is keyed by)."""
-    return dict(group=GROUP, window=WINDOW, step=STEP, regroup=REGROUP, shrink=SHRINK, sigma_start=SIGMA_START,
-                sigma_end=SIGMA_END, blend=BLEND)
+    return dict(prior="frame-patches", side=SIDE, group=GROUP, step=STEP, frames=FRAMES, window=WINDOW,
+                regroup=REGROUP, shrink=SHRINK, sigma_start=SIGMA_START, sigma_end=SIGMA_END, blend=BLEND)
 
 
-def reference_grid(h: int, w: int, step: int = STEP, patch: int = PATCH) -> np.ndarray:
-    """Raster corners (row * (w - patch + 1) + col) of every ``step``-th block in each direction, the last
-    row and column of blocks included."""
-    def axis(n: int) -> np.ndarray:
-        s = np.arange(0, n, step)
-        return s if s[-1] == n - 1 else np.append(s, n - 1)
+def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE) -> np.ndarray:
+    """Flat corners (t * h * w + row * w + col) of every ``step``-th patch in each direction of every sub-frame,
+    the first and last row and column of patches included; sub-frame ``t``'s grid starts ``t * step // n``
+    pixels in (both directions), so the sub-frames' references fall on different places."""
+    def axis(m: int, offset: int) -> np.ndarray:
+        s = np.arange(offset, m, step)
+        if s.size == 0 or s[0] != 0:
+            s = np.concatenate([[0], s])
+        return s if s[-1] == m - 1 else np.append(s, m - 1)
 
-    wp = w - patch + 1
-    rows, cols = axis(h - patch + 1), axis(wp)
-    return (rows[:, None] * wp + cols[None, :]).ravel().astype(np.int64)
+    grids = []
+    for t in range(n):
+        offset = (t * step // n) % step
+        rows, cols = axis(h - side + 1, offset), axis(w - side + 1, offset)
+        grids.append((t * h * w + rows[:, None] * w + cols[None, :]).ravel())
+    return np.concatenate(grids).astype(np.int64)
 
 
 def shrinkage(gram: np.ndarray, d: int, sigma: float, c: float = SHRINK) -> np.ndarray:
@@ -89,31 +106,52 @@ def shrinkage(gram: np.ndarray, d: int, sigma: float, c: float = SHRINK) -> np.n
     return np.einsum("giq,gq,gjq->gij", U, f, U)
 
 
-def denoise(x: np.ndarray, groups: np.ndarray, sigma: float, *, chunk: int | None = None) -> np.ndarray:
-    """The estimate ``x`` (N, H, W) float32 with every group shrunk (:func:`shrinkage`) and the members'
-    estimates averaged at their places; pixels no member covers keep their value.  ``chunk``: groups solved
-    at once (None: :data:`CHUNK`)."""
+def match(x: np.ndarray, refs: np.ndarray, *, chunk: int | None = None) -> list[tuple]:
+    """The groups of the references ``refs`` on the estimate ``x`` (N, H, W) float32, in chunks of ``chunk``
+    references (None: :data:`CHUNK`): each ``(groups, where, order, bounds)``, its members' corners flat and
+    their order frame by frame for :func:`denoise`."""
     chunk = CHUNK if chunk is None else chunk
     n, h, w = x.shape
-    wp = w - PATCH + 1
-    k = groups.shape[1]
-    d = n * PATCH * PATCH
-    summed = np.zeros_like(x)
-    weight = np.zeros((h, w), np.float32)
-    for start in range(0, groups.shape[0], chunk):
+    groups = np.empty((refs.size, GROUP), np.int64)
+    match_frame_patches(x, refs, SIDE, WINDOW, min(FRAMES, n - 1), GROUP, groups)
+    chunks = []
+    for start in range(0, refs.size, chunk):
         part = np.ascontiguousarray(groups[start:start + chunk])
-        est = np.empty((part.shape[0] * k, d), np.float32)
-        shrink_groups(x, part, wp, PATCH, float(sigma) ** 2, SHRINK, est)
-        scatter_patches(est, part.ravel(), np.ones(est.shape[0], np.float32), wp, PATCH, summed, weight)
+        where = part.ravel()
+        frames = where // (h * w)
+        order = np.argsort(frames, kind="stable")
+        bounds = np.searchsorted(frames[order], np.arange(n + 1))
+        chunks.append((part, where, order.astype(np.int64), bounds.astype(np.int64)))
+    return chunks
+
+
+def denoise(x: np.ndarray, chunks: list[tuple], sigma: float) -> np.ndarray:
+    """The estimate ``x`` (N, H, W) float32 with every group of ``chunks`` (:func:`match`) shrunk
+    (:func:`shrinkage`) and the members' estimates averaged at their places; pixels no member covers keep
+    their value."""
+    summed = np.zeros_like(x)
+    weight = np.zeros_like(x)
+    for part, where, order, bounds in chunks:
+        est = np.empty((where.size, SIDE * SIDE), np.float32)
+        shrink_frame_groups(x, part, SIDE, float(sigma) ** 2, SHRINK, est)
+        scatter_frame_patches(est, where, order, bounds, SIDE, summed, weight)
     covered = weight > 0
     np.divide(summed, weight, out=summed, where=covered)
-    summed[:, ~covered] = x[:, ~covered]
+    summed[~covered] = x[~covered]
     return summed
 
 
 def sigmas(iterations: int, start: float = SIGMA_START, end: float = SIGMA_END) -> np.ndarray:
     """The annealed noise levels, geometric from ``start`` to ``end`` (one iteration: ``end``)."""
     return np.geomspace(start, end, iterations) if iterations > 1 else np.array([end], np.float64)
+
+
+def relaxed(open2: np.ndarray, noise_sigma: float, sigma: float) -> np.ndarray:
+    """The reciprocal of each pixel's summed squared shutter weights ``open2`` plus ``RELAX noise_sigma^2 /
+    sigma^2`` (0 where a pixel is never open): a noisy capture's step to its measurements, shorter the lower
+    the denoiser's level ``sigma`` (the measurements' noise then weighs more against the prior's)."""
+    lam = np.float32(RELAX * noise_sigma * noise_sigma / (sigma * sigma))
+    return np.divide(1.0, open2 + lam, out=np.zeros_like(open2), where=open2 > 0)
 
 
 def to_measurements(x: np.ndarray, mask: np.ndarray, coded: np.ndarray, inv: np.ndarray,
@@ -138,37 +176,41 @@ def to_measurements(x: np.ndarray, mask: np.ndarray, coded: np.ndarray, inv: np.
 
 def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
            sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
-           tick=None) -> tuple[np.ndarray, dict]:
+           noise_sigma: float = 0.0, tick=None) -> tuple[np.ndarray, dict]:
     """``iterations`` of GAP with the group prior from ``start`` (N, H, W), in working units.
 
     ``coded`` (H, W) and ``mask`` (N, H, W) are the measurements the result keeps (a pixel never open is not
-    held to any).  ``tick``: called once per iteration (a progress bar).  Returns the video (N, H, W) float32
-    and what was done: iterations, the noise levels, the groups, seconds.
+    held to any).  ``noise_sigma``: the capture's read noise; above 0 the measurements are not held exactly:
+    plain GAP (no accumulated residual), each step (and the last projection) relaxed by ``RELAX noise_sigma^2 /
+    sigma^2`` at the iteration's noise level ``sigma`` (:func:`to_measurements`).  0: accelerated GAP, exact
+    steps.  ``tick``: called once per iteration (a progress bar).  Returns the video (N, H, W) float32 and what
+    was done: iterations, the noise levels, the groups, seconds.
     """
     t0 = time.perf_counter()
     y = np.asarray(coded, np.float32)
     mask = np.asarray(mask)
     n, h, w = mask.shape
-    if h < PATCH or w < PATCH or iterations < 1:
+    if h < SIDE or w < SIDE or iterations < 1:
         return np.asarray(start, np.float32).copy(), dict(iterations=0, seconds=time.perf_counter() - t0)
     open2 = physics.forward(mask, mask)
-    inv = np.divide(1.0, open2, out=np.zeros_like(open2), where=open2 > 0)
+    inv = relaxed(open2, 0.0, 1.0)  # (exact: 1 / open2)
     x0 = np.ascontiguousarray(start, np.float32)
     x = x0.copy()
-    refs = reference_grid(h, w)
-    groups = np.empty((refs.size, GROUP), np.int64)
-    accumulated = y.copy()
+    refs = reference_grid(n, h, w)
+    noisy = noise_sigma > 0
+    accumulated = None if noisy else y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
     for i, sigma in enumerate(levels):
-        to_measurements(x, mask, y, inv, accumulated)
+        to_measurements(x, mask, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
         if i % REGROUP == 0:
-            match_references(x, refs, w - PATCH + 1, h - PATCH + 1, PATCH, WINDOW, GROUP, groups)
-        x = denoise(x, groups, float(sigma))
+            chunks = match(x, refs)
+        x = denoise(x, chunks, float(sigma))
         if tick is not None:
             tick()
-    to_measurements(x, mask, y, inv)
+    to_measurements(x, mask, y, relaxed(open2, noise_sigma, levels[-1]) if noisy else inv)
     x *= np.float32(1.0 - blend)
     x += np.float32(blend) * x0
     info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
-                blend=float(blend), groups=int(refs.size), seconds=time.perf_counter() - t0)
+                blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size),
+                seconds=time.perf_counter() - t0)
     return x, info
