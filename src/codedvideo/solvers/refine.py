@@ -20,9 +20,9 @@ measurements of one patch (or of one group, once).  The refinement alternates, f
 
 The last estimate is projected onto the measurements and averaged with ``x0`` (:data:`BLEND`): both
 reproduce the coded image (``x0`` to its method's tolerance).  The noise levels are fixed; a capture's read
-noise (``noise_sigma``) makes the steps plain GAP, relaxed (:func:`relaxed`), rather than exact.  The recipe was chosen on two clips and held out on two others (docs/quality.md,
-"Refinement under the measurement"); whole ``7 x 7 x N`` blocks as the groups' members, the recipe before it,
-gained a third as much.
+noise (``noise_sigma``) makes the steps plain GAP, relaxed (:func:`relaxed`), rather than exact.  The recipe
+was chosen on two clips and held out on two others (docs/quality.md, "Refinement under the measurement");
+whole ``7 x 7 x N`` blocks as the groups' members, the recipe before it, gained a quarter as much held out.
 
 In working units (the grey levels of an 8-bit capture: the noise levels are in them).  Arrays in, arrays
 out, on the whole image: the groups of a chunk of references are solved, then added frame by frame in a
@@ -70,7 +70,7 @@ BAND = 1 << 22
 def recipe() -> dict:
     """The refinement's settings but the iterations (what a record of its result is keyed by)."""
     return dict(prior="frame-patches", side=SIDE, group=GROUP, step=STEP, frames=FRAMES, window=WINDOW,
-                regroup=REGROUP, shrink=SHRINK, sigma_start=SIGMA_START, sigma_end=SIGMA_END, blend=BLEND)
+                regroup=REGROUP, shrink=SHRINK, sigma_start=SIGMA_START, sigma_end=SIGMA_END, blend=BLEND, relax=RELAX)
 
 
 def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE) -> np.ndarray:
