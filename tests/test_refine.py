@@ -249,3 +249,22 @@ def test_the_command_line_read_noise_reaches_the_refinement_in_working_units(tmp
     assert rc == 0, capsys.readouterr().err
     record = json.loads((tmp_path / "out.metrics.json").read_text())["reconstruction"]["refine"]
     assert record["iterations"] == 3 and record["noise_sigma"] == pytest.approx(4.0, rel=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["flat", "ramp"])
+def test_on_equal_patches_every_sub_frame_is_covered_alike(kind):
+    """Where many patches are equal (a flat or a smooth region) the ties keep a group in and near its own
+    sub-frame: no sub-frame is left mostly outside every group (with ties to the earliest sub-frame the last one
+    was 23 % uncovered on a flat scene)."""
+    n, h, w = 8, 64, 64
+    if kind == "flat":
+        video = np.full((n, h, w), 100.0, np.float32)
+    else:
+        video = np.tile(np.linspace(0, 255, w, dtype=np.float32), (n, h, 1))
+    covered = np.zeros((n, h, w), bool)
+    for _, where, _, _ in R.match(video, R.reference_grid(n, h, w)):
+        for p in where:
+            t, r, c = p // (h * w), p % (h * w) // w, p % w
+            covered[t, r:r + R.SIDE, c:c + R.SIDE] = True
+    uncovered = 1 - covered.reshape(n, -1).mean(1)
+    assert uncovered.max() < 0.12, uncovered

@@ -265,7 +265,8 @@ def reconstruct(coded, mask, *, dictionary=None, method: str | None = None, adap
     preset : ``fast``, ``default`` or ``best``: named settings, as ``--preset``
         (:data:`codedvideo.engine.config.PRESETS`); ``method`` and ``adapt`` given beside it win, and a setting
         of the preset the method cannot take is left out with a warning
-    noise_sigma : read noise in the input's units (sets the residual tolerance as ``--noise-sigma`` does)
+    noise_sigma : read noise in the input's units (sets the residual tolerance, and relaxes the refinement's steps to
+        the measurements, as ``--noise-sigma`` does)
     data_range : the frames' peak value in the input's units; None: found from the values as the CLI does
     workers : threads (default: every core)
     progress : show a progress bar

@@ -159,8 +159,10 @@ def _parser() -> argparse.ArgumentParser:
                         "(--preset best; +0.5 dB on real footage, 1.8x the time of one round)")
     r.add_argument("--refine", type=int, default=None, metavar="ITERATIONS",
                    help="after the method's result: ITERATIONS of GAP with a low-rank prior on groups of similar "
-                        "blocks, the noise level annealed from 4 to 1 grey level (0: none, the default; --preset best: "
-                        "24, +0.24 dB on held-out real footage, about 0.8x the time of the passes before it)")
+                        "8x8 patches followed across sub-frames, the noise level annealed from 6 to 1 grey level; "
+                        "with --noise-sigma the steps to the measurements are relaxed (0: none, the default; "
+                        "--preset best: 32, +0.9 dB on held-out real footage, about 0.8x the time of the passes "
+                        "before it)")
     r.add_argument("--output", "-o", required=True,
                    help=".npy, .zarr, .mat, .tif/.tiff, .mp4/.mov (H.264), .mkv/.avi (FFV1), .gif, or a name without "
                         "suffix (or ending .d): a folder of 16-bit TIFF frames (--cacti: all measurements, time-first)")

@@ -212,7 +212,7 @@ class Runner:
                 t0 = time.perf_counter()
                 if adapt or refine:
                     volume, info = reconstruct_capture(method, cap["coded"], cap["mask"], adapt=adapt,
-                                                       adapt_rounds=adapt_rounds, refine=refine,
+                                                       adapt_rounds=adapt_rounds, refine=refine, noise_sigma=sigma,
                                                        data_range=infer_data_range(255.0, given=255.0), settings=omp,
                                                        dictionary=D, dictionary_key=dkey, cache=tmp,
                                                        tile=self.cfg.reconstruct.tile,

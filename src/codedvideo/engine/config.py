@@ -210,7 +210,7 @@ class ReconstructConfig(_Strict):
     #: on held-out real footage over one round, 1.8x its time; docs/quality.md, "Presets").
     adapt_rounds: int = Field(1, ge=1, le=2)
     #: Iterations of GAP with a low-rank prior on groups of similar patches after the method's result (0: none;
-    #: ``best``: 24, +0.24 dB on held-out real footage over its two rounds; docs/quality.md, "Refinement").
+    #: ``best``: 32, +0.9 dB on held-out real footage over its two rounds; docs/quality.md, "Refinement").
     refine: int = Field(0, ge=0, le=200)
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
     tile: int = Field(128, ge=8, le=4096)

@@ -470,7 +470,7 @@ class GraphRunner:
         self.progress, self.desc = progress, desc
         self.bar = None  # made with the first task (a job all in the cache shows none)
         self.graphs: list[dict] = []  # per graph: tasks, needs, finished, left, drained, share
-        self.events: queue.Queue = queue.Queue()  # (graph, task index | -1 (a stage) | None (the end)) or an error
+        self.events: queue.Queue = queue.Queue()  # (graph, task index | -1 (a stage) | None (the end) | its error)
         self.lock = threading.Lock()
         self.stop = threading.Event()
         self.threads: list[threading.Thread] = []
@@ -570,10 +570,12 @@ class GraphRunner:
                 self._wait_distributed(graph, need)
             return
         while not graph["finished"][need].all():
-            item = self.events.get()
-            if isinstance(item, BaseException):
-                raise item
-            h, i = item
+            if "error" in graph:  # (a task of this graph failed: what this group needs will not finish)
+                raise graph["error"]
+            h, i = self.events.get()
+            if isinstance(i, BaseException):  # raised by a wait on graph h, not on one before it still running
+                self.graphs[h]["error"] = i
+                continue
             if i is None:  # graph h ended: all of it is done
                 self.graphs[h]["finished"][:] = True
                 continue
@@ -633,8 +635,8 @@ class GraphRunner:
                 dask.compute(*graph["tasks"], scheduler=dask.threaded.get, pool=self.pool,
                              callbacks=[Callback(pretask=pretask, posttask=posttask)._callback])
             self.events.put((g, None))
-        except BaseException as exc:  # handed to the consumer
-            self.events.put(exc)
+        except BaseException as exc:  # handed to the consumer's wait on this graph
+            self.events.put((g, exc))
         finally:
             self._drained(g)  # (a graph that failed lets the next one start: its error is raised first)
 

@@ -1209,10 +1209,12 @@ def match_frame_patches(vol, refs, side, window, frames, k, idx):
     squared differences), among the patches of frames ``t - frames .. t + frames`` whose corners are within
     ``window`` pixels of the reference's.
 
-    The reference itself first; then candidates in order of frame, row offset and column offset, one entering
-    only when strictly closer than the current ``k``-th (ties to the earlier candidate); a sum stops once past
-    it.  Fewer than ``k`` candidates: the reference fills the rest.  Every reference alone, so the groups never
-    depend on the threads."""
+    The reference itself first; then candidates in order of sub-frame (the reference's own, then 1, 2, ...
+    away, the earlier first), row and column, one entering only when strictly closer than the current ``k``-th
+    (ties to the earlier candidate: on equal patches, as in flat or smooth regions, a group stays in and near its
+    own sub-frame, so every sub-frame's patches are covered alike); a sum stops once past it.  Fewer than ``k``
+    candidates: the reference fills the rest.  Every reference alone, so the groups never depend on the
+    threads."""
     n, h, w = vol.shape
     hw = h * w
     for g in prange(refs.shape[0]):
@@ -1224,7 +1226,11 @@ def match_frame_patches(vol, refs, side, window, frames, k, idx):
         bidx = np.full(k, -1, np.int64)
         best[0] = -1.0
         bidx[0] = p
-        for t in range(max(0, t0 - frames), min(n, t0 + frames + 1)):
+        for order in range(2 * frames + 1):
+            away = (order + 1) // 2
+            t = t0 - away if order % 2 == 1 else t0 + away
+            if t < 0 or t >= n:
+                continue
             for r in range(max(0, r0 - window), min(h - side, r0 + window) + 1):
                 for cc in range(max(0, c0 - window), min(w - side, c0 + window) + 1):
                     if t == t0 and r == r0 and cc == c0:

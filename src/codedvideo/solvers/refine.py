@@ -27,8 +27,9 @@ whole ``7 x 7 x N`` blocks as the groups' members, the recipe before it, gained 
 In working units (the grey levels of an 8-bit capture: the noise levels are in them).  Arrays in, arrays
 out, on the whole image: the groups of a chunk of references are solved, then added frame by frame in a
 fixed order, so the result does not depend on the threads.  Memory: four volumes (the estimate, the sum of
-the estimates and their count, the start), one chunk of groups (:data:`CHUNK`), and a band of rows of the
-mask in float32 at a time (:data:`BAND`).
+the estimates and their count, the start), the groups' table (its members' corners and their order: about 3
+bytes a voxel, so most of a fifth volume), one chunk's estimates (:data:`CHUNK`), and a band of rows of the mask
+in float32 at a time (:data:`BAND`).
 """
 
 from __future__ import annotations
