@@ -638,7 +638,7 @@ class GraphRunner:
         except BaseException as exc:  # handed to the consumer's wait on this graph
             self.events.put((g, exc))
         finally:
-            self._drained(g)  # (a graph that failed lets the next one start: its error is raised first)
+            self._drained(g)  # (a graph that failed lets the next one start; its error waits for the wait on it)
 
     # -- dask.distributed -------------------------------------------------------------------------------
     _LOST: tuple = ()
