@@ -104,9 +104,21 @@ def test_non_binary_mask(files, tmp_path, capsys, scale, what):
     assert what in err  # names an offending value
 
 
-def test_non_binary_mask_as_a_tiff_of_0_and_255(files, tmp_path, capsys):
+def test_a_mask_tiff_of_0_and_255_is_the_binary_code(files, tmp_path, capsys):
+    """Mask images are read as a fraction of full scale (as scikit-image reads images): 255 is an open shutter."""
     cio.write_multipage_tiff(files / "m255.tif", np.load(files / "mask.npy") * 255)
-    fails(capsys, reconstruct_args(files, tmp_path, mask=files / "m255.tif"), "m255.tif", "outside [0, 1]",
+    runs = {}
+    for name, mask in (("npy", files / "mask.npy"), ("tif", files / "m255.tif")):
+        args = reconstruct_args(files, tmp_path / name, mask=mask)
+        capsys.readouterr()
+        assert main(["-q", *map(str, args)]) == 0, capsys.readouterr().err
+        runs[name] = np.load(tmp_path / name / "out" / "r.npy")
+    assert np.array_equal(runs["npy"], runs["tif"])
+
+
+def test_a_mask_tiff_of_0_and_1_is_refused_naming_its_full_scale(files, tmp_path, capsys):
+    cio.write_multipage_tiff(files / "m01.tif", np.load(files / "mask.npy"))
+    fails(capsys, reconstruct_args(files, tmp_path, mask=files / "m01.tif"), "m01.tif", "full scale 255",
           root=tmp_path)
 
 

@@ -68,7 +68,7 @@ def test_reconstruct_beats_trivial_estimate_and_writes_metrics(workdir, dictiona
 def test_reconstruct_to_mp4_and_tiff_mask(workdir, dictionary, capture):
     from codedvideo.formats.io import read_video, write_multipage_tiff
 
-    write_multipage_tiff(workdir / "mask.tif", np.load(capture / "mask.npy"))
+    write_multipage_tiff(workdir / "mask.tif", np.load(capture / "mask.npy") * 255)  # 255: open
     run("reconstruct", "--coded", capture / "coded.tif", "--mask", workdir / "mask.tif", "--dictionary", dictionary,
         "--output", workdir / "recon.mp4", "--cache", "cache", cwd=workdir)
     frames = read_video(workdir / "recon.mp4")

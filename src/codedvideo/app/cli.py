@@ -607,7 +607,9 @@ def _cmd_reconstruct(a) -> int:
     if a.dictionary:
         job.inputs["dictionary"] = str(a.dictionary)
     t_read = time.perf_counter() - t0
+    white = None if a.trust_saturated or raw else noise.white_level
     units = capture_units(job.codeds, job.mask, dtype=job.dtype, given=out.data_range, noise_sigma=noise.sigma,
+                          white_level=white,
                           levels={"--noise-sigma": noise.sigma, "--tol-rms": rc.tol_rms if rc.tol_rms != "auto" else None,
                                   "--white-level": noise.white_level, "--black-level": noise.black_level},
                           where=job.source)
@@ -616,7 +618,6 @@ def _cmd_reconstruct(a) -> int:
         message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
         if message:
             warnings.warn(f"{message} (data range {units.value:g} from {units.source})", stacklevel=1)
-    white = None if a.trust_saturated or raw else noise.white_level
     h, w = job.codeds[0].shape[-2:]
     shape = (count, n, h, w) if job.kind == "channels" else (3, n, h, w) if job.kind == "bayer" else (count * n, h, w)
     if Path(a.output).suffix.lower() == ".mat":  # a v5 .mat file's 4 GiB: known before any work

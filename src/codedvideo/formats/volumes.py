@@ -20,6 +20,7 @@ from codedvideo.formats.io import VIDEO_SUFFIXES
 from codedvideo.model.patches import PATCH
 from codedvideo.formats.store import array_writer, load_array, save_array
 from codedvideo.model.units import EIGHT_BIT
+from codedvideo.solvers.omp import is_binary
 
 
 def write_json(path: Path, payload: dict) -> Path:
@@ -98,10 +99,7 @@ def capture_writer(outdir: str | Path, *, coded_shape: tuple, mask_shape: tuple,
 
 def read_coded(path: str | Path, *, color: str = "luma") -> np.ndarray:
     """A coded image (H, W) float32, or (C, H, W) with ``color="channels"`` (see :mod:`codedvideo.formats.io`)."""
-    coded = cio.read_image(path, color=color)
-    if not np.isfinite(coded).all():
-        raise InputError(f"coded image {path}: contains NaN or Inf")
-    return coded
+    return check_coded(cio.read_image(path, color=color), f"coded image {path}")
 
 
 class _LazyStack:
@@ -277,9 +275,7 @@ def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack | V
         return stack if len(stack) > 1 else stack[0][None]
     else:
         coded = cio.read_stack(path)
-    if not np.isfinite(coded).all():
-        raise InputError(f"coded image {path}: contains NaN or Inf")
-    return coded
+    return check_coded(coded, f"coded image {path}")
 
 
 def read_masks(path: str | Path) -> np.ndarray:
@@ -287,29 +283,61 @@ def read_masks(path: str | Path) -> np.ndarray:
     if Path(path).suffix.lower() == ".npy":
         arr = cio.read_array(path)
         if arr.ndim == 4:
-            return np.stack([_checked_mask(m, path) for m in arr])
+            return np.stack([check_mask(m, f"mask {path}") for m in arr])
     return read_mask(path)
 
 
 def read_mask(path: str | Path) -> np.ndarray:
-    return _checked_mask(cio.read_stack(path), path)
+    """A mask (N, H, W) from a .npy (its values as they are: 0/1, or weights in [0, 1]) or from images (a
+    multi-page TIFF, a folder or pattern of frames), read as a fraction of the image's full scale, as
+    scikit-image reads images: an 8-bit 255 or a 16-bit 65535 is 1.0, so a 0/255 PNG mask is a binary code."""
+    stack = cio.read_stack(path)
+    if Path(path).suffix.lower() != ".npy":
+        full = full_scale(cio.stored_dtype(path))
+        if full != 1.0:
+            stack = stack / np.float32(full)
+            top = float(stack.max(initial=0.0))
+            if 0 < top * full < 1.5:  # 0/1 saved as 8-bit: every shutter read as nearly closed
+                raise InputError(f"mask {path}: its values reach only 1 of the image's full scale {full:g}; mask "
+                                 f"images are read as a fraction of full scale, so a binary mask image holds 0 and "
+                                 f"{full:g} (a .npy mask holds 0 and 1)")
+    return check_mask(stack, f"mask {path}")
 
 
-def _checked_mask(mask: np.ndarray, path) -> np.ndarray:
-    """A binary code (uint8), or a calibrated mask: each pixel's measured response per sub-frame in [0, 1] (float32)."""
-    from codedvideo.solvers.omp import is_binary
+def full_scale(dtype) -> float:
+    """The value an image of this stored type holds at full scale: 255 (8-bit), 65535 (16-bit), ... (1: floats)."""
+    kind = np.dtype(dtype)
+    return float(np.iinfo(kind).max) if kind.kind in "iu" else 1.0
 
+
+def check_mask(mask, where: str) -> np.ndarray:
+    """A mask as both doors take it: a binary code (uint8), or a calibrated mask, each pixel's measured response
+    per sub-frame in [0, 1] (float32).  ``where`` names it in the one-line error (``mask m.npy``, or the API's
+    argument); NaN or Inf, values outside [0, 1] and an all-zero mask are refused."""
     mask = np.asarray(mask)
+    if mask.dtype.kind not in "biuf":
+        raise InputError(f"{where}: values of type {mask.dtype}; a mask holds numbers (0/1, or weights in [0, 1])")
     if not np.isfinite(mask).all():
-        raise InputError(f"mask {path}: contains NaN or Inf")
+        raise InputError(f"{where}: contains NaN or Inf")
     outside = (mask < 0) | (mask > 1)
     if outside.any():
         bad = np.unique(mask[outside])[:3].tolist()
-        raise InputError(f"mask {path}: values outside [0, 1] (e.g. {bad}); a mask is 0/1, or a calibrated "
+        raise InputError(f"{where}: values outside [0, 1] (e.g. {bad}); a mask is 0/1, or a calibrated "
                          "response per sub-frame in [0, 1]")
     if not mask.any():
-        raise InputError(f"mask {path}: no pixel is ever open (all zeros); there is nothing to reconstruct")
+        raise InputError(f"{where}: no pixel is ever open (all zeros); there is nothing to reconstruct")
     return mask.astype(np.uint8) if is_binary(mask) else mask.astype(np.float32)
+
+
+def check_coded(coded, where: str) -> np.ndarray:
+    """A coded image (or a stack) as both doors take it: numbers, finite; float32 (its stored type is the
+    caller's to record: 8-bit integers are 0..255 whatever they hold)."""
+    coded = np.asarray(coded)
+    if coded.dtype.kind not in "biuf":
+        raise InputError(f"{where}: values of type {coded.dtype}; a coded image holds numbers")
+    if not np.isfinite(coded).all():
+        raise InputError(f"{where}: contains NaN or Inf")
+    return coded.astype(np.float32, copy=False)
 
 
 @contextlib.contextmanager

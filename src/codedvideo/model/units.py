@@ -71,32 +71,61 @@ class DataRange:
         return dict(value=self.value, source=self.source, peak=self.peak, working_scale=self.scale)
 
 
-def open_ratios(coded: np.ndarray, mask: np.ndarray, step: int = 1) -> np.ndarray:
-    """``coded / open count`` of every pixel ever open (every ``step``-th row and column), flat."""
+def open_ratios(coded: np.ndarray, mask: np.ndarray, step: int = 1, white_level: float | None = None) -> np.ndarray:
+    """``coded / open count`` of every pixel ever open (every ``step``-th row and column), flat; with
+    ``white_level``, the pixels at or above it (saturated: no measurement) are left out."""
     counts = np.asarray(mask[..., ::step, ::step], np.float32).sum(-3)
     coded = np.asarray(coded[..., ::step, ::step], np.float32)
     if counts.shape != coded.shape[-2:]:
         counts = np.broadcast_to(counts, coded.shape)
     open_ = counts > 0
+    if white_level is not None:
+        open_ &= coded < np.float32(white_level)
     return coded[open_] / counts[open_]
 
 
-def static_peak(coded: np.ndarray, mask: np.ndarray) -> float:
+def static_peak(coded: np.ndarray, mask: np.ndarray, white_level: float | None = None) -> float:
     """Largest ``coded / open count`` over the pixels that are ever open (0 when none is)."""
-    return float(open_ratios(coded, mask).max(initial=0.0))
+    return float(open_ratios(coded, mask, white_level=white_level).max(initial=0.0))
 
 
-def static_quantile(coded: np.ndarray, mask: np.ndarray, q: float = 0.99, step: int = 3) -> float:
+def static_quantile(coded: np.ndarray, mask: np.ndarray, q: float = 0.99, step: int = 3,
+                    white_level: float | None = None) -> float:
     """The ``q`` quantile of ``coded / open count`` over the pixels ever open (every ``step``-th row and
     column: a percentile of a 4K frame in milliseconds); 0 when none is."""
-    ratios = open_ratios(coded, mask, step)
+    ratios = open_ratios(coded, mask, step, white_level)
     return float(np.quantile(ratios, q)) if ratios.size else 0.0
 
 
-def share_above(coded: np.ndarray, mask: np.ndarray, level: float) -> float:
-    """The share of the pixels ever open whose ``coded / open count`` lies above ``level``."""
-    ratios = open_ratios(coded, mask)
-    return float(np.mean(ratios > level)) if ratios.size else 0.0
+def count_above(coded: np.ndarray, mask: np.ndarray, level: float,
+                white_level: float | None = None) -> tuple[int, int]:
+    """(pixels ever open whose ``coded / open count`` lies above ``level``, pixels ever open)."""
+    ratios = open_ratios(coded, mask, white_level=white_level)
+    return int(np.count_nonzero(ratios > level)), int(ratios.size)
+
+
+def clipped_level(codeds, mask_of) -> float | None:
+    """The coded value the sensor clipped at, when the captures show one: the largest coded value, held by
+    at least :data:`CLIPPED_PIXELS` pixels of at least two open counts (a scene's brightest value gives a coded
+    value in proportion to the open count; a clipped read-out gives the same value whatever the count)."""
+    tops = [float(np.max(np.asarray(c), initial=-np.inf)) for c in codeds]
+    top = max(tops, default=-np.inf)
+    if not np.isfinite(top) or top <= 0:
+        return None
+    held, counts = 0, set()
+    for i, value in enumerate(tops):
+        if value != top:
+            continue
+        at = np.asarray(codeds[i]) == np.float32(top) if np.asarray(codeds[i]).dtype.kind == "f" \
+            else np.asarray(codeds[i]) == top
+        k = np.asarray(mask_of(i)).sum(0, dtype=np.float32)[at]
+        held += int(np.count_nonzero(k > 0))
+        counts.update(np.unique(k[k > 0]).tolist())
+    return top if held >= CLIPPED_PIXELS and len(counts) >= 2 else None
+
+
+#: Pixels that must share the largest coded value for it to be taken as the sensor's clipping level.
+CLIPPED_PIXELS = 4
 
 
 #: Standard deviations of read noise (``noise``, the capture's units) also allowed above a range.
@@ -107,12 +136,26 @@ OUTLIER_SHARE = 0.01
 OUTLIER_PEAK = 8.0
 
 
+#: A range is widened for read noise only when it is at least this many times the noise: noise as wide as
+#: half a range is not noise on that range (sigma 10 on a [0, 1] capture), so it cannot pick that range.
+NOISE_RANGE_RATIO = 2.0
+
+
+def noise_room(value: float, noise: float) -> float:
+    """How far above the range ``value`` read noise ``noise`` (the capture's units) may carry values:
+    :data:`NOISE_SIGMAS` sigmas, for a range at least :data:`NOISE_RANGE_RATIO` times the noise; else 0."""
+    noise = max(float(noise), 0.0)
+    return NOISE_SIGMAS * noise if value >= NOISE_RANGE_RATIO * noise else 0.0
+
+
 def infer_data_range(peak: float, *, dtype=None, given: float | None = None, what: str = "coded / open count",
                      noise: float = 0.0, quantile=None, outlier_ranges: tuple[float, ...] = (1.0,)) -> DataRange:
     """The data range of a capture whose frames peak at ``peak`` (:func:`static_peak`; module docstring).
 
     ``noise``: the read noise the capture is known to have (``--noise-sigma``), whose peaks may lie above
     the range by more than the 5 % room (sigma 30 on 8-bit frames peaked at 268 and was taken as 12-bit).
+    Noise widens a range, it never picks one (:func:`noise_room`): a range is widened only when it is at
+    least twice the noise, so a dark 8-bit capture with sigma 10 is not taken for a [0, 1] one.
     ``quantile``: a function giving the ``1 - OUTLIER_SHARE`` quantile of the same values
     (:func:`static_quantile`), asked only for float values that peak just above 1: when that quantile is
     within [0, 1] the few above are outliers and the range is 1 (one hot pixel at 2.5 made a [0, 1]
@@ -127,22 +170,21 @@ def infer_data_range(peak: float, *, dtype=None, given: float | None = None, wha
     if kind is not None and kind.kind in "iu" and kind.itemsize == 1:
         return DataRange(255.0, f"dtype {kind.name}", peak)
     integer = kind is not None and kind.kind in "iub"
-    room = NOISE_SIGMAS * max(float(noise), 0.0)
     for value in outlier_ranges if not integer and quantile is not None else ():
-        if value * NOISE_ROOM + room < peak <= value * OUTLIER_PEAK:
+        if value * NOISE_ROOM + noise_room(value, noise) < peak <= value * OUTLIER_PEAK:
             typical = float(quantile())
-            if typical <= value * NOISE_ROOM + room:
+            if typical <= value * NOISE_ROOM + noise_room(value, noise):
                 return DataRange(value, f"values ({1 - OUTLIER_SHARE:.0%} of {what} at most {typical:.4g}; its "
                                         f"peak {peak:.4g} taken as outliers)", peak)
             break
     for value in COMMON_RANGES:
         if integer and value == 1.0:
             continue
-        if peak <= value * NOISE_ROOM + room:
+        if peak <= value * NOISE_ROOM + noise_room(value, noise):
             return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
     if not integer and peak > 0:  # a standard range in other decimal units (255000: thousandths of 8 bits)
         value = min((v * 10.0**k for v in COMMON_RANGES for k in range(1, 40)
-                     if peak <= v * 10.0**k * NOISE_ROOM + room), default=peak)
+                     if peak <= v * 10.0**k * NOISE_ROOM + noise_room(v * 10.0**k, noise)), default=peak)
         return DataRange(float(value), f"values (peak of {what} {peak:.4g})", peak)
     value = float(2 ** math.ceil(math.log2(peak + 1)) - 1)
     return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
@@ -198,8 +240,13 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = PATCH) -> 
             "data range (--data-range) and the tolerance")
 
 
+#: What the command line calls the settings a message about the data range names (the API passes its own).
+CLI_NAMES = {"noise_sigma": "--noise-sigma", "data_range": "--data-range", "white_level": "--white-level"}
+
+
 def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, noise_sigma: float = 0.0,
-                  levels: dict[str, float | None] | None = None, where: str = "coded image") -> DataRange:
+                  white_level: float | None = None, levels: dict[str, float | None] | None = None,
+                  where: str = "coded image", names: dict[str, str] | None = None) -> DataRange:
     """The data range of a job's captures, found once, checked and warned about: the one inference that the
     command line, ``codedvideo run`` and the Python API all use.
 
@@ -210,8 +257,13 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     dtype : the captures' type as stored (8-bit integers are 0..255 whatever their values)
     given : the data range the user gave (``--data-range``), or None to find it from the values
     noise_sigma : the read noise in the capture's units (its peaks may lie above the range)
+    white_level : the sensor's saturation level in coded units, when known: pixels at or above it hold no
+        measurement and do not set the range.  When none is given and the captures show one
+        (:func:`clipped_level`), it is used the same way, with a warning.
     levels : option name -> grey-level setting in the capture's units, refused when far above the range
     where : what the captures are called in messages (the file)
+    names : what the caller calls ``noise_sigma``, ``data_range`` and ``white_level`` in messages
+        (default :data:`CLI_NAMES`; the API names its arguments)
 
     Raises :class:`codedvideo.model.errors.InputError` for a capture with nothing above 0 (and no range given) or
     values beyond float32's working bounds; warns (one line each) when values lie above the range found or
@@ -221,23 +273,49 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
 
     from codedvideo.model.errors import InputError
 
+    names = dict(CLI_NAMES, **(names or {}))
     count = len(codeds)
-    peak = max(static_peak(codeds[i], mask_of(i)) for i in range(count))
+    clip = white_level
+    eight_bit = dtype is not None and np.dtype(dtype).kind in "iu" and np.dtype(dtype).itemsize == 1
+    if clip is None and given is None and not eight_bit:  # (8-bit integers are 0..255 whatever they hold)
+        clip = clipped_level(codeds, mask_of)
+        if clip is not None and max(static_peak(codeds[i], mask_of(i), clip) for i in range(count)) <= 0:
+            clip = None  # nothing but the clipped pixels: they are the scene
+        if clip is not None:
+            warnings.warn(f"{where}: pixels of different open counts share the largest coded value {clip:.6g}: "
+                          f"clipped by the sensor; left out of the data range (give {names['white_level']} "
+                          f"{clip:.6g} to treat them as missing measurements)", stacklevel=2)
+    peak = max(static_peak(codeds[i], mask_of(i), clip) for i in range(count))
     # a sum of frames is never negative: the wrong file, or a black level taken off twice
     if peak <= 0 and given is None:
         raise InputError(f"{where}: no coded value above 0 where the code is open; nothing to reconstruct "
                          "(check the file and the black level)")
     units = infer_data_range(peak, dtype=dtype, given=given, noise=noise_sigma, quantile=lambda: max(
-        static_quantile(codeds[i], mask_of(i), 1 - OUTLIER_SHARE) for i in range(count)))
+        static_quantile(codeds[i], mask_of(i), 1 - OUTLIER_SHARE, white_level=clip) for i in range(count)))
+    if given is not None:
+        units = DataRange(units.value, f"given ({names['data_range']})", units.peak)
     check_range(units, levels or {}, where)
-    level = units.value * NOISE_ROOM + NOISE_SIGMAS * noise_sigma
+    level = units.value * NOISE_ROOM + noise_room(units.value, noise_sigma)
     if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
-        share = max(share_above(codeds[i], mask_of(i), level) for i in range(count))
-        warnings.warn(f"{where}: {share:.2%} of the pixels (coded / open count, up to {peak:.4g}) lie above the "
-                      f"data range {units.value:g} ({units.source}); they are clipped in videos and frames",
-                      stacklevel=2)
+        warnings.warn(_above_range(codeds, mask_of, level, clip, peak, units, where), stacklevel=2)
     if given is None and units.value > 255 and peak <= 2 * 255:  # just past 8 bits: noise, or a dark frame?
         warnings.warn(f"{where}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
-                      "just above 8-bit; if the frames are 8-bit with noise, give --noise-sigma or --data-range 255",
-                      stacklevel=2)
+                      f"just above 8-bit; if the frames are 8-bit with noise, give {names['noise_sigma']} or "
+                      f"{names['data_range']} 255", stacklevel=2)
     return units
+
+
+def _above_range(codeds, mask_of, level: float, clip, peak: float, units: DataRange, where: str) -> str:
+    """The warning for values above the data range: their share of the pixels, and in a stream the captures
+    that hold them (a single blown-out capture is not the whole stream)."""
+    tallies = [count_above(codeds[i], mask_of(i), level, clip) for i in range(len(codeds))]
+    above, total = sum(a for a, _ in tallies), sum(t for _, t in tallies)
+    share = above / max(total, 1)
+    said = f"{where}: {share:.2%} of the pixels (coded / open count, up to {peak:.4g}) lie above the data range " \
+           f"{units.value:g} ({units.source})"
+    if len(codeds) > 1:
+        held = [i for i, (a, _) in enumerate(tallies) if a]
+        worst = max(held, key=lambda i: tallies[i][0] / max(tallies[i][1], 1))
+        said += (f", in {len(held)} of {len(codeds)} captures (most in capture {worst + 1}: "
+                 f"{tallies[worst][0] / max(tallies[worst][1], 1):.2%})")
+    return said + "; they are clipped in videos and frames"
