@@ -210,8 +210,9 @@ def test_the_api_takes_the_same_presets():
                                                               adapt_rounds=2, refine=32))
     assert not np.array_equal(best.frames, cv.reconstruct(coded, mask, preset="best", adapt_rounds=1))
     assert best.info[0]["preset"]["options"]["method"] == "nonlocal"
-    with pytest.warns(UserWarning, match="--adapt is left out"):
+    with pytest.warns(UserWarning, match="preset best: adapt is left out") as said:  # (the API's argument)
         gaptv = cv.reconstruct(coded, mask, preset="best", method="gaptv")
+    assert said[0].filename == __file__  # said at the caller's line
     np.testing.assert_array_equal(gaptv, cv.reconstruct(coded, mask, method="gaptv", refine=32))  # (the rest applies)
     with pytest.raises(ConfigError, match="preset 'quick'"):
         cv.reconstruct(coded, mask, preset="quick")

@@ -84,11 +84,9 @@ def test_raw_correction_of_a_stream_holds_one_capture_at_a_time():
     """--black-level (and the other raw options) on a stream of captures: each capture is corrected when
     it is read, never the whole stream at once; --detect-bad-pixels reads it once more first, to vote,
     and the corrections equal the stack's."""
-    import argparse
-
-    from codedvideo.app import cli
+    from codedvideo import api
+    from codedvideo.api._job import correct_raw
     from codedvideo.model import sensor
-    from codedvideo.engine.config import NoiseConfig
 
     rng = np.random.default_rng(2)
     t = 6
@@ -106,19 +104,17 @@ def test_raw_correction_of_a_stream_holds_one_capture_at_a_time():
             return frames[i]
 
     def job():
-        return cli._Captures(codeds=Stream(), masks=[mask], truths=None, labels=[{}] * t, kind="captures",
-                             inputs={}, dtype=np.dtype("float32"), source="stream")
+        return api.Captures(codeds=Stream(), masks=[mask], truths=None, labels=[{}] * t, kind="captures",
+                            inputs={}, dtype=np.dtype("float32"), source="stream")
 
-    noise = NoiseConfig(black_level=16.0)
-    a = argparse.Namespace(bad_pixels=None, detect_bad_pixels=False, trust_saturated=False)
     j = job()
-    counts = cli._correct_raw(a, j, noise)
+    counts = correct_raw(api.resolve_settings(api.ReconstructSettings(black_level=16.0)), j)
     assert reads == []  # nothing corrected before it is asked for
     np.testing.assert_array_equal(j.codeds[4], sensor.correct_raw(frames[4], mask, black_level=16.0).coded)
     assert reads == [4] and counts[4]["black_level"] == 16.0
-    a.detect_bad_pixels, reads[:] = True, []
+    reads[:] = []
     j = job()
-    counts = cli._correct_raw(a, j, noise)
+    counts = correct_raw(api.resolve_settings(api.ReconstructSettings(black_level=16.0, detect_bad_pixels=True)), j)
     assert reads == list(range(t))  # one pass to vote
     stack = sensor.detect_bad_pixels(np.stack([frames[i] - 16 for i in range(t)]), mask)
     assert stack[3, 4] and counts[2]["detected_bad_pixels"] == int(stack.sum())

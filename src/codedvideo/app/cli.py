@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from codedvideo import __version__
+from codedvideo import __version__, api
 from codedvideo.solvers.baselines import METHODS
 from codedvideo.engine.bayer import PATTERNS as BAYER_PATTERNS
 from codedvideo.model.codes import CODE_NAMES
@@ -37,6 +37,7 @@ from codedvideo.engine.config import (
 )
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.formats.outputs import Output, check_outputs, mark_written
+from codedvideo.model.metrics import json_safe
 
 log = logging.getLogger("codedvideo")
 
@@ -406,34 +407,20 @@ def _cmd_simulate(a) -> int:
     return 0
 
 
-#: reconstruct's options named after the config fields they set (where the names differ).
-_RECONSTRUCT_OPTIONS = {"sigma": "--noise-sigma", "data_range": "--data-range"}
-
-
-def _reconstruct_options(a):
-    """Validate reconstruct's options and its outputs before any work.
-
-    Returns ``(rc, noise, out, preset)``: the ``reconstruct:`` model, the noise
-    model (sigma, white level), the output model (fps, data range) and what the
-    metrics say of ``--preset`` (None without one).  The options a preset sets
-    (:data:`~codedvideo.engine.config.PRESETS`) are set on ``a`` as resolved.
-    """
+def _reconstruct_settings(a):
+    """Reconstruct's options as the API's settings, checked (with the preset resolved) before any work, and the
+    outputs checked: the :class:`codedvideo.api.Resolved` settings."""
     from codedvideo.data import shipped
-    from codedvideo.formats.io import check_cache, gif_rate_problem
+    from codedvideo.formats.io import gif_rate_problem
     from codedvideo.formats.volumes import metrics_path, output_kind
 
     if not a.cacti and not (a.coded and a.mask):
         raise InputError("reconstruct: give --coded and --mask, or --cacti FILE.mat")
     if a.measurement is not None and not a.cacti:
         raise InputError("reconstruct: --measurement applies to --cacti only")
-    given = {k: getattr(a, k) for k in PRESET_KEYS if getattr(a, k) is not None}
-    options, left_out = resolve_preset(a.preset, given, bayer=a.bayer)  # (an option given and refused: an error)
-    for key, value in options.items():
-        setattr(a, key, value)
-    preset = preset_record(a.preset, options, given, left_out)
-    if a.dictionary and a.method not in ("omp", "nonlocal"):
-        raise ConfigError(f"option --dictionary {a.dictionary}: used by --method omp and nonlocal only "
-                          f"(--method {a.method} {'has its own DCT atoms' if a.method == 'dct' else 'has no dictionary'})")
+    settings = api.ReconstructSettings(**{f.name: getattr(a, f.name) for f in dataclasses.fields(api.ReconstructSettings)
+                                          if f.name != "progress"}, progress=not a.quiet)
+    resolved = api.resolve_settings(settings, door="cli")
     if a.cacti and (a.coded or a.mask or a.truth):
         raise InputError(f"reconstruct --cacti {a.cacti}: takes coded images, mask and truth from the file "
                          "(drop --coded, --mask and --truth)")
@@ -442,58 +429,18 @@ def _reconstruct_options(a):
     if a.bayer and (a.cacti or a.color != "luma"):
         raise InputError(f"reconstruct --bayer {a.bayer}: reads one single-channel mosaic (--coded); "
                          f"{'--cacti' if a.cacti else '--color channels'} does not apply")
-    rc = validated(ReconstructConfig, dict(
-        max_atoms=a.max_atoms, tol_rms="auto" if a.tol_rms is None else a.tol_rms, static_atoms=a.static_atoms,
-        stride=a.stride, weighting=a.weighting, tile=a.tile, batch=a.batch, scheduler=a.scheduler, workers=a.workers,
-        adapt=a.adapt, adapt_rounds=a.adapt_rounds, refine=a.refine, cache_budget=a.cache_budget))
-    noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, white_level=a.white_level, bits=a.bits,
-                                        black_level=a.black_level), _RECONSTRUCT_OPTIONS)
-    out = validated(OutputConfig, dict(fps=a.fps, data_range=a.data_range), _RECONSTRUCT_OPTIONS)
+    fps = validated(OutputConfig, dict(fps=a.fps)).fps
     output = Path(a.output)
-    if output.suffix.lower() == ".gif" and gif_rate_problem(out.fps):
-        raise ConfigError(f"reconstruct --fps {out.fps} with --output {output}: {gif_rate_problem(out.fps)}")
+    if output.suffix.lower() == ".gif" and gif_rate_problem(fps):
+        raise ConfigError(f"reconstruct --fps {fps} with --output {output}: {gif_rate_problem(fps)}")
     check_outputs([Output(output, output_kind(output)), Output(metrics_path(output), "file", "metrics")],
                   dict(coded=a.coded, mask=a.mask, truth=a.truth, dictionary=a.dictionary, cacti=a.cacti, cache=a.cache,
                        bad_pixels=a.bad_pixels, shipped_dictionaries=shipped.DATA),
                   overwrite=a.overwrite)
-    check_cache(a.cache)
-    check_scheduler(rc.scheduler)
-    return rc, noise, out, preset
+    return resolved
 
 
-@dataclasses.dataclass
-class _Captures:
-    """What reconstruct reads: coded images, in the capture's units, and their masks.
-
-    ``kind`` is ``"single"`` (one coded image), ``"captures"`` (a stack of coded
-    images: a coded camera's stream), ``"measurements"`` (a CACTI file's), whose
-    videos are concatenated time-first, or ``"channels"`` (a colour image's,
-    stacked first).  ``masks`` holds one mask shared by all, or one per coded
-    image; ``truth(i)`` gives the i-th image's truth (None without a truth).
-    """
-
-    codeds: object
-    masks: list
-    truths: object
-    labels: list
-    kind: str
-    inputs: dict
-    dtype: object
-    source: str
-
-    def mask(self, i: int) -> np.ndarray:
-        return self.masks[i % len(self.masks)]
-
-    def truth(self, i: int):
-        if self.truths is None:
-            return None
-        n = self.mask(i).shape[0]
-        if self.kind == "bayer":  # one mosaic, its colour truth (3, N, H, W)
-            return self.truths
-        return self.truths[i] if self.kind == "channels" else self.truths[i * n : (i + 1) * n]
-
-
-def _read_captures(a) -> _Captures:
+def _read_captures(a) -> api.Captures:
     from codedvideo.formats.io import stored_dtype
     from codedvideo.model.physics import check_pair
     from codedvideo.formats.volumes import check_size, read_coded, read_coded_stack, read_masks, read_truth_stack, read_volume
@@ -506,7 +453,7 @@ def _read_captures(a) -> _Captures:
             raise InputError(f"--measurement {a.measurement}: {a.cacti} holds measurements 1..{data.measurements}")
         chosen = range(data.measurements) if a.measurement is None else [a.measurement - 1]
         truths = None if data.orig is None else np.concatenate([data.truth(q) for q in chosen])
-        return _Captures(
+        return api.Captures(
             codeds=[data.meas[q] for q in chosen], masks=[data.mask], truths=truths,
             labels=[dict(measurement=q + 1) for q in chosen], kind="measurements",
             inputs=dict(cacti=a.cacti, dictionary=a.dictionary, measurements=[q + 1 for q in chosen]),
@@ -525,7 +472,7 @@ def _read_captures(a) -> _Captures:
             if truths.shape != (3, *mask.shape):
                 raise InputError(f"truth {a.truth}: shape {truths.shape} != (3, N, H, W) {(3, *mask.shape)} "
                                  f"(the colour video, under --bayer)")
-        return _Captures(codeds=coded[None], masks=[mask], truths=truths, labels=[{}], kind="bayer",
+        return api.Captures(codeds=coded[None], masks=[mask], truths=truths, labels=[{}], kind="bayer",
                          inputs=dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, bayer=a.bayer),
                          dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
     color = a.color == "channels"
@@ -553,7 +500,7 @@ def _read_captures(a) -> _Captures:
         truths = truth
     labels = ([dict(channel=c) for c in range(coded.shape[0])] if color else
               [{}] if kind == "single" else [dict(capture=t + 1) for t in range(coded.shape[0])])
-    return _Captures(
+    return api.Captures(
         codeds=coded, masks=masks, truths=truths, labels=labels, kind=kind,
         inputs=dict(coded=a.coded, mask=a.mask, dictionary=a.dictionary, truth=a.truth, color=a.color),
         dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
@@ -591,171 +538,55 @@ def _simulate_video_file(a, *, captures: int, size, options: dict, per_capture: 
 def _cmd_reconstruct(a) -> int:
     """Coded images -> their video: one coded image, a stack of them (a coded camera's stream, (T, H, W)),
     a CACTI file's measurements (concatenated time-first, (T*N, H, W)) or a colour image's channels
-    (stacked first, (C, N, H, W)).  Each result is written as soon as it is done (streamed for .npy);
-    one metrics JSON with an entry per coded image and the totals."""
-    from codedvideo.model.metrics import evaluate, json_safe, mean_psnr
-    from codedvideo.formats.volumes import write_json, metrics_path, volume_writer
-    from codedvideo.engine.stages import SPARSE_METHODS, cache_room, reconstruct_stream, trivial_estimate
-    from codedvideo.model.units import capture_units, tolerance_warning
+    (stacked first, (C, N, H, W)): read the files, run the API's job, write each result as soon as it is
+    done (streamed for .npy) and the job's record as the metrics JSON."""
+    from codedvideo.formats.volumes import metrics_path, volume_writer, write_json
 
-    rc, noise, out, preset = _reconstruct_options(a)  # before any work
-    t_all = t0 = time.perf_counter()
-    job = _read_captures(a)
-    count, n = len(job.labels), job.masks[0].shape[0]
-    raw = _correct_raw(a, job, noise)  # black level, bit depth, bad pixels: before the data range is found
-    D, meta = _method_dictionary(a, n)
-    if a.dictionary:
-        job.inputs["dictionary"] = str(a.dictionary)
-    t_read = time.perf_counter() - t0
-    white = None if a.trust_saturated or raw else noise.white_level
-    units = capture_units(job.codeds, job.mask, dtype=job.dtype, given=out.data_range, noise_sigma=noise.sigma,
-                          white_level=white,
-                          levels={"--noise-sigma": noise.sigma, "--tol-rms": rc.tol_rms if rc.tol_rms != "auto" else None,
-                                  "--white-level": noise.white_level, "--black-level": noise.black_level},
-                          where=job.source)
-    settings = omp_settings(rc, noise.sigma, scale=units.scale)
-    if a.method in ("omp", "nonlocal", "dct"):
-        message = tolerance_warning(job.codeds[0] * np.float32(units.scale), settings.tol_rms)
-        if message:
-            warnings.warn(f"{message} (data range {units.value:g} from {units.source})", stacklevel=1)
-    h, w = job.codeds[0].shape[-2:]
-    shape = (count, n, h, w) if job.kind == "channels" else (3, n, h, w) if job.kind == "bayer" else (count * n, h, w)
+    resolved = _reconstruct_settings(a)  # before any work
+    t_all = time.perf_counter()
+    job = api.ReconstructionJob(_read_captures(a), resolved)
     if Path(a.output).suffix.lower() == ".mat":  # a v5 .mat file's 4 GiB: known before any work
         from codedvideo.formats.cacti import check_mat_size
 
-        check_mat_size(a.output, shape)
-    if a.method in SPARSE_METHODS:  # a working store a capture: said before any work when the disk may not hold them
-        problem = cache_room(a.cache, count, (3 * n if job.kind == "bayer" else n, h, w), tile=rc.tile, budget=rc.cache_budget, adapt=rc.adapt,
-                             adapt_rounds=rc.adapt_rounds)
-        if problem:
-            warnings.warn(problem, stacklevel=1)
-    options = dict(data_range=units, settings=settings, dictionary=D, dictionary_key=meta.get("sha256", ""),
-                   dictionary_name=str(a.dictionary or ""), white_level=white, where=job.source, tile=rc.tile,
-                   cache=a.cache, scheduler=rc.scheduler, workers=rc.workers, progress=not a.quiet)
-    trivial_of, cuts = trivial_estimate, None
-    if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
-        from codedvideo.engine.bayer import reconstruct_bayer, static_estimate
-
-        results = iter([(0, *reconstruct_bayer(a.method, job.codeds[0], job.mask(0), pattern=a.bayer, adapt=rc.adapt,
-                                               adapt_rounds=rc.adapt_rounds, refine=rc.refine,
-                                               cache_budget=rc.cache_budget, **options))])
-        trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
-    else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
-        stream = job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures
-        if stream:
-            from codedvideo.model.sequence import Cuts
-
-            # boundaries whose two captures do not show one scene (a cut, a dark or blown-out capture, a jump
-            # of exposure): nothing is averaged or joined across them
-            cuts = Cuts(job.codeds, job.mask, scale=units.scale, white_level=white)
-        # (a benchmark file's measurements are joined, but share no still answers: each has its own scene)
-        results = reconstruct_stream(a.method, job.codeds, job.mask, join=stream, still=job.kind == "captures",
-                                     cuts=cuts, spill=a.cache, noise_sigma=noise.sigma, adapt=rc.adapt,
-                                     adapt_rounds=rc.adapt_rounds, refine=rc.refine, cache_budget=rc.cache_budget,
-                                     **options)
-    entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
-    from codedvideo.model.sequence import StepErrors
-
-    steps = StepErrors()
+        check_mat_size(a.output, job.shape)
+    t_read, t_write, kind, n = time.perf_counter() - t_all - job.seconds_prepared, 0.0, job.captures.kind, job.n
     with contextlib.ExitStack() as stack:
-        stack.callback(getattr(results, "close", lambda: None))
         put = None  # the output is opened once the first result exists: a failure before leaves nothing
-        for i, volume, info in results:
-            entry = dict(job.labels[i], reconstruction=info)
-            if raw:
-                entry["raw"] = raw[i]
-            truth = job.truth(i)
-            if truth is not None:
-                frames = np.asarray(volume)  # (a capture kept on disk read whole to be scored)
-                entry["quality"] = evaluate(frames.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=units.value)
-                entry["trivial"] = evaluate(trivial_of(job.codeds[i], job.mask(i)).reshape(-1, h, w),
-                                            truth.reshape(-1, h, w), data_range=units.value)
-                for key in ("psnr", "ssim"):
-                    per_frame[key] += entry["quality"][f"{key}_per_frame"]
-                    trivial_frames[key] += entry["trivial"][f"{key}_per_frame"]
-                if job.kind in ("captures", "measurements"):
-                    steps.add(frames, truth)
-                del frames
+        for i, volume, _ in job.run(a.cache):
             t1 = time.perf_counter()
             if put is None:
-                put = stack.enter_context(volume_writer(a.output, shape, data_range=units.value, fps=out.fps, part=n))
-            put(i if job.kind == "channels" else slice(None) if job.kind == "bayer" else slice(i * n, (i + 1) * n),
-                volume)
+                put = stack.enter_context(volume_writer(a.output, job.shape, data_range=job.units.value, fps=a.fps,
+                                                        part=n))
+            put(i if kind == "channels" else slice(None) if kind == "bayer" else slice(i * n, (i + 1) * n), volume)
             t_write += time.perf_counter() - t1
-            entries.append(entry)
             del volume
         t1 = time.perf_counter()
     t_write += time.perf_counter() - t1
     mark_written(a.output)
-    metrics = dict(
-        output=str(a.output), inputs=job.inputs,
-        settings=dict(settings.__dict__, tol_rms=settings.tol_rms / units.scale, method=a.method, adapt=rc.adapt,
-                      adapt_rounds=rc.adapt_rounds, refine=rc.refine,
-                      tile=rc.tile, scheduler=rc.scheduler, workers=rc.workers,
-                      dictionary_atoms=entries[0]["reconstruction"].get("dictionary_atoms")),
-        data_range=units.as_dict(), preset=preset,
-    )
-    if cuts is not None:  # the boundaries not joined, and why (each was asked by the join already)
-        metrics["cuts"] = [dict(c, captures=[job.labels[c["boundary"] + d].get("capture", c["boundary"] + d + 1)
-                                             for d in (0, 1)])
-                           for c in (cuts(i) and dict(boundary=i, **cuts(i)) for i in range(count - 1)) if c]
-    summary = dict(output=str(a.output))
-    if job.kind in ("single", "bayer"):
-        info = entries[0]["reconstruction"]
-        info["seconds"] = dict(read=t_read, **info["seconds"], write=t_write, total=time.perf_counter() - t_all)
-        metrics["reconstruction"] = info
-        patches_per_second, seconds = info["patches_per_second"], info["seconds"]["total"]
-        if job.kind == "bayer":
-            metrics.update(layout="(C, N, H, W)", bayer=dict(info.get("bayer", {}), pattern=a.bayer))
-            metrics["settings"]["bayer"] = a.bayer
-    else:
-        patches = sum(e["reconstruction"]["patches"] for e in entries)
-        t_rec = sum(sum(e["reconstruction"]["seconds"].get(k, 0.0) for k in ("first_pass", "adapt", "reconstruct"))
-                    for e in entries)
-        seconds = time.perf_counter() - t_all
-        # the patches of the tiles computed in this run (a rerun from the cache counted every patch: 1.3 M/s)
-        solved = sum(r["patches"] * r.get("tiles_computed", 0) / max(r.get("tiles", 1), 1)
-                     for r in (e["reconstruction"] for e in entries))
-        patches_per_second = solved / max(t_rec, 1e-9)
-        metrics["layout"] = "(C, N, H, W)" if job.kind == "channels" else "(T*N, H, W)"
-        metrics["reconstruction"] = dict(patches=patches, patches_per_second=patches_per_second,
-                                         seconds=dict(read=t_read, reconstruct=t_rec, write=t_write, total=seconds))
-        metrics[job.kind] = entries
-    if per_frame["psnr"]:
-        # the mean over all frames (every coded image has N frames: the mean of their means)
-        quality = dict(psnr=mean_psnr(per_frame["psnr"]), ssim=float(np.mean(per_frame["ssim"])),
-                       exact_frames=int(np.sum(np.isposinf(per_frame["psnr"]))),
-                       psnr_per_frame=per_frame["psnr"], ssim_per_frame=per_frame["ssim"], data_range=units.value,
-                       psnr_peak=dict(value=units.value, source=units.source))
-        metrics["trivial"] = dict(psnr=mean_psnr(trivial_frames["psnr"]), ssim=float(np.mean(trivial_frames["ssim"])),
-                                  psnr_per_frame=trivial_frames["psnr"], ssim_per_frame=trivial_frames["ssim"],
-                                  data_range=units.value)
-        summary.update(psnr=round(quality["psnr"], 2), ssim=round(quality["ssim"], 4))
-        if job.kind == "bayer":  # frames are channel-major: R's N, G's N, B's N
-            for key in ("psnr", "ssim"):
-                quality[f"{key}_per_channel"] = [float(np.mean(per_frame[key][c * n : (c + 1) * n])) for c in range(3)]
-            summary.update(trivial_psnr=round(metrics["trivial"]["psnr"], 2))
-        elif job.kind != "single":
-            name = job.kind[:-1]
-            per = {f"psnr_per_{name}": [e["quality"]["psnr"] for e in entries],
-                   f"ssim_per_{name}": [e["quality"]["ssim"] for e in entries]}
-            quality.update(per)
-            summary.update({k: [round(v, 2 if k.startswith("psnr") else 4) for v in vals] for k, vals in per.items()})
-            if job.kind in ("captures", "measurements") and count > 1:
-                quality["boundaries"] = dict(_boundary_steps(entries, per_frame["psnr"], n), **steps.summary())
-        # of the volume as reconstructed (float32); a lossy output file holds it less exactly (evaluate the file)
-        suffix = Path(a.output).suffix.lower()
-        lossy = "H.264" if suffix in (".mp4", ".mov") else "GIF palette (3-3-2)" if suffix == ".gif" and len(shape) == 4 \
-            else None
-        quality["measured_on"] = "volume before encoding" + (f"; the output is lossy ({lossy})" if lossy else "")
-        metrics["quality"] = quality
+    metrics = job.record(output=a.output, read=t_read, write=t_write, started=t_all)
     _warn_replaced_record(metrics_path(a.output), a.output)
     mpath = write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
-    summary.update(metrics=str(mpath), seconds=round(seconds, 2), patches_per_second=round(patches_per_second),
-                   data_range=units.value)
-    print(json.dumps(json_safe(summary), allow_nan=False))  # strict JSON, as the metrics file: an exact PSNR is null
+    print(json.dumps(_summary(metrics, mpath, kind), allow_nan=False))  # strict JSON: an exact PSNR is null
     return 0
+
+
+def _summary(metrics: dict, mpath, kind: str) -> dict:
+    """The line reconstruct prints: the output, its quality when scored, and the metrics file's figures."""
+    summary = dict(output=metrics["output"])
+    quality = metrics.get("quality")
+    if quality:
+        summary.update(psnr=round(quality["psnr"], 2), ssim=round(quality["ssim"], 4))
+        if kind == "bayer":
+            summary.update(trivial_psnr=round(metrics["trivial"]["psnr"], 2))
+        elif kind != "single":
+            name = kind[:-1]
+            summary.update({k: [round(v, 2 if k.startswith("psnr") else 4) for v in quality[k]]
+                            for k in (f"psnr_per_{name}", f"ssim_per_{name}")})
+    info = metrics["reconstruction"]
+    summary.update(metrics=str(mpath), seconds=round(info["seconds"]["total"], 2),
+                   patches_per_second=round(info["patches_per_second"]), data_range=metrics["data_range"]["value"])
+    return json_safe(summary)
 
 
 def _warn_replaced_record(mpath: Path, output) -> None:
@@ -776,104 +607,6 @@ def _same_path(a, b) -> bool:
         return os.path.samefile(a, b)
     except OSError:
         return Path(a).resolve() == Path(b).resolve()
-
-
-class _RawCorrected:
-    """A job's coded images and masks corrected as raw frames, one capture at a time when asked
-    (:func:`_correct_raw`): ``coded(i)``, ``mask(i)``, ``counts(i)``; the last few are kept, never the stream."""
-
-    def __init__(self, codeds, mask_of, correct, found):
-        self._codeds, self._mask_of, self._correct, self.found = codeds, mask_of, correct, found
-        self._get = functools.lru_cache(maxsize=4)(self._fix)  # the neighbours a still test and a join ask for
-
-    def _fix(self, i: int):
-        from codedvideo.model.sensor import drop_pixels
-
-        fixed = self._correct(self._codeds[i], self._mask_of(i), i)
-        coded, mask, counts = fixed.coded, fixed.mask, fixed.counts()
-        if self.found is not None:
-            coded, mask, counts["detected_bad_pixels"] = drop_pixels(coded, mask, self.found)
-        return coded, mask, counts
-
-    def coded(self, i: int) -> np.ndarray:
-        return self._get(i)[0]
-
-    def mask(self, i: int) -> np.ndarray:
-        return self._get(i)[1]
-
-    def counts(self, i: int) -> dict:
-        return self._get(i)[2]
-
-
-class _Lazy:
-    """``len`` and ``[i]`` over ``get(i)``: a sequence computed item by item."""
-
-    def __init__(self, count: int, get):
-        self._count, self._get = count, get
-
-    def __len__(self) -> int:
-        return self._count
-
-    def __getitem__(self, i: int):
-        if not -self._count <= i < self._count:
-            raise IndexError(i)
-        return self._get(i % self._count)
-
-
-def _correct_raw(a, job: _Captures, noise) -> _Lazy | None:
-    """Raw frames to the sum convention (``codedvideo.model.sensor``): the black level subtracted, pixels at the
-    bit depth's white level (or --white-level) and defective pixels (--bad-pixels, --detect-bad-pixels) made
-    missing measurements.  Changes ``job`` in place, each capture corrected when it is read (so a stream
-    is not held whole: --detect-bad-pixels reads it once more first, to vote); returns each image's
-    counts (None: no raw option)."""
-    if not (noise.black_level or noise.bits is not None or a.bad_pixels or a.detect_bad_pixels):
-        return None
-    from codedvideo.model.sensor import correct_raw, read_bad_pixels, vote_bad_pixels
-
-    count = len(job.labels)
-    shape = tuple(job.mask(0).shape[-2:])
-    listed = read_bad_pixels(a.bad_pixels, shape) if a.bad_pixels else None
-    def correct(coded, mask, i):  # (an error names the capture of a stack: one flash must not read as all)
-        return correct_raw(coded, mask, black_level=noise.black_level, bits=noise.bits, white_level=noise.white_level,
-                           bad_pixels=listed, trust_saturated=a.trust_saturated,
-                           where=job.source if count == 1 else f"{job.source}, capture {i + 1} of {count}")
-
-    codeds, masks = job.codeds, job.masks  # as read (job's own accessors are replaced below)
-
-    def mask_of(i: int) -> np.ndarray:
-        return masks[i % len(masks)]
-
-    found = None
-    if a.detect_bad_pixels:  # outliers against their neighbourhood, voted across every image
-        fixed = (correct(codeds[i], mask_of(i), i) for i in range(count))
-        found = vote_bad_pixels(((f.coded, f.mask) for f in fixed), count)  # (one capture: a vote of one, as ever)
-    raw = _RawCorrected(codeds, mask_of, correct, found)
-    job.codeds, job.masks = _Lazy(count, raw.coded), _Lazy(count, raw.mask)
-    return _Lazy(count, raw.counts)
-
-
-def _boundary_steps(entries: list, psnr_per_frame: list, n: int) -> dict:
-    """PSNR of the last frame of each capture and of the first frame of the next (flicker at boundaries)."""
-    pairs = [dict(last=psnr_per_frame[(i + 1) * n - 1], first_next=psnr_per_frame[(i + 1) * n])
-             for i in range(len(entries) - 1)]
-    return dict(pairs=pairs)
-
-
-def _method_dictionary(a, frames: int):
-    """``(D, meta)`` of ``--dictionary`` for ``--method omp``; ``(None, {})`` for the other methods."""
-    from codedvideo.data.shipped import check_dictionary
-    from codedvideo.formats.store import load_dictionary
-
-    from codedvideo.data import shipped
-
-    if a.method not in ("omp", "nonlocal"):
-        return None, {}
-    if not a.dictionary:  # the shipped dictionary for this N
-        a.dictionary = shipped.required(frames, "reconstruct", f"`{shipped.train_command(frames)}` and give "
-                                        f"--dictionary dict-N{frames}.zarr")
-    D, meta = load_dictionary(a.dictionary)
-    check_dictionary(meta, frames, a.dictionary)
-    return D, meta
 
 
 def _written_range(path) -> float | None:

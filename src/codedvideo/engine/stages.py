@@ -195,16 +195,17 @@ def simulate_capture(
 
 def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: float = 0.5,
                     code_path: str | Path | None = None, sensor: physics.SensorModel | None = None, captures: int = 1,
-                    new_code_per_capture: bool = False) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+                    new_code_per_capture: bool = False,
+                    codes: list | None = None) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """:func:`simulate_capture` one capture at a time: ``clips`` yields the T clips (N, H, W) in order; yields
     ``(coded (H, W), mask (N, H, W), clip)`` for each, from the same seeded streams (the same captures bit for
     bit).  A repeating code is the same array every capture; a code file of K codes gives capture ``t`` its
-    code ``t mod K``."""
+    code ``t mod K``.  ``codes``: the masks themselves (the API's arrays), taken in turn as a code file's."""
     ss = np.random.SeedSequence(seed)
     code_rng, noise_rng = (np.random.default_rng(s) for s in ss.spawn(2))
     if sensor is not None:
         sensor = dataclasses.replace(sensor, read_sigma=sigma)
-    masks = None
+    masks = None if codes is None else list(codes)
     warned = False
     for t, clip in enumerate(clips):
         if masks is None:  # every code is drawn first, from its own stream

@@ -318,6 +318,10 @@ def make_code(
     -------
     mask : ndarray of shape (N, H, W), uint8
     """
+    if len(tuple(shape)) != 2 or any(int(v) != v or v < 1 for v in shape):
+        raise InputError(f"code {name}: shape {tuple(shape)}; a code is made for (H, W) of at least 1 pixel each")
+    if int(frames) != frames or frames < 1:
+        raise InputError(f"code {name}: frames {frames}; N is a whole number of sub-frames, at least 1")
     if name in ("hitomi", "hitomi-tiled"):
         starts = bump_starts(shape, frames=frames, bump=bump, rng=rng, tiled=name == "hitomi-tiled")
         return starts_to_mask(starts, frames=frames, bump=bump)

@@ -286,6 +286,9 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
                           f"clipped by the sensor; left out of the data range (give {names['white_level']} "
                           f"{clip:.6g} to treat them as missing measurements)", stacklevel=2)
     peak = max(static_peak(codeds[i], mask_of(i), clip) for i in range(count))
+    if peak <= 0 and white_level is not None and max(static_peak(codeds[i], mask_of(i)) for i in range(count)) > 0:
+        raise InputError(f"{where}: every pixel that is ever open is at or above the white level {white_level:g} "
+                         f"({names['white_level']}): saturated, nothing is measured")
     # a sum of frames is never negative: the wrong file, or a black level taken off twice
     if peak <= 0 and given is None:
         raise InputError(f"{where}: no coded value above 0 where the code is open; nothing to reconstruct "

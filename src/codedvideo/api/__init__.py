@@ -1,0 +1,372 @@
+"""The Python API: the method on arrays, in the caller's units, the one door the command line also goes through.
+
+>>> import numpy as np
+>>> import codedvideo as cv
+>>> video = cv.synthetic_scene("default", frames=8, size=(48, 48)) / 255  # [0, 1] floats
+>>> mask = cv.make_code("hitomi", (48, 48), frames=8, bump=2, seed=0)
+>>> coded = cv.simulate(video, mask)
+>>> frames = cv.reconstruct(coded, mask)
+>>> frames.shape, frames.dtype
+((8, 48, 48), dtype('float32'))
+>>> round(cv.evaluate(frames, video)["psnr"]) > 24
+True
+
+Every function takes and returns numpy arrays (:func:`reconstruct` also dask arrays).  Units are the
+caller's: a capture in [0, 1] floats, 8-bit, 12-bit or 16-bit gives the same video in its own units
+(:mod:`codedvideo.model.units` finds the data range once, as the command line does).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from codedvideo.api._settings import ReconstructSettings, in_api_terms
+from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
+
+__all__ = ["CodedVideoError", "ConfigError", "InputError", "Reconstruction", "ReconstructSettings", "evaluate",
+           "load_dictionary", "make_code", "reconstruct", "simulate", "synthetic_scene", "train"]
+
+
+def _door(fn):
+    """A public function of the API: what it warns is said at the caller's line, and its warnings and errors name
+    the API's arguments (``noise_sigma``), not the command line's options (``--noise-sigma``)."""
+
+    @functools.wraps(fn)
+    def called(*args, **kwargs):
+        caught = []
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                return fn(*args, **kwargs)
+        except CodedVideoError as exc:
+            raise type(exc)(in_api_terms(str(exc))) from exc
+        finally:
+            for said in caught:
+                warnings.warn(in_api_terms(str(said.message)), said.category, stacklevel=2)
+
+    return called
+
+
+@_door
+def make_code(name: str, shape: tuple[int, int], *, frames: int, bump: int | None = None, p: float | None = None,
+              seed: int = 0) -> np.ndarray:
+    """A shutter code: the (N, H, W) uint8 mask of ``name`` (any code ``--code`` accepts).
+
+    Parameters
+    ----------
+    name : str
+        ``hitomi`` (the paper's single-bump code), ``hitomi-tiled``, ``rowwise``, ``thinout``, ``grid``,
+        ``flutter``, ``bernoulli``, ``shifting`` or ``global``.
+    shape : (H, W)
+    frames : int
+        Sub-frames N.
+    bump : int, optional
+        Bump length L of the single-bump codes (default 2).
+    p : float, optional
+        Open probability of ``bernoulli`` and ``shifting`` (default 0.5).
+    seed : int
+
+    Returns
+    -------
+    mask : ndarray of shape (N, H, W), uint8
+
+    Examples
+    --------
+    >>> make_code("hitomi", (14, 14), frames=8, bump=2).sum(0).min()  # every pixel open for L sub-frames
+    np.uint64(2)
+    """
+    from codedvideo.model.codes import make_code as _make_code
+
+    if name == "file":
+        raise ConfigError("make_code: 'file' reads a mask file; load the mask with numpy instead")
+    options = {}
+    if bump is not None:
+        options["bump"] = bump
+    if p is not None:
+        options["p"] = p
+    return _make_code(name, tuple(shape), frames=frames, rng=seed, **options)
+
+
+@_door
+def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, shot_noise: bool = False,
+             full_well: float | None = None, gain: float | None = None, bits: int | None = None,
+             white_level: float | None = None, black_level: float = 0.0, seed: int = 0) -> np.ndarray:
+    """The coded image(s) a camera with this code records: ``sensor(noise(S E))``, the command line's
+    ``simulate`` on arrays (the same sensor model, options and seeded noise: the same bits).
+
+    Parameters
+    ----------
+    video : ndarray of shape (N, H, W), or (T*N, H, W) for a stream of T captures, finite
+    mask : ndarray of shape (N, H, W) (one code for every capture) or (T, N, H, W), in [0, 1]
+    noise_sigma : float
+        Gaussian read noise, in the video's units.
+    shot_noise : bool
+        Poisson photon noise (``full_well`` electrons, ``gain`` electrons per grey level).
+    full_well, gain : float, optional
+        The shot noise's sensor, with ``shot_noise`` (defaults of :class:`codedvideo.model.physics.SensorModel`).
+    bits : int, optional
+        Quantise the coded image to this many bits (values at ``2**bits - 1`` and above clipped); no noise added.
+    white_level : float, optional
+        Clip the coded image at this level (saturation).
+    black_level : float
+        Raw output: add this offset once per read-out (then clipping and quantisation).
+    seed : int
+        The noise's seed (as ``--seed``).
+
+    Returns
+    -------
+    coded : ndarray of shape (H, W), or (T, H, W) for a stream, float32
+
+    Examples
+    --------
+    >>> mask = make_code("global", (4, 4), frames=2)
+    >>> simulate(np.ones((2, 4, 4)), mask)[0, 0]
+    np.float32(2.0)
+    """
+    from codedvideo.engine.config import NoiseConfig, validated
+    from codedvideo.engine.stages import sensor_model, simulate_stream
+    from codedvideo.formats.volumes import check_coded, check_mask
+
+    video = check_coded(video, "simulate: video")
+    mask = np.asarray(mask)
+    n = mask.shape[-3] if mask.ndim in (3, 4) else 0
+    if video.ndim != 3 or not n or video.shape[0] % n or video.shape[1:] != mask.shape[-2:]:
+        raise InputError(f"simulate: video {video.shape} and mask {mask.shape} do not fit: the video is (N, H, W) "
+                         "or (T*N, H, W), the mask (N, H, W) or (T, N, H, W)")
+    count = video.shape[0] // n
+    if mask.ndim == 4 and mask.shape[0] != count:
+        raise InputError(f"simulate: {count} captures in the video, {mask.shape[0]} masks")
+    codes = [check_mask(m, "simulate: mask") for m in (mask if mask.ndim == 4 else [mask])]
+    given = {k: v for k, v in dict(full_well=full_well, gain=gain).items() if v is not None}
+    noise = validated(NoiseConfig, dict(sigma=noise_sigma, shot_noise=shot_noise, bits=bits, white_level=white_level,
+                                        black_level=black_level, **given), {"sigma": "noise_sigma"})
+    stream = simulate_stream((video[i * n:(i + 1) * n] for i in range(count)), code="array", bump=0,
+                             sigma=noise.sigma, seed=seed, sensor=sensor_model(noise), captures=count, codes=codes)
+    coded = [one for one, _, _ in stream]
+    return coded[0] if count == 1 and mask.ndim == 3 else np.stack(coded)
+
+
+@_door
+def synthetic_scene(name: str = "default", *, frames: int = 8, size: tuple[int, int] = (256, 256)) -> np.ndarray:
+    """A synthetic test scene (``synth:NAME`` of the command line) as (N, H, W) float32 in 0..255.
+
+    >>> synthetic_scene(frames=4, size=(16, 16)).shape
+    (4, 16, 16)
+    """
+    from codedvideo.data.synth import make_scene
+
+    return make_scene(name, frames=frames, size=tuple(size))
+
+
+@_door
+def load_dictionary(frames: int | None = None, path: str | Path | None = None) -> np.ndarray:
+    """The shipped dictionary for N = ``frames``, or the dictionary stored at ``path``.
+
+    Returns
+    -------
+    D : ndarray of shape (N * 49, K), float32, unit-norm atoms of 7x7xN patches
+
+    >>> load_dictionary(8).shape
+    (392, 512)
+    """
+    from codedvideo.data import shipped
+    from codedvideo.formats.store import load_dictionary as _load
+
+    if (frames is None) == (path is None):
+        raise ConfigError("load_dictionary: give frames (the shipped dictionary) or path, one of them")
+    if path is not None:
+        D, meta = _load(path)
+        return D
+    found = shipped.required(int(frames), "load_dictionary", f"codedvideo.train(videos, frames={frames}) or "
+                             f"`{shipped.train_command(frames)}`")
+    return _load(found)[0]
+
+
+@_door
+def train(videos, *, frames: int, atoms: int = 512, samples: int = 80000, iterations: int = 20,
+          sparsity: int = 6, seed: int = 0, augment: bool = True) -> np.ndarray:
+    """A dictionary learned with K-SVD on 7x7xN patches of ``videos`` (the command line's defaults).
+
+    Parameters
+    ----------
+    videos : sequence of ndarrays of shape (T, H, W), each in its own units (found as the CLI finds them)
+    frames : int
+        Sub-frames N of the captures the dictionary is for.
+    atoms, samples, iterations, sparsity, seed, augment
+        As ``codedvideo train``.
+
+    Returns
+    -------
+    D : ndarray of shape (N * 49, atoms), float32
+    """
+    from codedvideo.solvers.dictionaries import learn_dictionary
+    from codedvideo.data.scenes import working_units
+
+    clips = [working_units(np.array(v, np.float32), what=f"training video {i + 1}") for i, v in enumerate(videos)]
+    if not clips:
+        raise InputError("train: no training video given")
+    D, _ = learn_dictionary(clips, frames=frames, atoms=atoms, samples=samples, iterations=iterations,
+                            sparsity=sparsity, seed=seed, augment=augment)
+    return D
+
+
+@dataclass
+class Reconstruction:
+    """What :func:`reconstruct` found: the frames, the data range it worked with, each capture's record, and the
+    whole record (the command line's metrics JSON, without its file names)."""
+
+    frames: np.ndarray
+    #: The data range of the capture (:class:`codedvideo.model.units.DataRange`: value, how it was found).
+    data_range: object
+    #: Per capture: patches, atoms, seconds, the statistics the metrics JSON holds.
+    info: list[dict] = field(default_factory=list)
+    #: The metrics record: settings, data range, preset, each capture's entry, and the quality with a truth.
+    record: dict = field(default_factory=dict)
+
+
+@_door
+def reconstruct(coded, mask, settings: ReconstructSettings | None = None, *, truth=None, full_output: bool = False,
+                **options):
+    """Coded image(s) -> their video, in the input's units: the command line's ``reconstruct``, on arrays.
+
+    Parameters
+    ----------
+    coded : ndarray (H, W) for one capture, or (T, H, W) for a stream; or a dask array of either
+    mask : ndarray (N, H, W), or (T, N, H, W) for a code per capture, in [0, 1] (0/1, or calibrated weights)
+    settings : :class:`ReconstructSettings`, optional
+        Every setting in one object; ``options`` given beside it replace its fields.
+    truth : ndarray (T*N, H, W), optional
+        The true frames: the record then holds PSNR and SSIM (``full_output``).
+    full_output : return a :class:`Reconstruction` (frames, data range, per-capture records, the record)
+    **options
+        Fields of :class:`ReconstructSettings`, e.g. ``method`` (``omp``, the paper's and the default;
+        ``nonlocal``; or a baseline: ``dct``, ``thinout``, ``interp``, ``gaptv``), ``preset`` (``fast``,
+        ``default``, ``best``), ``adapt``, ``adapt_rounds``, ``refine``, ``dictionary`` (an (N*49, K) array or a
+        store's path; None: the one shipped for N), ``noise_sigma`` (read noise in the input's units),
+        ``data_range`` (the frames' peak value; None: found from the values as the command line finds it),
+        ``white_level``, ``black_level``, ``bits``, ``bad_pixels``, ``bayer``, ``workers``, ``progress``,
+        ``cache`` (None: a temporary folder, removed; a path: the resumable cache of the command line there) and
+        ``independent_captures`` (reconstruct each capture of a stream on its own).
+
+    Returns
+    -------
+    frames : ndarray of shape (N, H, W) for one capture, (T*N, H, W) for a stream, (3, N, H, W) for a Bayer
+        mosaic, float32.  For a dask input a dask array, lazy (nothing is read or computed until it is), one
+        chunk per capture, the same frames as the numpy stack's: the stream is reconstructed as one job.
+
+    Raises
+    ------
+    codedvideo.InputError
+        The same one-line messages as the command line: NaN or Inf, a mask outside [0, 1], shapes that do
+        not fit.
+
+    Examples
+    --------
+    >>> mask = make_code("hitomi", (32, 32), frames=8, bump=2)
+    >>> video = synthetic_scene(frames=8, size=(32, 32))
+    >>> reconstruct(simulate(video, mask), mask).shape
+    (8, 32, 32)
+    """
+    from codedvideo.api._settings import replaced
+
+    settings = replaced(settings or ReconstructSettings(), **options)
+    if _is_dask(coded):
+        if full_output or truth is not None:
+            raise ConfigError("reconstruct: a dask input gives a lazy array of frames; full_output and truth "
+                              "need numpy arrays")
+        return _reconstruct_lazy(coded, mask, settings)
+    return _reconstruct_arrays(coded, mask, settings, truth=truth, full_output=full_output)
+
+
+def _reconstruct_arrays(coded, mask, settings, *, truth=None, full_output=False):
+    from codedvideo.api._job import ReconstructionJob, array_captures
+    from codedvideo.api._settings import resolve
+
+    resolved = resolve(settings, door="api")
+    captures, single = array_captures(coded, mask, truth, bayer=settings.bayer)
+    job = ReconstructionJob(captures, resolved)
+    out = np.empty(job.shape, np.float32)
+    n = job.n
+    with contextlib.ExitStack() as stack:
+        folder = settings.cache if settings.cache is not None else \
+            stack.enter_context(tempfile.TemporaryDirectory(prefix="codedvideo-"))
+        for i, volume, _ in job.run(folder):
+            out[slice(None) if captures.kind == "bayer" else slice(i * n, (i + 1) * n)] = np.asarray(volume)
+    record = job.record()
+    if not full_output:
+        return out
+    infos = [dict(e["reconstruction"], preset=resolved.preset) if resolved.preset else e["reconstruction"]
+             for e in job.entries]
+    return Reconstruction(out, job.units, infos, record)
+
+
+def _is_dask(x) -> bool:
+    return type(x).__module__.startswith("dask.")
+
+
+def _stream_frames(stack: np.ndarray, mask: np.ndarray, settings) -> np.ndarray:
+    """A dask stream's frames, computed when the graph is: the numpy stack's, as one job."""
+    return _reconstruct_arrays(stack, mask, settings)
+
+
+def _reconstruct_lazy(coded, mask, settings):
+    """A lazy dask array of the frames: one task reconstructs the stream as the numpy path does (its data range,
+    still answers, cuts and joins across captures), and each capture's frames are a chunk of it."""
+    import dask
+    import dask.array as da
+
+    from codedvideo.api._settings import resolve
+
+    resolve(settings, door="api")  # the settings checked now; the values when the graph is computed
+    mask = np.asarray(mask)
+    stack = coded[None] if coded.ndim == 2 else coded
+    if stack.ndim != 3 or mask.ndim not in (3, 4) or tuple(stack.shape[-2:]) != mask.shape[-2:]:
+        raise InputError(f"reconstruct: coded {tuple(coded.shape)} and mask {tuple(mask.shape)} do not fit: coded "
+                         "is (H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
+    count, n, (h, w) = stack.shape[0], mask.shape[-3], stack.shape[-2:]
+    if mask.ndim == 4 and mask.shape[0] != count:
+        raise InputError(f"reconstruct: {count} coded images, {mask.shape[0]} masks")
+    whole = dask.delayed(_stream_frames, pure=True)(stack, mask, settings)
+    parts = [da.from_delayed(whole[i * n:(i + 1) * n], shape=(n, h, w), dtype=np.float32,
+                             meta=np.empty((0, 0, 0), np.float32)) for i in range(count)]
+    return da.concatenate(parts) if count > 1 else parts[0]
+
+
+@_door
+def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
+    """PSNR and SSIM of a reconstruction against the truth, as the command line reports them.
+
+    Parameters
+    ----------
+    recon, truth : ndarrays of shape (N, H, W) (or (T*N, H, W)), in the same units
+    data_range : the frames' peak value; None: found from the truth's values (1 for [0, 1] floats, 255 for
+        8-bit, ...), so the same video scores the same in any units
+
+    Returns
+    -------
+    dict with ``psnr``, ``ssim`` (means over frames), ``psnr_per_frame``, ``ssim_per_frame``, ``data_range``
+    and ``psnr_peak`` (the peak used and how it was found)
+
+    >>> v = np.linspace(0, 1, 8 * 16 * 16, dtype=np.float32).reshape(8, 16, 16)
+    >>> round(evaluate(v + 0.01, v)["psnr"], 1)
+    40.0
+    """
+    from codedvideo.model.metrics import evaluate as _evaluate
+    from codedvideo.model.units import truth_range
+
+    recon, truth = np.asarray(recon, np.float32), np.asarray(truth, np.float32)
+    if recon.shape != truth.shape:
+        raise InputError(f"evaluate: reconstruction {recon.shape} and truth {truth.shape} differ in shape")
+    units = truth_range(float(truth.max(initial=0.0)), given=data_range, where="evaluate: truth")
+    return dict(_evaluate(recon, truth, data_range=units.value), psnr_peak=dict(value=units.value, source=units.source))
+
+
+from codedvideo.api._job import Captures, ReconstructionJob  # noqa: E402  (the job the command line runs)
+from codedvideo.api._settings import Resolved, resolve as resolve_settings  # noqa: E402

@@ -1,0 +1,420 @@
+"""The one reconstruction job: captures and settings in, frames and their records out.
+
+Both doors run it: :func:`codedvideo.reconstruct` on arrays, and ``codedvideo reconstruct`` on what it read
+from files.  The job checks the inputs, corrects raw frames, resolves the dictionary, finds the data range,
+reconstructs one capture after another (a stream joined at its boundaries), scores each against the truth
+when one is given, and builds the metrics record the command line writes beside its output.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import hashlib
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from codedvideo.api._settings import Resolved
+from codedvideo.engine.stages import SPARSE_METHODS, cache_room, reconstruct_stream, trivial_estimate
+from codedvideo.engine.config import omp_settings
+from codedvideo.formats.volumes import check_coded, check_mask
+from codedvideo.model.errors import InputError
+from codedvideo.model.metrics import evaluate, mean_psnr
+from codedvideo.model.patches import PATCH
+from codedvideo.model.units import capture_units, tolerance_warning
+
+#: The kinds of job: one coded image, a coded camera's stream, a benchmark file's measurements, a colour
+#: image's channels (each with the same mask), or one Bayer mosaic.
+KINDS = ("single", "captures", "measurements", "channels", "bayer")
+
+
+@dataclasses.dataclass
+class Captures:
+    """What a job reconstructs: coded images in the capture's units, and their masks.
+
+    ``codeds`` is a sequence of T coded images (H, W) (a list, an array, or a reader that reads an image when
+    asked); ``masks`` one mask shared by all, or one per image; ``truths`` the truth frames or None; ``labels``
+    one dict per image for the records (``capture``, ``measurement``, ``channel``); ``inputs`` what the record
+    says they were read from; ``dtype`` the type they were stored in (8-bit integers are 0..255 whatever
+    they hold); ``source`` their name in messages.
+    """
+
+    codeds: object
+    masks: list
+    truths: object = None
+    labels: list | None = None
+    kind: str = "single"
+    inputs: dict = dataclasses.field(default_factory=dict)
+    dtype: object = None
+    source: str = "coded image"
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise InputError(f"captures: kind {self.kind!r}; one of {', '.join(KINDS)}")
+        if self.labels is None:
+            count = len(self.codeds)
+            self.labels = [{}] if self.kind in ("single", "bayer") else \
+                [{self.kind[:-1] if self.kind != "captures" else "capture": i + 1} for i in range(count)]
+
+    def mask(self, i: int) -> np.ndarray:
+        return self.masks[i % len(self.masks)]
+
+    def truth(self, i: int):
+        if self.truths is None:
+            return None
+        n = self.mask(i).shape[0]
+        if self.kind == "bayer":  # one mosaic, its colour truth (3, N, H, W)
+            return self.truths
+        return self.truths[i] if self.kind == "channels" else self.truths[i * n : (i + 1) * n]
+
+
+def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
+                   where: str = "reconstruct") -> tuple[Captures, bool]:
+    """Arrays as the API takes them -> (:class:`Captures`, whether ``coded`` was one (H, W) image), checked as the
+    command line checks what it reads: finite numbers, masks in [0, 1] (the same one-line messages).  With
+    ``bayer``, ``coded`` is one mosaic (H, W) and ``truth`` its colour video (3, N, H, W)."""
+    if bayer is not None:
+        return _bayer_captures(coded, mask, truth, bayer, where), True
+    dtype = np.asarray(coded).dtype if hasattr(coded, "dtype") else None
+    coded = check_coded(coded, f"{where}: coded")
+    mask = np.asarray(mask)
+    if coded.ndim not in (2, 3) or mask.ndim not in (3, 4) or coded.shape[-2:] != mask.shape[-2:]:
+        raise InputError(f"{where}: coded {tuple(coded.shape)} and mask {tuple(mask.shape)} do not fit: coded is "
+                         "(H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
+    single = coded.ndim == 2
+    codeds = coded[None] if single else coded
+    if mask.ndim == 4 and mask.shape[0] != len(codeds):
+        raise InputError(f"{where}: {len(codeds)} coded images, {mask.shape[0]} masks")
+    masks = [check_mask(m, f"{where}: mask") for m in (mask if mask.ndim == 4 else [mask])]
+    truths = None
+    if truth is not None:
+        truths = check_coded(truth, f"{where}: truth")
+        want = (len(codeds) * masks[0].shape[0], *codeds.shape[-2:])
+        if truths.shape != want:
+            raise InputError(f"{where}: truth {truths.shape} != (T*N, H, W) {want}")
+    kind = "single" if single else "captures"
+    return Captures(codeds=codeds, masks=masks, truths=truths, kind=kind, dtype=dtype, source=f"{where}: coded"), \
+        single
+
+
+def _bayer_captures(coded, mask, truth, pattern: str, where: str) -> Captures:
+    from codedvideo.engine.bayer import check_even
+
+    dtype = np.asarray(coded).dtype
+    coded = check_coded(coded, f"{where}: coded")
+    if coded.ndim != 2:
+        raise InputError(f"{where}: coded {coded.shape}; under bayer= it is one single-channel mosaic (H, W)")
+    check_even(coded.shape, f"{where}: coded")
+    mask = check_mask(mask, f"{where}: mask")
+    if mask.ndim != 3 or mask.shape[-2:] != coded.shape:
+        raise InputError(f"{where}: coded {coded.shape} and mask {mask.shape} do not fit: the mask is (N, H, W)")
+    truths = None
+    if truth is not None:
+        truths = check_coded(truth, f"{where}: truth")
+        if truths.shape != (3, *mask.shape):
+            raise InputError(f"{where}: truth {truths.shape} != (3, N, H, W) {(3, *mask.shape)} (the colour video, "
+                             "under bayer=)")
+    return Captures(codeds=coded[None], masks=[mask], truths=truths, kind="bayer", dtype=dtype,
+                    source=f"{where}: coded")
+
+
+class _Lazy:
+    """``len`` and ``[i]`` over ``get(i)``: a sequence computed item by item."""
+
+    def __init__(self, count: int, get):
+        self._count, self._get = count, get
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __getitem__(self, i: int):
+        if not -self._count <= i < self._count:
+            raise IndexError(i)
+        return self._get(i % self._count)
+
+
+class _RawCorrected:
+    """Captures corrected as raw frames one at a time (:func:`correct_raw`): ``coded(i)``, ``mask(i)``,
+    ``counts(i)``; the last few are kept, never the stream."""
+
+    def __init__(self, codeds, mask_of, correct, found):
+        self._codeds, self._mask_of, self._correct, self.found = codeds, mask_of, correct, found
+        self._get = functools.lru_cache(maxsize=4)(self._fix)  # the neighbours a still test and a join ask for
+
+    def _fix(self, i: int):
+        from codedvideo.model.sensor import drop_pixels
+
+        fixed = self._correct(self._codeds[i], self._mask_of(i), i)
+        coded, mask, counts = fixed.coded, fixed.mask, fixed.counts()
+        if self.found is not None:
+            coded, mask, counts["detected_bad_pixels"] = drop_pixels(coded, mask, self.found)
+        return coded, mask, counts
+
+    def coded(self, i: int) -> np.ndarray:
+        return self._get(i)[0]
+
+    def mask(self, i: int) -> np.ndarray:
+        return self._get(i)[1]
+
+    def counts(self, i: int) -> dict:
+        return self._get(i)[2]
+
+
+def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
+    """Raw frames to the sum convention (``codedvideo.model.sensor``): the black level subtracted, pixels at the
+    bit depth's white level (or the white level given) and defective pixels made missing measurements.
+    Changes ``job`` in place, each capture corrected when it is read (a stream is not held whole: detecting
+    bad pixels reads it once more first, to vote); returns each image's counts (None: no raw setting)."""
+    noise = r.noise
+    if not (noise.black_level or noise.bits is not None or r.bad_pixels is not None or r.detect_bad_pixels):
+        return None
+    from codedvideo.model.sensor import correct_raw as correct_frames, read_bad_pixels, vote_bad_pixels
+
+    count = len(job.labels)
+    listed = read_bad_pixels(r.bad_pixels, tuple(job.mask(0).shape[-2:])) if r.bad_pixels is not None else None
+
+    def correct(coded, mask, i):  # (an error names the capture of a stack: one flash must not read as all)
+        return correct_frames(coded, mask, black_level=noise.black_level, bits=noise.bits,
+                              white_level=noise.white_level, bad_pixels=listed, trust_saturated=r.trust_saturated,
+                              where=job.source if count == 1 else f"{job.source}, capture {i + 1} of {count}")
+
+    codeds, masks = job.codeds, job.masks  # as read (job's own accessors are replaced below)
+
+    def mask_of(i: int) -> np.ndarray:
+        return masks[i % len(masks)]
+
+    found = None
+    if r.detect_bad_pixels:  # outliers against their neighbourhood, voted across every image
+        fixed = (correct(codeds[i], mask_of(i), i) for i in range(count))
+        found = vote_bad_pixels(((f.coded, f.mask) for f in fixed), count)  # (one capture: a vote of one, as ever)
+    raw = _RawCorrected(codeds, mask_of, correct, found)
+    job.codeds, job.masks = _Lazy(count, raw.coded), _Lazy(count, raw.mask)
+    return _Lazy(count, raw.counts)
+
+
+def job_dictionary(r: Resolved, frames: int) -> tuple[np.ndarray | None, str, str]:
+    """(D, its key, its name) of the job's method: the dictionary given (an array or a store's path) or the one
+    shipped for N; (None, "", "") for a method without one."""
+    from codedvideo.data import shipped
+    from codedvideo.data.shipped import check_dictionary
+    from codedvideo.formats.store import load_dictionary
+
+    if r.method not in ("omp", "nonlocal"):
+        return None, "", ""
+    given = r.dictionary
+    if given is None or isinstance(given, (str, Path)):
+        path = given or shipped.required(frames, "reconstruct", f"`{shipped.train_command(frames)}` and give "
+                                         f"--dictionary dict-N{frames}.zarr")
+        D, meta = load_dictionary(path)
+        check_dictionary(meta, frames, path)
+        return D, meta.get("sha256", ""), str(path)
+    D = np.ascontiguousarray(given, np.float32)
+    if D.ndim != 2 or D.shape[0] != frames * PATCH * PATCH:
+        raise InputError(f"reconstruct: dictionary of shape {D.shape}; N = {frames} needs "
+                         f"({frames * PATCH * PATCH}, K)")
+    if not np.isfinite(D).all():
+        raise InputError("reconstruct: dictionary: contains NaN or Inf")
+    return D, hashlib.sha256(D.tobytes()).hexdigest(), "array"
+
+
+class ReconstructionJob:
+    """One reconstruction: iterate it for ``(i, frames, entry)``, capture after capture, in order; then
+    :meth:`record` is the metrics record (the command line's ``.metrics.json``).
+
+    Everything a run needs is checked and found when the job is made, before any reconstruction: the raw
+    correction, the dictionary, the data range (with its warnings) and the OMP settings.
+    """
+
+    def __init__(self, captures: Captures, resolved: Resolved):
+        t0 = time.perf_counter()
+        self.captures, self.r = captures, resolved
+        self.count, self.n = len(captures.labels), captures.mask(0).shape[0]
+        self.raw = correct_raw(resolved, captures)  # black level, bit depth, bad pixels: before the data range
+        self.dictionary, self.dictionary_key, self.dictionary_name = job_dictionary(resolved, self.n)
+        if self.dictionary_name and self.dictionary_name != "array":
+            captures.inputs["dictionary"] = self.dictionary_name
+        noise, rc = resolved.noise, resolved.rc
+        self.white = None if resolved.trust_saturated or self.raw else noise.white_level
+        door = resolved.door
+        from codedvideo.api._settings import setting_name
+
+        self.units = capture_units(
+            captures.codeds, captures.mask, dtype=captures.dtype, given=resolved.data_range, noise_sigma=noise.sigma,
+            white_level=self.white, where=captures.source,
+            levels={setting_name("noise_sigma", door): noise.sigma,
+                    setting_name("tol_rms", door): rc.tol_rms if rc.tol_rms != "auto" else None,
+                    setting_name("white_level", door): noise.white_level,
+                    setting_name("black_level", door): noise.black_level},
+            names={k: setting_name(k, door) for k in ("noise_sigma", "data_range", "white_level")})
+        self.omp = omp_settings(rc, noise.sigma, scale=self.units.scale)
+        self._warn_before_work()
+        h, w = captures.codeds[0].shape[-2:]
+        self.shape = (self.count, self.n, h, w) if captures.kind == "channels" else \
+            (3, self.n, h, w) if captures.kind == "bayer" else (self.count * self.n, h, w)
+        self.cuts = None
+        self.entries: list[dict] = []
+        self._frames = dict(psnr=[], ssim=[])
+        self._trivial = dict(psnr=[], ssim=[])
+        from codedvideo.model.sequence import StepErrors
+
+        self._steps = StepErrors()
+        self.seconds_prepared = time.perf_counter() - t0
+
+    def _warn_before_work(self) -> None:
+        r, job = self.r, self.captures
+        if r.method in SPARSE_METHODS:
+            message = tolerance_warning(job.codeds[0] * np.float32(self.units.scale), self.omp.tol_rms)
+            if message:
+                warnings.warn(f"{message} (data range {self.units.value:g} from {self.units.source})", stacklevel=2)
+            if r.cache is not None:  # a working store a capture: said before any work when the disk may not hold them
+                n, (h, w) = self.n, job.codeds[0].shape[-2:]
+                problem = cache_room(r.cache, self.count, (3 * n if job.kind == "bayer" else n, h, w), tile=r.rc.tile,
+                                     budget=r.rc.cache_budget, adapt=r.rc.adapt, adapt_rounds=r.rc.adapt_rounds)
+                if problem:
+                    warnings.warn(problem, stacklevel=2)
+
+    def _options(self, cache) -> dict:
+        r = self.r
+        return dict(data_range=self.units, settings=self.omp, dictionary=self.dictionary,
+                    dictionary_key=self.dictionary_key, dictionary_name=self.dictionary_name, white_level=self.white,
+                    where=self.captures.source, tile=r.rc.tile, cache=cache, scheduler=r.rc.scheduler,
+                    workers=r.rc.workers, progress=r.progress)
+
+    def results(self, cache):
+        """The method's results ``(i, volume, info)`` in order, working in ``cache``."""
+        r, job = self.r, self.captures
+        options = self._options(cache)
+        if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
+            from codedvideo.engine.bayer import reconstruct_bayer
+
+            return iter([(0, *reconstruct_bayer(r.method, job.codeds[0], job.mask(0), pattern=r.bayer,
+                                                adapt=r.rc.adapt, adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine,
+                                                cache_budget=r.rc.cache_budget, **options))])
+        stream = job.kind in ("captures", "measurements") and self.count > 1 and not r.independent_captures
+        if stream:
+            from codedvideo.model.sequence import Cuts
+
+            # boundaries whose two captures do not show one scene (a cut, a dark or blown-out capture, a jump
+            # of exposure): nothing is averaged or joined across them
+            self.cuts = Cuts(job.codeds, job.mask, scale=self.units.scale, white_level=self.white)
+        # (a benchmark file's measurements are joined, but share no still answers: each has its own scene)
+        return reconstruct_stream(r.method, job.codeds, job.mask, join=stream, still=job.kind == "captures",
+                                  cuts=self.cuts, spill=cache, noise_sigma=r.noise.sigma, adapt=r.rc.adapt,
+                                  adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine, cache_budget=r.rc.cache_budget,
+                                  **options)
+
+    def run(self, cache):
+        """Yield ``(i, volume, entry)``: each capture's frames (in the capture's units) and its record entry,
+        scored when a truth is given."""
+        results = self.results(cache)
+        with contextlib.closing(results) if hasattr(results, "close") else contextlib.nullcontext():
+            for i, volume, info in results:
+                yield i, volume, self._entry(i, volume, info)
+
+    def _entry(self, i: int, volume, info: dict) -> dict:
+        job = self.captures
+        entry = dict(job.labels[i], reconstruction=info)
+        if self.raw:
+            entry["raw"] = self.raw[i]
+        truth = job.truth(i)
+        if truth is not None:
+            h, w = self.shape[-2:]
+            frames = np.asarray(volume)  # (a capture kept on disk read whole to be scored)
+            entry["quality"] = evaluate(frames.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=self.units.value)
+            entry["trivial"] = evaluate(self._trivial_of(i).reshape(-1, h, w), truth.reshape(-1, h, w),
+                                        data_range=self.units.value)
+            for key in ("psnr", "ssim"):
+                self._frames[key] += entry["quality"][f"{key}_per_frame"]
+                self._trivial[key] += entry["trivial"][f"{key}_per_frame"]
+            if job.kind in ("captures", "measurements"):
+                self._steps.add(frames, truth)
+        self.entries.append(entry)
+        return entry
+
+    def _trivial_of(self, i: int) -> np.ndarray:
+        job = self.captures
+        if job.kind == "bayer":
+            from codedvideo.engine.bayer import static_estimate
+
+            return static_estimate(job.codeds[i], job.mask(i), self.r.bayer)
+        return trivial_estimate(job.codeds[i], job.mask(i))
+
+    def record(self, *, output=None, read: float = 0.0, write: float = 0.0, started: float | None = None) -> dict:
+        """The metrics record of the job after its run: settings, data range, preset, each capture's entry and
+        the totals, and the quality when a truth was given.  ``read``, ``write``: the seconds the door spent
+        reading the inputs and writing the outputs; ``started``: when it started (``time.perf_counter``)."""
+        r, job, units = self.r, self.captures, self.units
+        metrics = dict(({"output": str(output)} if output is not None else {}), inputs=job.inputs,
+                       settings=dict(self.omp.__dict__, tol_rms=self.omp.tol_rms / units.scale, method=r.method,
+                                     adapt=r.rc.adapt, adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine,
+                                     tile=r.rc.tile, scheduler=r.rc.scheduler, workers=r.rc.workers,
+                                     dictionary_atoms=self.entries[0]["reconstruction"].get("dictionary_atoms")),
+                       data_range=units.as_dict(), preset=r.preset)
+        if self.cuts is not None:  # the boundaries not joined, and why (each was asked by the join already)
+            metrics["cuts"] = [dict(c, captures=[job.labels[c["boundary"] + d].get("capture", c["boundary"] + d + 1)
+                                                 for d in (0, 1)])
+                               for c in (self.cuts(i) and dict(boundary=i, **self.cuts(i))
+                                         for i in range(self.count - 1)) if c]
+        read += self.seconds_prepared
+        total = time.perf_counter() - started if started is not None else None
+        if job.kind in ("single", "bayer"):
+            info = self.entries[0]["reconstruction"]
+            info["seconds"] = dict(read=read, **info["seconds"], write=write,
+                                   total=total if total is not None else read + sum(info["seconds"].values()))
+            metrics["reconstruction"] = info
+            if job.kind == "bayer":
+                metrics.update(layout="(C, N, H, W)", bayer=dict(info.get("bayer", {}), pattern=r.bayer))
+                metrics["settings"]["bayer"] = r.bayer
+        else:
+            metrics.update(self._stream_totals(read, write, total))
+        if self._frames["psnr"]:
+            metrics["quality"], metrics["trivial"] = self._quality(output)
+        return metrics
+
+    def _stream_totals(self, read: float, write: float, total: float | None) -> dict:
+        entries = self.entries
+        t_rec = sum(sum(e["reconstruction"]["seconds"].get(k, 0.0) for k in ("first_pass", "adapt", "reconstruct"))
+                    for e in entries)
+        # the patches of the tiles computed in this run (a rerun from the cache counted every patch: 1.3 M/s)
+        solved = sum(r["patches"] * r.get("tiles_computed", 0) / max(r.get("tiles", 1), 1)
+                     for r in (e["reconstruction"] for e in entries))
+        kind = self.captures.kind
+        return {"layout": "(C, N, H, W)" if kind == "channels" else "(T*N, H, W)",
+                "reconstruction": dict(patches=sum(e["reconstruction"]["patches"] for e in entries),
+                                       patches_per_second=solved / max(t_rec, 1e-9),
+                                       seconds=dict(read=read, reconstruct=t_rec, write=write,
+                                                    total=total if total is not None else read + t_rec + write)),
+                kind: entries}
+
+    def _quality(self, output) -> tuple[dict, dict]:
+        """The mean quality over all frames (every coded image has N frames: the mean of their means), and the
+        trivial estimate's."""
+        per_frame, units, kind, n = self._frames, self.units, self.captures.kind, self.n
+        quality = dict(psnr=mean_psnr(per_frame["psnr"]), ssim=float(np.mean(per_frame["ssim"])),
+                       exact_frames=int(np.sum(np.isposinf(per_frame["psnr"]))),
+                       psnr_per_frame=per_frame["psnr"], ssim_per_frame=per_frame["ssim"], data_range=units.value,
+                       psnr_peak=dict(value=units.value, source=units.source))
+        trivial = dict(psnr=mean_psnr(self._trivial["psnr"]), ssim=float(np.mean(self._trivial["ssim"])),
+                       psnr_per_frame=self._trivial["psnr"], ssim_per_frame=self._trivial["ssim"],
+                       data_range=units.value)
+        if kind == "bayer":  # frames are channel-major: R's N, G's N, B's N
+            for key in ("psnr", "ssim"):
+                quality[f"{key}_per_channel"] = [float(np.mean(per_frame[key][c * n : (c + 1) * n])) for c in range(3)]
+        elif kind != "single":
+            name = kind[:-1]
+            quality.update({f"psnr_per_{name}": [e["quality"]["psnr"] for e in self.entries],
+                            f"ssim_per_{name}": [e["quality"]["ssim"] for e in self.entries]})
+            if kind in ("captures", "measurements") and self.count > 1:
+                pairs = [dict(last=per_frame["psnr"][(i + 1) * n - 1], first_next=per_frame["psnr"][(i + 1) * n])
+                         for i in range(len(self.entries) - 1)]  # flicker at the boundaries
+                quality["boundaries"] = dict(dict(pairs=pairs), **self._steps.summary())
+        # of the volume as reconstructed (float32); a lossy output file holds it less exactly (evaluate the file)
+        suffix = Path(str(output)).suffix.lower() if output is not None else ""
+        lossy = "H.264" if suffix in (".mp4", ".mov") else \
+            "GIF palette (3-3-2)" if suffix == ".gif" and len(self.shape) == 4 else None
+        quality["measured_on"] = "volume before encoding" + (f"; the output is lossy ({lossy})" if lossy else "")
+        return quality, trivial
