@@ -11,13 +11,15 @@ CONFIG ?= pipeline.yaml
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
 
-$(STAMP): pyproject.toml
+CONSTRAINTS := constraints.txt
+
+$(STAMP): pyproject.toml $(CONSTRAINTS)
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/python -m pip install --quiet -c $(CONSTRAINTS) -e '.[test]'
 	touch $(STAMP)
 
-setup: $(STAMP)  ## create .venv and install the project
+setup: $(STAMP)  ## create .venv and install the project (the versions in constraints.txt)
 
 run: $(STAMP)  ## run the whole pipeline on the embedded default scene
 	$(CLI) run "$(CONFIG)"
@@ -26,8 +28,8 @@ test: $(STAMP)  ## run the test suite
 	$(BIN)/python -m pytest -q
 
 DOCS_STAMP := $(VENV)/.docs-installed
-$(DOCS_STAMP): $(STAMP) pyproject.toml
-	$(BIN)/python -m pip install --quiet -e '.[test,docs]'
+$(DOCS_STAMP): $(STAMP) pyproject.toml $(CONSTRAINTS)
+	$(BIN)/python -m pip install --quiet -c $(CONSTRAINTS) -e '.[test,docs]'
 	touch $(DOCS_STAMP)
 
 docs: $(DOCS_STAMP)  ## the documentation with its API reference, from the docstrings: build/docs/index.html
