@@ -8,9 +8,9 @@ default per-patch OMP of :func:`codedvideo.solvers.region.reconstruct_region`):
 1. block matching: for every reference patch, the ``group`` patches of the
    current estimate closest to it as whole ``7 x 7 x N`` blocks (sum of squared
    differences over every sub-frame, so similar in space and in motion) whose
-   corners lie within ``window`` pixels (:func:`codedvideo.solvers.omp_kernel.block_match`:
+   corners lie within ``window`` pixels (:func:`codedvideo.solvers.nonlocal_kernel.block_match`:
    deterministic, the reference itself first, ties to the earlier offset);
-2. joint solve: simultaneous OMP of the group (:func:`codedvideo.solvers.omp_kernel.somp_kernel`),
+2. joint solve: simultaneous OMP of the group (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`),
    one support for the whole group, every member's coefficients fit to its own
    measurement ``y_p = S_p D alpha_p`` under its own code;
 3. aggregation: every member's estimate is added at its own place ("all") or
@@ -53,7 +53,8 @@ import numpy as np
 
 from codedvideo.model import patches as P
 from codedvideo.solvers.omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, is_binary, pixel_patterns
-from codedvideo.solvers.omp_kernel import TableOMP, block_match, scatter_patches, somp_kernel, synthesize, table_fits
+from codedvideo.solvers.nonlocal_kernel import block_match, scatter_patches, somp_kernel
+from codedvideo.solvers.omp_kernel import TableOMP, synthesize, table_fits
 from codedvideo.solvers.region import WINDOW, OmpSettings, still_answers, still_patches
 
 #: Names of the statistics, in the order of the stats vector.
@@ -117,7 +118,7 @@ def nonlocal_region(
         of one, ``ATOMS_FACTOR`` times it otherwise).
     consensus : float
         Pull of every member's coefficients towards the group's shared fit
-        (:func:`codedvideo.solvers.omp_kernel.somp_kernel`; 0: none).
+        (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`; 0: none).
     similarity : float, optional
         With ``aggregate="all"``, a member's estimate counts ``exp(-d**2 / similarity**2)``,
         ``d`` its RMS block difference to the reference (grey levels); None: all count 1.
@@ -386,7 +387,7 @@ def joint_omp(y: np.ndarray, S: np.ndarray, D: np.ndarray, *, max_atoms: int, to
     """Simultaneous OMP of one group: patches ``y`` (k, m) seen through codes ``S`` (k, N, m).
 
     One support for the group, each member's coefficients fit to its own
-    measurement (:func:`codedvideo.solvers.omp_kernel.somp_kernel`); a group of one is
+    measurement (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`); a group of one is
     the default OMP.  Returns the members' estimates ``D alpha_p``, shape (k, N*m).
     """
     y = np.ascontiguousarray(y, np.float32)
