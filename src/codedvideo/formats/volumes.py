@@ -297,7 +297,7 @@ def read_mask(path: str | Path) -> np.ndarray:
 
 def _checked_mask(mask: np.ndarray, path) -> np.ndarray:
     """A binary code (uint8), or a calibrated mask: each pixel's measured response per sub-frame in [0, 1] (float32)."""
-    from codedvideo.solvers.omp import is_binary
+    from codedvideo.model.codes import is_binary
 
     mask = np.asarray(mask)
     if not np.isfinite(mask).all():
