@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 from numba import njit, prange
 
-from codedvideo.solvers.omp_kernel import match_frame_patches, scatter_frame_patches
+from codedvideo.solvers.refine_kernel import match_frame_patches, scatter_frame_patches
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tasks"))

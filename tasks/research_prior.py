@@ -6,7 +6,7 @@ summed squared shutter weights), so the projection onto ``{x : Phi x = y}`` is p
 
 * ``sparse``: every (strided) overlapping 7x7xN patch coded over the dictionary with unmasked
   Batch-OMP stopped at ``||r||^2 <= m (C sigma)^2``, averaged (:func:`denoise_sparse`);
-* ``wnnm``: non-local groups of similar 7x7xN blocks (``omp_kernel.block_match`` on the current
+* ``wnnm``: non-local groups of similar 7x7xN blocks (``nonlocal_kernel.block_match`` on the current
   estimate, regrouped every ``regroup`` iterations) shrunk by weighted nuclear norm through batched
   k x k Gram eigendecompositions (:func:`denoise_wnnm`);
 * ``mix``: the average of both.
@@ -20,7 +20,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from codedvideo.solvers.omp_kernel import batch_omp, block_match, scatter_patches, synthesize_into
+from codedvideo.solvers.nonlocal_kernel import block_match, scatter_patches
+from codedvideo.solvers.omp_kernel import batch_omp, synthesize_into
 
 PATCH = 7
 

@@ -5,7 +5,8 @@ import pytest
 
 from codedvideo.solvers.ksvd import ksvd
 from codedvideo.solvers.omp import PlainOperator, omp
-from codedvideo.solvers.omp_kernel import batch_omp, row_energy, subtract_codes, update_atoms
+from codedvideo.solvers.ksvd_kernel import row_energy, subtract_codes, update_atoms
+from codedvideo.solvers.omp_kernel import batch_omp
 from conftest import random_dictionary
 
 

@@ -12,7 +12,8 @@ from codedvideo.model import physics
 from codedvideo.model.codes import check_code, make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.metrics import evaluate
-from codedvideo.solvers.omp import MaskedOperator, is_binary, patch_code_groups, pixel_patterns
+from codedvideo.model.codes import is_binary
+from codedvideo.solvers.omp import MaskedOperator, patch_code_groups, pixel_patterns
 from codedvideo.engine.parallel import plan_tiles
 from codedvideo.model.patches import extract
 from codedvideo.solvers.region import OmpSettings, reconstruct_region

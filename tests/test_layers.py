@@ -24,3 +24,18 @@ def test_the_contract_names_every_subpackage():
     assert len(packages) >= 3
     for name in packages:
         assert f"codedvideo.{name}\n" in contract, name
+
+
+def test_numba_is_imported_by_one_module_of_the_solvers():
+    """The solvers' compiled kernels take ``njit`` and ``prange`` from ``solvers/_jit.py``, the one module of the
+    layer that imports numba (imports inside functions included)."""
+    import ast
+
+    importers = set()
+    for path in sorted((ROOT / "src" / "codedvideo" / "solvers").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(name.split(".")[0] == "numba" for name in names):
+                importers.add(path.name)
+    assert importers == {"_jit.py"}

@@ -9,7 +9,7 @@ from codedvideo.model.metrics import evaluate
 from codedvideo.model.physics import forward
 from codedvideo.engine.stages import simulate_capture
 from codedvideo.solvers import refine as R
-from codedvideo.solvers.omp_kernel import match_frame_patches, shrink_frame_groups
+from codedvideo.solvers.refine_kernel import match_frame_patches, shrink_frame_groups
 
 
 @pytest.fixture(scope="module")

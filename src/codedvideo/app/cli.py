@@ -351,7 +351,7 @@ def _cmd_simulate(a) -> int:
             raise ConfigError(f"option {clash[0]}: the code file {code_cfg.path} holds {file_codes} codes, one per "
                               f"capture in turn, which {clash[0]} does not take")
         if a.cacti_out:  # a CACTI file holds a binary mask: a calibrated one is refused before any work
-            from codedvideo.solvers.omp import is_binary
+            from codedvideo.model.codes import is_binary
 
             if not is_binary(file_mask):
                 raise ConfigError(f"option --cacti-out {a.cacti_out}: a CACTI file holds a binary mask, and the code "

@@ -291,7 +291,7 @@ def tile_digest(key: str, index: int, core: tuple[int, int, int, int], volume: n
 
 def mask_dtype(mask: np.ndarray) -> np.dtype:
     """How a working store holds a mask: uint8 for a binary code, float32 for calibrated weights."""
-    from codedvideo.solvers.omp import is_binary
+    from codedvideo.model.codes import is_binary
 
     return np.dtype("uint8") if is_binary(mask) else np.dtype("<f4")
 

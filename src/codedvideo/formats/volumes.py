@@ -20,7 +20,7 @@ from codedvideo.formats.io import VIDEO_SUFFIXES
 from codedvideo.model.patches import PATCH
 from codedvideo.formats.store import array_writer, load_array, save_array
 from codedvideo.model.units import EIGHT_BIT
-from codedvideo.solvers.omp import is_binary
+from codedvideo.model.codes import is_binary
 
 
 def write_json(path: Path, payload: dict) -> Path:

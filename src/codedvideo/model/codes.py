@@ -353,6 +353,14 @@ def make_code(
     raise InputError(f"code: unknown code {name!r}; choose one of {', '.join(CODE_NAMES)}")
 
 
+def is_binary(mask: np.ndarray) -> bool:
+    """Whether every value of a mask is 0 or 1 (a shutter code rather than calibrated weights)."""
+    a = np.asarray(mask)
+    if a.dtype == np.bool_:
+        return True
+    return bool(((a == 0) | (a == 1)).all())
+
+
 def window_coverage(mask: np.ndarray, patch: int = PATCH) -> np.ndarray:
     """Number of open pixels of every sub-frame in every ``patch x patch`` window.
 

@@ -6,7 +6,7 @@ leading left singular vector of the residual restricted to the samples that
 use it, and those samples' coefficients by the matching right singular vector
 times the singular value (a rank-1 SVD, computed by power iteration warm-started
 from the current atom and coefficients, which converges to the exact leading
-pair; compiled, :func:`codedvideo.solvers.omp_kernel.update_atoms`).  Atoms that no sample uses, and atoms that nearly duplicate another,
+pair; compiled, :func:`codedvideo.solvers.ksvd_kernel.update_atoms`).  Atoms that no sample uses, and atoms that nearly duplicate another,
 are replaced by the training sample that the dictionary represents worst.
 Per-iteration statistics are returned as data.
 """
@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from codedvideo.solvers.omp_kernel import batch_omp, row_energy, subtract_codes, update_atoms
+from codedvideo.solvers.ksvd_kernel import row_energy, subtract_codes, update_atoms
+from codedvideo.solvers.omp_kernel import batch_omp
 
 DUPLICATE_COS = 0.99
 

@@ -8,9 +8,9 @@ default per-patch OMP of :func:`codedvideo.solvers.region.reconstruct_region`):
 1. block matching: for every reference patch, the ``group`` patches of the
    current estimate closest to it as whole ``7 x 7 x N`` blocks (sum of squared
    differences over every sub-frame, so similar in space and in motion) whose
-   corners lie within ``window`` pixels (:func:`codedvideo.solvers.omp_kernel.block_match`:
+   corners lie within ``window`` pixels (:func:`codedvideo.solvers.nonlocal_kernel.block_match`:
    deterministic, the reference itself first, ties to the earlier offset);
-2. joint solve: simultaneous OMP of the group (:func:`codedvideo.solvers.omp_kernel.somp_kernel`),
+2. joint solve: simultaneous OMP of the group (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`),
    one support for the whole group, every member's coefficients fit to its own
    measurement ``y_p = S_p D alpha_p`` under its own code;
 3. aggregation: every member's estimate is added at its own place ("all") or
@@ -48,13 +48,17 @@ a tolerance 0.6x or 1.5x the default's (0 / -0.04).
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from codedvideo.model import patches as P
-from codedvideo.solvers.omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, is_binary, pixel_patterns
-from codedvideo.solvers.omp_kernel import TableOMP, block_match, scatter_patches, somp_kernel, synthesize, table_fits
-from codedvideo.solvers.region import WINDOW, OmpSettings, still_answers, still_patches
+from codedvideo.model.codes import is_binary
+from codedvideo.solvers.omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, pixel_patterns
+from codedvideo.solvers.nonlocal_kernel import block_match, scatter_patches, somp_kernel
+from codedvideo.solvers.omp_kernel import TableOMP, synthesize, table_fits
+from codedvideo.solvers.region import (WINDOW, OmpSettings, RegionPatches, region_patches, still_answers,
+                                       still_patches, stride_grid)
 
 #: Names of the statistics, in the order of the stats vector.
 STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_static", "seconds_match",
@@ -89,6 +93,9 @@ def nonlocal_region(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct a region by simultaneous sparse coding of groups of similar patches.
 
+    The keyword arguments but ``still`` are the fields of a :class:`NonlocalOptions`, checked and resolved
+    (:func:`_options`) before any work.
+
     Parameters
     ----------
     coded : ndarray of shape (h, w)
@@ -117,7 +124,7 @@ def nonlocal_region(
         of one, ``ATOMS_FACTOR`` times it otherwise).
     consensus : float
         Pull of every member's coefficients towards the group's shared fit
-        (:func:`codedvideo.solvers.omp_kernel.somp_kernel`; 0: none).
+        (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`; 0: none).
     similarity : float, optional
         With ``aggregate="all"``, a member's estimate counts ``exp(-d**2 / similarity**2)``,
         ``d`` its RMS block difference to the reference (grey levels); None: all count 1.
@@ -154,76 +161,170 @@ def nonlocal_region(
     stats : ndarray of shape (len(STAT_NAMES),), float64
     """
     t_start = time.perf_counter()
-    n, h, w = mask.shape
+    opts = _options(NonlocalOptions(
+        group=group, window=window, iterations=iterations, step=step, atoms=atoms, consensus=consensus,
+        similarity=similarity, aggregate=aggregate, max_distance=max_distance, project=project, patch=patch,
+        origin=origin, image_shape=image_shape, refs=refs, sums=sums), settings, mask.shape, D)
+    first32 = np.asarray(first, dtype=np.float32)
+    binary = is_binary(mask)
+    weights = mask if binary else np.asarray(mask, dtype=np.float32)
+    stats = np.zeros(len(STAT_NAMES))
+    hp, wp = P.grid_shape(mask.shape[1:], patch)
+    stats[0] = hp * wp
+    patterns, which = pixel_patterns(weights)
+    if not table_fits(len(patterns), D, patch * patch):
+        stats[8] = 1.0
+        stats[7] = time.perf_counter() - t_start
+        return None if sums else (first32.copy(), stats)
+    coded32 = np.asarray(coded, dtype=np.float32)
+    region = _region(coded32, weights, binary, D, patterns, which, settings.tol_rms, still, patch)
+    chosen = _references(region, settings, opts, stats)
+    k = min(group, (2 * window + 1) ** 2, hp * wp)
+    current = np.nan_to_num(first32, nan=0.0).astype(np.float32)
+    volume = first32.copy()
+    for _ in range(iterations):
+        t0 = time.perf_counter()
+        idx, dist = _match(region, chosen, current, k, opts)
+        stats[5] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        summed, weight, (n_groups, n_members, n_atoms) = _solve_pass(region, chosen, idx, dist, D, settings, opts)
+        stats[6] += time.perf_counter() - t0
+        stats[1] += n_groups
+        stats[2] = n_members / max(n_groups, 1)
+        stats[3] += n_atoms
+        if sums:
+            stats[7] = time.perf_counter() - t_start
+            return summed, weight, stats
+        volume = finish(summed, weight, coded32, weights, project=opts.project)
+        if region.calm.any():
+            keep_still(volume, coded32, weights, still, patch)
+        current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
+    stats[7] = time.perf_counter() - t_start
+    return volume, stats
+
+
+@dataclass(frozen=True)
+class NonlocalOptions:
+    """The choices of :func:`nonlocal_region` (its keyword arguments of the same names and defaults), with
+    ``step``, ``atoms`` and ``project`` resolved from None by :func:`_options`."""
+
+    group: int = GROUP
+    window: int = WINDOW
+    iterations: int = ITERATIONS
+    step: int | None = None
+    atoms: int | None = None
+    consensus: float = 0.0
+    similarity: float | None = None
+    aggregate: str = "all"
+    max_distance: float | None = None
+    project: bool | None = None
+    patch: int = P.PATCH
+    origin: tuple[int, int] = (0, 0)
+    image_shape: tuple[int, int] | None = None
+    refs: tuple[int, int, int, int] | None = None
+    sums: bool = False
+
+
+def _options(opts: NonlocalOptions, settings: OmpSettings, shape: tuple[int, int, int], D: np.ndarray
+             ) -> NonlocalOptions:
+    """``opts`` checked against the settings, the region's mask shape (N, h, w) and the dictionary (a ValueError
+    otherwise), with the defaults of ``step``, ``project`` and ``atoms`` filled in."""
+    n, h, w = shape
+    patch, group = opts.patch, opts.group
     if h < patch or w < patch:
         raise ValueError(f"region {h}x{w} is smaller than one {patch}x{patch} patch")
+    step = opts.step
     if step is None:
         step = 1 if group == 1 else settings.group_step or STEP
-    if project is None:
-        project = group > 1
-    if group < 1 or window < 0 or iterations < 0 or step < 1:
+    project = group > 1 if opts.project is None else opts.project
+    if group < 1 or opts.window < 0 or opts.iterations < 0 or step < 1:
         raise ValueError("group >= 1, window >= 0, iterations >= 0, step >= 1")
-    if sums and iterations != 1:
+    if opts.sums and opts.iterations != 1:
         raise ValueError("sums: one pass only (iterations=1)")
-    if aggregate not in ("all", "reference"):
-        raise ValueError(f"aggregate {aggregate!r}: choose all or reference")
+    if opts.aggregate not in ("all", "reference"):
+        raise ValueError(f"aggregate {opts.aggregate!r}: choose all or reference")
     if settings.weighting not in ("uniform", "fit"):
         raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
     m = patch * patch
-    F = n * m
-    if D.shape[0] != F:
-        raise ValueError(f"dictionary has {D.shape[0]} rows, patches have {F}")
-    coded = np.asarray(coded, dtype=np.float32)
-    first = np.asarray(first, dtype=np.float32)
-    binary = is_binary(mask)
-    if not binary:
-        mask = np.asarray(mask, dtype=np.float32)
-    stats = np.zeros(len(STAT_NAMES))
-    hp, wp = P.grid_shape((h, w), patch)
-    stats[0] = hp * wp
-    patterns, which = pixel_patterns(mask)
-    if not table_fits(len(patterns), D, m):
-        stats[8] = 1.0
-        stats[7] = time.perf_counter() - t_start
-        return None if sums else (first.copy(), stats)
-    table = TableOMP(patterns, D, m)
-    open_any = mask.any(0)
-    y_all = np.ascontiguousarray(P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch))
-    pat_all = np.ascontiguousarray(P.extract(which, patch), dtype=np.int32)
-    n_pix = P.extract(mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64), patch)
-    n_open = (n_pix > 0).sum(1).astype(np.float32)
-    tol_all = np.ascontiguousarray(n_open * settings.tol_rms**2, dtype=np.float64)
-    measured = n_open > 0
-    calm = np.zeros(hp * wp, np.bool_)  # wholly still across captures: the still answer, in no group
+    if D.shape[0] != n * m:
+        raise ValueError(f"dictionary has {D.shape[0]} rows, patches have {n * m}")
+    atoms = opts.atoms
+    if atoms is None:
+        atoms = settings.max_atoms if group == 1 else group_atoms(settings.max_atoms, m)
+    return replace(opts, step=step, project=project, atoms=atoms)
+
+
+@dataclass(frozen=True)
+class _Region:
+    """A region's patches as every pass reads them (:func:`_region`): ``patches`` (:class:`RegionPatches`),
+    their pattern indices ``pat`` (Pn, m) into ``patterns`` and its ``table``, squared tolerances ``tol``, the
+    ``measured`` ones (a pixel ever open) and the ``calm`` ones (wholly still across captures: the still
+    answer, in no group)."""
+
+    shape: tuple[int, int, int]
+    patches: RegionPatches
+    patterns: np.ndarray
+    table: TableOMP
+    pat: np.ndarray
+    tol: np.ndarray
+    measured: np.ndarray
+    calm: np.ndarray
+
+
+def _region(coded: np.ndarray, mask: np.ndarray, binary: bool, D: np.ndarray, patterns: np.ndarray,
+            which: np.ndarray, tol_rms: float, still: np.ndarray | None, patch: int) -> _Region:
+    """The :class:`_Region` of a coded image (h, w) float32 under ``mask`` with pixel patterns ``patterns``,
+    ``which`` (:func:`pixel_patterns`)."""
+    table = TableOMP(patterns, D, patch * patch)
+    patches = region_patches(coded, mask, binary, patch)
+    tol = np.ascontiguousarray(patches.n_open * tol_rms**2, dtype=np.float64)
+    measured = patches.n_open > 0
+    calm = np.zeros(measured.size, np.bool_)
     if still is not None and np.any(still):
         calm = P.extract(np.asarray(still, np.uint8), patch).all(1) & measured
-    # reference patches: the default's stride grid combined with ``step``
-    stride = max(settings.stride, step)
-    ref = measured.copy()
-    if stride > 1:
-        if stride > patch:
-            raise ValueError(f"stride {stride}: must be 1 to {patch} (the patch size)")
-        ih, iw = image_shape or (h, w)
-        rows_on = P.stride_rows(origin[0], hp, ih - patch + 1, stride)
-        cols_on = P.stride_rows(origin[1], wp, iw - patch + 1, stride)
-        ref &= (rows_on[:, None] & cols_on[None, :]).ravel()
-    if refs is not None:
-        ry0, ry1, rx0, rx1 = refs
+    return _Region(shape=mask.shape, patches=patches, patterns=patterns, table=table,
+                   pat=np.ascontiguousarray(P.extract(which, patch), dtype=np.int32), tol=tol, measured=measured,
+                   calm=calm)
+
+
+@dataclass(frozen=True)
+class _References:
+    """The reference patches of a region (``ref``, raveled grid), which of them take a still answer
+    (``still_ok``), and those answers (rows of ``still_est``; ``still_slot``: a patch's row, or -1)."""
+
+    ref: np.ndarray
+    still_ok: np.ndarray
+    still_est: np.ndarray
+    still_slot: np.ndarray
+
+
+def _references(region: _Region, settings: OmpSettings, opts: NonlocalOptions, stats: np.ndarray) -> _References:
+    """The reference patches: the measured ones on the default's stride grid combined with ``opts.step``, inside
+    ``opts.refs``; then the still test of them (it does not depend on the estimate; counted in ``stats``)."""
+    n, h, w = region.shape
+    patches = region.patches
+    hp, wp = patches.grid
+    ref = region.measured.copy()
+    on_grid = stride_grid(max(settings.stride, opts.step), patches.grid, opts.patch, opts.origin,
+                          opts.image_shape or (h, w))
+    if on_grid is not None:
+        ref &= on_grid
+    if opts.refs is not None:
+        ry0, ry1, rx0, rx1 = opts.refs
         rows, cols = np.arange(hp), np.arange(wp)
         ref &= (((rows >= ry0) & (rows < ry1))[:, None] & ((cols >= rx0) & (cols < rx1))[None, :]).ravel()
-    # the still test of the reference patches (it does not depend on the estimate)
-    still_est = np.zeros((0, F), np.float32)
+    still_est = np.zeros((0, n * opts.patch**2), np.float32)
     still_ok = np.zeros(hp * wp, np.bool_)
     if settings.static_atoms > 0:
-        rows = np.flatnonzero(ref & ~calm)
+        rows = np.flatnonzero(ref & ~region.calm)
         if rows.size:
-            ok, still_est = still_patches(y_all[rows], n_pix[rows], tol_all[rows], settings.static_atoms,
-                                          frames=n, patch=patch)
+            ok, still_est = still_patches(patches.y[rows], patches.n_pix[rows], region.tol[rows],
+                                          settings.static_atoms, frames=n, patch=opts.patch)
             still_ok[rows[ok]] = True
             stats[4] = ok.sum()
-    if calm.any():  # their still answer, each pixel's value in every sub-frame, after the still test's rows
-        rows = np.flatnonzero(ref & calm)
-        still_est = np.concatenate([still_est, still_answers(y_all[rows], n_pix[rows], n)])
+    if region.calm.any():  # their still answer, each pixel's value in every sub-frame, after the still test's rows
+        rows = np.flatnonzero(ref & region.calm)
+        still_est = np.concatenate([still_est, still_answers(patches.y[rows], patches.n_pix[rows], n)])
         order = np.concatenate([np.flatnonzero(still_ok), rows])
         still_ok[rows] = True
         stats[4] += rows.size
@@ -231,97 +332,148 @@ def nonlocal_region(
         order = np.flatnonzero(still_ok)
     still_slot = np.full(hp * wp, -1, np.int64)
     still_slot[order] = np.arange(order.size)
-    if atoms is None:
-        atoms = settings.max_atoms if group == 1 else group_atoms(settings.max_atoms, m)
-    kmax = int(min(atoms, m))
-    current = np.nan_to_num(first, nan=0.0).astype(np.float32)
-    volume = first.copy()
-    for _ in range(iterations):
-        t0 = time.perf_counter()
-        k = min(group, (2 * window + 1) ** 2, hp * wp)
-        if (ref & ~still_ok).any():
-            idx, dist = match_groups(current, k, window, patch=patch)
-        else:  # every reference still: no group to match (a still block of a sequence)
-            idx, dist = np.full((hp * wp, k), -1, np.int64), np.full((hp * wp, k), np.inf)
-        if max_distance is not None:
-            far = dist > (max_distance**2) * F
-            far[:, 0] = False
-            idx[far] = -1
-        idx[~measured[np.maximum(idx, 0)] | calm[np.maximum(idx, 0)]] = -1  # nothing to add: unmeasured or still
-        idx[:, 0] = np.arange(hp * wp)
-        stats[5] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        summed = np.zeros((n, h, w), np.float32)
-        weight = np.zeros((h, w), np.float32)
-        solved = ref & ~still_ok  # references whose group is solved jointly
-        n_groups = n_members = atoms = 0
-        band = max(1, settings.batch // max(1, wp * (k if aggregate == "all" else 1)))
-        for r0 in range(0, hp, band):
-            r1 = min(hp, r0 + band)
-            sl = slice(r0 * wp, r1 * wp)
-            refs = np.flatnonzero(solved[sl]) + r0 * wp
-            mem = idx[refs]
-            # compact each group's members to the front (refs first, matches in order)
-            order = np.argsort(mem < 0, axis=1, kind="stable")
-            mem = np.ascontiguousarray(np.take_along_axis(mem, order, 1))
-            dmem = np.take_along_axis(dist[refs], order, 1)
-            size = (mem >= 0).sum(1).astype(np.int64)
-            G = refs.size
-            index = np.zeros((G, k, kmax), np.int32)
-            coef = np.zeros((G, k, kmax), np.float32)
-            count = np.zeros((G, k), np.int32)
-            res2 = np.zeros((G, k), np.float32)
-            dep = np.zeros((G, k), np.bool_)
-            if G:
-                somp_kernel(y_all, pat_all, np.maximum(mem, 0), size, table.B, table.floor, tol_all, kmax,
-                            DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count, res2, dep, float(consensus))
-            n_groups += G
-            n_members += int(size.sum())
-            atoms += int(count.sum())
-            if aggregate == "reference" or k == 1:  # one estimate per patch: the default's fold
-                est = np.zeros(((r1 - r0) * wp, F), np.float32)
-                wgt = ref[sl].astype(np.float32)
-                res = OmpResult(index=index[:, 0], coef=coef[:, 0], count=count[:, 0], residual=res2[:, 0],
-                                dependent=dep[:, 0])
-                est[refs - r0 * wp] = synthesize(res, D)
-                st = np.flatnonzero(still_ok[sl])
-                est[st] = still_est[still_slot[st + r0 * wp]]
-                if settings.weighting == "fit":
-                    e2 = _misfit(est, y_all[sl], pat_all[sl], patterns, n, m) / np.maximum(n_open[sl], 1)
-                    wgt = wgt / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
-                    est *= wgt[:, None]
-                P.fold_rows(est, summed, r0, patch)
-                P.fold_rows(wgt, weight[None], r0, patch)
-            else:
-                live = np.arange(k)[None, :] < size[:, None]
-                where = mem[live]
-                res = OmpResult(index=index[live], coef=coef[live], count=count[live], residual=res2[live],
-                                dependent=dep[live])
-                est = synthesize(res, D)
-                wgt = np.ones(where.size, np.float32)
-                if similarity is not None:
-                    wgt = np.exp(-dmem[live] / F / max(similarity, 1e-6) ** 2).astype(np.float32)
-                if settings.weighting == "fit":
-                    e2 = _misfit(est, y_all[where], pat_all[where], patterns, n, m) / np.maximum(n_open[where], 1)
-                    wgt = wgt / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
-                scatter_patches(est, where, wgt, wp, patch, summed, weight)
-                st = np.flatnonzero(still_ok[sl]) + r0 * wp
-                if st.size:
-                    scatter_patches(still_est[still_slot[st]], st, np.ones(st.size, np.float32), wp, patch,
-                                    summed, weight)
-        stats[6] += time.perf_counter() - t0
-        stats[1] += n_groups
-        stats[2] = n_members / max(n_groups, 1)
-        stats[3] += atoms
-        if sums:
-            stats[7] = time.perf_counter() - t_start
-            return summed, weight, stats
-        volume = finish(summed, weight, coded, mask, project=project)
-        if calm.any():
-            keep_still(volume, coded, mask, still, patch)
-        current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
-    stats[7] = time.perf_counter() - t_start
-    return volume, stats
+    return _References(ref=ref, still_ok=still_ok, still_est=still_est, still_slot=still_slot)
+
+
+def _match(region: _Region, chosen: _References, current: np.ndarray, k: int, opts: NonlocalOptions
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """Every patch's group of ``k`` on the estimate ``current`` (:func:`match_groups`): members farther than
+    ``opts.max_distance``, unmeasured or still are dropped (-1), the patch itself always first."""
+    n_patches = region.measured.size
+    if (chosen.ref & ~chosen.still_ok).any():
+        idx, dist = match_groups(current, k, opts.window, patch=opts.patch)
+    else:  # every reference still: no group to match (a still block of a sequence)
+        idx, dist = np.full((n_patches, k), -1, np.int64), np.full((n_patches, k), np.inf)
+    if opts.max_distance is not None:
+        far = dist > (opts.max_distance**2) * (region.shape[0] * opts.patch**2)
+        far[:, 0] = False
+        idx[far] = -1
+    # nothing to add: unmeasured or still
+    idx[~region.measured[np.maximum(idx, 0)] | region.calm[np.maximum(idx, 0)]] = -1
+    idx[:, 0] = np.arange(n_patches)
+    return idx, dist
+
+
+def _solve_pass(region: _Region, chosen: _References, idx: np.ndarray, dist: np.ndarray, D: np.ndarray,
+                settings: OmpSettings, opts: NonlocalOptions) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int]]:
+    """One pass: the groups ``idx`` (distances ``dist``) of the references solved jointly, whole rows of
+    references at a time, and their estimates added up: the sums (N, h, w), the weights (h, w) and the
+    groups, members and atoms solved."""
+    n, h, w = region.shape
+    hp, wp = region.patches.grid
+    k = idx.shape[1]
+    summed = np.zeros((n, h, w), np.float32)
+    weight = np.zeros((h, w), np.float32)
+    solved = chosen.ref & ~chosen.still_ok  # references whose group is solved jointly
+    n_groups = n_members = n_atoms = 0
+    band = max(1, settings.batch // max(1, wp * (k if opts.aggregate == "all" else 1)))
+    for r0 in range(0, hp, band):
+        r1 = min(hp, r0 + band)
+        band_refs = np.flatnonzero(solved[r0 * wp:r1 * wp]) + r0 * wp
+        groups = _solve_groups(region, band_refs, idx[band_refs], dist[band_refs], opts)
+        n_groups += band_refs.size
+        n_members += int(groups.size.sum())
+        n_atoms += int(groups.count.sum())
+        if opts.aggregate == "reference" or k == 1:  # one estimate per patch: the default's fold
+            _fold_references(region, chosen, groups, D, settings, (r0, r1), summed, weight)
+        else:
+            _scatter_members(region, chosen, groups, D, settings, opts.similarity, (r0, r1), summed, weight)
+    return summed, weight, (n_groups, n_members, n_atoms)
+
+
+@dataclass(frozen=True)
+class _Groups:
+    """Solved groups: the references ``refs``, their members ``mem`` (G, k; -1 past ``size``) at distances
+    ``dmem``, and per (group, member) the :class:`OmpResult` fields ``index``, ``coef`` (G, k, kmax), ``count``,
+    ``res2``, ``dep`` (G, k)."""
+
+    refs: np.ndarray
+    mem: np.ndarray
+    dmem: np.ndarray
+    size: np.ndarray
+    index: np.ndarray
+    coef: np.ndarray
+    count: np.ndarray
+    res2: np.ndarray
+    dep: np.ndarray
+
+
+def _solve_groups(region: _Region, refs: np.ndarray, members: np.ndarray, dist: np.ndarray,
+                  opts: NonlocalOptions) -> _Groups:
+    """The groups of references ``refs`` (their rows ``members``, ``dist`` of the matched groups) solved by
+    simultaneous OMP (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`)."""
+    k = members.shape[1]
+    kmax = int(min(opts.atoms, opts.patch**2))
+    # compact each group's members to the front (refs first, matches in order)
+    order = np.argsort(members < 0, axis=1, kind="stable")
+    mem = np.ascontiguousarray(np.take_along_axis(members, order, 1))
+    dmem = np.take_along_axis(dist, order, 1)
+    size = (mem >= 0).sum(1).astype(np.int64)
+    G = refs.size
+    index = np.zeros((G, k, kmax), np.int32)
+    coef = np.zeros((G, k, kmax), np.float32)
+    count = np.zeros((G, k), np.int32)
+    res2 = np.zeros((G, k), np.float32)
+    dep = np.zeros((G, k), np.bool_)
+    if G:
+        somp_kernel(region.patches.y, region.pat, np.maximum(mem, 0), size, region.table.B, region.table.floor,
+                    region.tol, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count, res2, dep,
+                    float(opts.consensus))
+    return _Groups(refs=refs, mem=mem, dmem=dmem, size=size, index=index, coef=coef, count=count, res2=res2, dep=dep)
+
+
+def _fold_references(region: _Region, chosen: _References, groups: _Groups, D: np.ndarray, settings: OmpSettings,
+                     band: tuple[int, int], summed: np.ndarray, weight: np.ndarray) -> None:
+    """``aggregate="reference"`` (or groups of one): each reference's own estimate (or its still answer) added
+    at its place, the rows ``band`` of patches (the default's fold)."""
+    n = region.shape[0]
+    patches = region.patches
+    m = patches.y.shape[1]
+    r0, r1 = band
+    wp = patches.grid[1]
+    sl = slice(r0 * wp, r1 * wp)
+    est = np.zeros(((r1 - r0) * wp, n * m), np.float32)
+    wgt = chosen.ref[sl].astype(np.float32)
+    res = OmpResult(index=groups.index[:, 0], coef=groups.coef[:, 0], count=groups.count[:, 0],
+                    residual=groups.res2[:, 0], dependent=groups.dep[:, 0])
+    est[groups.refs - r0 * wp] = synthesize(res, D)
+    st = np.flatnonzero(chosen.still_ok[sl])
+    est[st] = chosen.still_est[chosen.still_slot[st + r0 * wp]]
+    if settings.weighting == "fit":
+        e2 = _misfit(est, patches.y[sl], region.pat[sl], region.patterns, n, m) / np.maximum(patches.n_open[sl], 1)
+        wgt = wgt / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
+        est *= wgt[:, None]
+    P.fold_rows(est, summed, r0, patches.patch)
+    P.fold_rows(wgt, weight[None], r0, patches.patch)
+
+
+def _scatter_members(region: _Region, chosen: _References, groups: _Groups, D: np.ndarray, settings: OmpSettings,
+                     similarity: float | None, band: tuple[int, int], summed: np.ndarray, weight: np.ndarray
+                     ) -> None:
+    """``aggregate="all"``: every member's estimate added at its own place (weighted by ``similarity`` and the
+    ``fit`` weighting), then the still answers of the still references of the rows ``band``."""
+    n = region.shape[0]
+    patches = region.patches
+    m = patches.y.shape[1]
+    r0, r1 = band
+    wp = patches.grid[1]
+    live = np.arange(groups.mem.shape[1])[None, :] < groups.size[:, None]
+    where = groups.mem[live]
+    res = OmpResult(index=groups.index[live], coef=groups.coef[live], count=groups.count[live],
+                    residual=groups.res2[live], dependent=groups.dep[live])
+    est = synthesize(res, D)
+    wgt = np.ones(where.size, np.float32)
+    if similarity is not None:
+        wgt = np.exp(-groups.dmem[live] / (n * m) / max(similarity, 1e-6) ** 2).astype(np.float32)
+    if settings.weighting == "fit":
+        e2 = _misfit(est, patches.y[where], region.pat[where], region.patterns, n, m) / np.maximum(
+            patches.n_open[where], 1)
+        wgt = wgt / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
+    scatter_patches(est, where, wgt, wp, patches.patch, summed, weight)
+    st = np.flatnonzero(chosen.still_ok[r0 * wp:r1 * wp]) + r0 * wp
+    if st.size:
+        scatter_patches(chosen.still_est[chosen.still_slot[st]], st, np.ones(st.size, np.float32), wp,
+                        patches.patch, summed, weight)
 
 
 def keep_still(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, still: np.ndarray | None, patch: int,
@@ -386,7 +538,7 @@ def joint_omp(y: np.ndarray, S: np.ndarray, D: np.ndarray, *, max_atoms: int, to
     """Simultaneous OMP of one group: patches ``y`` (k, m) seen through codes ``S`` (k, N, m).
 
     One support for the group, each member's coefficients fit to its own
-    measurement (:func:`codedvideo.solvers.omp_kernel.somp_kernel`); a group of one is
+    measurement (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`); a group of one is
     the default OMP.  Returns the members' estimates ``D alpha_p``, shape (k, N*m).
     """
     y = np.ascontiguousarray(y, np.float32)

@@ -43,6 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from codedvideo.model.codes import is_binary
+
 #: Relative size of a new column's component outside the span of the selected
 #: columns below which it counts as linearly dependent.
 DEPENDENCE_TOL = 1e-4
@@ -121,14 +123,6 @@ class OmpResult:
         rows = np.broadcast_to(np.arange(self.count.size)[:, None], used.shape)[used]
         out[rows, self.index[used]] = self.coef[used]  # atoms of a patch are distinct
         return out
-
-
-def is_binary(mask: np.ndarray) -> bool:
-    """Whether every value of a mask is 0 or 1 (a shutter code rather than calibrated weights)."""
-    a = np.asarray(mask)
-    if a.dtype == np.bool_:
-        return True
-    return bool(((a == 0) | (a == 1)).all())
 
 
 def pixel_patterns(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -236,7 +230,7 @@ class MaskedOperator:
     many distinct patterns (e.g. Bernoulli with large N) fall back to one small
     product per pixel position.
 
-    A calibrated mask (fractional weights in [0, 1], :func:`is_binary` false)
+    A calibrated mask (fractional weights in [0, 1], :func:`codedvideo.model.codes.is_binary` false)
     is the same exact operator with ``S_p`` holding the weights; its column
     norms are then computed per pixel position.
 

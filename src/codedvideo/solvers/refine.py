@@ -11,7 +11,7 @@ measurements of one patch (or of one group, once).  The refinement alternates, f
    every :data:`STEP`-th :data:`SIDE` x :data:`SIDE` patch of every sub-frame (each sub-frame's grid shifted, so
    their references fall on different places), the :data:`GROUP` patches of the current estimate closest to
    it in the sub-frames up to :data:`FRAMES` away, corners within :data:`WINDOW` pixels
-   (:func:`codedvideo.solvers.omp_kernel.match_frame_patches`), matched again every :data:`REGROUP`
+   (:func:`codedvideo.solvers.refine_kernel.match_frame_patches`), matched again every :data:`REGROUP`
    iterations.  A group follows the motion from sub-frame to sub-frame, and its members were seen under
    different shutter codes.  Each group less its mean is shrunk by weighted nuclear norm (the singular values
    of the members' matrix, from the eigendecomposition of their ``k x k`` Gram matrix, lowered by
@@ -39,7 +39,7 @@ import time
 import numpy as np
 
 from codedvideo.model import physics
-from codedvideo.solvers.omp_kernel import match_frame_patches, scatter_frame_patches, shrink_frame_groups
+from codedvideo.solvers.refine_kernel import match_frame_patches, scatter_frame_patches, shrink_frame_groups
 
 #: Side of a group's patches, pixels (one sub-frame each).
 SIDE = 8

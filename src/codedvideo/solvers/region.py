@@ -15,7 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from codedvideo.model import patches as P
-from codedvideo.solvers.omp import GroupedOperator, MaskedOperator, is_binary, masked_operator, omp, periodic_groups, pixel_patterns
+from codedvideo.model.codes import is_binary
+from codedvideo.solvers.omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, pixel_patterns
 from codedvideo.solvers.omp_kernel import MAX_TABLE_BYTES, TableOMP, WeightsOMP, still_kernel, synthesize, table_fits
 
 #: Names of the per-tile statistics, in the order of the stats vector.
@@ -249,25 +250,112 @@ def reconstruct_region(
     n, h, w = mask.shape
     if h < patch or w < patch:
         raise ValueError(f"region {h}x{w} is smaller than one {patch}x{patch} patch")
-    m = patch * patch
     if operator not in ("auto", "dense", "patch"):
         raise ValueError(f"operator {operator!r}: choose auto, dense or patch")
-    coded = np.asarray(coded, dtype=np.float32)
+    coded32 = np.asarray(coded, dtype=np.float32)
     binary = is_binary(mask)
-    if not binary:  # a calibrated mask: the weights themselves, in float32 as everywhere else
-        mask = np.asarray(mask, dtype=np.float32)
-        if not np.isfinite(mask).all() or (mask < 0).any():
-            raise ValueError("mask weights must be finite and >= 0")
-    open_any = mask.any(0)
+    weights = mask if binary else _calibrated(mask)
     hp, wp = P.grid_shape((h, w), patch)
-    if still is not None and settings.stride == 1 and np.all(still) and open_any.all():
+    if still is not None and settings.stride == 1 and np.all(still) and weights.any(0).all():
         # a wholly still region: every patch takes the still answer, so every pixel is coded / open count
-        q = _still_answer(coded, mask, binary)
+        q = _still_answer(coded32, weights, binary)
         stats = np.array([hp * wp, hp * wp, 0, 0, 0, 0.0, time.perf_counter() - t_start], dtype=np.float64)
         return np.repeat(q[None], n, axis=0), stats
-    y_all = P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch)  # (Pn, m)
+    patches = region_patches(coded32, weights, binary, patch)
     # every patch's code, (Pn, N, m): the largest array here, made only where a path reads it
-    S_all = functools.cache(lambda: P.extract(mask.astype(np.uint8) if binary else mask, patch))
+    S_all = functools.cache(lambda: P.extract(weights.astype(np.uint8) if binary else weights, patch))
+    solve = _patch_solver(weights, D, binary, operator, patch, S_all, settings.max_atoms)
+    # a patch without any measured pixel has nothing to say: it is left out of the
+    # average, and pixels no patch with a measurement covers are NaN (filled later)
+    valid = patches.n_open > 0
+    taken = valid.size  # the patches this region solves or takes the still answer of (its statistics' count)
+    on_grid = stride_grid(settings.stride, (hp, wp), patch, origin, image_shape or (h, w))
+    if on_grid is not None:
+        valid &= on_grid
+        taken = int(on_grid.sum())  # (every patch was counted: atoms_mean a quarter, patches/s 4x, at stride 2)
+    if settings.weighting not in ("uniform", "fit"):
+        raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
+    still_rows, skip = _still_rows(still, valid, patch, (hp, wp))
+    summed, weight, counts = _fold_bands(patches, valid, still_rows, skip, D, settings, solve, S_all, (n, h, w))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
+    if still_rows is not None:  # pixels only still patches cover: the still answer exactly, as a still tile gives
+        others = P.fold((valid & ~still_rows).astype(np.float32), (h, w), patch)[0]
+        inner = (others == 0) & (weight > 0)
+        volume[:, inner] = _still_answer(coded32, weights, binary)[inner]
+    stats = np.array(
+        [taken, counts.static, counts.atoms, counts.hit, counts.dep, counts.seconds, time.perf_counter() - t_start],
+        dtype=np.float64,
+    )
+    return volume, stats
+
+
+def _calibrated(mask: np.ndarray) -> np.ndarray:
+    """A calibrated mask's weights in float32, as everywhere else (finite and >= 0, or ValueError)."""
+    weights = np.asarray(mask, dtype=np.float32)
+    if not np.isfinite(weights).all() or (weights < 0).any():
+        raise ValueError("mask weights must be finite and >= 0")
+    return weights
+
+
+@dataclass(frozen=True)
+class RegionPatches:
+    """Every overlapping patch of a region as the solvers read it (:func:`region_patches`).
+
+    Attributes
+    ----------
+    y : ndarray of shape (Pn, m), float32
+        Coded values (0 where a pixel is never open), C-contiguous.
+    n_pix : ndarray of shape (Pn, m)
+        Open sub-frames of every patch pixel (a calibrated mask: the sum of its weights).
+    n_open : ndarray of shape (Pn,), float32
+        Measured pixels of every patch.
+    grid : (hp, wp)
+        Patch corners along each axis (``Pn = hp * wp``).
+    patch : int
+        Patch side (``m = patch**2``).
+    """
+
+    y: np.ndarray
+    n_pix: np.ndarray
+    n_open: np.ndarray
+    grid: tuple[int, int]
+    patch: int
+
+
+def region_patches(coded: np.ndarray, mask: np.ndarray, binary: bool, patch: int) -> RegionPatches:
+    """The patches of a region's coded image (h, w) float32 under its mask (N, h, w), both solvers' first step."""
+    open_any = mask.any(0)
+    y = np.ascontiguousarray(P.extract(np.where(open_any, coded, 0.0).astype(np.float32), patch))
+    n_pix = P.extract(mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64), patch)
+    n_open = (n_pix > 0).sum(1).astype(np.float32)
+    return RegionPatches(y=y, n_pix=n_pix, n_open=n_open, grid=P.grid_shape(coded.shape, patch),
+                          patch=patch)
+
+
+def stride_grid(stride: int, grid: tuple[int, int], patch: int, origin: tuple[int, int],
+                image_shape: tuple[int, int]) -> np.ndarray | None:
+    """Which of a region's patches (raveled ``grid``) lie on the ``stride`` grid counted from the image's corner.
+
+    ``origin`` is the region's corner in the image of shape ``image_shape``; None for a stride of 1 or less
+    (every patch); a stride beyond the patch size (pixels no patch covers) is a ValueError.
+    """
+    if stride <= 1:
+        return None
+    if stride > patch:
+        raise ValueError(f"stride {stride}: must be 1 to {patch} (the patch size)")
+    ih, iw = image_shape
+    rows_on = P.stride_rows(origin[0], grid[0], ih - patch + 1, stride)
+    cols_on = P.stride_rows(origin[1], grid[1], iw - patch + 1, stride)
+    return (rows_on[:, None] & cols_on[None, :]).ravel()
+
+
+def _patch_solver(mask: np.ndarray, D: np.ndarray, binary: bool, operator: str, patch: int, S_all,
+                  max_atoms: int):
+    """The OMP of a region's patches under ``operator`` (:func:`reconstruct_region`): a function of the patches
+    ``y`` (rows ``rows`` of the band ``sl`` of the region's patches) and their tolerances, to an :class:`OmpResult`.
+    ``S_all()``: every patch's code (P, N, m)."""
+    m = patch * patch
     groups = None if operator != "auto" else periodic_groups(mask, patch)
     # periodic codes: the few distinct patch operators are built once for the region, however
     # few its patches, so that small edge tiles solve them with the same arithmetic as large ones
@@ -276,98 +364,106 @@ def reconstruct_region(
         grouped = None
     # any other code whose pixels take few shutter patterns (every single-bump code):
     # the compiled OMP over the region's pixel-pattern table
-    table = pat_all = weights = None
-    if grouped is None and operator == "auto" and (n <= 64 or not binary) and (binary or _few_patterns(mask, D, m)):
+    if grouped is None and operator == "auto" and (mask.shape[0] <= 64 or not binary) and (
+            binary or _few_patterns(mask, D, m)):
         patterns, which = pixel_patterns(mask)
         if table_fits(len(patterns), D, m):
             table, pat_all = TableOMP(patterns, D, m), P.extract(which, patch)
+            return lambda y, sl, rows, tol: table.solve(y, pat_all[sl][rows], max_atoms=max_atoms, tol=tol)
     # calibrated masks beyond a table: the compiled kernel with one table per patch
-    if grouped is None and table is None and (operator == "patch" or (operator == "auto" and not binary)):
+    if grouped is None and (operator == "patch" or (operator == "auto" and not binary)):
         weights = WeightsOMP(D, m)
-    # open sub-frames of every patch pixel (a calibrated mask: the sum of its weights)
-    n_pix = P.extract(mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64), patch)
-    n_open = (n_pix > 0).sum(1).astype(np.float32)
-    # a patch without any measured pixel has nothing to say: it is left out of the
-    # average, and pixels no patch with a measurement covers are NaN (filled later)
-    valid = n_open > 0
-    taken = y_all.shape[0]  # the patches this region solves or takes the still answer of (its statistics' count)
-    if settings.stride > 1:
-        if not 1 <= settings.stride <= patch:
-            raise ValueError(f"stride {settings.stride}: must be 1 to {patch} (the patch size)")
-        ih, iw = image_shape or (h, w)
-        rows_on = P.stride_rows(origin[0], hp, ih - patch + 1, settings.stride)
-        cols_on = P.stride_rows(origin[1], wp, iw - patch + 1, settings.stride)
-        on_grid = (rows_on[:, None] & cols_on[None, :]).ravel()
-        valid &= on_grid
-        taken = int(on_grid.sum())  # (every patch was counted: atoms_mean a quarter, patches/s 4x, at stride 2)
-    if settings.weighting not in ("uniform", "fit"):
-        raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
-    still_rows = skip = None
-    if still is not None and np.any(still):  # patches wholly still: the still answer, no search
-        still_rows = P.extract(np.asarray(still, np.uint8), patch).all(1) & valid
-        # still patches that no other patch overlaps: their pixels take the still answer below, unsummed
-        from scipy import ndimage  # lazy: only a job of several captures has still maps
+        return lambda y, sl, rows, tol: weights.solve(y, S_all()[sl][rows], max_atoms=max_atoms, tol=tol)
 
-        near = ndimage.maximum_filter((valid & ~still_rows).reshape(hp, wp), size=2 * patch - 1, mode="constant")
-        skip = still_rows & ~near.ravel()
+    def dense(y, sl, rows, tol):
+        # periodic codes share few patch operators; any other code has its own per patch
+        op = MaskedOperator(S_all()[sl][rows], D) if grouped is None else grouped.subset(sl.start + rows)
+        return omp(y, op, max_atoms=max_atoms, tol=tol)
+
+    return dense
+
+
+def _still_rows(still: np.ndarray | None, valid: np.ndarray, patch: int, grid: tuple[int, int]):
+    """The valid patches wholly inside the ``still`` pixels, and those of them that no other valid patch
+    overlaps (their pixels take the still answer, unsummed); (None, None) without still pixels."""
+    if still is None or not np.any(still):
+        return None, None
+    still_rows = P.extract(np.asarray(still, np.uint8), patch).all(1) & valid
+    from scipy import ndimage  # lazy: only a job of several captures has still maps
+
+    near = ndimage.maximum_filter((valid & ~still_rows).reshape(grid), size=2 * patch - 1, mode="constant")
+    return still_rows, still_rows & ~near.ravel()
+
+
+@dataclass
+class _Counts:
+    """What a region's bands did (its statistics)."""
+
+    static: int = 0
+    atoms: int = 0
+    hit: int = 0
+    dep: int = 0
+    seconds: float = 0.0
+
+
+def _fold_bands(patches: RegionPatches, valid: np.ndarray, still_rows, skip, D: np.ndarray, settings: OmpSettings,
+                solve, S_all, shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray, _Counts]:
+    """Every valid patch's estimate added at its place, whole rows of patches at a time (``settings.batch``):
+    the summed estimates (N, h, w), the weight each pixel got (h, w) and the counts."""
+    n, h, w = shape
+    hp, wp = patches.grid
+    m = patches.y.shape[1]
+    patch = patches.patch
     summed = np.zeros((n, h, w), np.float32)
     weight = np.zeros((1, h, w), np.float32)
-    atoms = hit = dep = n_static = 0
-    t_omp = 0.0
+    counts = _Counts()
     band = max(1, settings.batch // wp)  # whole rows of patches, folded as they finish
     for r0 in range(0, hp, band):
         r1 = min(hp, r0 + band)
-        s = r0 * wp
-        sl = slice(s, r1 * wp)
-        y, tol = y_all[sl], n_open[sl] * settings.tol_rms**2
-        est = np.zeros((y.shape[0], n * m), np.float32)
+        sl = slice(r0 * wp, r1 * wp)
+        y, tol = patches.y[sl], patches.n_open[sl] * settings.tol_rms**2
         t0 = time.perf_counter()
-        rows = np.flatnonzero(valid[sl])
-        if still_rows is not None and rows.size:
-            calm = still_rows[sl][rows]
-            if calm.any():
-                est[rows[calm]] = still_answers(y[rows[calm]], n_pix[sl][rows[calm]], n)
-                n_static += int(calm.sum())
-                rows = rows[~calm]
-        if settings.static_atoms > 0 and rows.size:
-            ok, still = still_patches(y[rows], n_pix[sl][rows], tol[rows], settings.static_atoms, frames=n, patch=patch)
-            est[rows[ok]] = still
-            n_static += int(ok.sum())
-            rows = rows[~ok]
-        if rows.size:
-            if table is not None:
-                res = table.solve(y[rows], pat_all[sl][rows], max_atoms=settings.max_atoms, tol=tol[rows])
-            elif weights is not None:
-                res = weights.solve(y[rows], S_all()[sl][rows], max_atoms=settings.max_atoms, tol=tol[rows])
-            else:
-                # periodic codes share few patch operators; any other code has its own per patch
-                op = MaskedOperator(S_all()[sl][rows], D) if grouped is None else grouped.subset(s + rows)
-                res = omp(y[rows], op, max_atoms=settings.max_atoms, tol=tol[rows])
-            est[rows] = synthesize(res, D)
-            dark = res.count == 0  # coded values within the tolerance: the still answer, not 0
-            if dark.any():
-                est[rows[dark]] = still_answers(y[rows[dark]], n_pix[sl][rows[dark]], n)
-            atoms += int(res.count.sum())
-            hit += int((res.count >= settings.max_atoms).sum())
-            dep += int(res.dependent.sum())
-        t_omp += time.perf_counter() - t0
+        calm = None if still_rows is None else still_rows[sl]
+        est = _band_estimates(y, patches.n_pix[sl], tol, np.flatnonzero(valid[sl]), calm, sl, D, settings, solve,
+                              counts, frames=n, patch=patch)
+        counts.seconds += time.perf_counter() - t0
         wp_ = valid[sl].astype(np.float32)
         if settings.weighting == "fit":
             misfit = y - (S_all()[sl] * est.reshape(-1, n, m)).sum(1)
-            e2 = np.einsum("pm,pm->p", misfit, misfit) / np.maximum(n_open[sl], 1)
+            e2 = np.einsum("pm,pm->p", misfit, misfit) / np.maximum(patches.n_open[sl], 1)
             wp_ = wp_ / (1.0 + e2 / max(settings.tol_rms, 1e-6) ** 2)
             est *= wp_[:, None]
         P.fold_rows(est, summed, r0, patch, skip=None if skip is None else skip[sl])
         P.fold_rows(wp_, weight, r0, patch)
-    weight = weight[0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
-    if still_rows is not None:  # pixels only still patches cover: the still answer exactly, as a still tile gives
-        others = P.fold((valid & ~still_rows).astype(np.float32), (h, w), patch)[0]
-        inner = (others == 0) & (weight > 0)
-        volume[:, inner] = _still_answer(coded, mask, binary)[inner]
-    stats = np.array(
-        [taken, n_static, atoms, hit, dep, t_omp, time.perf_counter() - t_start],
-        dtype=np.float64,
-    )
-    return volume, stats
+    return summed, weight[0], counts
+
+
+def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_rows: np.ndarray, calm: np.ndarray | None,
+                    sl: slice, D: np.ndarray, settings: OmpSettings, solve, counts: _Counts, *, frames: int,
+                    patch: int) -> np.ndarray:
+    """The estimates (rows of ``frames * m``, zero but for ``valid_rows``) of a band's patches ``y``: the still answer
+    of the wholly still ones (``calm``), then the still test's, then OMP (``solve``) for the rest."""
+    est = np.zeros((y.shape[0], frames * y.shape[1]), np.float32)
+    rows = valid_rows  # those still to estimate
+    if calm is not None and rows.size:
+        calm_rows = calm[rows]
+        if calm_rows.any():
+            est[rows[calm_rows]] = still_answers(y[rows[calm_rows]], n_pix[rows[calm_rows]], frames)
+            counts.static += int(calm_rows.sum())
+            rows = rows[~calm_rows]
+    if settings.static_atoms > 0 and rows.size:
+        ok, still_est = still_patches(y[rows], n_pix[rows], tol[rows], settings.static_atoms, frames=frames,
+                                      patch=patch)
+        est[rows[ok]] = still_est
+        counts.static += int(ok.sum())
+        rows = rows[~ok]
+    if rows.size:
+        res = solve(y[rows], sl, rows, tol[rows])
+        est[rows] = synthesize(res, D)
+        dark = res.count == 0  # coded values within the tolerance: the still answer, not 0
+        if dark.any():
+            est[rows[dark]] = still_answers(y[rows[dark]], n_pix[rows[dark]], frames)
+        counts.atoms += int(res.count.sum())
+        counts.hit += int((res.count >= settings.max_atoms).sum())
+        counts.dep += int(res.dependent.sum())
+    return est
