@@ -135,3 +135,11 @@ def test_api_warnings_name_its_arguments_at_the_callers_line(capture):
     assert any("data_range 255" in t for t in texts), texts
     assert not any("--" in t for t in texts), texts
     assert all(w.filename == __file__ for w in said), [w.filename for w in said]
+
+
+def test_simulate_takes_a_codes_unused_option_at_its_default_and_refuses_another_value(tmp_path, capsys):
+    common = ["simulate", "synth:default", "--frames", N, "--size", 16, 16, "--code", "bernoulli"]
+    rc, _, err = _cli(capsys, *common, "--bump", 2, "--output", tmp_path / "a")
+    assert rc == 0, err  # 2 is the default: nothing is ignored
+    rc, _, err = _cli(capsys, *common, "--bump", 3, "--output", tmp_path / "b")
+    assert rc == 2 and "--bump 3" in err and "does not use it" in err, err

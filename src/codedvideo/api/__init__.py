@@ -370,3 +370,5 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
 
 from codedvideo.api._job import Captures, ReconstructionJob  # noqa: E402  (the job the command line runs)
 from codedvideo.api._settings import Resolved, resolve as resolve_settings  # noqa: E402
+from codedvideo.api._simulate import (SimulateSettings, SimulationPlan, captures_of, plan_simulation,  # noqa: E402
+                                     simulate_captures, simulate_whole)

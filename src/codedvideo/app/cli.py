@@ -283,118 +283,31 @@ def _cmd_train(a) -> int:
     return 0
 
 
-def _check_in_memory(video: str, frames: int, size) -> None:
-    """A synthetic scene (or footage clip) is made whole in memory, with the capture: refuse one that would not
-    fit, before any work (a video file is simulated capture by capture instead)."""
-    if size is None:
-        return
-    from codedvideo.formats.io import available_memory
-
-    need = 3 * 4 * frames * size[0] * size[1]  # the float32 frames, the truth and the coded work (measured ~2.9x)
-    free = available_memory()
-    if free is None:
-        return
-    if need > 0.75 * free:  # (a quarter kept for the rest of the process and the machine)
-        raise ConfigError(f"option --captures: {video} is made whole in memory, {frames} frames of {size[0]}x{size[1]} "
-                          f"need about {need / 2**30:.1f} GiB, {free / 2**30:.1f} GiB are free; give fewer captures "
-                          "(a video file is simulated capture by capture)")
-
-
 def _cmd_simulate(a) -> int:
+    """A video seen through a code and a sensor: the API's simulation, written as coded.npy, mask.npy and
+    truth.npy (a video file's captures written as they are made)."""
     from codedvideo.formats.volumes import CAPTURE_FILES, write_capture
-    from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import sensor_model, simulate_capture
 
-    code = a.code or ("file" if a.code_file else "hitomi")
-    if a.code_file and code != "file":
-        raise InputError(f"--code-file {a.code_file}: only used with --code file (got --code {code})")
-    validated(PipelineConfig, dict(frames=a.frames, seed=a.seed), {"frames": "--frames"})
-    # an option the code or the sensor would ignore is refused, not dropped in silence
-    unused = ([f"--bump {a.bump}"] if a.bump is not None and code not in BUMP_CODES else []) \
-        + ([f"--p {a.p:g}"] if a.p is not None and code not in P_CODES else [])
-    if unused:
-        raise ConfigError(f"option {' and '.join(unused)}: --code {code} does not use it (--bump: "
-                          f"{', '.join(BUMP_CODES)}; --p: {', '.join(P_CODES)})")
-    if not a.shot_noise and (a.full_well is not None or a.gain is not None):
-        raise ConfigError("options --full-well and --gain describe the shot noise: give --shot-noise with them")
-    code_cfg = validated(CodeConfig, dict(name=code, path=a.code_file, **_given(bump=a.bump, p=a.p)),
-                         {"path": "--code-file"})
-    noise = validated(NoiseConfig, dict(sigma=a.noise_sigma, shot_noise=a.shot_noise, bits=a.bits,
-                                        white_level=a.white_level, black_level=a.black_level,
-                                        **_given(full_well=a.full_well, gain=a.gain)), {"sigma": "--noise-sigma"})
-    size = tuple(a.size) if a.size else ((256, 256) if a.video.startswith("synth:") else None)
-    if size is not None:
-        validated(SceneConfig, dict(video=a.video, size=size, start=a.start), {"start": "--start"})
-    else:
-        validated(SceneConfig, dict(video=a.video, start=a.start), {"start": "--start"})
-    captures = a.captures
-    if captures != "all":
-        try:
-            captures = int(captures)
-        except ValueError:
-            raise ConfigError(f"option --captures {a.captures!r}: a whole number of captures, or all") from None
-        if not 1 <= captures <= 100_000:
-            raise ConfigError(f"option --captures {captures}: Input should be between 1 and 100000")
-    elif a.video.startswith(("synth:", "footage:")):
-        raise ConfigError(f"option --captures all: only for a video file (give a number for {a.video})")
     if a.cacti_out and a.new_code_per_capture:
         raise ConfigError("option --cacti-out: a CACTI file has one mask; it does not go with --new-code-per-capture")
-    file_codes = 1  # codes in the code file: several are one per capture, in turn
-    if code_cfg.path:  # read (and checked) before any work
-        from codedvideo.formats.volumes import read_masks
-
-        file_mask = read_masks(code_cfg.path)
-        file_codes = file_mask.shape[0] if file_mask.ndim == 4 else 1
-        clash = [o for o, on in (("--new-code-per-capture", a.new_code_per_capture), ("--cacti-out", a.cacti_out),
-                                 ("--bayer", a.bayer)) if on]
-        if file_codes > 1 and clash:
-            raise ConfigError(f"option {clash[0]}: the code file {code_cfg.path} holds {file_codes} codes, one per "
-                              f"capture in turn, which {clash[0]} does not take")
-        if a.cacti_out:  # a CACTI file holds a binary mask: a calibrated one is refused before any work
-            from codedvideo.model.codes import is_binary
-
-            if not is_binary(file_mask):
-                raise ConfigError(f"option --cacti-out {a.cacti_out}: a CACTI file holds a binary mask, and the code "
-                                  f"file {code_cfg.path} is calibrated (values other than 0 and 1)")
-        del file_mask
-    if a.bayer:
-        from codedvideo.engine.bayer import check_even
-
-        if a.cacti_out or captures != 1:
-            raise ConfigError(f"option --bayer {a.bayer}: makes one capture with a colour truth; "
-                              f"{'--cacti-out (CACTI files are grey)' if a.cacti_out else '--captures'} does not apply")
-        if size is not None:
-            check_even(size, f"option --size {size[0]} {size[1]}")
+    if a.cacti_out and a.bayer:
+        raise ConfigError(f"option --bayer {a.bayer}: makes one capture with a colour truth; --cacti-out (CACTI "
+                          "files are grey) does not apply")
+    settings = api.SimulateSettings(**{f.name: getattr(a, f.name) for f in dataclasses.fields(api.SimulateSettings)})
+    plan = api.plan_simulation(settings, door="cli", clashes={"--cacti-out": a.cacti_out})
+    if a.cacti_out and not plan.binary:  # a CACTI file holds a binary mask: a calibrated one is refused before any work
+        raise ConfigError(f"option --cacti-out {a.cacti_out}: a CACTI file holds a binary mask, and the code "
+                          f"file {a.code_file} is calibrated (values other than 0 and 1)")
     out = Path(a.output)
     outputs = [Output(out, "place", "output folder")] + [Output(out / f, "file") for f in CAPTURE_FILES]
     if a.cacti_out:
         outputs.append(Output(Path(a.cacti_out), "file", "--cacti-out"))
     check_outputs(outputs, dict(video=a.video, code_file=a.code_file), overwrite=a.overwrite)  # before any work
-    if captures == "all":  # as many whole captures as the video holds from --start
-        from codedvideo.data.scenes import count_frames
-
-        total = count_frames(a.video, start=a.start)
-        captures, left = divmod(total, a.frames)
-        if captures < 1:
-            raise InputError(f"video {a.video}: fewer than N = {a.frames} frames from frame {a.start}")
-        if left:
-            warnings.warn(f"video {a.video}: {total} frames from frame {a.start} make {captures} captures of N = "
-                          f"{a.frames}; its last {left} frames are left out")
-    options = dict(code=code_cfg.name, bump=code_cfg.bump, sigma=noise.sigma, seed=a.seed, p=code_cfg.p,
-                   code_path=code_cfg.path, sensor=sensor_model(noise))
-    if not (a.bayer or a.cacti_out or a.video.startswith(("synth:", "footage:"))):
-        paths = _simulate_video_file(a, captures=captures, size=size, options=options,
-                                     per_capture=a.new_code_per_capture or file_codes > 1)
-    elif a.bayer:  # the colour video through the filter: coded.npy the mosaic, truth.npy (3, N, H, W)
-        from codedvideo.engine.bayer import load_color_video, simulate_bayer
-
-        cap = simulate_bayer(load_color_video(a.video, frames=a.frames, size=size, seed=a.seed, start=a.start),
-                             a.bayer, where=f"video {a.video}", **options)
-        paths = write_capture(cap, a.output)
+    captures = api.captures_of(plan)
+    if plan.streamed and not a.cacti_out:
+        paths = _simulate_video_file(a, plan, captures)
     else:
-        _check_in_memory(a.video, a.frames * captures, size)
-        video = load_video(a.video, frames=a.frames * captures, size=size, seed=a.seed, start=a.start)
-        cap = simulate_capture(video, captures=captures, new_code_per_capture=a.new_code_per_capture, **options)
+        cap = api.simulate_whole(plan, captures)
         paths = write_capture(cap, a.output)
     if a.cacti_out:
         from codedvideo.formats.cacti import write_cacti
@@ -506,26 +419,20 @@ def _read_captures(a) -> api.Captures:
         dtype=stored_dtype(a.coded), source=f"coded image {a.coded}")
 
 
-def _simulate_video_file(a, *, captures: int, size, options: dict, per_capture: bool) -> dict:
+def _simulate_video_file(a, plan, captures: int) -> dict:
     """``simulate`` of a video file or a folder of frames: read, coded and written capture by capture (the same
-    files as :func:`codedvideo.engine.stages.simulate_capture` of the whole clip); their paths.  ``per_capture``: a
-    mask per capture (a new code each, or a code file's codes in turn)."""
-    from codedvideo.data.scenes import iter_clips
-    from codedvideo.engine.stages import simulate_stream
+    files as the API's whole simulation of the clip); their paths."""
     from codedvideo.formats.volumes import capture_paths, capture_writer
 
     out = Path(a.output)
-    clips = iter_clips(a.video, frames=a.frames, captures=captures, size=size, start=a.start)
-    first = next(clips)
-    h, w = first.shape[1:]
-    masks = captures if per_capture else 1
+    masks = captures if a.new_code_per_capture or plan.file_codes > 1 else 1  # a mask per capture, or one
     made = not out.exists()
+    first, stream = api.simulate_captures(plan, captures)
+    h, w = first.shape[1:]
     try:
         with capture_writer(out, coded_shape=(captures, h, w) if captures > 1 else (h, w),
                             mask_shape=(masks, a.frames, h, w) if masks > 1 else (a.frames, h, w),
                             truth_shape=(captures * a.frames, h, w)) as put:
-            stream = simulate_stream(itertools.chain([first], clips), captures=captures,
-                                     new_code_per_capture=a.new_code_per_capture, **options)
             for t, (coded, mask, clip) in enumerate(stream):
                 put(coded, mask if t < masks else None, clip)
     except BaseException:  # a video cut short found on the way: no file was renamed into place
