@@ -351,24 +351,57 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
 
     Returns
     -------
-    dict with ``psnr``, ``ssim`` (means over frames), ``psnr_per_frame``, ``ssim_per_frame``, ``data_range``
-    and ``psnr_peak`` (the peak used and how it was found)
+    dict with ``psnr``, ``ssim`` (means over frames), ``psnr_per_frame``, ``ssim_per_frame``, ``data_range``,
+    ``data_range_source`` and ``psnr_peak`` (the peak used and how it was found)
 
     >>> v = np.linspace(0, 1, 8 * 16 * 16, dtype=np.float32).reshape(8, 16, 16)
     >>> round(evaluate(v + 0.01, v)["psnr"], 1)
     40.0
     """
-    from codedvideo.model.metrics import evaluate as _evaluate
+    return scores(recon, truth, data_range=data_range)
+
+
+def _peak(v) -> float:
+    """The largest value of a volume or a lazy stack, a block of frames at a time (never held whole)."""
+    from codedvideo.model.metrics import EVALUATE_BLOCK
+
+    return max((float(np.max(np.asarray(v[s:s + EVALUATE_BLOCK], np.float32), initial=0.0))
+                for s in range(0, v.shape[0], EVALUATE_BLOCK)), default=0.0)
+
+
+def truth_data_range(truth, *, data_range: float | None = None, where: str = "truth"):
+    """The data range a reconstruction is scored against (:class:`codedvideo.model.units.DataRange`): the one
+    given, or found from the truth's peak (so the same video scores the same in any float scale)."""
     from codedvideo.model.units import truth_range
 
-    recon, truth = np.asarray(recon, np.float32), np.asarray(truth, np.float32)
-    if recon.shape != truth.shape:
-        raise InputError(f"evaluate: reconstruction {recon.shape} and truth {truth.shape} differ in shape")
-    units = truth_range(float(truth.max(initial=0.0)), given=data_range, where="evaluate: truth")
-    return dict(_evaluate(recon, truth, data_range=units.value), psnr_peak=dict(value=units.value, source=units.source))
+    return truth_range(_peak(truth), given=data_range, where=f"evaluate: {where}")
+
+
+def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, str] = ("reconstruction", "truth"),
+           **extra) -> dict:
+    """:func:`evaluate` on volumes or lazy stacks (anything with ``shape`` and slices of consecutive frames),
+    compared a block of frames at a time; ``names``: what the two are called in messages (their files);
+    ``extra``: more keys for the result.  Warns when the two do not look like the same units."""
+    from codedvideo.model.metrics import evaluate as _evaluate, json_safe
+
+    recon = recon if hasattr(recon, "shape") else np.asarray(recon, np.float32)
+    truth = truth if hasattr(truth, "shape") else np.asarray(truth, np.float32)
+    if tuple(recon.shape) != tuple(truth.shape):
+        raise InputError(f"evaluate: reconstruction {tuple(recon.shape)} and truth {tuple(truth.shape)} differ in shape")
+    units = truth_data_range(truth, data_range=data_range, where=names[1])
+    peak, recon_peak = units.peak, _peak(recon)
+    # another unit: a score that means nothing; against the truth's own peak, not its range (a dark scene's
+    # reconstruction peaks as far below 255 as its truth does)
+    if peak > 0 and not peak / 16 <= recon_peak <= 4 * peak:
+        warnings.warn(f"evaluate: {names[0]} peaks at {recon_peak:.4g} and {names[1]} at {peak:.4g} (data range "
+                      f"{units.value:g}, {units.source}); are they in the same units? (a [0, 1] reconstruction "
+                      "against 8-bit truth scores about 10 dB)", stacklevel=2)
+    return json_safe(dict(_evaluate(recon, truth, data_range=units.value), data_range_source=units.source,
+                          psnr_peak=dict(value=units.value, source=units.source), **extra))
 
 
 from codedvideo.api._job import Captures, ReconstructionJob  # noqa: E402  (the job the command line runs)
 from codedvideo.api._settings import Resolved, resolve as resolve_settings  # noqa: E402
 from codedvideo.api._simulate import (SimulateSettings, SimulationPlan, captures_of, plan_simulation,  # noqa: E402
                                      simulate_captures, simulate_whole)
+from codedvideo.api._train import plan_training, train_dictionary  # noqa: E402

@@ -253,30 +253,15 @@ def _given(**options) -> dict:
 
 
 def _cmd_train(a) -> int:
-    from codedvideo.engine.stages import train_dictionary
-
-    given = _given(atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
-                   max_speed=a.max_speed)
-    if a.kind == "dct" and (given or a.videos or a.init or not a.augment):
-        named = [f"--{k.replace('_', '-')}" for k in given] + (["VIDEO"] if a.videos else []) \
-            + (["--init"] if a.init else []) + ([] if a.augment else ["--no-augment"])
-        raise ConfigError(f"train --kind dct: {', '.join(named)} {'is' if len(named) == 1 else 'are'} for learned "
-                          "dictionaries only (a 3D DCT one has N x 49 atoms and is not trained)")
-    dictionary = validated(DictionaryConfig, dict(kind=a.kind, training=list(a.videos) or ["synth:train"],
-                                                  init=a.init, augment=a.augment, **given),
-                           {"training": "VIDEO", "max_speed": "--max-speed", "init": "--init", "kind": "--kind",
-                            "atoms": "--atoms"})
-    cfg = validated(PipelineConfig, dict(frames=a.frames, seed=a.seed, cache=a.cache, dictionary=dictionary),
-                    {"atoms": "--atoms", "samples": "--samples"})
-    suffix = Path(a.output).suffix.lower()
-    if suffix in (".npy", ".npz", ".mat", ".json", ".h5", ".hdf5", ".tif", ".tiff", ".txt", ".csv"):
-        raise ConfigError(f"dictionary output {a.output}: a dictionary is a Zarr store (a folder, .zarr) or a zipped "
-                          f"one (.zip), not {suffix}")
-    kind = "file" if suffix == ".zip" else "folder"  # a zipped store is one file
+    """Learn (or reuse) a dictionary with the API's training job and store it at ``--output``."""
+    cfg = api.plan_training(frames=a.frames, videos=list(a.videos), kind=a.kind, atoms=a.atoms,
+                            iterations=a.iterations, samples=a.samples, sparsity=a.sparsity, max_speed=a.max_speed,
+                            init=a.init, augment=a.augment, seed=a.seed, cache=a.cache, output=a.output, door="cli")
+    kind = "file" if Path(a.output).suffix.lower() == ".zip" else "folder"  # a zipped store is one file
     check_outputs([Output(Path(a.output), kind, "dictionary")],  # before training
                   dict(video=list(a.videos), cache=a.cache, init=a.init if a.init != "shipped" else None),
                   overwrite=a.overwrite)
-    path, meta = train_dictionary(cfg, output=a.output, progress=not a.quiet, retrain=a.retrain)
+    path, meta = api.train_dictionary(cfg, output=a.output, progress=not a.quiet, retrain=a.retrain)
     mark_written(path)
     print(json.dumps(dict(dictionary=str(path), atoms=meta["atoms"], frames=meta["frames"], method=meta.get("method"),
                           final_rmse=meta.get("final_rmse"), reused=meta["reused"], seconds=round(meta["seconds"], 2))))
@@ -540,17 +525,16 @@ def _written_range(path) -> float | None:
 
 
 def _cmd_evaluate(a) -> int:
+    """Per-frame and mean PSNR/SSIM of a reconstruction file against a truth file: read both (a long .npy a
+    block of frames at a time), score them with the API's evaluate, print (and write) the JSON."""
     from codedvideo.formats.io import VIDEO_SUFFIXES
-    from codedvideo.model.metrics import EVALUATE_BLOCK, evaluate, json_safe
     from codedvideo.formats.volumes import write_json
-    from codedvideo.model.units import truth_range
 
     out = validated(OutputConfig, dict(data_range=a.data_range))
     if a.output:
         check_outputs([Output(Path(a.output), "file")], dict(recon=a.recon, truth=a.truth), overwrite=a.overwrite)
         if Path(a.output).suffix.lower() != ".json":
             raise ConfigError(f"evaluate --output {a.output}: the scores are written as JSON; name it .json")
-    # long (T*N, H, W) .npy videos are compared a block of frames at a time, never held whole
     recon = _scored_volume(a.recon, "reconstruction")
     truth = _scored_volume(a.truth, "truth")
     if len(truth.shape) != len(recon.shape):  # colour against grey: their luma, said
@@ -561,28 +545,15 @@ def _cmd_evaluate(a) -> int:
         recon, truth = (np.tensordot(LUMA, v, axes=([0], [0])) if len(v.shape) == 4 else v for v in (recon, truth))
     if len(truth.shape) == 4 and recon.shape == truth.shape:  # colour (C, N, H, W): every channel's frames
         recon, truth = recon.reshape(-1, *recon.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])
-
-    def peak_of(v) -> float:
-        return max((float(np.max(v[s : s + EVALUATE_BLOCK], initial=0.0)) for s in range(0, v.shape[0], EVALUATE_BLOCK)),
-                   default=0.0)
-
-    peak = peak_of(truth)
-    units = truth_range(peak, given=out.data_range, where=f"truth {a.truth}")
     extra = {}
     if Path(a.recon).suffix.lower() in VIDEO_SUFFIXES:  # 8-bit frames: 255 was the data range they were written with
-        written = _written_range(a.recon) or units.value
+        written = _written_range(a.recon) or api.truth_data_range(truth, data_range=out.data_range,
+                                                                  where=f"truth {a.truth}").value
         if written != 255.0:
             recon = np.asarray(recon, np.float32) * np.float32(written / 255.0)
             extra["reconstruction_scaled"] = f"video frames x {written:g} / 255 (the data range they were written with)"
-    recon_peak = peak_of(recon)
-    # another unit: a score that means nothing; against the truth's own peak, not its range (a dark scene's
-    # reconstruction peaks as far below 255 as its truth does)
-    if peak > 0 and not peak / 16 <= recon_peak <= 4 * peak:
-        warnings.warn(f"evaluate: {a.recon} peaks at {recon_peak:.4g} and {a.truth} at {peak:.4g} (data range "
-                      f"{units.value:g}, {units.source}); are they in the same units? (a [0, 1] reconstruction "
-                      "against 8-bit truth scores about 10 dB)")
-    result = json_safe(dict(evaluate(recon, truth, data_range=units.value), data_range_source=units.source,
-                            psnr_peak=dict(value=units.value, source=units.source), **extra))
+    result = api.scores(recon, truth, data_range=out.data_range, names=(str(a.recon), f"truth {a.truth}"),
+                        **extra)
     if a.output:
         mark_written(write_json(Path(a.output), result))
     print(json.dumps(result, allow_nan=False))

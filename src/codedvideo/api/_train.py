@@ -1,0 +1,40 @@
+"""The training job both doors run: settings checked before any work (:func:`plan_training`), then the
+dictionary learned (or reused from the cache) and stored (:func:`train_dictionary`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from codedvideo.api._settings import setting_name
+from codedvideo.engine.config import DictionaryConfig, PipelineConfig, validated
+from codedvideo.engine.stages import train_dictionary
+from codedvideo.model.errors import ConfigError
+
+__all__ = ["plan_training", "train_dictionary"]
+
+#: File types a dictionary is never stored as (it is a Zarr store: a folder, or a zipped one).
+NOT_A_STORE = (".npy", ".npz", ".mat", ".json", ".h5", ".hdf5", ".tif", ".tiff", ".txt", ".csv")
+
+
+def plan_training(*, frames: int, videos=(), kind: str = "learned", atoms: int | None = None,
+                  iterations: int | None = None, samples: int | None = None, sparsity: int | None = None,
+                  max_speed: float | None = None, init: str | None = None, augment: bool = True, seed: int = 0,
+                  cache: str | Path = "cache", output: str | Path | None = None, door: str = "api") -> PipelineConfig:
+    """The pipeline config of a training run (``codedvideo train``'s options; None: the default), checked before
+    any work: a 3D DCT dictionary takes none of the learned one's settings, and ``output`` is a store."""
+    opt = lambda k: setting_name(k, door)  # noqa: E731
+    given = {k: v for k, v in dict(atoms=atoms, iterations=iterations, samples=samples, sparsity=sparsity,
+                                   max_speed=max_speed).items() if v is not None}
+    if kind == "dct" and (given or videos or init or not augment):
+        named = [opt(k) for k in given] + (["VIDEO" if door == "cli" else "videos"] if videos else []) \
+            + ([opt("init")] if init else []) + ([] if augment else ["--no-augment" if door == "cli" else "augment"])
+        raise ConfigError(f"train {opt('kind')} dct: {', '.join(named)} {'is' if len(named) == 1 else 'are'} for "
+                          "learned dictionaries only (a 3D DCT one has N x 49 atoms and is not trained)")
+    names = {k: opt(k) for k in ("max_speed", "init", "kind", "atoms", "samples")}
+    dictionary = validated(DictionaryConfig, dict(kind=kind, training=list(videos) or ["synth:train"], init=init,
+                                                  augment=augment, **given),
+                           dict(names, training="VIDEO" if door == "cli" else "videos"))
+    if output is not None and Path(output).suffix.lower() in NOT_A_STORE:
+        raise ConfigError(f"dictionary output {output}: a dictionary is a Zarr store (a folder, .zarr) or a zipped "
+                          f"one (.zip), not {Path(output).suffix.lower()}")
+    return validated(PipelineConfig, dict(frames=frames, seed=seed, cache=str(cache), dictionary=dictionary), names)
