@@ -15,11 +15,17 @@ from typing import Annotated, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
+from codedvideo.engine.methods import ADAPTIVE, WITH_DICTIONARY
 from codedvideo.model.errors import ConfigError
 from codedvideo.model.physics import SensorModel
 from codedvideo.model.units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX
+from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
 STAGES = ("train", "simulate", "reconstruct", "evaluate")
+#: The tile side in pixels (``reconstruct.tile``, ``--tile``) and the cache folder (``cache``, ``--cache``) by default.
+DEFAULT_TILE, DEFAULT_CACHE = 128, "cache"
+#: A method that takes a dictionary (:data:`codedvideo.engine.methods.WITH_DICTIONARY`): ``reconstruct.method``.
+DictionaryMethod = Literal[WITH_DICTIONARY]
 
 
 def _pair(v):
@@ -131,10 +137,10 @@ class NoiseConfig(_Strict):
 
 class DictionaryConfig(_Strict):
     kind: Literal["learned", "dct"] = "learned"
-    atoms: int = Field(512, ge=1, le=16384)
-    samples: int = Field(80000, ge=100, le=10_000_000)
-    iterations: int = Field(20, ge=0, le=1000)
-    sparsity: int = Field(6, ge=1, le=49)
+    atoms: int = Field(KSVD_ATOMS, ge=1, le=16384)
+    samples: int = Field(KSVD_SAMPLES, ge=100, le=10_000_000)
+    iterations: int = Field(KSVD_ITERATIONS, ge=0, le=1000)
+    sparsity: int = Field(KSVD_SPARSITY, ge=1, le=49)
     #: ``synth:train`` (synthetic motion of the training photographs) or video paths.
     training: list[str] = ["synth:train"]
     clips: int = Field(144, ge=1, le=100_000)
@@ -201,7 +207,7 @@ class ReconstructConfig(_Strict):
     #: Average of overlapping estimates: "uniform" (the paper) or "fit" (weighted by misfit).
     weighting: Literal["uniform", "fit"] = "uniform"
     #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved together.
-    method: Literal["omp", "nonlocal"] = "omp"
+    method: DictionaryMethod = "omp"
     #: Adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, reconstruct again
     #: (omp: about twice the time; nonlocal: a sparse survey first, about 1.2x its time; README, "Adapting the
     #: dictionary").
@@ -213,7 +219,7 @@ class ReconstructConfig(_Strict):
     #: ``best``: 32, +0.9 dB on held-out real footage over its two rounds; docs/quality.md, "Refinement").
     refine: int = Field(0, ge=0, le=200)
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
-    tile: int = Field(128, ge=8, le=4096)
+    tile: int = Field(DEFAULT_TILE, ge=8, le=4096)
     batch: int = Field(4096, ge=1, le=1 << 20)
     #: A dask.distributed address (``tcp://host:port``, ``tls://...``), or "threads" / "sync".
     scheduler: str | None = None
@@ -334,9 +340,9 @@ class ReportConfig(_Strict):
     speed_codes: list[Literal["hitomi", "hitomi-tiled"]] = ["hitomi", "hitomi-tiled"]
     speed_strides: list[Annotated[int, Field(ge=1, le=7)]] = [1, 2, 3]
     #: Speed study: the sparse methods besides the configured one, each a point with its default settings.
-    speed_methods: list[Literal["omp", "nonlocal"]] = ["omp", "nonlocal"]
+    speed_methods: list[DictionaryMethod] = list(WITH_DICTIONARY)
     #: Speed study: the sparse methods also timed with their dictionary adapted to each capture (``--adapt``).
-    speed_adapt: list[Literal["omp", "nonlocal"]] = ["nonlocal"]
+    speed_adapt: list[DictionaryMethod] = ["nonlocal"]
     #: The scene of the frame strips and the side-by-side video.
     video_scene: str = "default"
     fps: int = Field(4, ge=1)
@@ -396,7 +402,7 @@ class ReportConfig(_Strict):
 class PipelineConfig(_Strict):
     seed: int = Field(0, ge=0, le=2**63 - 1)
     frames: int = Field(8, ge=1, le=64)
-    cache: str = "cache"
+    cache: str = DEFAULT_CACHE
     stages: list[Literal["train", "simulate", "reconstruct", "evaluate"]] = list(STAGES)
     scene: SceneConfig = SceneConfig()
     code: CodeConfig = CodeConfig()
@@ -471,8 +477,9 @@ def _refusal(key: str, options: dict, bayer: str | None) -> str | None:
                 "passes before it)")
     if key == "adapt_rounds" and options["adapt_rounds"] != 1 and not options["adapt"]:
         return "applies with --adapt only"
-    if key == "adapt" and options["adapt"] and method not in ("omp", "nonlocal", "dct"):
-        return f"adapts the dictionary of --method omp, nonlocal or dct (--method {method} has none)"
+    if key == "adapt" and options["adapt"] and method not in ADAPTIVE:
+        return (f"adapts the dictionary of --method {', '.join(ADAPTIVE[:-1])} or {ADAPTIVE[-1]} (--method {method} "
+                "has none)")
     return None
 
 
