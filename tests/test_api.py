@@ -80,12 +80,12 @@ def test_without_a_cache_nothing_is_left_on_disk(tmp_path, monkeypatch, footage0
 def test_a_dask_array_is_reconstructed_lazily_and_equals_numpy(footage01, monkeypatch):
     import dask.array as da
 
-    from codedvideo.engine import stages
+    from codedvideo.engine import captures
 
     video, masks, coded = footage01
     calls = []
-    real = stages.reconstruct_stream
-    monkeypatch.setattr(stages, "reconstruct_stream", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = captures.reconstruct_stream
+    monkeypatch.setattr(captures, "reconstruct_stream", lambda *a, **k: calls.append(1) or real(*a, **k))
     lazy = cv.reconstruct(da.from_array(coded, chunks=(2, SIZE, SIZE)), masks)
     assert isinstance(lazy, da.Array) and lazy.shape == (3 * N, SIZE, SIZE)
     assert lazy.chunks[0] == (N, N, N) and not calls  # one chunk a capture; nothing computed yet

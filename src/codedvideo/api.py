@@ -313,13 +313,14 @@ def reconstruct(coded, mask, *, dictionary=None, method: str | None = None, adap
     D, key, name = _dictionary(method, dictionary, n)
     with contextlib.ExitStack() as stack:
         folder = cache if cache is not None else stack.enter_context(tempfile.TemporaryDirectory(prefix="codedvideo-"))
-        from codedvideo.engine.stages import reconstruct_stream
+        from codedvideo.engine.captures import CaptureSettings, reconstruct_stream
 
-        results = reconstruct_stream(method, codeds, mask_of, join=not independent_captures, data_range=units,
-                                     spill=folder, noise_sigma=sigma, settings=settings, dictionary=D, dictionary_key=key,
-                                     dictionary_name=name, where="reconstruct", tile=rc.tile, cache=folder,
-                                     workers=workers, progress=progress, adapt=adapt, adapt_rounds=rc.adapt_rounds,
-                                     refine=rc.refine)
+        results = reconstruct_stream(CaptureSettings(method, data_range=units, noise_sigma=sigma, settings=settings,
+                                                     dictionary=D, dictionary_key=key, dictionary_name=name,
+                                                     where="reconstruct", tile=rc.tile, cache=folder, workers=workers,
+                                                     progress=progress, adapt=adapt, adapt_rounds=rc.adapt_rounds,
+                                                     refine=rc.refine),
+                                     codeds, mask_of, join=not independent_captures, spill=folder)
         out = np.empty((count * n, *coded.shape[-2:]), np.float32)
         infos = []
         with contextlib.closing(results):

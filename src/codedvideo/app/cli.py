@@ -252,7 +252,7 @@ def _given(**options) -> dict:
 
 
 def _cmd_train(a) -> int:
-    from codedvideo.engine.stages import train_dictionary
+    from codedvideo.engine.training import train_dictionary
 
     given = _given(atoms=a.atoms, iterations=a.iterations, samples=a.samples, sparsity=a.sparsity,
                    max_speed=a.max_speed)
@@ -302,7 +302,7 @@ def _check_in_memory(video: str, frames: int, size) -> None:
 def _cmd_simulate(a) -> int:
     from codedvideo.formats.volumes import CAPTURE_FILES, write_capture
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import sensor_model, simulate_capture
+    from codedvideo.engine.simulation import sensor_model, simulate_capture
 
     code = a.code or ("file" if a.code_file else "hitomi")
     if a.code_file and code != "file":
@@ -564,7 +564,7 @@ def _simulate_video_file(a, *, captures: int, size, options: dict, per_capture: 
     files as :func:`codedvideo.engine.stages.simulate_capture` of the whole clip); their paths.  ``per_capture``: a
     mask per capture (a new code each, or a code file's codes in turn)."""
     from codedvideo.data.scenes import iter_clips
-    from codedvideo.engine.stages import simulate_stream
+    from codedvideo.engine.simulation import simulate_stream
     from codedvideo.formats.volumes import capture_paths, capture_writer
 
     out = Path(a.output)
@@ -595,7 +595,9 @@ def _cmd_reconstruct(a) -> int:
     one metrics JSON with an entry per coded image and the totals."""
     from codedvideo.model.metrics import evaluate, json_safe, mean_psnr
     from codedvideo.formats.volumes import write_json, metrics_path, volume_writer
-    from codedvideo.engine.stages import SPARSE_METHODS, cache_room, reconstruct_stream, trivial_estimate
+    from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, trivial_estimate
+    from codedvideo.engine.methods import SPARSE as SPARSE_METHODS
+    from codedvideo.engine.windows import cache_room
     from codedvideo.model.units import capture_units, tolerance_warning
 
     rc, noise, out, preset = _reconstruct_options(a)  # before any work
@@ -635,9 +637,9 @@ def _cmd_reconstruct(a) -> int:
     if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
         from codedvideo.engine.bayer import reconstruct_bayer, static_estimate
 
-        results = iter([(0, *reconstruct_bayer(a.method, job.codeds[0], job.mask(0), pattern=a.bayer, adapt=rc.adapt,
-                                               adapt_rounds=rc.adapt_rounds, refine=rc.refine,
-                                               cache_budget=rc.cache_budget, **options))])
+        results = iter([(0, *reconstruct_bayer(CaptureSettings(a.method, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds,
+                                                               refine=rc.refine, cache_budget=rc.cache_budget, **options),
+                                               job.codeds[0], job.mask(0), pattern=a.bayer))])
         trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
     else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
         stream = job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures
@@ -648,10 +650,11 @@ def _cmd_reconstruct(a) -> int:
             # of exposure): nothing is averaged or joined across them
             cuts = Cuts(job.codeds, job.mask, scale=units.scale, white_level=white)
         # (a benchmark file's measurements are joined, but share no still answers: each has its own scene)
-        results = reconstruct_stream(a.method, job.codeds, job.mask, join=stream, still=job.kind == "captures",
-                                     cuts=cuts, spill=a.cache, noise_sigma=noise.sigma, adapt=rc.adapt,
-                                     adapt_rounds=rc.adapt_rounds, refine=rc.refine, cache_budget=rc.cache_budget,
-                                     **options)
+        results = reconstruct_stream(CaptureSettings(a.method, noise_sigma=noise.sigma, adapt=rc.adapt,
+                                                     adapt_rounds=rc.adapt_rounds, refine=rc.refine,
+                                                     cache_budget=rc.cache_budget, **options),
+                                     job.codeds, job.mask, join=stream, still=job.kind == "captures", cuts=cuts,
+                                     spill=a.cache)
     entries, per_frame, trivial_frames, t_write = [], dict(psnr=[], ssim=[]), dict(psnr=[], ssim=[]), 0.0
     from codedvideo.model.sequence import StepErrors
 
@@ -973,7 +976,7 @@ def _config(a, use: str = "run"):
 
 
 def _cmd_run(a) -> int:
-    from codedvideo.engine.stages import run_pipeline
+    from codedvideo.engine.pipeline import run_pipeline
 
     report = run_pipeline(_config(a), progress=not a.quiet, config_path=a.config)
     lines = [f"metrics: {report['metrics_path']}"]

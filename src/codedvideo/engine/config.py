@@ -573,13 +573,13 @@ _NUMBER_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_
 def allowed(model: type[BaseModel], loc) -> str | None:
     """The range a number field of ``model`` (at location ``loc``, or a field name) allows, as ``[0, 1e+12]``
     or ``(0, 1]`` (None: no bounds): the one statement of the bounds, for pipeline.yaml and the options."""
-    field = None
+    field, section = None, model
     for part in (loc,) if isinstance(loc, str) else loc:
-        if not isinstance(part, str) or model is None or part not in getattr(model, "model_fields", {}):
+        if not isinstance(part, str) or section is None or part not in getattr(section, "model_fields", {}):
             continue
-        field = model.model_fields[part]
+        field = section.model_fields[part]
         sub = field.annotation
-        model = sub if isinstance(sub, type) and issubclass(sub, BaseModel) else None
+        section = sub if isinstance(sub, type) and issubclass(sub, BaseModel) else None
     if field is None:
         return None
     found = {}
@@ -628,28 +628,28 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
     may appear twice, and values are not coerced (``frames: "8"`` or
     ``frames: true`` are errors, as are inf and NaN).
     """
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"config {path}: no such file")
-    if not path.is_file():
-        raise ConfigError(f"config {path}: not a file (give the path of a pipeline.yaml)")
+    file = Path(path)
+    if not file.exists():
+        raise ConfigError(f"config {file}: no such file")
+    if not file.is_file():
+        raise ConfigError(f"config {file}: not a file (give the path of a pipeline.yaml)")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = file.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"config {path}: not UTF-8 text (byte {exc.start})") from exc
+        raise ConfigError(f"config {file}: not UTF-8 text (byte {exc.start})") from exc
     except OSError as exc:
-        raise ConfigError(f"config {path}: cannot read it ({exc.strerror or exc})") from exc
+        raise ConfigError(f"config {file}: cannot read it ({exc.strerror or exc})") from exc
     try:
         raw = yaml.load(text, Loader=_UniqueKeyLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         problem = getattr(exc, "problem", None) or " ".join(str(exc).split())
         where = f", line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"config {path}: not valid YAML ({problem}{where})") from exc
+        raise ConfigError(f"config {file}: not valid YAML ({problem}{where})") from exc
     if raw is None:
-        raise ConfigError(f"config {path}: empty; give at least the stages to run (see the README's pipeline.yaml)")
+        raise ConfigError(f"config {file}: empty; give at least the stages to run (see the README's pipeline.yaml)")
     if not isinstance(raw, dict):
-        raise ConfigError(f"config {path}: expected a mapping at the top level")
+        raise ConfigError(f"config {file}: expected a mapping at the top level")
     try:
         # JSON mode: YAML lists are valid tuples, and strict types still apply
         cfg = PipelineConfig.model_validate_json(json.dumps(raw, default=str), context=dict(use=use))
@@ -660,12 +660,12 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
         # (a rule between keys names them itself: the whole section it was given is no help on one line)
         value = "" if err["type"] == "extra_forbidden" or isinstance(err.get("input"), dict) \
             else f" = {err.get('input')!r}"
-        raise ConfigError(f"config {path}: {where}{value}: {msg.removeprefix('Value error, ')}") from exc
+        raise ConfigError(f"config {file}: {where}{value}: {msg.removeprefix('Value error, ')}") from exc
     name, section = cfg.reconstruct.preset, raw.get("reconstruct")
     beside = {k: v for k, v in section.items() if k in PRESETS.get(name, {}) and v != PRESETS[name][k]} \
         if name and isinstance(section, dict) else {}
     if beside:  # (a pipeline.yaml that lists every key at its default would leave the preset nothing to set)
-        warnings.warn(f"config {path}: " + ", ".join(f"reconstruct.{k} {v}" for k, v in beside.items())
+        warnings.warn(f"config {file}: " + ", ".join(f"reconstruct.{k} {v}" for k, v in beside.items())
                       + f" given beside reconstruct.preset {name} {'wins' if len(beside) == 1 else 'win'} over the "
                       + "preset's " + ", ".join(f"{PRESETS[name][k]}" for k in beside), stacklevel=2)
     return cfg
