@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from codedvideo.engine.cache import CacheBudget, cache_room_problem, content_key, recon_entry, recon_key, RECON_VERSION
+from codedvideo.engine.cache import RECON_VERSION, CacheBudget, cache_room_problem, content_key, recon_entry, recon_key
 from codedvideo.engine.config import DEFAULT_CACHE, DEFAULT_TILE
 from codedvideo.engine.locks import Busy, EntryLocks
 from codedvideo.engine.parallel import GraphRunner, build_graph, plan_store, plan_tiles, store_volume
