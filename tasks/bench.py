@@ -86,7 +86,7 @@ def dictionary_for(frames: int):
     """The default dictionary for N = 8; for larger N (speed cases only) a shorter K-SVD run
     (20k samples, 10 iterations) with the same number of atoms, so training stays in minutes."""
     from codedvideo.engine.config import PipelineConfig
-    from codedvideo.engine.stages import train_dictionary
+    from codedvideo.engine.training import train_dictionary
     from codedvideo.formats.store import load_dictionary
 
     cfg = PipelineConfig(frames=frames, cache=str(ROOT / "cache"))
@@ -99,7 +99,7 @@ def dictionary_for(frames: int):
 
 def capture(scene: str, frames: int, size, code: str, bump: int, seed: int = 0):
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
 
     video = load_video(f"synth:{scene}", frames=frames, size=size, seed=seed)
     return simulate_capture(video, code=code, bump=bump, sigma=0.0, seed=seed)
@@ -109,7 +109,7 @@ def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128
     """Reconstruct ``repeats`` times (each into a fresh store); seconds: the median, seconds_first: the first."""
     from codedvideo.engine.config import PipelineConfig, omp_settings
     from codedvideo.model.metrics import evaluate
-    from codedvideo.engine.stages import reconstruct_volume
+    from codedvideo.engine.windows import reconstruct_volume
     import tempfile
 
     rc = PipelineConfig().reconstruct
@@ -254,7 +254,8 @@ def case_quality(quick: bool) -> dict:
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.model.metrics import evaluate
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import reconstruct_volume, simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.engine.windows import reconstruct_volume
 
     D, meta = dictionary_for(8)
     Dd = dct_dictionary(8)
@@ -308,6 +309,7 @@ def case_bayer(quick: bool) -> dict:
     from codedvideo.engine import bayer
     from codedvideo.engine.config import PipelineConfig, omp_settings
     from codedvideo.model.metrics import evaluate
+    from codedvideo.engine.captures import CaptureSettings
     from codedvideo.model.units import infer_data_range, static_peak
 
     D, meta = dictionary_for(8)
@@ -318,9 +320,10 @@ def case_bayer(quick: bool) -> dict:
     flat = lambda v: v.reshape(-1, *size)  # noqa: E731
     with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
         t = time.perf_counter()
-        vol, info = bayer.reconstruct_bayer("omp", cap["coded"], cap["mask"], pattern="RGGB", dictionary=D,
-                                            data_range=units, settings=omp_settings(PipelineConfig().reconstruct, 0.0),
-                                            cache=tmp, progress=False)
+        vol, info = bayer.reconstruct_bayer(CaptureSettings("omp", dictionary=D, data_range=units,
+                                                            settings=omp_settings(PipelineConfig().reconstruct, 0.0),
+                                                            cache=tmp, progress=False),
+                                            cap["coded"], cap["mask"], pattern="RGGB")
         seconds = time.perf_counter() - t
     q = evaluate(flat(vol), flat(video))
     static = evaluate(flat(bayer.static_estimate(cap["coded"], cap["mask"], "RGGB")), flat(video))
@@ -356,7 +359,7 @@ def case_sequence(quick: bool) -> dict:
     figure the whole CLI process; peak memory at T = 1, 10 and 100."""
     import tempfile
 
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     size, t_count = ((64, 64), 4) if quick else ((256, 256), 10)
@@ -467,7 +470,7 @@ def case_video(quick: bool) -> dict:
     1280x720 with T = 30 captures (540 frames), and one 3840x2160 capture."""
     import tempfile
 
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     runs = (((128, 160), 3), ((216, 384), 1)) if quick else (((720, 1280), 30), ((2160, 3840), 1))
@@ -501,7 +504,7 @@ def case_outputs(quick: bool) -> dict:
     against the .npy path's."""
     import tempfile
 
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     size = (216, 384) if quick else (1080, 1920)
@@ -539,7 +542,7 @@ def case_outputs4k(quick: bool) -> dict:
     one-capture .npy path's and the 2 GB target."""
     import tempfile
 
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     size = (216, 384) if quick else (2160, 3840)
@@ -638,7 +641,7 @@ def case_adapt(quick: bool) -> dict:
     (hitomi L = 2 and Bernoulli, sigma 0); the capture in 8-bit units and as [0, 1] floats."""
     import tempfile
 
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.scenes import load_video
 
     size = (96, 96) if quick else (256, 256)

@@ -40,7 +40,9 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     from codedvideo.solvers.nonlocal_sc import nonlocal_region
     from codedvideo.solvers.omp_kernel import load_kernels
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import reconstruct_capture, reconstruct_volume, simulate_capture
+    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
+    from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.engine.windows import reconstruct_volume
     from codedvideo.formats.store import load_dictionary
     from codedvideo.model.units import infer_data_range
 
@@ -87,9 +89,7 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
                         row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
                     with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # --adapt: both passes timed
                         t = time.perf_counter()
-                        vol, _ = reconstruct_capture("nonlocal", cap["coded"], cap["mask"], adapt=True,
-                                                     data_range=infer_data_range(255.0), settings=s, dictionary=D,
-                                                     cache=tmp, progress=False)
+                        vol, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, data_range=infer_data_range(255.0), settings=s, dictionary=D, cache=tmp, progress=False), cap["coded"], cap["mask"])
                         row["adapt"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
                 t = time.perf_counter()
                 vol = gap_tv(cap["coded"], cap["mask"])

@@ -75,7 +75,7 @@ def write_captures(folder: Path, size, codes=tuple((code, 2) for code in CODES),
     """Each case's capture, mask and truth in 8-bit units and as [0, 1] floats: a dict of paths per case (every
     scene under every ``(code, bump)`` of ``codes`` with Gaussian read noise of each of ``sigmas``, grey levels)."""
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
 
     cases = []
     for scene in SCENES:
@@ -116,7 +116,7 @@ def reconstruct(case: dict, options, *, units: str, work: Path) -> dict:
 def warm_up(work: Path) -> None:
     """One small run of each method first: the compiled kernels' on-disk caches filled outside the timings."""
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
 
     cap = simulate_capture(load_video("footage:carphone", frames=8, size=(32, 32)), code="hitomi", bump=2, sigma=0.0,
                            seed=0)
@@ -231,7 +231,7 @@ SCALING_RUNS = {"default": ("--preset", "default"), "best": ("--preset", "best")
 def scaling(work: Path, repeats: int, sides=SCALING_SIDES) -> dict:
     """``default`` and ``best`` at each side: median seconds, peak memory, microseconds per pixel."""
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
 
     rows = []
     for side in sides:

@@ -54,8 +54,9 @@ def timed(fn, *a, **k):
 
 
 def run_case(scene, code, bump, D, settings, default_settings, check=False):
-    from codedvideo.engine import stages
-    from codedvideo.engine.stages import adapt_dictionary, reconstruct_volume
+    from codedvideo.engine import adaptation
+    from codedvideo.engine.adaptation import adapt_dictionary
+    from codedvideo.engine.windows import reconstruct_volume
     from codedvideo.solvers.nonlocal_sc import finish, nonlocal_region
 
     video, mask, coded = ri.case_input(scene, code, bump)
@@ -72,7 +73,7 @@ def run_case(scene, code, bump, D, settings, default_settings, check=False):
     with tempfile.TemporaryDirectory(dir=OUT) as tmp:
         (first, _), T["first"] = timed(reconstruct_volume, coded, mask, D, settings=default_settings, cache=tmp,
                                        workers=1, progress=False)
-    (survey, _), T["survey"] = timed(nl, D, first, stages.ADAPT_SURVEY_STEP)
+    (survey, _), T["survey"] = timed(nl, D, first, adaptation.ADAPT_SURVEY_STEP)
     (Da, _), T["adapt"] = timed(adapt_dictionary, survey, D)
     (base, _), T["second4"] = timed(nl, Da, survey, 4)
     pre = T["first"] + T["survey"] + T["adapt"]
@@ -86,12 +87,12 @@ def run_case(scene, code, bump, D, settings, default_settings, check=False):
     (x, _), T["third4"] = timed(nl, Db, base, 4)
     R["b"], tot["b"] = ps(x), tot["base"] + T["adapt2"] + T["third4"]
     # c: more K-SVD, second pass every 3rd
-    old = stages.ADAPT_ITERATIONS, stages.ADAPT_SAMPLES
-    stages.ADAPT_ITERATIONS, stages.ADAPT_SAMPLES = 8, 14000
+    old = adaptation.ADAPT_ITERATIONS, adaptation.ADAPT_SAMPLES
+    adaptation.ADAPT_ITERATIONS, adaptation.ADAPT_SAMPLES = 8, 14000
     try:
         (Dc, _), T["adapt_c"] = timed(adapt_dictionary, survey, D)
     finally:
-        stages.ADAPT_ITERATIONS, stages.ADAPT_SAMPLES = old
+        adaptation.ADAPT_ITERATIONS, adaptation.ADAPT_SAMPLES = old
     (x, _), T["second3_c"] = timed(nl, Dc, survey, 3)
     R["c"], tot["c"] = ps(x), T["first"] + T["survey"] + T["adapt_c"] + T["second3_c"]
     # d: second pass on a grid offset by half a step, averaged (d) or aggregated together (d+)
@@ -117,8 +118,9 @@ def run_case(scene, code, bump, D, settings, default_settings, check=False):
 def run_extra(scene, code, bump, D, settings, default_settings):
     """Candidate b's variants: the third pass every 3rd (b3), a fourth round of adaptation and pass (b4x),
     both adaptations with 8 iterations on 14000 patches (bc)."""
-    from codedvideo.engine import stages
-    from codedvideo.engine.stages import adapt_dictionary, reconstruct_volume
+    from codedvideo.engine import adaptation
+    from codedvideo.engine.adaptation import adapt_dictionary
+    from codedvideo.engine.windows import reconstruct_volume
     from codedvideo.solvers.nonlocal_sc import nonlocal_region
 
     video, mask, coded = ri.case_input(scene, code, bump)
@@ -129,7 +131,7 @@ def run_extra(scene, code, bump, D, settings, default_settings):
     with tempfile.TemporaryDirectory(dir=OUT) as tmp:
         (first, _), T["first"] = timed(reconstruct_volume, coded, mask, D, settings=default_settings, cache=tmp,
                                        workers=1, progress=False)
-    survey, T["survey"] = timed(nl, D, first, stages.ADAPT_SURVEY_STEP)
+    survey, T["survey"] = timed(nl, D, first, adaptation.ADAPT_SURVEY_STEP)
     (Da, _), T["adapt"] = timed(adapt_dictionary, survey, D)
     base, T["second4"] = timed(nl, Da, survey, 4)
     tot = {"base": sum(T.values())}
@@ -142,14 +144,14 @@ def run_extra(scene, code, bump, D, settings, default_settings):
     (Dd, _), T["adapt3"] = timed(adapt_dictionary, xb, Db)
     x, T["fourth4"] = timed(nl, Dd, xb, 4)
     R["b4x"], tot["b4x"] = ps(x), tot["b"] + T["adapt3"] + T["fourth4"]
-    old = stages.ADAPT_ITERATIONS, stages.ADAPT_SAMPLES
-    stages.ADAPT_ITERATIONS, stages.ADAPT_SAMPLES = 8, 14000
+    old = adaptation.ADAPT_ITERATIONS, adaptation.ADAPT_SAMPLES
+    adaptation.ADAPT_ITERATIONS, adaptation.ADAPT_SAMPLES = 8, 14000
     try:
         (Dc, _), T["adapt_c"] = timed(adapt_dictionary, survey, D)
         xc, T["second4_c"] = timed(nl, Dc, survey, 4)
         (Dc2, _), T["adapt2_c"] = timed(adapt_dictionary, xc, Dc)
     finally:
-        stages.ADAPT_ITERATIONS, stages.ADAPT_SAMPLES = old
+        adaptation.ADAPT_ITERATIONS, adaptation.ADAPT_SAMPLES = old
     x, T["third4_c"] = timed(nl, Dc2, xc, 4)
     R["bc"] = ps(x)
     tot["bc"] = T["first"] + T["survey"] + T["adapt_c"] + T["second4_c"] + T["adapt2_c"] + T["third4_c"]

@@ -62,8 +62,9 @@ def timed(fn, *a, **k):
 
 def run_case(scene, code, bump, D, settings, default_settings, skip=()):
     import research_prior as rp
-    from codedvideo.engine import stages
-    from codedvideo.engine.stages import adapt_dictionary, reconstruct_volume
+    from codedvideo.engine import adaptation
+    from codedvideo.engine.adaptation import adapt_dictionary
+    from codedvideo.engine.windows import reconstruct_volume
     from codedvideo.solvers.baselines import gap_tv
     from codedvideo.solvers.nonlocal_sc import finish, nonlocal_region
 
@@ -92,7 +93,7 @@ def run_case(scene, code, bump, D, settings, default_settings, skip=()):
     with tempfile.TemporaryDirectory(dir=OUT) as tmp:
         first, _ = stage("first", reconstruct_volume, coded, mask, D, settings=default_settings, cache=tmp,
                          workers=1, progress=False)
-    survey, _ = stage("survey", nl, D, first, stages.ADAPT_SURVEY_STEP)
+    survey, _ = stage("survey", nl, D, first, adaptation.ADAPT_SURVEY_STEP)
     Da, _ = stage("adapt", adapt_dictionary, survey, D)
     base, s2 = stage("second4", nl, Da, survey, 4)
     Db, _ = stage("adapt2", adapt_dictionary, base, Da)
@@ -148,7 +149,7 @@ def run_case(scene, code, bump, D, settings, default_settings, skip=()):
 
 
 def setup(first_scene):
-    from codedvideo.engine.stages import adapt_dictionary
+    from codedvideo.engine.adaptation import adapt_dictionary
     from codedvideo.solvers.nonlocal_sc import nonlocal_region
 
     import research_prior as rp

@@ -11,7 +11,7 @@ from _common import config_from_argv, guarded
 from codedvideo.data import manifest
 from codedvideo.data import shipped
 from codedvideo.engine.config import PipelineConfig
-from codedvideo.engine.stages import train_dictionary
+from codedvideo.engine.training import train_dictionary
 
 
 def _shipped(frames: list[int]) -> None:

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from codedvideo.solvers.baselines import METHODS, gap_tv, interp, normalized_fill, thinout
-from codedvideo.engine.stages import reconstruct_method
+from codedvideo.engine.captures import reconstruct_method
 from codedvideo.model.codes import make_code
 from codedvideo.model.errors import InputError
 from codedvideo.model.metrics import evaluate
 from codedvideo.model.physics import forward, static_estimate
 from codedvideo.data.scenes import load_video
-from codedvideo.engine.stages import simulate_capture
+from codedvideo.engine.simulation import simulate_capture
 
 
 @pytest.fixture(scope="module")

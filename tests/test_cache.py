@@ -16,7 +16,7 @@ import zarr
 from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.physics import simulate
-from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.engine.windows import reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.data.synth import make_scene
 
@@ -38,7 +38,7 @@ for i in range(reps):
     try:
         if job == "train":
             from codedvideo.engine.config import PipelineConfig
-            from codedvideo.engine.stages import train_dictionary
+            from codedvideo.engine.training import train_dictionary
             from codedvideo.formats.store import load_dictionary
             cfg = PipelineConfig.model_validate(dict(frames=4, cache=str(root / f"cache-{i}"), dictionary=dict(
                 kind="learned", atoms=60, samples=1500, iterations=2, sparsity=3, clips=3)))
@@ -46,7 +46,7 @@ for i in range(reps):
             np.save(root / f"{tag}-{i}.npy", load_dictionary(path)[0])
             row = dict(ok=True, computed=not meta["reused"])
         else:
-            from codedvideo.engine.stages import reconstruct_volume
+            from codedvideo.engine.windows import reconstruct_volume
             from codedvideo.solvers.region import OmpSettings
             d = np.load(root / "scene.npz")
             vol, info = reconstruct_volume(d["coded"], d["mask"], d["D"], settings=OmpSettings(**json.loads(sys.argv[5])),
@@ -220,7 +220,7 @@ def test_a_damaged_zarr_json_or_input_array_rebuilds_the_entry(scene, reference,
 def test_a_dictionary_entry_copied_over_another_is_trained_again(tmp_path):
     """A dictionary cache entry replaced by another (intact, checksum and all) is not taken for this one."""
     from codedvideo.engine.config import PipelineConfig
-    from codedvideo.engine.stages import train_dictionary
+    from codedvideo.engine.training import train_dictionary
     from codedvideo.formats.store import load_dictionary
 
     cfgs = [PipelineConfig.model_validate(dict(frames=n, cache=str(tmp_path), dictionary=dict(kind="dct")))
@@ -237,7 +237,7 @@ def test_a_dictionary_entry_copied_over_another_is_trained_again(tmp_path):
 def test_verify_reports_a_damaged_entry_and_clean_removes_only_that_one(scene, reference, tmp_path):
     from codedvideo.engine.cache import clean_cache, verify_cache
     from codedvideo.engine.config import PipelineConfig
-    from codedvideo.engine.stages import train_dictionary
+    from codedvideo.engine.training import train_dictionary
 
     coded, mask, D = scene
     cache = tmp_path / "cache"
@@ -321,7 +321,7 @@ def test_a_dictionary_trained_on_a_video_is_keyed_by_what_the_video_holds(tmp_pa
     """The same name with other frames trains again; the same frames under another name reuse the entry."""
     from codedvideo.formats import io as cio
     from codedvideo.engine.config import PipelineConfig
-    from codedvideo.engine.stages import train_dictionary
+    from codedvideo.engine.training import train_dictionary
     from codedvideo.formats.store import load_dictionary
     from codedvideo.data.synth import make_scene
 
@@ -357,7 +357,7 @@ def test_sizes_are_read_in_powers_of_1024_and_anything_else_is_refused():
 
 def _stores(tmp_path, count):
     """``count`` working stores of distinct 48x48 captures in one cache, made one after another."""
-    from codedvideo.engine.stages import sparse_volumes
+    from codedvideo.engine.windows import sparse_volumes
 
     video = make_scene("default", frames=4 * count, size=(48, 48))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
@@ -396,22 +396,22 @@ def test_a_stream_within_a_cache_budget_gives_the_same_bits_and_reruns_from_what
     """Six captures in windows of one with a budget of about two stores: the result is bit for bit the
     unlimited job's, the cache stays within the budget, and a rerun computes again what was removed (least
     recently used first: in a rerun that is the stores it is about to reach) to the same bits."""
-    from codedvideo.engine import stages
+    from codedvideo.engine import windows
     from codedvideo.engine.cache import _folder_bytes
 
     codeds, mask, stores = _stores(tmp_path, 6)  # the unlimited job, capture by capture
-    unlimited = [np.asarray(v) for _, v, _ in stages.sparse_volumes(
+    unlimited = [np.asarray(v) for _, v, _ in windows.sparse_volumes(
         6, lambda i: (codeds[i], mask, None), dct_dictionary(4), settings=OmpSettings(**SETTINGS), tile=TILE,
         cache=tmp_path / "c", progress=False)]
     size = _folder_bytes(stores[0])
-    monkeypatch.setattr(stages, "WINDOW_TILES", 1)
+    monkeypatch.setattr(windows, "WINDOW_TILES", 1)
     bounded = tmp_path / "bounded"
 
     def job():
         from codedvideo.engine.cache import CacheBudget
 
         budget = CacheBudget(bounded, 2 * size + size // 2)
-        got = list(stages.sparse_volumes(6, lambda i: (codeds[i], mask, None), dct_dictionary(4),
+        got = list(windows.sparse_volumes(6, lambda i: (codeds[i], mask, None), dct_dictionary(4),
                                          settings=OmpSettings(**SETTINGS), tile=TILE, cache=bounded, progress=False,
                                          budget=budget))
         return got, budget

@@ -1,7 +1,7 @@
 """Dictionary scaling: atoms of any nonzero norm give the same answer; zero atoms are dropped or refused.
 
 Reconstruction goes through :func:`codedvideo.solvers.dictionaries.prepare_dictionary`
-(:func:`codedvideo.engine.stages.reconstruct_method`), and the OMP kernels' own
+(:func:`codedvideo.engine.captures.reconstruct_method`), and the OMP kernels' own
 floors are relative, so a globally scaled dictionary works even without it.
 """
 import warnings
@@ -11,14 +11,14 @@ import pytest
 
 from codedvideo.model import patches as P
 from codedvideo.data import synth
-from codedvideo.engine.stages import reconstruct_method
+from codedvideo.engine.captures import reconstruct_method
 from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import UNIT_NORM_TOL, dct_dictionary, learn_dictionary, prepare_dictionary
 from codedvideo.model.errors import InputError
 from codedvideo.model.metrics import evaluate
 from codedvideo.solvers.omp import MaskedOperator, omp
 from codedvideo.model.physics import simulate, static_estimate
-from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.engine.windows import reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.data.synth import make_scene
 

@@ -7,7 +7,7 @@ import pytest
 from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.physics import simulate
-from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.engine.windows import reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.data.synth import make_scene
 
@@ -143,7 +143,7 @@ def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_p
 def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_path):
     """A sequence of captures as one graph on two worker processes; one is SIGKILLed while tiles of the
     sequence run: its tasks are rescheduled, and every capture equals the local run bit for bit."""
-    from codedvideo.engine.stages import sparse_volumes
+    from codedvideo.engine.windows import sparse_volumes
 
     video = make_scene("default", frames=4 * 4, size=(64, 96))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
@@ -225,7 +225,8 @@ def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(c
     up to 3.4 grey levels apart from the local run when an adaptation ran beside a local graph.  With the
     non-local method the second pass's tasks read the survey's tiles from its working store in the workers."""
     from codedvideo.data import shipped
-    from codedvideo.engine.stages import reconstruct_captures, simulate_capture
+    from codedvideo.engine.captures import CaptureSettings, reconstruct_captures
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.formats.store import load_dictionary
     from codedvideo.model.units import infer_data_range
 
@@ -235,9 +236,8 @@ def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(c
     common = dict(data_range=infer_data_range(255.0), settings=OmpSettings(max_atoms=8, tol_rms=2.0), dictionary=D,
                   tile=32, progress=False, adapt=True, adapt_rounds=rounds,
                   refine=8 if rounds == 2 else 0)  # (2: --preset best's third pass, then the refinement: its bits tested)
-    local = list(reconstruct_captures(method, list(cap["coded"]), lambda i: cap["mask"], cache=tmp_path / "a", **common))
-    remote = list(reconstruct_captures(method, list(cap["coded"]), lambda i: cap["mask"], cache=tmp_path / "b",
-                                       scheduler=cluster.scheduler_address, **common))
+    local = list(reconstruct_captures(CaptureSettings(method, cache=tmp_path / "a", **common), list(cap["coded"]), lambda i: cap["mask"]))
+    remote = list(reconstruct_captures(CaptureSettings(method, cache=tmp_path / "b", scheduler=cluster.scheduler_address, **common), list(cap["coded"]), lambda i: cap["mask"]))
     for (_, a, info), (_, b, _) in zip(local, remote):
         assert info["adapted"]["adapted"] and len(info["adapted"].get("rounds", [None])) == rounds
         np.testing.assert_array_equal(a, b)

@@ -86,7 +86,7 @@ def test_an_exact_frame_leaves_the_mean_psnr_finite():
 def test_a_rerun_from_the_cache_reports_no_patches_solved(tmp_path, capsys):
     """Reported: a stream reconstructed again from its cached tiles claimed 0.9 to 1.3 M patches a second."""
     from codedvideo.app.cli import main
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     cap = simulate_capture(make_scene("default", frames=12, size=(32, 32)), code="hitomi", bump=2, sigma=0, seed=0,
@@ -105,7 +105,7 @@ def test_a_rerun_from_the_cache_reports_no_patches_solved(tmp_path, capsys):
 
 def test_the_metrics_say_the_quality_is_the_volumes_and_when_the_file_is_lossy(tmp_path, capsys):
     from codedvideo.app.cli import main
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4, size=(24, 24))
@@ -176,7 +176,7 @@ def test_an_output_sharing_a_stem_with_another_says_it_replaces_its_record(tmp_p
     """Reported: rec.npy and rec.mp4 share rec.metrics.json; the second run replaced the first's figures in
     silence."""
     from codedvideo.app.cli import main
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code="hitomi", bump=2, sigma=0, seed=0)
@@ -193,7 +193,7 @@ def test_the_same_output_named_relative_then_absolute_is_not_said_to_replace_ano
                                                                                     recwarn):
     """Reported: rec.npy, then /abs/rec.npy, warned that the metrics file held the record of another output."""
     from codedvideo.app.cli import main
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code="hitomi", bump=2, sigma=0, seed=0)

@@ -175,7 +175,7 @@ def test_the_method_through_the_tiled_graph_equals_one_whole_tile(tmp_path):
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.model.physics import simulate
     from codedvideo.solvers.region import tile_halo
-    from codedvideo.engine.stages import reconstruct_volume
+    from codedvideo.engine.windows import reconstruct_volume
     from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4, size=(72, 88))
@@ -225,7 +225,7 @@ def test_the_three_stages_give_the_same_bits_on_one_thread_and_on_two(tmp_path, 
     import dataclasses
 
     from codedvideo.solvers.dictionaries import dct_dictionary
-    from codedvideo.engine.stages import reconstruct_volume
+    from codedvideo.engine.windows import reconstruct_volume
 
     coded, mask, _ = _periodic_capture(rng, period=23, reps=3)
     s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=1.0), method="nonlocal")
@@ -244,7 +244,7 @@ def test_tiles_of_equal_inputs_share_an_answer_only_where_the_reference_grid_agr
     import dataclasses
 
     from codedvideo.solvers.dictionaries import dct_dictionary
-    from codedvideo.engine.stages import reconstruct_volume
+    from codedvideo.engine.windows import reconstruct_volume
 
     coded, mask, _ = _periodic_capture(rng)
     D = dct_dictionary(N)
@@ -266,7 +266,7 @@ def test_the_progress_bar_counts_the_stages_and_ends_full(tmp_path, rng, monkeyp
     import tqdm.auto
 
     from codedvideo.solvers.dictionaries import dct_dictionary
-    from codedvideo.engine.stages import reconstruct_volume
+    from codedvideo.engine.windows import reconstruct_volume
 
     bars = []
 
@@ -326,7 +326,7 @@ def test_captures_of_one_job_come_out_as_each_alone(tmp_path, rng):
     import dataclasses
 
     from codedvideo.solvers.dictionaries import dct_dictionary
-    from codedvideo.engine.stages import reconstruct_volume, sparse_volumes
+    from codedvideo.engine.windows import reconstruct_volume, sparse_volumes
 
     video = 100 + np.tile(rng.uniform(0, 3, (N, 4, 4)).astype(np.float32), (1, 24, 24))
     mask = np.tile((rng.random((N, 8, 8)) < 0.5).astype(np.uint8), (1, 12, 12))
@@ -377,7 +377,7 @@ def test_still_tiles_of_a_sequence_are_shared_and_come_out_as_each_capture_alone
 
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.solvers.region import _still_answer
-    from codedvideo.engine.stages import reconstruct_volume, sparse_volumes
+    from codedvideo.engine.windows import reconstruct_volume, sparse_volumes
 
     mask = (rng.random((N, 64, 96)) < 0.5).astype(np.uint8)
     mask[0] = 1
@@ -408,7 +408,7 @@ def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms
     from codedvideo.data import shipped
     from codedvideo.model.metrics import evaluate
     from codedvideo.solvers.nonlocal_sc import group_atoms
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.formats.store import load_dictionary
     from codedvideo.data.synth import make_scene
 
@@ -426,7 +426,7 @@ def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms
 def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
     """N = 16 Bernoulli: more pixel patterns than the groups' table holds; the tiles give the default's answer,
     and the metrics and a warning say so (it was silent, with method: nonlocal)."""
-    from codedvideo.engine.stages import reconstruct_capture
+    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
     from codedvideo.model.units import infer_data_range
 
     rng = np.random.default_rng(3)
@@ -436,9 +436,9 @@ def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
     D = random_dictionary(rng, 16 * M, 512)
     s = OmpSettings(max_atoms=6, tol_rms=1.0)
     common = dict(data_range=infer_data_range(255.0), settings=s, dictionary=D, tile=16, progress=False)
-    plain, _ = reconstruct_capture("omp", coded, mask, cache=tmp_path / "a", **common)
+    plain, _ = reconstruct_capture(CaptureSettings("omp", cache=tmp_path / "a", **common), coded, mask)
     with pytest.warns(UserWarning, match="--method nonlocal .* distinct pixel shutter patterns"):
-        vol, info = reconstruct_capture("nonlocal", coded, mask, cache=tmp_path / "b", **common)
+        vol, info = reconstruct_capture(CaptureSettings("nonlocal", cache=tmp_path / "b", **common), coded, mask)
     assert info["method"] == "omp" and "patterns" in info["nonlocal_unavailable"]
     np.testing.assert_array_equal(vol, plain)
 
@@ -448,7 +448,7 @@ def test_a_noisy_stream_whose_blocks_have_no_still_reference_runs(tmp_path, caps
     shape (0, newaxis)"): a block without a calm reference asked for the still answers of no patch."""
     from codedvideo.app.cli import main
     from codedvideo.solvers.region import still_answers
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     assert still_answers(np.zeros((0, 49), np.float32), np.ones((0, 49), np.float32), 8).shape == (0, 8 * 49)

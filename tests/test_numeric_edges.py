@@ -175,10 +175,10 @@ def test_every_numeric_option_gives_a_finite_answer_or_one_line(capture, tmp_pat
     command, option, nargs = which
     tmp = tmp_path_factory.mktemp("opt")
     if command == "train":  # K-SVD itself is not run (a valid --samples 10000000 would take minutes): the options'
-        from codedvideo.engine import stages  # checks all come before it
+        from codedvideo.engine import training  # checks all come before it
 
         trained = []
-        monkeypatch.setattr(stages, "train_dictionary", lambda cfg, **kw: trained.append(cfg) or (
+        monkeypatch.setattr(training, "train_dictionary", lambda cfg, **kw: trained.append(cfg) or (
             kw["output"], dict(atoms=1, frames=N, reused=False, seconds=0.0)))
     rc, err, caught = _run([*_base(command, option, capture, tmp), f"{option}={value}" if nargs == 1 else option,
                             *([value] * nargs if nargs != 1 else [])], capsys)

@@ -292,7 +292,7 @@ def test_a_run_stopped_after_its_capture_is_written_does_not_block_the_next(tmp_
     its capture files leaves files that the next run replaces, not the user's files to refuse."""
     import yaml
 
-    from codedvideo.engine import stages
+    from codedvideo.engine import pipeline
 
     cfg = tmp_path / "p.yaml"
     cfg.write_text(yaml.safe_dump(dict(cache=str(tmp_path / "cache"), scene=dict(size=[32, 32]),
@@ -302,7 +302,7 @@ def test_a_run_stopped_after_its_capture_is_written_does_not_block_the_next(tmp_
         raise KeyboardInterrupt
 
     with monkeypatch.context() as m:
-        m.setattr(stages, "write_volume", interrupted)
+        m.setattr(pipeline, "write_volume", interrupted)
         assert main(["-q", "run", str(cfg)]) == 130
     assert (tmp_path / "out" / "capture" / "coded.npy").exists()
     capsys.readouterr()

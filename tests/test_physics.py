@@ -39,7 +39,7 @@ def test_plain_read_noise_is_bit_identical_to_before(scene):
 
 def test_default_capture_is_bit_identical_to_before():
     from codedvideo.engine.config import NoiseConfig
-    from codedvideo.engine.stages import sensor_model, simulate_capture
+    from codedvideo.engine.simulation import sensor_model, simulate_capture
 
     video = np.random.default_rng(0).uniform(0, 255, (8, 16, 16)).astype(np.float32)
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=2.0, seed=5)
@@ -274,7 +274,7 @@ def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_pat
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.model.metrics import evaluate
     from codedvideo.solvers.region import OmpSettings
-    from codedvideo.engine.stages import drop_saturated, reconstruct_capture
+    from codedvideo.engine.captures import CaptureSettings, drop_saturated, reconstruct_capture
     from codedvideo.data.synth import make_scene
     from codedvideo.model.units import infer_data_range
 
@@ -286,8 +286,8 @@ def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_pat
                   dictionary=dct_dictionary(8), tile=48, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # (the never-open notice)
-        vol, info = reconstruct_capture("omp", coded, mask, white_level=W, cache=tmp_path / "a", **common)
-        left_out, _ = reconstruct_capture("omp", *drop_saturated(coded, mask, W)[:2], cache=tmp_path / "b", **common)
+        vol, info = reconstruct_capture(CaptureSettings("omp", white_level=W, cache=tmp_path / "a", **common), coded, mask)
+        left_out, _ = reconstruct_capture(CaptureSettings("omp", cache=tmp_path / "b", **common), *drop_saturated(coded, mask, W)[:2])
     saturated = coded >= W
     assert saturated.mean() > 0.01 and info["saturated_raised"] > 0
     assert ((mask * vol).sum(0)[saturated] >= W - 1e-2).all()
@@ -297,7 +297,7 @@ def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_pat
 
 def test_pipeline_white_level_and_shot_noise(tmp_path):
     from codedvideo.engine.config import PipelineConfig
-    from codedvideo.engine.stages import run_pipeline
+    from codedvideo.engine.pipeline import run_pipeline
 
     cfg = PipelineConfig.model_validate(dict(
         frames=4, cache=str(tmp_path / "c"), stages=["simulate", "reconstruct"],

@@ -8,7 +8,10 @@ from codedvideo.engine.config import PipelineConfig
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.metrics import evaluate
 from codedvideo.data.scenes import load_video
-from codedvideo.engine.stages import reconstruct_volume, simulate_capture, train_dictionary, trivial_estimate
+from codedvideo.engine.captures import trivial_estimate
+from codedvideo.engine.simulation import simulate_capture
+from codedvideo.engine.training import train_dictionary
+from codedvideo.engine.windows import reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.formats.store import load_dictionary
 

@@ -7,7 +7,7 @@ import pytest
 from codedvideo.data.scenes import load_video
 from codedvideo.model.metrics import evaluate
 from codedvideo.model.physics import forward
-from codedvideo.engine.stages import simulate_capture
+from codedvideo.engine.simulation import simulate_capture
 from codedvideo.solvers import refine as R
 from codedvideo.solvers.refine_kernel import match_frame_patches, shrink_frame_groups
 
@@ -191,7 +191,7 @@ def test_saturated_pixels_are_not_held_to_their_clipped_values_and_still_record_
     """With --white-level the clipped pixels are left out of the refinement's measurements (never pulled down to
     the clipped value) and afterwards still record at least the white level; the rest keeps its measurements."""
     from codedvideo.engine.config import PipelineConfig, omp_settings
-    from codedvideo.engine.stages import reconstruct_capture
+    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
     from codedvideo.model.units import infer_data_range
     from codedvideo.solvers.dictionaries import dct_dictionary
 
@@ -201,10 +201,7 @@ def test_saturated_pixels_are_not_held_to_their_clipped_values_and_still_record_
     saturated = coded >= np.float32(white)
     runs = {}
     for refine in (0, 6):
-        runs[refine] = reconstruct_capture("omp", coded, cap["mask"], refine=refine, white_level=white,
-                                           dictionary=dct_dictionary(8), data_range=infer_data_range(255.0, given=255.0),
-                                           tile=32, progress=False, cache=tmp_path,
-                                           settings=omp_settings(PipelineConfig().reconstruct, 0.0))
+        runs[refine] = reconstruct_capture(CaptureSettings("omp", refine=refine, white_level=white, dictionary=dct_dictionary(8), data_range=infer_data_range(255.0, given=255.0), tile=32, progress=False, cache=tmp_path, settings=omp_settings(PipelineConfig().reconstruct, 0.0)), coded, cap["mask"])
     vol, info = runs[6]
     assert np.isfinite(vol).all() and info["refine"]["iterations"] == 6 and saturated.sum() > 100
     recorded = forward(vol, cap["mask"])

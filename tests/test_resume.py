@@ -15,7 +15,8 @@ from codedvideo.formats import io as cio
 from codedvideo.model.codes import CODE_NAMES, make_code
 from codedvideo.solvers.dictionaries import dct_dictionary, learn_dictionary
 from codedvideo.model.physics import simulate
-from codedvideo.engine.stages import reconstruct_volume, simulate_capture
+from codedvideo.engine.simulation import simulate_capture
+from codedvideo.engine.windows import reconstruct_volume
 from codedvideo.formats.volumes import write_capture, write_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.formats.store import WorkStore, save_dictionary

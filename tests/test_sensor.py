@@ -14,7 +14,7 @@ from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.errors import InputError
 from codedvideo.model.metrics import evaluate
-from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.engine.windows import reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.data.synth import make_scene
 

@@ -41,7 +41,7 @@ def test_simulate_writes_a_stream_of_captures(sequence):
     assert masks.shape == (T, N, H, W) and not (masks[0] == masks[1]).all()
     # the first capture is the single capture of the same seed
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
 
     one = simulate_capture(load_video("synth:default", frames=N, size=(H, W)), code="hitomi", bump=2, sigma=0, seed=0)
     np.testing.assert_array_equal(np.load(cap / "coded.npy")[0], one["coded"])
@@ -176,7 +176,7 @@ def test_sigkill_mid_sequence_then_rerun_equals_a_clean_run(tmp_path):
 @pytest.mark.parametrize("new_code", [False, True])
 def test_the_still_path_is_exact_for_a_still_scene(tmp_path, capsys, new_code):
     """Nothing moves (a tripod on a still scene): every frame is coded / open count, exactly, with no sparse coding."""
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * N, axis=0)
@@ -220,7 +220,7 @@ def test_a_tile_equal_to_one_already_solved_reuses_its_result(tmp_path):
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.model.physics import simulate
     from codedvideo.solvers.region import OmpSettings
-    from codedvideo.engine.stages import reconstruct_volume, sparse_volumes
+    from codedvideo.engine.windows import reconstruct_volume, sparse_volumes
     from codedvideo.data.synth import make_scene
 
     frames = make_scene("default", frames=4, size=(48, 48))
@@ -246,7 +246,7 @@ def test_captures_are_handed_out_in_order_while_later_ones_still_compute(tmp_pat
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.model.physics import simulate
     from codedvideo.solvers.region import OmpSettings
-    from codedvideo.engine.stages import sparse_volumes
+    from codedvideo.engine.windows import sparse_volumes
     from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4 * 6, size=(48, 48))
@@ -290,7 +290,7 @@ def test_still_patches_give_the_same_bits_at_every_tile_size(tmp_path):
     """Patches wholly inside the still map take coded / open count; the pixels only they cover are that value
     exactly, whether their tile is wholly still (answered without patches) or not: tile sizes agree bit for bit."""
     from codedvideo.model.sequence import erode_to_patches, normalised
-    from codedvideo.engine.stages import sparse_volumes
+    from codedvideo.engine.windows import sparse_volumes
 
     coded, mask, still, D, s = partly_still_capture((64, 72), 40, seed=5)
     runs = {}
@@ -428,7 +428,7 @@ def test_simulate_streams_a_video_file_capture_by_capture_with_the_same_files(tm
     the files equal a simulation of the whole clip at once, bit for bit."""
     from codedvideo.formats.io import write_frames, write_video
     from codedvideo.data.scenes import read_clip
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
     from codedvideo.formats.volumes import read_volume
 
@@ -521,7 +521,7 @@ def test_pixels_never_open_in_several_captures_are_one_warning(tmp_path, capsys)
     the job (it was one line per capture)."""
     import warnings
 
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4 * N, size=(H, W))
@@ -542,7 +542,7 @@ def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"
     """Six 48x48 captures (9 tiles of 16 each), capture 3 equal to capture 2 and capture 5 to capture 0, done
     with windows of ``window_tiles`` tiles; the volumes, the open-file room asked for and what each planning of a
     capture saw finished."""
-    from codedvideo.engine import stages
+    from codedvideo.engine import locks, windows
     from codedvideo.model.codes import make_code
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.model.physics import simulate
@@ -554,14 +554,14 @@ def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"
     codeds = [simulate(video[4 * t : 4 * t + 4], mask, sigma=1.0, rng=t) for t in range(6)]
     codeds[3], codeds[5] = codeds[2], codeds[0]
     cache = tmp_path / name
-    monkeypatch.setattr(stages, "WINDOW_TILES", window_tiles)
+    monkeypatch.setattr(windows, "WINDOW_TILES", window_tiles)
     asked, planned, solved = [], {}, []
     from codedvideo.engine import parallel
 
     tile_task = parallel._tile_task
     monkeypatch.setattr(parallel, "_tile_task", lambda *a: (solved.append(1), tile_task(*a))[1])
-    allow = stages._allow_open_files
-    monkeypatch.setattr(stages, "_allow_open_files", lambda needed, c: (asked.append(needed), allow(needed, c)))
+    allow = locks.allow_open_files
+    monkeypatch.setattr(locks, "allow_open_files", lambda needed, c: (asked.append(needed), allow(needed, c)))
 
     def capture(i):
         if i not in planned:  # its first call plans it: how many tiles of the job were finished by then
@@ -579,7 +579,7 @@ def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"
             super().close()
 
     monkeypatch.setattr(tqdm.auto, "tqdm", Recording)
-    out = list(stages.sparse_volumes(6, capture, dct_dictionary(4), settings=OmpSettings(max_atoms=6, tol_rms=0.5),
+    out = list(windows.sparse_volumes(6, capture, dct_dictionary(4), settings=OmpSettings(max_atoms=6, tol_rms=0.5),
                                      tile=16, cache=cache, progress=True, scheduler=scheduler))
     return out, asked, planned, len(solved), bars
 
@@ -614,7 +614,7 @@ def test_a_job_never_waits_for_a_busy_entry_while_it_holds_another(tmp_path, mon
     job holds when it asks for A: the job puts A off until it holds nothing, and both finish."""
     import threading
 
-    from codedvideo.engine import stages
+    from codedvideo.engine import windows
     from codedvideo.engine.cache import RECON_VERSION, content_key
     from codedvideo.model.codes import make_code
     from codedvideo.solvers.dictionaries import dct_dictionary
@@ -623,7 +623,7 @@ def test_a_job_never_waits_for_a_busy_entry_while_it_holds_another(tmp_path, mon
     from codedvideo.formats.store import entry_lock
     from codedvideo.data.synth import make_scene
 
-    monkeypatch.setattr(stages, "WINDOW_TILES", 1)
+    monkeypatch.setattr(windows, "WINDOW_TILES", 1)
     video = make_scene("default", frames=8, size=(48, 48))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
     codeds = [simulate(video[4 * t : 4 * t + 4], mask, sigma=1.0, rng=t) for t in range(2)]
@@ -652,7 +652,7 @@ def test_a_job_never_waits_for_a_busy_entry_while_it_holds_another(tmp_path, mon
     other = threading.Thread(target=other_run, daemon=True)
     other.start()
     assert holds_a.wait(60)
-    job = threading.Thread(target=lambda: out.extend(stages.sparse_volumes(2, capture, D, settings=s, tile=16,
+    job = threading.Thread(target=lambda: out.extend(windows.sparse_volumes(2, capture, D, settings=s, tile=16,
                                                                            cache=cache, progress=False)),
                            daemon=True)
     job.start()
@@ -687,7 +687,7 @@ def test_heavy_read_noise_leaves_the_sequence_no_worse_than_its_captures_one_by_
 def test_a_pixel_is_still_only_where_its_still_answer_is_quiet_enough():
     """sigma / open count above STILL_NOISE_MAX: never still; below it a still scene agrees (with a changing code)."""
     from codedvideo.model.sequence import STILL_NOISE_MAX, agreeing_pixels
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * 8, axis=0)
@@ -741,7 +741,7 @@ def test_a_clipped_neighbour_is_never_averaged_into_a_still_answer():
     """--white-level: where the capture after (a longer exposure) is clipped, its value does not pull the still
     answer down (it did, by 3 grey levels on a half-saturated neighbour); the capture before still counts."""
     from codedvideo.model.sequence import still_values
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * 8, axis=0)
@@ -761,18 +761,19 @@ def test_a_clipped_neighbour_is_never_averaged_into_a_still_answer():
 
 def test_reconstruct_capture_refuses_a_map_of_still_pixels_for_still_values():
     """A bool map where still values are asked would make every pixel still (its 0s and 1s the answer)."""
-    from codedvideo.engine.stages import reconstruct_capture
+    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
 
     coded, mask = np.ones((16, 16), np.float32), np.ones((4, 16, 16), np.uint8)
     with pytest.raises(TypeError, match="still values"):
-        reconstruct_capture("omp", coded, mask, still=np.ones((16, 16), bool))
+        reconstruct_capture(CaptureSettings("omp", data_range=None, settings=None), coded, mask,
+                            still=np.ones((16, 16), bool))
 
 
 def test_a_flat_still_background_under_noise_is_no_worse_than_its_captures_one_by_one(tmp_path, capsys):
     """A plain still background at sigma 5: the still answer keeps the noise that the single-capture still test
     removes, so flat regions are left to that test (the background was 10 dB worse than capture by capture)."""
     from codedvideo.model.metrics import evaluate
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
     from codedvideo.data.synth import make_scene
 
     video = np.full((T * 8, 48, 64), 100.0, np.float32)

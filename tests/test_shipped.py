@@ -10,7 +10,8 @@ from codedvideo.app.cli import main
 from codedvideo.engine.config import PipelineConfig
 from codedvideo.model.errors import InputError
 from codedvideo.engine.cache import dictionary_key
-from codedvideo.engine.stages import simulate_capture, train_dictionary
+from codedvideo.engine.simulation import simulate_capture
+from codedvideo.engine.training import train_dictionary
 from codedvideo.formats.store import load_dictionary
 from conftest import REGENERATE_TEST
 
@@ -74,7 +75,7 @@ def test_shipped_dictionary_regenerates_from_its_listed_settings(regenerated_dic
     from codedvideo.engine.config import omp_settings
     from codedvideo.model.metrics import evaluate
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import reconstruct_volume
+    from codedvideo.engine.windows import reconstruct_volume
 
     cfg = PipelineConfig()
     video = load_video(cfg.scene.video, frames=8, size=cfg.scene.size, seed=0)

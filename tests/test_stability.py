@@ -21,7 +21,7 @@ from codedvideo.solvers.omp import MaskedOperator, omp
 from codedvideo.solvers.omp_kernel import synthesize
 from codedvideo.model.physics import forward, simulate, static_estimate
 from codedvideo.formats.volumes import read_coded, read_mask
-from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.engine.windows import reconstruct_volume
 from codedvideo.solvers.region import STAT_NAMES, OmpSettings, reconstruct_region
 from codedvideo.data.synth import make_scene
 
@@ -405,7 +405,7 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     refinement): an all-dark scene is exactly dark, an all-white one flat white, and read noise of 80 grey levels
     no worse than the trivial estimate."""
     from codedvideo.data import shipped
-    from codedvideo.engine.stages import reconstruct_capture
+    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
     from codedvideo.formats.store import load_dictionary
     from codedvideo.model.units import infer_data_range
 
@@ -413,11 +413,7 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     truth = video if kind == "noise" else _scene(kind)
     sigma = 80.0 if kind == "noise" else 0.0
     coded = simulate(truth, mask, sigma=sigma, rng=2)
-    vol, info = reconstruct_capture("nonlocal", coded, mask, adapt=True, adapt_rounds=2, refine=32,
-                                    data_range=infer_data_range(255.0, given=255.0),
-                                    settings=OmpSettings(max_atoms=8, tol_rms=max(sigma, 2.0)),
-                                    dictionary=load_dictionary(shipped.verified(8))[0], cache=tmp_path,
-                                    progress=False, tile=32)
+    vol, info = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, adapt_rounds=2, refine=32, data_range=infer_data_range(255.0, given=255.0), settings=OmpSettings(max_atoms=8, tol_rms=max(sigma, 2.0)), dictionary=load_dictionary(shipped.verified(8))[0], cache=tmp_path, progress=False, tile=32), coded, mask)
     assert np.isfinite(vol).all()
     if kind == "dark":
         assert (vol == 0).all()

@@ -6,7 +6,7 @@ from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.engine.parallel import plan_tiles
 from codedvideo.model.physics import simulate
-from codedvideo.engine.stages import reconstruct_volume
+from codedvideo.engine.windows import reconstruct_volume
 from codedvideo.solvers.region import OmpSettings, reconstruct_region
 
 

@@ -131,7 +131,7 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     np.float32(2.0)
     """
     from codedvideo.engine.config import NoiseConfig, validated
-    from codedvideo.engine.stages import sensor_model, simulate_stream
+    from codedvideo.engine.simulation import sensor_model, simulate_stream
     from codedvideo.formats.volumes import check_coded, check_mask
 
     video = check_coded(video, "simulate: video")

@@ -19,7 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo.api._settings import Resolved
-from codedvideo.engine.stages import SPARSE_METHODS, cache_room, reconstruct_stream, trivial_estimate
+from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, trivial_estimate
+from codedvideo.engine.methods import SPARSE, WITH_DICTIONARY
+from codedvideo.engine.windows import cache_room
 from codedvideo.engine.config import omp_settings
 from codedvideo.formats.volumes import check_coded, check_mask
 from codedvideo.model.errors import InputError
@@ -203,7 +205,7 @@ def job_dictionary(r: Resolved, frames: int) -> tuple[np.ndarray | None, str, st
     from codedvideo.data.shipped import check_dictionary
     from codedvideo.formats.store import load_dictionary
 
-    if r.method not in ("omp", "nonlocal"):
+    if r.method not in WITH_DICTIONARY:
         return None, "", ""
     given = r.dictionary
     if given is None or isinstance(given, (str, Path)):
@@ -266,7 +268,7 @@ class ReconstructionJob:
 
     def _warn_before_work(self) -> None:
         r, job = self.r, self.captures
-        if r.method in SPARSE_METHODS:
+        if r.method in SPARSE:
             message = tolerance_warning(job.codeds[0] * np.float32(self.units.scale), self.omp.tol_rms)
             if message:
                 warnings.warn(f"{message} (data range {self.units.value:g} from {self.units.source})", stacklevel=2)
@@ -277,23 +279,24 @@ class ReconstructionJob:
                 if problem:
                     warnings.warn(problem, stacklevel=2)
 
-    def _options(self, cache) -> dict:
+    def capture_settings(self, cache) -> CaptureSettings:
+        """The engine's settings of this job, working in ``cache``."""
         r = self.r
-        return dict(data_range=self.units, settings=self.omp, dictionary=self.dictionary,
-                    dictionary_key=self.dictionary_key, dictionary_name=self.dictionary_name, white_level=self.white,
-                    where=self.captures.source, tile=r.rc.tile, cache=cache, scheduler=r.rc.scheduler,
-                    workers=r.rc.workers, progress=r.progress)
+        return CaptureSettings(r.method, data_range=self.units, settings=self.omp, dictionary=self.dictionary,
+                               dictionary_key=self.dictionary_key, dictionary_name=self.dictionary_name,
+                               white_level=self.white, where=self.captures.source, tile=r.rc.tile, cache=cache,
+                               scheduler=r.rc.scheduler, workers=r.rc.workers, progress=r.progress, adapt=r.rc.adapt,
+                               adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine, noise_sigma=r.noise.sigma,
+                               cache_budget=r.rc.cache_budget)
 
     def results(self, cache):
         """The method's results ``(i, volume, info)`` in order, working in ``cache``."""
         r, job = self.r, self.captures
-        options = self._options(cache)
+        options = self.capture_settings(cache)
         if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
             from codedvideo.engine.bayer import reconstruct_bayer
 
-            return iter([(0, *reconstruct_bayer(r.method, job.codeds[0], job.mask(0), pattern=r.bayer,
-                                                adapt=r.rc.adapt, adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine,
-                                                cache_budget=r.rc.cache_budget, **options))])
+            return iter([(0, *reconstruct_bayer(options, job.codeds[0], job.mask(0), pattern=r.bayer))])
         stream = job.kind in ("captures", "measurements") and self.count > 1 and not r.independent_captures
         if stream:
             from codedvideo.model.sequence import Cuts
@@ -302,10 +305,8 @@ class ReconstructionJob:
             # of exposure): nothing is averaged or joined across them
             self.cuts = Cuts(job.codeds, job.mask, scale=self.units.scale, white_level=self.white)
         # (a benchmark file's measurements are joined, but share no still answers: each has its own scene)
-        return reconstruct_stream(r.method, job.codeds, job.mask, join=stream, still=job.kind == "captures",
-                                  cuts=self.cuts, spill=cache, noise_sigma=r.noise.sigma, adapt=r.rc.adapt,
-                                  adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine, cache_budget=r.rc.cache_budget,
-                                  **options)
+        return reconstruct_stream(options, job.codeds, job.mask, join=stream, still=job.kind == "captures",
+                                  cuts=self.cuts, spill=cache)
 
     def run(self, cache):
         """Yield ``(i, volume, entry)``: each capture's frames (in the capture's units) and its record entry,

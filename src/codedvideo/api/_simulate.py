@@ -62,7 +62,7 @@ class SimulationPlan:
         return not (s.bayer or s.video.startswith(MADE_SOURCES))
 
     def options(self) -> dict:
-        from codedvideo.engine.stages import sensor_model
+        from codedvideo.engine.simulation import sensor_model
 
         s, c = self.settings, self.code
         return dict(code=c.name, bump=c.bump, sigma=self.noise.sigma, seed=s.seed, p=c.p, code_path=c.path,
@@ -170,7 +170,7 @@ def captures_of(plan: SimulationPlan) -> int:
 
 def simulate_whole(plan: SimulationPlan, captures: int) -> dict:
     """The capture of a synthetic scene, shipped footage or (``bayer``) a colour video, made whole: ``coded``,
-    ``mask`` and ``truth`` (:func:`codedvideo.engine.stages.simulate_capture`)."""
+    ``mask`` and ``truth`` (:func:`codedvideo.engine.simulation.simulate_capture`)."""
     s = plan.settings
     if s.bayer:  # the colour video through the filter: coded the mosaic, truth (3, N, H, W)
         from codedvideo.engine.bayer import load_color_video, simulate_bayer
@@ -178,7 +178,7 @@ def simulate_whole(plan: SimulationPlan, captures: int) -> dict:
         return simulate_bayer(load_color_video(s.video, frames=s.frames, size=plan.size, seed=s.seed, start=s.start),
                               s.bayer, where=f"video {s.video}", **plan.options())
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
 
     _check_in_memory(s.video, s.frames * captures, plan.size)
     video = load_video(s.video, frames=s.frames * captures, size=plan.size, seed=s.seed, start=s.start)
@@ -191,7 +191,7 @@ def simulate_captures(plan: SimulationPlan, captures: int):
     import itertools
 
     from codedvideo.data.scenes import iter_clips
-    from codedvideo.engine.stages import simulate_stream
+    from codedvideo.engine.simulation import simulate_stream
 
     s = plan.settings
     clips = iter_clips(s.video, frames=s.frames, captures=captures, size=plan.size, start=s.start)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from codedvideo.api._settings import setting_name
 from codedvideo.engine.config import DictionaryConfig, PipelineConfig, validated
-from codedvideo.engine.stages import train_dictionary
+from codedvideo.engine.training import train_dictionary
 from codedvideo.model.errors import ConfigError
 
 __all__ = ["plan_training", "train_dictionary"]

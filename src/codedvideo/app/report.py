@@ -51,8 +51,12 @@ from codedvideo.model.errors import InputError
 from codedvideo.engine.cache import RECON_VERSION, content_key, report_record_problem
 from codedvideo.formats.volumes import write_json
 from codedvideo.data.scenes import load_video
-from codedvideo.engine.stages import (ADAPT_ITERATIONS, ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SAMPLES, ADAPT_SPARSITY, ADAPT_SURVEY_STEP,
-                     SPARSE_METHODS, reconstruct_capture, reconstruct_method, simulate_capture, train_dictionary)
+from codedvideo.engine.adaptation import (ADAPT_ITERATIONS, ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SAMPLES,
+                                          ADAPT_SPARSITY, ADAPT_SURVEY_STEP)
+from codedvideo.engine.captures import CaptureSettings, reconstruct_capture, reconstruct_method
+from codedvideo.engine.methods import SPARSE as SPARSE_METHODS
+from codedvideo.engine.simulation import simulate_capture
+from codedvideo.engine.training import train_dictionary
 from codedvideo.formats.store import load_dictionary
 from codedvideo.solvers.refine import recipe as refine_recipe
 from codedvideo.model.units import infer_data_range
@@ -211,12 +215,13 @@ class Runner:
             with tempfile.TemporaryDirectory(dir=self.folder, prefix="work-") as tmp:  # fresh store: no reused tiles
                 t0 = time.perf_counter()
                 if adapt or refine:
-                    volume, info = reconstruct_capture(method, cap["coded"], cap["mask"], adapt=adapt,
+                    volume, info = reconstruct_capture(CaptureSettings(method, adapt=adapt,
                                                        adapt_rounds=adapt_rounds, refine=refine, noise_sigma=sigma,
                                                        data_range=infer_data_range(255.0, given=255.0), settings=omp,
                                                        dictionary=D, dictionary_key=dkey, cache=tmp,
                                                        tile=self.cfg.reconstruct.tile,
-                                                       workers=self.cfg.reconstruct.workers, progress=False)
+                                                       workers=self.cfg.reconstruct.workers, progress=False),
+                                                       cap["coded"], cap["mask"])
                 else:
                     volume, info = reconstruct_method(method, cap["coded"], cap["mask"], dictionary=D,
                                                                 dictionary_key=dkey, settings=omp, cache=tmp,

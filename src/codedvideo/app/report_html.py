@@ -21,7 +21,7 @@ import numpy as np
 
 from codedvideo.engine.config import PRESETS, preset_options
 from codedvideo.formats import io as cio
-from codedvideo.engine.stages import simulate_capture
+from codedvideo.engine.simulation import simulate_capture
 
 CSV_FIELDS = ("experiment", "label", "scene", "frames", "code", "bump", "sigma", "method", "max_atoms", "tol_rms",
               "dictionary_atoms", "psnr", "ssim", "seconds", "atoms_mean", "key")

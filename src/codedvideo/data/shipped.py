@@ -8,7 +8,7 @@ dictionary store zipped into one file, ``codedvideo/data/dict-N{N}.zip``, and li
 command that made it.  `make train` regenerates them.
 
 A shipped dictionary is used where training would give it: by
-:func:`codedvideo.engine.stages.train_dictionary` when the settings key matches
+:func:`codedvideo.engine.training.train_dictionary` when the settings key matches
 (so a pipeline.yaml with the default ``dictionary:`` section trains nothing),
 and by ``reconstruct`` without ``--dictionary``.
 """

@@ -10,9 +10,16 @@ named by their four filters row by row (``RGGB``: R at (0, 0), G at (0, 1) and
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
+from codedvideo.engine.methods import SPARSE
+from codedvideo.engine.methods import method as method_named
 from codedvideo.model.errors import InputError
+
+if TYPE_CHECKING:
+    from codedvideo.engine.captures import CaptureSettings
 
 PATTERNS = ("RGGB", "BGGR", "GRBG", "GBRG")
 CHANNELS = "RGB"
@@ -36,10 +43,10 @@ def check_even(shape: tuple, where: str) -> None:
 
 def cfa_index(pattern: str, shape: tuple) -> np.ndarray:
     """(H, W) uint8: the channel (0 R, 1 G, 2 B) each pixel of an ``H x W`` mosaic records."""
-    pattern = check_pattern(pattern)
+    name = check_pattern(pattern)
     h, w = shape[-2:]
-    cell = np.array([[CHANNELS.index(pattern[0]), CHANNELS.index(pattern[1])],
-                     [CHANNELS.index(pattern[2]), CHANNELS.index(pattern[3])]], np.uint8)
+    cell = np.array([[CHANNELS.index(name[0]), CHANNELS.index(name[1])],
+                     [CHANNELS.index(name[2]), CHANNELS.index(name[3])]], np.uint8)
     return np.tile(cell, ((h + 1) // 2, (w + 1) // 2))[:h, :w]
 
 
@@ -51,11 +58,11 @@ def cfa_masks(pattern: str, shape: tuple) -> np.ndarray:
 
 def mosaic(color: np.ndarray, pattern: str) -> np.ndarray:
     """``(3, ..., H, W)`` colour -> ``(..., H, W)`` mosaic: each pixel keeps its filter's channel."""
-    color = np.asarray(color)
-    if color.ndim < 3 or color.shape[0] != 3:
-        raise InputError(f"mosaic: expected a colour array (3, ..., H, W), got shape {color.shape}")
-    m = cfa_masks(pattern, color.shape).reshape((3,) + (1,) * (color.ndim - 3) + color.shape[-2:])
-    return np.where(m, color, 0).sum(0).astype(color.dtype)
+    colour = np.asarray(color)
+    if colour.ndim < 3 or colour.shape[0] != 3:
+        raise InputError(f"mosaic: expected a colour array (3, ..., H, W), got shape {colour.shape}")
+    m = cfa_masks(pattern, colour.shape).reshape((3,) + (1,) * (colour.ndim - 3) + colour.shape[-2:])
+    return np.where(m, colour, 0).sum(0).astype(colour.dtype)
 
 
 def _normalised(values: np.ndarray, weights: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -76,12 +83,12 @@ def demosaic_bilinear(raw: np.ndarray, pattern: str, weights: np.ndarray | None 
     ``weights`` (H, W) (e.g. 0 at pixels never open) weighs each sample; a
     channel's own pixels keep their value wherever their weight is positive.
     """
-    raw = np.asarray(raw, np.float64)
-    w = np.ones_like(raw) if weights is None else np.asarray(weights, np.float64)
-    out = np.empty((3,) + raw.shape)
-    for c, m in enumerate(cfa_masks(pattern, raw.shape)):
+    values = np.asarray(raw, np.float64)
+    w = np.ones_like(values) if weights is None else np.asarray(weights, np.float64)
+    out = np.empty((3,) + values.shape)
+    for c, m in enumerate(cfa_masks(pattern, values.shape)):
         wc = w * m
-        out[c] = np.where(wc > 0, raw, _normalised(raw, wc, _TENT))
+        out[c] = np.where(wc > 0, values, _normalised(values, wc, _TENT))
     return out.astype(np.float32)
 
 
@@ -102,21 +109,21 @@ def demosaic_malvar(raw: np.ndarray, pattern: str) -> np.ndarray:
     """
     from scipy import ndimage
 
-    raw = np.asarray(raw, np.float64)
-    idx = cfa_index(pattern, raw.shape)
-    conv = {name: ndimage.convolve(raw, k / 8.0, mode="mirror")
+    values = np.asarray(raw, np.float64)
+    idx = cfa_index(pattern, values.shape)
+    conv = {name: ndimage.convolve(values, k / 8.0, mode="mirror")
             for name, k in (("g", _G_AT_RB), ("row", _RB_AT_G_ROW), ("col", _RB_AT_G_COL), ("cross", _RB_AT_BR))}
-    out = np.empty((3,) + raw.shape)
+    out = np.empty((3,) + values.shape)
     for c in (0, 2):
         other = 2 - c
         # rows holding channel c (at either column parity)
-        c_row = np.zeros(raw.shape, bool)
+        c_row = np.zeros(values.shape, bool)
         for r in (0, 1):
             if (idx[r::2] == c).any():
                 c_row[r::2] = True
-        est = np.where(idx == c, raw, np.where(idx == other, conv["cross"], np.where(c_row, conv["row"], conv["col"])))
+        est = np.where(idx == c, values, np.where(idx == other, conv["cross"], np.where(c_row, conv["row"], conv["col"])))
         out[c] = est
-    out[1] = np.where(idx == 1, raw, conv["g"])
+    out[1] = np.where(idx == 1, values, conv["g"])
     return out.astype(np.float32)
 
 
@@ -162,9 +169,9 @@ def color_scene(name: str, *, frames: int, size=(256, 256)) -> np.ndarray:
     if name not in COLOR_SCENES:
         raise InputError(f"scene {name!r}: unknown colour scene (choose from {', '.join(COLOR_SCENES)}, "
                          "or any grey synth: scene, recorded as R = G = B)")
-    size = tuple(int(s) for s in size)
+    side = tuple(int(s) for s in size)
     background, foreground = (color_photo(p) for p in COLOR_SCENES[name])
-    return np.stack([synth.occlude(bg, fg, frames=frames, size=size, velocity=(0.4, 1.5), drift=(0.15, 0.25))
+    return np.stack([synth.occlude(bg, fg, frames=frames, size=side, velocity=(0.4, 1.5), drift=(0.15, 0.25))
                      for bg, fg in zip(background, foreground)])
 
 
@@ -225,19 +232,19 @@ def simulate_bayer(video: np.ndarray, pattern: str, *, where: str = "video", **c
 
     ``video`` (3, N, H, W) is filtered (:func:`mosaic`: one channel per
     pixel), then coded and measured exactly as a grey video
-    (:func:`codedvideo.engine.stages.simulate_capture` with ``capture``'s keywords:
+    (:func:`codedvideo.engine.simulation.simulate_capture` with ``capture``'s keywords:
     code, bump, sigma, seed, sensor, ...).  Returns ``coded`` (H, W) mosaic,
     ``mask`` (N, H, W) and ``truth`` (3, N, H, W), the colour video.
     """
-    from codedvideo.engine.stages import simulate_capture
+    from codedvideo.engine.simulation import simulate_capture
 
-    pattern = check_pattern(pattern)
-    video = np.asarray(video, np.float32)
-    if video.ndim != 4 or video.shape[0] != 3:
-        raise InputError(f"{where}: a Bayer capture needs a colour video (3, N, H, W), got shape {video.shape}")
-    check_even(video.shape, where)
-    cap = simulate_capture(mosaic(video, pattern), **capture)
-    return dict(cap, truth=video)
+    colours = check_pattern(pattern)
+    frames = np.asarray(video, np.float32)
+    if frames.ndim != 4 or frames.shape[0] != 3:
+        raise InputError(f"{where}: a Bayer capture needs a colour video (3, N, H, W), got shape {frames.shape}")
+    check_even(frames.shape, where)
+    cap = simulate_capture(mosaic(frames, colours), **capture)
+    return dict(cap, truth=frames)
 
 
 def static_estimate(coded: np.ndarray, mask: np.ndarray, pattern: str,
@@ -251,12 +258,12 @@ def static_estimate(coded: np.ndarray, mask: np.ndarray, pattern: str,
     colour default scene and four real clips): neighbouring pixels integrate
     different sub-frames, so its cross-channel gradients carry motion.
     """
-    mask = np.asarray(mask, np.float32)
-    counts = mask.sum(0)
+    shutter = np.asarray(mask, np.float32)
+    counts = shutter.sum(0)
     weights = counts > 0 if measured is None else (counts > 0) & measured
     frame = np.divide(coded, counts, out=np.zeros(counts.shape, np.float32), where=counts > 0)
     colour = demosaic_bilinear(frame, pattern, weights.astype(np.float32))
-    return np.ascontiguousarray(np.broadcast_to(colour[:, None], (3,) + mask.shape), dtype=np.float32)
+    return np.ascontiguousarray(np.broadcast_to(colour[:, None], (3,) + shutter.shape), dtype=np.float32)
 
 
 # ----------------------------------------------------------------------------- reconstruction
@@ -283,29 +290,29 @@ def color_dictionary(D: np.ndarray, frames: int, chroma_fraction: float = CHROMA
     """
     from codedvideo.solvers.dictionaries import prepare_dictionary
 
-    D = np.asarray(prepare_dictionary(np.asarray(D, np.float32), "for --bayer"), np.float64)
-    k = D.shape[1]
-    cube = D.reshape(frames, 7, 7, k)
+    atoms = np.asarray(prepare_dictionary(np.asarray(D, np.float32), "for --bayer"), np.float64)
+    k = atoms.shape[1]
+    cube = atoms.reshape(frames, 7, 7, k)
     rough = (np.diff(cube, axis=1) ** 2).sum((0, 1, 2)) + (np.diff(cube, axis=2) ** 2).sum((0, 1, 2))
-    smooth = D[:, np.argsort(rough / (cube**2).sum((0, 1, 2)), kind="stable")[: max(1, round(chroma_fraction * k))]]
-    blocks = [np.concatenate([COLOR_BASIS[0, c] * D for c in range(3)])]
+    smooth = atoms[:, np.argsort(rough / (cube**2).sum((0, 1, 2)), kind="stable")[: max(1, round(chroma_fraction * k))]]
+    blocks = [np.concatenate([COLOR_BASIS[0, c] * atoms for c in range(3)])]
     blocks += [np.concatenate([v[c] * smooth for c in range(3)]) for v in COLOR_BASIS[1:]]
     return np.concatenate(blocks, axis=1).astype(np.float32)
 
 
 def color_mask(mask: np.ndarray, pattern: str) -> np.ndarray:
     """``(3 N, H, W)``: the grey mask per channel, open only at that channel's pixels (channel-major)."""
-    mask = np.asarray(mask)
-    cm = cfa_masks(pattern, mask.shape)
-    return (cm[:, None] * mask[None]).reshape((3 * mask.shape[0],) + mask.shape[1:]).astype(mask.dtype)
+    grey = np.asarray(mask)
+    cm = cfa_masks(pattern, grey.shape)
+    return (cm[:, None] * grey[None]).reshape((3 * grey.shape[0],) + grey.shape[1:]).astype(grey.dtype)
 
 
 def _channel_residual(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, pattern: str,
                       measured: np.ndarray) -> np.ndarray:
     """Static correction ``(3, H, W)``: the measurement residual / open count, interpolated per channel."""
-    mask = np.asarray(mask, np.float32)
-    counts = mask.sum(0)
-    predicted = mosaic(np.einsum("cthw,thw->chw", volume, mask), pattern)
+    shutter = np.asarray(mask, np.float32)
+    counts = shutter.sum(0)
+    predicted = mosaic(np.einsum("cthw,thw->chw", volume, shutter), pattern)
     weights = (counts > 0) & measured
     r = np.divide(np.asarray(coded, np.float32) - predicted, counts, out=np.zeros(counts.shape, np.float32),
                   where=weights)
@@ -313,15 +320,15 @@ def _channel_residual(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, p
                      for m in cfa_masks(pattern, r.shape)]).astype(np.float32)
 
 
-def reconstruct_bayer(method: str, coded: np.ndarray, mask: np.ndarray, *, pattern: str, dictionary=None,
-                      white_level: float | None = None, **options) -> tuple[np.ndarray, dict]:
+def reconstruct_bayer(options: CaptureSettings, coded: np.ndarray, mask: np.ndarray, *,
+                      pattern: str) -> tuple[np.ndarray, dict]:
     """A Bayer-coded mosaic ``(H, W)`` and its mask ``(N, H, W)`` -> the colour video ``(3, N, H, W)``.
 
     ``omp``, ``dct`` and ``nonlocal``: one joint sparse coding of the colour
     video as a ``(3 N, H, W)`` stack, each pixel measuring its own channel
     under its code (:func:`color_mask`), over the grey dictionary lifted to
     colour (:func:`color_dictionary`), through
-    :func:`codedvideo.engine.stages.reconstruct_capture` (units, saturation,
+    :func:`codedvideo.engine.captures.reconstruct_capture` (units, saturation,
     tiles, cache and ``adapt`` as for grey: the non-local method's groups are
     matched as whole colour blocks, and ``adapt`` adapts the lifted
     dictionary itself to the colour result).  Then a static correction: each channel's
@@ -341,59 +348,63 @@ def reconstruct_bayer(method: str, coded: np.ndarray, mask: np.ndarray, *, patte
     26.74 dB; the mosaic reconstructed as grey, then every sub-frame
     demosaicked 16.60 dB; demosaicked static estimate 23.79 dB.
 
-    ``options``: the keywords of ``reconstruct_capture`` (``data_range``,
-    ``settings``, ``dictionary_key``, ``tile``, ``cache``, ...).
+    ``options``: the method and its options (:class:`~codedvideo.engine.captures.CaptureSettings`: ``method``,
+    ``dictionary`` (the grey one), ``white_level``, ``data_range``, ``settings``, ``tile``, ``cache``, ...).
     """
+    import dataclasses
     import time
     import warnings
 
-    from codedvideo.engine.stages import reconstruct_capture
+    from codedvideo.engine.captures import reconstruct_capture
 
-    pattern = check_pattern(pattern)
-    coded = np.asarray(coded, np.float32)
-    mask = np.asarray(mask)
-    n = mask.shape[0]
-    check_even(coded.shape, options.get("where", "coded image"))
+    method, white_level, where = options.method, options.white_level, options.where
+    colours = check_pattern(pattern)
+    mosaicked = np.asarray(coded, np.float32)
+    codes = np.asarray(mask)
+    n = codes.shape[0]
+    check_even(mosaicked.shape, where)
     t0 = time.perf_counter()
-    measured = np.ones(coded.shape, bool) if white_level is None else coded < np.float32(white_level)
-    if (mask == mask[:, :1, :1]).all():  # one shutter pattern everywhere: no temporal information
+    measured = np.ones(mosaicked.shape, bool) if white_level is None else mosaicked < np.float32(white_level)
+    if (codes == codes[:, :1, :1]).all():  # one shutter pattern everywhere: no temporal information
         if not measured.any():
-            raise InputError(f"{options.get('where', 'coded image')}: every pixel is at or above --white-level "
+            raise InputError(f"{where}: every pixel is at or above --white-level "
                              f"{white_level}; nothing is left to reconstruct (--trust-saturated uses them anyway)")
-        volume = static_estimate(coded, mask, pattern, measured)
+        volume = static_estimate(mosaicked, codes, colours, measured)
         info = dict(method="static", patches=0, patches_per_second=0.0,
                     seconds=dict(reconstruct=time.perf_counter() - t0), saturated_pixels=int((~measured).sum()))
-        return volume, dict(info, bayer=dict(pattern=pattern, approach="static"))
+        return volume, dict(info, bayer=dict(pattern=colours, approach="static"))
     with warnings.catch_warnings():  # a channel's other pixels are missing by design
         warnings.filterwarnings("ignore", message=".*pixels are never open.*")
-        if method in ("omp", "dct", "nonlocal"):
-            if method == "dct":
+        if method in SPARSE:
+            entry = method_named(method)
+            if entry.dictionary:
+                dictionary = options.dictionary
+            else:  # (dct: its own atoms)
                 from codedvideo.solvers.dictionaries import dct_dictionary
 
                 dictionary = dct_dictionary(n)
             lifted = color_dictionary(dictionary, n)
-            options = dict(options, dictionary_key="")  # the lifted atoms key the cache
-            stack, info = reconstruct_capture("nonlocal" if method == "nonlocal" else "omp", coded,
-                                              color_mask(mask, pattern), dictionary=lifted, white_level=white_level,
-                                              **options)
-            volume = stack.reshape((3, n) + coded.shape)
+            # the lifted atoms key the cache
+            joint = dataclasses.replace(options, method=entry.solver, dictionary=lifted, dictionary_key="")
+            stack, info = reconstruct_capture(joint, mosaicked, color_mask(codes, colours))
+            volume = stack.reshape((3, n) + mosaicked.shape)
             # (a code the non-local method's table cannot hold gave the joint OMP: its record says so)
             info = dict(info, method="omp" if info.get("nonlocal_unavailable") else method,
                         dictionary_atoms=int(np.shape(dictionary)[1]))
             approach = "joint"
         else:
-            cm = cfa_masks(pattern, coded.shape)
-            parts = [reconstruct_capture(method, np.where(cm[c], coded, 0).astype(np.float32),
-                                         (mask * cm[c]).astype(mask.dtype), dictionary=None, white_level=white_level,
-                                         **options) for c in range(3)]
+            cm = cfa_masks(colours, mosaicked.shape)
+            alone = dataclasses.replace(options, dictionary=None)
+            parts = [reconstruct_capture(alone, np.where(cm[c], mosaicked, 0).astype(np.float32),
+                                         (codes * cm[c]).astype(codes.dtype)) for c in range(3)]
             volume = np.stack([p[0] for p in parts])
             info = dict(parts[0][1], seconds=dict(reconstruct=sum(p[1]["seconds"]["reconstruct"] for p in parts)),
                         saturated_pixels=parts[0][1].get("saturated_pixels", 0))
             approach = "per-channel"
     t1 = time.perf_counter()
-    correction = _channel_residual(coded, mask, volume, pattern, measured)
+    correction = _channel_residual(mosaicked, codes, volume, colours, measured)
     volume = (volume + correction[:, None]).astype(np.float32)
     info["seconds"] = dict(info.get("seconds", {}), correction=time.perf_counter() - t1)
-    info["bayer"] = dict(pattern=pattern, approach=approach, chroma_fraction=CHROMA_FRACTION if approach == "joint"
+    info["bayer"] = dict(pattern=colours, approach=approach, chroma_fraction=CHROMA_FRACTION if approach == "joint"
                          else None, correction_rms=float(np.sqrt(np.mean(correction.astype(np.float64) ** 2))))
     return volume, info

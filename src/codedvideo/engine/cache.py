@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     from codedvideo.engine.config import PipelineConfig
 
 __all__ = ["verify_cache", "clean_cache", "CacheBudget", "parse_size", "REMOVED_WHEN_BROKEN", "RECON_VERSION",
-           "content_key", "dictionary_key"]
+           "content_key", "dictionary_key", "recon_key", "recon_entry", "dictionary_entry"]
 
 _ENTRY = re.compile(r"^(dict|recon)-([0-9a-f]{16})\.zarr$")
 _TEMP = re.compile(r"^\.((dict|recon)-[0-9a-f]{16}\.zarr)\.tmp-\d+-[0-9a-f]{8}$")
@@ -77,6 +77,27 @@ def content_key(*parts) -> str:
         else:
             h.update(json.dumps(part, sort_keys=True, default=str).encode())
     return h.hexdigest()[:16]
+
+
+def recon_key(coded: np.ndarray, mask: np.ndarray, dictionary_key: str, settings, tile: int, *,
+              still: np.ndarray | None = None, first_key: str | None = None) -> str:
+    """The key of a capture's working store: its inputs, its dictionary's key (:func:`content_key` of its atoms
+    when it has none of its own), its settings (an :class:`~codedvideo.solvers.region.OmpSettings`) and tile,
+    its still map, and the key of the store its groups are matched on (``first_key``), each only when given."""
+    return content_key(RECON_VERSION, coded, mask, dictionary_key, settings.__dict__, tile,
+                       *(() if still is None else (np.asarray(still, np.uint8),)),
+                       *(() if first_key is None else (first_key,)))
+
+
+def recon_entry(cache: str | os.PathLike, key: str) -> Path:
+    """The working store of key ``key`` in the cache folder ``cache`` (absolute: a dask.distributed worker
+    started in another folder opens it too)."""
+    return Path(cache).absolute() / f"recon-{key}.zarr"
+
+
+def dictionary_entry(cache: str | os.PathLike, key: str) -> Path:
+    """The trained dictionary of settings key ``key`` (:func:`dictionary_key`) in the cache folder ``cache``."""
+    return Path(cache) / f"dict-{key}.zarr"
 
 
 def dictionary_key(cfg: PipelineConfig) -> str:
@@ -216,7 +237,7 @@ class CacheBudget:
         their lock again would not show them in use).  Returns the stores removed now."""
         from codedvideo.formats.store import entry_lock
 
-        busy = {Path(b).absolute() for b in busy}
+        held = {Path(b).absolute() for b in busy}
         now = max(time.time(), max(self.used.values(), default=0.0))
         for entry in entries:
             entry = Path(entry).absolute()
@@ -227,7 +248,7 @@ class CacheBudget:
         for entry in sorted(self.sizes, key=lambda e: self.used.get(e, 0.0)):
             if total <= self.budget:
                 break
-            if entry in self.keep or entry in busy:
+            if entry in self.keep or entry in held:
                 continue
             with entry_lock(entry, blocking=False) as held:
                 if not held:  # in use (by this job or another run): kept
@@ -273,11 +294,12 @@ def cache_room_problem(cache: str | os.PathLike, stores: int, frames: int, heigh
 
 def _human(size: float) -> str:
     """Bytes as a person reads them: ``"3.2 GiB"``, ``"15 KiB"``, ``"512 B"``."""
+    value = size
     for unit in ("B", "KiB", "MiB", "GiB"):
-        if size < 1024:
-            return f"{size:.0f} {unit}" if unit == "B" or size >= 10 else f"{size:.1f} {unit}"
-        size /= 1024
-    return f"{size:.1f} TiB"
+        if value < 1024:
+            return f"{value:.0f} {unit}" if unit == "B" or value >= 10 else f"{value:.1f} {unit}"
+        value /= 1024
+    return f"{value:.1f} TiB"
 
 
 # ----------------------------------------------------------------------------- scanning

@@ -15,11 +15,17 @@ from typing import Annotated, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
+from codedvideo.engine.methods import ADAPTIVE, WITH_DICTIONARY
 from codedvideo.model.errors import ConfigError
 from codedvideo.model.physics import SensorModel
 from codedvideo.model.units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX
+from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
 STAGES = ("train", "simulate", "reconstruct", "evaluate")
+#: The tile side in pixels (``reconstruct.tile``, ``--tile``) and the cache folder (``cache``, ``--cache``) by default.
+DEFAULT_TILE, DEFAULT_CACHE = 128, "cache"
+#: A method that takes a dictionary (:data:`codedvideo.engine.methods.WITH_DICTIONARY`): ``reconstruct.method``.
+DictionaryMethod = Literal[WITH_DICTIONARY]
 
 
 def _pair(v):
@@ -131,10 +137,10 @@ class NoiseConfig(_Strict):
 
 class DictionaryConfig(_Strict):
     kind: Literal["learned", "dct"] = "learned"
-    atoms: int = Field(512, ge=1, le=16384)
-    samples: int = Field(80000, ge=100, le=10_000_000)
-    iterations: int = Field(20, ge=0, le=1000)
-    sparsity: int = Field(6, ge=1, le=49)
+    atoms: int = Field(KSVD_ATOMS, ge=1, le=16384)
+    samples: int = Field(KSVD_SAMPLES, ge=100, le=10_000_000)
+    iterations: int = Field(KSVD_ITERATIONS, ge=0, le=1000)
+    sparsity: int = Field(KSVD_SPARSITY, ge=1, le=49)
     #: ``synth:train`` (synthetic motion of the training photographs) or video paths.
     training: list[str] = ["synth:train"]
     clips: int = Field(144, ge=1, le=100_000)
@@ -201,7 +207,7 @@ class ReconstructConfig(_Strict):
     #: Average of overlapping estimates: "uniform" (the paper) or "fit" (weighted by misfit).
     weighting: Literal["uniform", "fit"] = "uniform"
     #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved together.
-    method: Literal["omp", "nonlocal"] = "omp"
+    method: DictionaryMethod = "omp"
     #: Adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, reconstruct again
     #: (omp: about twice the time; nonlocal: a sparse survey first, about 1.2x its time; README, "Adapting the
     #: dictionary").
@@ -213,7 +219,7 @@ class ReconstructConfig(_Strict):
     #: ``best``: 32, +0.9 dB on held-out real footage over its two rounds; docs/quality.md, "Refinement").
     refine: int = Field(0, ge=0, le=200)
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
-    tile: int = Field(128, ge=8, le=4096)
+    tile: int = Field(DEFAULT_TILE, ge=8, le=4096)
     batch: int = Field(4096, ge=1, le=1 << 20)
     #: A dask.distributed address (``tcp://host:port``, ``tls://...``), or "threads" / "sync".
     scheduler: str | None = None
@@ -334,9 +340,9 @@ class ReportConfig(_Strict):
     speed_codes: list[Literal["hitomi", "hitomi-tiled"]] = ["hitomi", "hitomi-tiled"]
     speed_strides: list[Annotated[int, Field(ge=1, le=7)]] = [1, 2, 3]
     #: Speed study: the sparse methods besides the configured one, each a point with its default settings.
-    speed_methods: list[Literal["omp", "nonlocal"]] = ["omp", "nonlocal"]
+    speed_methods: list[DictionaryMethod] = list(WITH_DICTIONARY)
     #: Speed study: the sparse methods also timed with their dictionary adapted to each capture (``--adapt``).
-    speed_adapt: list[Literal["omp", "nonlocal"]] = ["nonlocal"]
+    speed_adapt: list[DictionaryMethod] = ["nonlocal"]
     #: The scene of the frame strips and the side-by-side video.
     video_scene: str = "default"
     fps: int = Field(4, ge=1)
@@ -396,7 +402,7 @@ class ReportConfig(_Strict):
 class PipelineConfig(_Strict):
     seed: int = Field(0, ge=0, le=2**63 - 1)
     frames: int = Field(8, ge=1, le=64)
-    cache: str = "cache"
+    cache: str = DEFAULT_CACHE
     stages: list[Literal["train", "simulate", "reconstruct", "evaluate"]] = list(STAGES)
     scene: SceneConfig = SceneConfig()
     code: CodeConfig = CodeConfig()
@@ -471,8 +477,9 @@ def _refusal(key: str, options: dict, bayer: str | None) -> str | None:
                 "passes before it)")
     if key == "adapt_rounds" and options["adapt_rounds"] != 1 and not options["adapt"]:
         return "applies with --adapt only"
-    if key == "adapt" and options["adapt"] and method not in ("omp", "nonlocal", "dct"):
-        return f"adapts the dictionary of --method omp, nonlocal or dct (--method {method} has none)"
+    if key == "adapt" and options["adapt"] and method not in ADAPTIVE:
+        return (f"adapts the dictionary of --method {', '.join(ADAPTIVE[:-1])} or {ADAPTIVE[-1]} (--method {method} "
+                "has none)")
     return None
 
 
@@ -566,13 +573,13 @@ _NUMBER_ERRORS = {"greater_than", "greater_than_equal", "less_than", "less_than_
 def allowed(model: type[BaseModel], loc) -> str | None:
     """The range a number field of ``model`` (at location ``loc``, or a field name) allows, as ``[0, 1e+12]``
     or ``(0, 1]`` (None: no bounds): the one statement of the bounds, for pipeline.yaml and the options."""
-    field = None
+    field, section = None, model
     for part in (loc,) if isinstance(loc, str) else loc:
-        if not isinstance(part, str) or model is None or part not in getattr(model, "model_fields", {}):
+        if not isinstance(part, str) or section is None or part not in getattr(section, "model_fields", {}):
             continue
-        field = model.model_fields[part]
+        field = section.model_fields[part]
         sub = field.annotation
-        model = sub if isinstance(sub, type) and issubclass(sub, BaseModel) else None
+        section = sub if isinstance(sub, type) and issubclass(sub, BaseModel) else None
     if field is None:
         return None
     found = {}
@@ -621,28 +628,28 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
     may appear twice, and values are not coerced (``frames: "8"`` or
     ``frames: true`` are errors, as are inf and NaN).
     """
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"config {path}: no such file")
-    if not path.is_file():
-        raise ConfigError(f"config {path}: not a file (give the path of a pipeline.yaml)")
+    file = Path(path)
+    if not file.exists():
+        raise ConfigError(f"config {file}: no such file")
+    if not file.is_file():
+        raise ConfigError(f"config {file}: not a file (give the path of a pipeline.yaml)")
     try:
-        text = path.read_text(encoding="utf-8")
+        text = file.read_text(encoding="utf-8")
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"config {path}: not UTF-8 text (byte {exc.start})") from exc
+        raise ConfigError(f"config {file}: not UTF-8 text (byte {exc.start})") from exc
     except OSError as exc:
-        raise ConfigError(f"config {path}: cannot read it ({exc.strerror or exc})") from exc
+        raise ConfigError(f"config {file}: cannot read it ({exc.strerror or exc})") from exc
     try:
         raw = yaml.load(text, Loader=_UniqueKeyLoader)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         problem = getattr(exc, "problem", None) or " ".join(str(exc).split())
         where = f", line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"config {path}: not valid YAML ({problem}{where})") from exc
+        raise ConfigError(f"config {file}: not valid YAML ({problem}{where})") from exc
     if raw is None:
-        raise ConfigError(f"config {path}: empty; give at least the stages to run (see the README's pipeline.yaml)")
+        raise ConfigError(f"config {file}: empty; give at least the stages to run (see the README's pipeline.yaml)")
     if not isinstance(raw, dict):
-        raise ConfigError(f"config {path}: expected a mapping at the top level")
+        raise ConfigError(f"config {file}: expected a mapping at the top level")
     try:
         # JSON mode: YAML lists are valid tuples, and strict types still apply
         cfg = PipelineConfig.model_validate_json(json.dumps(raw, default=str), context=dict(use=use))
@@ -653,12 +660,12 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
         # (a rule between keys names them itself: the whole section it was given is no help on one line)
         value = "" if err["type"] == "extra_forbidden" or isinstance(err.get("input"), dict) \
             else f" = {err.get('input')!r}"
-        raise ConfigError(f"config {path}: {where}{value}: {msg.removeprefix('Value error, ')}") from exc
+        raise ConfigError(f"config {file}: {where}{value}: {msg.removeprefix('Value error, ')}") from exc
     name, section = cfg.reconstruct.preset, raw.get("reconstruct")
     beside = {k: v for k, v in section.items() if k in PRESETS.get(name, {}) and v != PRESETS[name][k]} \
         if name and isinstance(section, dict) else {}
     if beside:  # (a pipeline.yaml that lists every key at its default would leave the preset nothing to set)
-        warnings.warn(f"config {path}: " + ", ".join(f"reconstruct.{k} {v}" for k, v in beside.items())
+        warnings.warn(f"config {file}: " + ", ".join(f"reconstruct.{k} {v}" for k, v in beside.items())
                       + f" given beside reconstruct.preset {name} {'wins' if len(beside) == 1 else 'win'} over the "
                       + "preset's " + ", ".join(f"{PRESETS[name][k]}" for k in beside), stacklevel=2)
     return cfg

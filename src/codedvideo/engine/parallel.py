@@ -69,12 +69,12 @@ def plan_tiles(shape: tuple[int, int], tile: int, *, patch: int = PATCH, halo: i
     h, w = shape
     if tile < 1:
         raise ValueError(f"tile size must be >= 1, got {tile}")
-    halo = patch - 1 if halo is None else halo
+    reach = patch - 1 if halo is None else halo
     tiles = []
     for y0 in range(0, h, tile):
         for x0 in range(0, w, tile):
             y1, x1 = min(y0 + tile, h), min(x0 + tile, w)
-            region = (max(0, y0 - halo), min(h, y1 + halo), max(0, x0 - halo), min(w, x1 + halo))
+            region = (max(0, y0 - reach), min(h, y1 + reach), max(0, x0 - reach), min(w, x1 + reach))
             tiles.append(Tile(len(tiles), (y0, y1, x0, x1), region))
     return tiles
 
@@ -424,6 +424,13 @@ class _Cancelled(Exception):
     """The consumer of a streamed graph stopped early: the remaining tasks are not started."""
 
 
+def progress_bar(total: int, desc: str):
+    """A progress bar of ``total`` iterations (K-SVD's, the refinement's), gone when it closes."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="it", leave=False)
+
+
 def _grow_bar(bar, total: int) -> None:
     """Set a progress bar's length, keeping its count and its clock (its rate, hence its ETA)."""
     bar.total = total
@@ -438,7 +445,7 @@ class GraphRunner:
     """Runs a job's graphs, one after another, as one stream of work: both cores (or a cluster) busy throughout.
 
     A long job is planned and computed in windows of captures (a graph each,
-    :func:`codedvideo.engine.stages.sparse_volumes`), so that its first tiles start
+    :func:`codedvideo.engine.windows.sparse_volumes`), so that its first tiles start
     after one window is planned, and what the plans hold and the locks kept
     do not grow with its length.  :meth:`offer` hands over the next window's
     graph while the one before it runs: locally it starts as soon as the one
@@ -732,8 +739,8 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
     """
     from codedvideo.formats.store import workstore_inputs
 
-    coded, mask, still = workstore_inputs(coded, mask, still)
-    tiles = tuple(plan_tiles(tuple(coded.shape), tile, patch=patch, halo=tile_halo(settings, patch)))
+    coded_in, mask_in, still_in = workstore_inputs(coded, mask, still)
+    tiles = tuple(plan_tiles(tuple(coded_in.shape), tile, patch=patch, halo=tile_halo(settings, patch)))
     if store.created:
         ok = damaged = np.zeros(len(tiles), bool)
     else:
@@ -747,10 +754,10 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
         from codedvideo.solvers.nonlocal_sc import STEP
 
         stride = max(stride, settings.group_step or STEP)
-        blocks = nonlocal_blocks(tuple(coded.shape), tile, patch)
-        reach = [_still_reach(still, t.core, patch) or nonlocal_reach(t, blocks, tuple(coded.shape), patch)
+        blocks = nonlocal_blocks(tuple(coded_in.shape), tile, patch)
+        reach = [_still_reach(still_in, t.core, patch) or nonlocal_reach(t, blocks, tuple(coded_in.shape), patch)
                  for t in todo]
-    contents = tuple(tile_content(coded, mask, still, t, stride=stride, reach=r) for t, r in zip(todo, reach))
+    contents = tuple(tile_content(coded_in, mask_in, still_in, t, stride=stride, reach=r) for t, r in zip(todo, reach))
     if first is not None:
         first_key = WorkStore.opened(first).key
         contents = tuple(f"{c}-{first_key}-{t.index}" for c, t in zip(contents, todo))

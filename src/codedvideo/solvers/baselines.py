@@ -4,7 +4,7 @@ Every baseline takes the coded image ``(H, W)`` and its code ``(N, H, W)`` in
 the sum convention of :mod:`codedvideo.model.physics` and returns a video
 ``(N, H, W)`` float32; :data:`METHODS` lists the names ``codedvideo
 reconstruct --method`` accepts (``omp`` and ``dct`` are the per-patch OMP of
-:func:`codedvideo.engine.stages.reconstruct_volume` with a learned or a 3D DCT
+:func:`codedvideo.engine.windows.reconstruct_volume` with a learned or a 3D DCT
 dictionary; the others are here).
 
 * :func:`thinout` -- the draft-mode (thin-out) movie: each sub-frame keeps the

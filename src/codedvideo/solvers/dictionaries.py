@@ -17,6 +17,10 @@ from codedvideo.model.errors import InputError
 from codedvideo.model.patches import PATCH
 from codedvideo.solvers.ksvd import ksvd
 
+#: K-SVD's defaults (:func:`learn_dictionary`, ``dictionary:`` in pipeline.yaml): atoms, training patches drawn,
+#: iterations and atoms per patch while training.
+KSVD_ATOMS, KSVD_SAMPLES, KSVD_ITERATIONS, KSVD_SPARSITY = 512, 80000, 20, 6
+
 
 #: Atoms are rescaled to unit norm when some nonzero atom's norm differs from 1
 #: by more than this; a dictionary within it (every learned or DCT dictionary,
@@ -213,10 +217,10 @@ def learn_dictionary(
     videos: list[np.ndarray],
     *,
     frames: int,
-    atoms: int = 512,
-    samples: int = 20000,
-    iterations: int = 15,
-    sparsity: int = 6,
+    atoms: int = KSVD_ATOMS,
+    samples: int = KSVD_SAMPLES,
+    iterations: int = KSVD_ITERATIONS,
+    sparsity: int = KSVD_SPARSITY,
     tol_rms: float = 0.5,
     seed: int = 0,
     patch: int = PATCH,

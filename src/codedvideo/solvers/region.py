@@ -71,7 +71,7 @@ class OmpSettings:
     #: together under their own codes (:mod:`codedvideo.solvers.nonlocal_sc`).
     method: str = "omp"
     #: "nonlocal": stride of its groups' reference patches (0: :data:`codedvideo.solvers.nonlocal_sc.STEP`).
-    #: ``--adapt`` surveys with a sparser grid first (:data:`codedvideo.engine.stages.ADAPT_SURVEY_STEP`).
+    #: ``--adapt`` surveys with a sparser grid first (:data:`codedvideo.engine.adaptation.ADAPT_SURVEY_STEP`).
     group_step: int = 0
 
 

@@ -1,0 +1,122 @@
+"""Adapting the dictionary to each capture (``--adapt``): K-SVD started from it, on the capture's own first
+reconstruction, then the capture reconstructed again with the adapted dictionary."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from codedvideo.engine.cache import CacheBudget
+from codedvideo.model.errors import InputError
+from codedvideo.solvers.dictionaries import learn_dictionary
+
+#: Adapting the dictionary to a capture (``--adapt``): K-SVD started from the dictionary, its atoms kept,
+#: for this many iterations on this many 7x7xN patches of the capture's own first reconstruction, taken as
+#: they are (no rotations, flips or time reversal: they would spread the atoms over motions the scene
+#: lacks).  Measured on the 24 held-out real cases (README), the non-local method alone 33.71 dB: one
+#: iteration 34.36 (with augmentation 33.84), 2 34.45, 3 34.49, 4 34.52 (0.32 s at 256x256, against 0.19
+#: for one), 4 on 14000 patches 34.54 (0.73 s); sparsity 4 or 8 no better.  A dictionary adapted to one
+#: capture does not carry to the next (-1.3 to +1.4 dB a case, no gain on average): each gets its own.
+ADAPT_SAMPLES, ADAPT_ITERATIONS, ADAPT_SPARSITY = 7000, 4, 6
+#: ``nonlocal --adapt``: the first pass solves the groups of every 7th reference patch (a survey, 0.2 of the
+#: groups of the non-local method's stride 3), the second pass the groups of every 4th from the survey's
+#: result, with no per-patch tiles (:attr:`codedvideo.engine.parallel.TileWork.first`).  Measured on the 24
+#: held-out real cases, in one thread (2026-11-26): surveys of every 5th or 7th reference gave the quality of
+#: two full passes (GAP-TV + 3.80 dB with a second pass of every 3rd, against + 3.84), in 5.5 to 5.9x the
+#: default's time against 9.2x; with a second pass of every 4th, + 3.66 dB in 4.3x (README).
+ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP = 7, 4
+#: ``--adapt-rounds 2`` (``--preset best``): the dictionary adapted again to the second pass's result (K-SVD
+#: started from the first adaptation, the same settings), then a third pass with it; the non-local method's
+#: third pass solves the groups of every 3rd reference, matched on the second pass's result.  Measured in one
+#: thread (tasks/research_best.py, 256x256, N = 8, hitomi L = 2 and Bernoulli, no noise; chosen on bikes-a and
+#: carphone, 2026-11-27): over ``nonlocal --adapt`` +0.46 dB on those, +0.48 dB on bikes-b and bunny (every
+#: case +0.18 or more) and +0.45 on their next 8 frames, in 1.8x its time; a third pass every 4th +0.38, a
+#: third adaptation and a fourth pass +0.51 (worst case +0.10) in 2.1x, denser second passes +0.13 to +0.20.
+ADAPT_LAST_STEP = 3
+
+
+def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0) -> tuple[np.ndarray, dict]:
+    """``D`` adapted to one capture's first reconstruction ``volume`` (N, H, W), in working units.
+
+    A volume with nothing to learn from (flat in space and time) keeps ``D``.
+    Returns the dictionary and a record of the adaptation.
+    """
+    from threadpoolctl import threadpool_limits
+
+    from codedvideo.solvers.dictionaries import prepare_dictionary
+
+    t0 = time.perf_counter()
+    first = np.asarray(volume, np.float32)
+    if not np.ptp(first) > 1e-3 * max(1.0, float(np.abs(first).max(initial=0.0))):
+        return D, dict(adapted=False, reason="the first reconstruction is flat", seconds=time.perf_counter() - t0)
+    try:
+        # one BLAS thread: the same bits whatever the cores (products round otherwise with other thread counts);
+        # the caller runs no graph meanwhile, whose own limit would change it midway (adapt_capture)
+        with threadpool_limits(limits=1, user_api="blas"):
+            Da, meta = learn_dictionary([first], frames=first.shape[0], init=D, augment=False,
+                                        iterations=ADAPT_ITERATIONS, samples=ADAPT_SAMPLES, sparsity=ADAPT_SPARSITY,
+                                        tol_rms=0.0, seed=seed)
+    except InputError:  # every patch drawn is flat (a dark frame with a few bright pixels): nothing to learn
+        return D, dict(adapted=False, reason="no patch drawn from the first reconstruction has texture",
+                       seconds=time.perf_counter() - t0)
+    Da = prepare_dictionary(Da, "adapted to the capture")
+    return Da, dict(adapted=True, samples=meta["samples"], iterations=ADAPT_ITERATIONS, final_rmse=meta["final_rmse"],
+                    seconds=time.perf_counter() - t0)
+
+
+def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictionary_key: str, pass_settings, *,
+                   matched: bool, nonlocal_problem, budget: CacheBudget | None,
+                   run) -> tuple[np.ndarray, str | None, dict | None]:
+    """Capture ``i``'s passes before its last (``--adapt``), each a job of its own followed by an adaptation of
+    the dictionary to its result (:func:`adapt_dictionary`), the next pass solved with that dictionary.
+
+    One job at a time: no graph is in flight while K-SVD runs (a graph's thread limits BLAS threads, which changed
+    an adaptation's bits when it ran beside one).  The passes' warnings (never-open pixels, dependent stops) are
+    swallowed: the last job, which gives the result, says them.  ``pass_settings``: one per pass before the last;
+    ``matched``: the non-local method's passes, each matched on and solved from the previous pass's working store
+    (where the code's groups can be solved: ``nonlocal_problem(mask)`` is None); ``run``: :func:`codedvideo.engine.windows.sparse_volumes`
+    with the job's tiles, cache and scheduler.  Stops early where a result has nothing to learn from.
+
+    Returns the dictionary for the last pass (``dictionary`` itself if none was adapted), the working store the
+    last pass is matched on (or None), and the record of the adaptations with the earlier jobs' seconds (or None).
+    """
+    D_i, store, done = dictionary, None, []
+    for k, settings in enumerate(pass_settings):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            pass_job = run(1, lambda _: for_sparse(i), dictionary if k == 0 else (lambda _, D=D_i: (D, "")),
+                           settings=settings, dictionary_key=dictionary_key,
+                           first_of=None if store is None else (lambda _, s=store: s),
+                           desc=f"pass {k + 1} of {i + 1}/{count}")
+            with contextlib.closing(pass_job):  # closed here: the graph's thread has ended
+                _, first, info = next(pass_job)
+        learnt = first is not None and info.get("method") != "static"  # (one pattern for all pixels: no tiles)
+        if learnt:
+            Da, record = adapt_dictionary(first, D_i)
+            done.append((info, record))
+            learnt = record["adapted"]  # (a result with nothing to learn from keeps the dictionary)
+        del first
+        if learnt:
+            D_i = Da
+            # (a code the groups cannot solve: the survey is the default's result, and the later passes their
+            # own per-patch OMP with the adapted dictionary, as with omp --adapt)
+            if matched and nonlocal_problem(for_sparse(i)[1]) is None:
+                store = info["work_store"]
+                if budget is not None:  # the next job reads it: kept until the job ends
+                    budget.keep.add(Path(store).absolute())
+        if budget is not None and (info or {}).get("work_store"):  # (closed before its window ended)
+            budget.finished([info["work_store"]])
+        if not learnt:
+            break
+    if not done:
+        return D_i, store, None
+    record = dict(done[-1][1], first_pass=dict(seconds=sum(sum(inf["seconds"].values()) for inf, _ in done),
+                                               tile_seconds=sum(inf["seconds_total"] for inf, _ in done)))
+    if len(pass_settings) > 1:  # each round's K-SVD, and the adaptations' time together
+        record.update(rounds=[r for _, r in done], seconds=sum(r["seconds"] for _, r in done),
+                      adapted=any(r["adapted"] for _, r in done))
+    return D_i, store, record

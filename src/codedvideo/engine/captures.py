@@ -1,0 +1,537 @@
+"""Reconstructing captures by any method: a capture, a job of captures, a stream; the methods' dispatch.
+
+:class:`CaptureSettings` holds how captures are reconstructed (the method and its options);
+:func:`reconstruct_captures` runs a job of captures with it, in three steps: prepared (:func:`_prepare`: the
+method's settings and dictionary, the passes), adapted (:func:`_adapt`, ``--adapt`` only: each capture's
+dictionary) and finished capture by capture (:func:`_finish`: static estimates, the baselines, refinement,
+units).  :func:`reconstruct_capture` is a job of one, :func:`reconstruct_stream` a coded camera's stream with
+its captures joined, :func:`reconstruct_method` one capture by any method without units.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import time
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from codedvideo.engine import methods
+from codedvideo.engine.adaptation import ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP, adapt_capture
+from codedvideo.engine.cache import CacheBudget, content_key
+from codedvideo.engine.config import DEFAULT_CACHE, DEFAULT_TILE
+from codedvideo.engine.parallel import progress_bar
+from codedvideo.engine.windows import reconstruct_volume, sparse_volumes, static_volume
+from codedvideo.model import physics
+from codedvideo.model.errors import ConfigError, InputError, OutputError
+from codedvideo.model.patches import PATCH
+from codedvideo.model.sequence import erode_to_patches, normalised
+from codedvideo.model.units import DataRange
+from codedvideo.solvers import refine as refinement
+from codedvideo.solvers.region import OmpSettings
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CaptureSettings:
+    """How captures are reconstructed: the method and every option of :func:`reconstruct_captures`.
+
+    Attributes
+    ----------
+    method : str
+        One of :data:`codedvideo.engine.methods.METHOD_NAMES`.
+    data_range : :class:`codedvideo.model.units.DataRange`
+        The captures are scaled to working units (``settings`` already in
+        them), reconstructed and scaled back, so the same captures in other
+        units give the same videos times the scale.
+    settings : :class:`codedvideo.solvers.region.OmpSettings`
+        The sparse methods' settings, in working units.
+    dictionary, dictionary_key, dictionary_name
+        The dictionary of ``omp`` and ``nonlocal`` (:func:`sparse_method`), its cache key (empty: keyed by
+        its contents) and its name in messages.
+    white_level : float, optional
+        Pixels at or above it (capture units) are missing measurements.
+    where : str
+        Names the captures in messages.
+    tile, cache, scheduler, workers, progress
+        The sparse methods' tiles, cache folder and scheduler (:func:`codedvideo.engine.windows.sparse_volumes`).
+    adapt : bool
+        Sparse methods: reconstruct each capture (a job each), adapt the
+        dictionary to its result (:func:`codedvideo.engine.adaptation.adapt_dictionary`), then reconstruct
+        every capture again with its own (one job).  ``omp``: about twice the
+        time; ``nonlocal``: a survey first (:data:`~codedvideo.engine.adaptation.ADAPT_SURVEY_STEP`), about
+        1.2x its time, +0.6 dB on held-out real footage (README).
+    adapt_rounds : int
+        With ``adapt``: 2 adapts the dictionary again to the second pass's result and reconstructs a
+        third time with it (:data:`~codedvideo.engine.adaptation.ADAPT_LAST_STEP`; ``--preset best``).
+    refine : int
+        Iterations of GAP with a low-rank prior on groups after each capture's result (0: none;
+        :func:`codedvideo.solvers.refine.refine`, ``--preset best``), in the process, not cached; pixels that
+        only still patches cover keep their still answer.
+    noise_sigma : float
+        The captures' read noise (capture units, ``--noise-sigma``): with ``refine``, a noisy capture's steps to
+        its measurements are relaxed by it (:func:`codedvideo.solvers.refine.refine`); a stream's still
+        answers follow it (:func:`reconstruct_stream`).
+    cache_budget : int, optional
+        Bytes the cache's working stores may take (:class:`codedvideo.engine.cache.CacheBudget`): the least recently
+        used are removed as the job's windows finish (with ``adapt``, the first passes' stores only after the
+        job).  None: no limit.
+    """
+
+    method: str
+    data_range: DataRange
+    settings: OmpSettings
+    dictionary: np.ndarray | None = None
+    dictionary_key: str = ""
+    dictionary_name: str = ""
+    white_level: float | None = None
+    where: str = "coded image"
+    tile: int = DEFAULT_TILE
+    cache: str | Path = DEFAULT_CACHE
+    scheduler: str | None = None
+    workers: int | None = None
+    progress: bool = True
+    adapt: bool = False
+    adapt_rounds: int = 1
+    refine: int = 0
+    noise_sigma: float = 0.0
+    cache_budget: int | None = None
+
+
+class _Inputs:
+    """The captures of a job as reconstructed (:meth:`used`), the last one asked kept (the finishing step asks
+    twice in a row; one capture's inputs held at most)."""
+
+    def __init__(self, options: CaptureSettings, codeds, mask_of, still_of):
+        self.options, self.codeds, self.mask_of, self.still_of = options, codeds, mask_of, still_of
+        self.count = len(codeds)
+        self.scale = np.float32(options.data_range.scale)
+        self.blown: set[int] = set()  # captures saturated everywhere (warned once each)
+        self.used = functools.lru_cache(maxsize=1)(self._used)
+
+    def forget(self) -> None:
+        """Ask every capture afresh, and say its warnings again (the first jobs of ``--adapt`` swallowed them)."""
+        self.blown.clear()
+        self.used.cache_clear()
+
+    def _used(self, i: int):
+        """Capture i as reconstructed: working units, saturated pixels left out, the pixels only still patches
+        cover measuring their still answer; its agreeing pixels (None: none), whether anything moves, its
+        saturated count, and its own measurement where still answers changed it (else None)."""
+        coded_used, mask_used, saturated = self._unsaturated(i)
+        coded_used = (np.asarray(coded_used, np.float32) * self.scale if self.scale != 1
+                      else np.asarray(coded_used, np.float32))
+        still = measured = None
+        if self.still_of is not None:  # asked again when the capture is finished (not kept: T maps of H x W)
+            values = self.still_of(i)
+            found = np.isfinite(values) & np.asarray(mask_used).any(0)
+            if found.any():
+                # a pixel that only still patches cover measures its still answer (the captures it agrees with
+                # averaged in): coded = open count x value.  Pixels that a patch which moves covers keep their
+                # own measurement, so the per-patch search of that patch is the one it was (tested); the
+                # methods that couple patches (nonlocal groups, gap-tv, --adapt's learning) see the averages
+                still, inner = found, erode_to_patches(found, PATCH)
+                averaged = np.where(inner, np.asarray(mask_used).sum(0, dtype=np.float32) * values,
+                                    coded_used).astype(np.float32)
+                if not np.array_equal(averaged, coded_used):
+                    measured, coded_used = coded_used, averaged
+        moving = still is None or int(still.sum()) < int(np.asarray(mask_used).any(0).sum())
+        return coded_used, mask_used, still, moving, saturated, measured
+
+    def _unsaturated(self, i: int):
+        """Capture i (capture units) with its saturated pixels left out, its mask without them, and their count;
+        a capture of a stream saturated everywhere is taken with its clipped values (said once)."""
+        white_level, where, count = self.options.white_level, self.options.where, self.count
+        coded, mask = self.codeds[i], self.mask_of(i)
+        if white_level is None:
+            return coded, mask, 0
+        coded_used, mask_used, saturated = drop_saturated(coded, mask, white_level)
+        if saturated and not mask_used.any():
+            if count == 1:
+                raise InputError(f"{where}: every measured pixel is at or above --white-level {white_level}; "
+                                 "nothing is left to reconstruct (--trust-saturated uses them anyway)")
+            # one blown-out capture of a stream (a flash, the sun): its clipped values, said, and the rest go on
+            if i not in self.blown:
+                self.blown.add(i)
+                warnings.warn(f"{where}, capture {i + 1} of {count}: every measured pixel is at or above "
+                              f"--white-level {white_level}; it is reconstructed from its clipped values")
+            return coded, mask, 0
+        return coded_used, mask_used, saturated
+
+
+@dataclasses.dataclass(eq=False)
+class _Job:
+    """A job of captures, prepared (:func:`_prepare`): its options with the method's settings (the last pass's),
+    dictionary and key resolved, its captures, and what its passes and adaptations leave for the last job."""
+
+    options: CaptureSettings
+    inputs: _Inputs
+    sparse: bool
+    #: ``nonlocal --adapt``: the passes before the last survey on sparser grids of groups, each matched on by the next.
+    survey: bool
+    pass_settings: list
+    budget: CacheBudget | None
+    nonlocal_checked: dict = dataclasses.field(default_factory=dict)
+    adapted: dict = dataclasses.field(default_factory=dict)  # capture -> its adapted dictionary (until planned)
+    records: dict = dataclasses.field(default_factory=dict)  # capture -> its adaptation, the earlier jobs' seconds
+    first_stores: dict = dataclasses.field(default_factory=dict)  # capture -> the store its last pass is matched on
+    warned_nonlocal: bool = False
+
+    def for_sparse(self, i: int):
+        """Capture ``i``'s inputs for :func:`sparse_volumes`, or None where it is not sparse-coded."""
+        coded_used, mask_used, still, moving, _, _ = self.inputs.used(i)
+        return (coded_used, mask_used, still) if self.sparse and moving else None
+
+    def nonlocal_problem(self, mask) -> str | None:
+        """Why the non-local method cannot solve a capture with this mask, or None (a code's patterns are
+        counted once: 3 s for a 4K mask, N = 18)."""
+        code = content_key(np.asarray(mask))
+        if code not in self.nonlocal_checked:
+            self.nonlocal_checked[code] = _nonlocal_unavailable(mask, self.options.dictionary)
+        return self.nonlocal_checked[code]
+
+
+def _prepare(options: CaptureSettings, codeds, mask_of, still_of) -> _Job:
+    """A job of captures with ``options``: the method checked, its settings and dictionary resolved
+    (:func:`sparse_method`), the passes' settings (``--adapt``), the cache budget."""
+    entry = methods.method(options.method)
+    inputs = _Inputs(options, codeds, mask_of, still_of)
+    resolved = options
+    if entry.sparse:
+        settings, dictionary, key = sparse_method(options.method, options.settings, options.dictionary,
+                                                  options.dictionary_key, options.dictionary_name,
+                                                  frames=mask_of(0).shape[0])
+        resolved = dataclasses.replace(options, settings=settings, dictionary=dictionary, dictionary_key=key)
+    if options.adapt and not entry.adapts:
+        raise ConfigError(f"--adapt: method {options.method} has no dictionary to adapt "
+                          f"({', '.join(methods.ADAPTIVE[:-1])} and {methods.ADAPTIVE[-1]} have)")
+    # --adapt with the non-local method: a first pass on a sparser grid of groups (a survey: what K-SVD learns
+    # from and the groups of the second pass are matched on), then the groups solved from it (no default tiles);
+    # with adapt_rounds 2 the second pass is learnt from and matched on in turn, and a third pass gives the result
+    rounds = options.adapt_rounds
+    survey = resolved.settings.method == "nonlocal" and options.adapt
+    steps = (ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP, ADAPT_LAST_STEP)[:rounds + 1] if survey else ()
+    pass_settings = [dataclasses.replace(resolved.settings, group_step=step) for step in steps] if survey \
+        else [resolved.settings] * (rounds + 1)
+    budget = None if options.cache_budget is None or not entry.sparse else CacheBudget(options.cache,
+                                                                                       options.cache_budget)
+    return _Job(dataclasses.replace(resolved, settings=pass_settings[-1]), inputs, entry.sparse, survey,
+                pass_settings, budget)
+
+
+def _adapt(job: _Job) -> None:
+    """``--adapt``: each capture's passes before the last, and its dictionary adapted to them
+    (:func:`codedvideo.engine.adaptation.adapt_capture`), into ``job``."""
+    o = job.options
+    run = functools.partial(sparse_volumes, tile=o.tile, cache=o.cache, scheduler=o.scheduler, workers=o.workers,
+                            progress=o.progress)
+    for i in range(job.inputs.count):
+        D_i, store, record = adapt_capture(
+            i, job.inputs.count, job.for_sparse, o.dictionary, o.dictionary_key, job.pass_settings[:o.adapt_rounds],
+            matched=job.survey, nonlocal_problem=job.nonlocal_problem, budget=job.budget, run=run)
+        if D_i is not o.dictionary:
+            job.adapted[i] = D_i
+        if store is not None:
+            job.first_stores[i] = store
+        if record is not None:
+            job.records[i] = record
+    job.inputs.forget()  # the warnings the first jobs swallowed are said by the second
+
+
+def _solved(job: _Job):
+    """The job's sparse-coded volumes, in order (``(i, None, None)`` for every capture of a baseline)."""
+    o, count = job.options, job.inputs.count
+    if not job.sparse:
+        return ((i, None, None) for i in range(count))
+    run = functools.partial(sparse_volumes, count, job.for_sparse, settings=o.settings, tile=o.tile, cache=o.cache,
+                            scheduler=o.scheduler, workers=o.workers, progress=o.progress, budget=job.budget)
+    if not job.adapted:
+        return run(o.dictionary, dictionary_key=o.dictionary_key)
+    # a capture not adapted (flat) keeps the dictionary and its key: its second job is the first's, from the cache
+    # (with the survey, the method's own job at the second pass's stride)
+    adapted = job.adapted
+    return run(lambda i: (adapted.pop(i), "") if i in adapted else (o.dictionary, o.dictionary_key),
+               desc="adapted", first_of=job.first_stores.get if job.survey else None)
+
+
+def reconstruct_captures(options: CaptureSettings, codeds, mask_of, *,
+                         still_of=None) -> Iterator[tuple[int, np.ndarray, dict]]:
+    """Captures in their own units -> their videos in the same units, by any method, in order, as one job.
+
+    Parameters
+    ----------
+    options : CaptureSettings
+        The method and its options.
+    codeds : sequence of T coded images (H, W), in the capture's units
+    mask_of : callable ``mask_of(i)`` -> the (N, H, W) mask of capture ``i``
+    still_of : callable, optional
+        ``still_of(i)`` -> (H, W) float32 (:func:`codedvideo.model.sequence.still_values`):
+        the still answer, in working units, of the pixels whose ``coded / open
+        count`` agrees with a neighbouring capture, NaN elsewhere.  Patches wholly inside them take the still
+        answer in every sub-frame without a dictionary search (that value where only still patches cover
+        a pixel; elsewhere the capture's own, which the patches that move see); a capture in which every
+        measured pixel agrees is the still estimate itself.  (Methods without
+        patches: the pixels whose 13x13 neighbourhood agrees take it.)
+
+    Yields
+    ------
+    ``(i, volume (N, H, W) float32, info)`` for i = 0 .. T-1, each as soon as
+    it is done; the sparse methods run every capture's tiles in one graph.
+    """
+    job = _prepare(options, codeds, mask_of, still_of)
+    if job.sparse and options.adapt:
+        _adapt(job)
+    results = _solved(job)
+    with contextlib.closing(results) if job.sparse else contextlib.nullcontext():
+        for i, volume, info in results:
+            # (as sparse_volumes: not held while the consumer works on it)
+            handed = [_finish(job, i, volume, info)]
+            del volume, info
+            yield handed.pop()
+    if job.budget is not None and job.budget.keep:  # the job is over: the first passes' stores may go too
+        job.budget.keep.clear()
+        job.budget.finished([])
+
+
+def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | None) -> tuple[int, np.ndarray, dict]:
+    """Capture ``i``'s result: its sparse-coded volume, or the static estimate where nothing moves, or its
+    baseline's; refined, saturated pixels raised to the white level, still answers kept, in capture units."""
+    o, inputs = job.options, job.inputs
+    coded_used, mask_used, still, moving, saturated, measured = inputs.used(i)
+    if not moving:  # nothing moves: no sparse coding at all
+        volume, info = static_volume(coded_used, mask_used)
+    elif solved is None:
+        volume, info = reconstruct_method(o.method, coded_used, mask_used)
+    else:
+        volume, info = solved, solved_info
+    if o.refine and moving and info.get("method") != "static":
+        volume, info = _refined(coded_used, mask_used, volume, info, o.refine, still=still, where=o.where,
+                                noise_sigma=float(o.noise_sigma) * float(inputs.scale), progress=o.progress,
+                                label=f"{i + 1}/{inputs.count}")
+    if measured is not None:  # still answers averaged over captures: the residual of this capture's own
+        residual = physics.forward(volume, mask_used) - measured
+        info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
+    if job.sparse and info.get("method") != "static":  # (the static estimate says so)
+        info = _sparse_info(job, i, info, mask_used)
+    if saturated:  # a saturated pixel recorded at least the white level: no frame sum below it
+        info["saturated_raised"] = physics.raise_to_white(volume, np.asarray(inputs.codeds[i]) >= np.float32(o.white_level),
+                                                          inputs.mask_of(i), float(o.white_level) * float(inputs.scale))
+    if still is not None and not job.sparse:  # no patches: the pixels whose every patch would be still
+        inner = erode_to_patches(still, PATCH)
+        volume[:, inner] = normalised(coded_used, mask_used)[0][inner]
+    info["still_pixels"] = 0 if still is None else int(still.sum())
+    if inputs.scale != 1:
+        volume /= inputs.scale
+        if info.get("measurement_residual_rms") is not None:
+            info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(inputs.scale)
+    info["saturated_pixels"] = saturated
+    return i, volume, info
+
+
+def _sparse_info(job: _Job, i: int, solved_info: dict, mask_used) -> dict:
+    """A sparse-coded capture's record: its method and dictionary, its adaptation and the earlier jobs' time,
+    and whether the non-local method could solve it (a code it cannot gives the default's answer: said once)."""
+    o = job.options
+    info = dict(solved_info, method=o.method, dictionary_atoms=int(o.dictionary.shape[1]))
+    if i in job.records:  # the first job's and the adaptation's time beside the second's
+        record = info["adapted"] = job.records.pop(i)
+        info["seconds"] = dict(first_pass=record["first_pass"]["seconds"], adapt=record["seconds"], **info["seconds"])
+        work = record["first_pass"]["tile_seconds"] + record["seconds"] + info["seconds_total"]
+        info["patches_per_second"] = info["patches"] / max(work, 1e-9) * (info["tiles_computed"] > 0)
+    problem = job.nonlocal_problem(mask_used) if o.method == "nonlocal" else None
+    if problem:  # its tiles gave the default's answer: said, not hidden
+        info.update(method="omp", nonlocal_unavailable=problem)
+        if not job.warned_nonlocal:
+            warnings.warn(f"--method nonlocal ({o.where}): {problem}; the result is the default per-patch "
+                          "OMP's (for every capture with such a code: nonlocal_unavailable in the metrics)")
+            job.warned_nonlocal = True
+    return info
+
+
+def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict, iterations: int, *,
+             still: np.ndarray | None, where: str, noise_sigma: float, progress: bool,
+             label: str) -> tuple[np.ndarray, dict]:
+    """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units, the
+    read noise ``noise_sigma`` too), its info with what the refinement did; the pixels that only still patches
+    cover keep their values."""
+    with progress_bar(iterations, f"refine {label}") if progress else contextlib.nullcontext() as bar:
+        refined, record = refinement.refine(coded, mask, volume, iterations=iterations, noise_sigma=noise_sigma,
+                                            tick=None if bar is None else (lambda: bar.update(1)))
+    if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
+        raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
+    if still is not None:
+        inner = erode_to_patches(still, PATCH)
+        refined[:, inner] = volume[:, inner]
+    seconds = dict(info.get("seconds", {}), refine=record["seconds"])
+    return refined, dict(info, refine=record, seconds=seconds)
+
+
+def reconstruct_stream(options: CaptureSettings, codeds, mask_of, *, join: bool, still: bool = True, cuts=None,
+                       spill: str | Path | None = None) -> Iterator[tuple[int, np.ndarray, dict]]:
+    """A stream of captures (a coded camera's frames, or a benchmark file's measurements) -> their videos, in
+    order: :func:`reconstruct_captures` as one job and, with ``join`` and more than one capture, the still
+    answers shared with agreeing neighbours (:func:`codedvideo.model.sequence.still_values`) and the step from one
+    capture to the next smoothed (:func:`codedvideo.model.sequence.joined`), except across the boundaries ``cuts``
+    (:class:`codedvideo.model.sequence.Cuts`, made here when None) finds are no boundary of one scene.  ``still``:
+    share still answers (False for a benchmark file's measurements, each of its own scene).  ``spill``: a
+    folder where the captures the join holds wait on disk (:func:`codedvideo.formats.volumes.spilled`: the same bits,
+    read a few frames at a time), or None to hold them in memory.  What the command line and the Python API
+    (:func:`codedvideo.api.reconstruct`) both run; ``options``: the method and its options (:class:`CaptureSettings`); ``options.noise_sigma`` and ``white_level`` the still answers' too."""
+    count = len(codeds)
+    if not join or count < 2:
+        return reconstruct_captures(options, codeds, mask_of)
+    from codedvideo.model.sequence import Cuts, joined, still_values
+
+    scale, white_level = options.data_range.scale, options.white_level
+    cut = Cuts(codeds, mask_of, scale=scale, white_level=white_level) if cuts is None else cuts
+    # what did not change since the capture before or until the one after (asked again by the join)
+    still_of = functools.lru_cache(maxsize=4)(
+        lambda i: still_values(codeds, mask_of, i, sigma=options.noise_sigma, scale=scale,
+                               white_level=white_level, cut=cut)) if still else None
+    results = reconstruct_captures(options, codeds, mask_of, still_of=still_of)
+    if spill is not None:
+        from codedvideo.formats.volumes import spilled
+
+        results = spilled(results, spill)
+    # the step from one capture to the next smoothed along the motion, both measurements kept
+    return joined(results, codeds, mask_of, data_range=options.data_range.value, still_of=still_of,
+                  white_level=white_level, cut=cut)
+
+
+def _nonlocal_unavailable(mask: np.ndarray, D: np.ndarray) -> str | None:
+    """Why the non-local method cannot solve a capture with this mask (it then gives the default's answer,
+    :func:`codedvideo.solvers.nonlocal_sc.nonlocal_region`), or None."""
+    from codedvideo.solvers.omp import pixel_patterns
+    from codedvideo.solvers.omp_kernel import table_fits
+
+    patterns, _ = pixel_patterns(mask)
+    if table_fits(len(patterns), D, PATCH * PATCH):
+        return None
+    return (f"the code has {len(patterns)} distinct pixel shutter patterns, more than the table its groups are "
+            "solved through holds")
+
+
+def reconstruct_capture(options: CaptureSettings, coded: np.ndarray, mask: np.ndarray, *,
+                        still: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """One capture in its own units -> its video in the same units: a job of one (:func:`reconstruct_captures`);
+    ``still``: its still values in working units, NaN where not still (:func:`codedvideo.model.sequence.still_values`)."""
+    if still is not None and not np.issubdtype(np.asarray(still).dtype, np.floating):
+        raise TypeError(f"still: the still values (float, NaN where not still), not {np.asarray(still).dtype} "
+                        "(a map of still pixels: sequence.still_values gives the values)")
+    results = reconstruct_captures(options, [coded], lambda i: mask,
+                                   still_of=None if still is None else (lambda i: still))
+    with contextlib.closing(results):
+        (_, volume, info), = results  # to its end: the job's cache budget is applied there
+    return volume, info
+
+
+def trivial_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Every sub-frame = coded / open count: the baseline a method must beat."""
+    return physics.static_estimate(coded, mask)
+
+
+def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Saturated pixels as missing measurements (:func:`codedvideo.model.physics.saturated_as_missing`).
+
+    Returns the coded image with saturated pixels set to 0 (so that the
+    measurement residual ignores them), the mask without them, and their count.
+    """
+    mask_used, count = physics.saturated_as_missing(coded, mask, white_level)
+    if not count:
+        return coded, mask_used, count
+    return np.where(coded >= np.float32(white_level), np.float32(0), coded).astype(np.float32), mask_used, count
+
+
+def sparse_method(method: str, settings: OmpSettings, dictionary: np.ndarray | None, dictionary_key: str,
+                  dictionary_name: str, *, frames: int) -> tuple[OmpSettings, np.ndarray, str]:
+    """The settings, dictionary and its cache key a sparse method runs with.
+
+    ``omp`` and ``nonlocal`` use ``dictionary`` (required), ``dct`` the
+    complete 3D DCT.  Atoms of any nonzero norm give the same answer: they go
+    through :func:`~codedvideo.solvers.dictionaries.prepare_dictionary` (unit norm,
+    zero atoms dropped with a warning, all-zero refused), and a changed
+    dictionary is keyed by its own contents.
+    """
+    from codedvideo.solvers.dictionaries import dct_dictionary, prepare_dictionary
+
+    entry = methods.method(method)
+    used = dataclasses.replace(settings, method=entry.solver)
+    if not entry.dictionary:  # (dct: its own atoms)
+        atoms, key = dct_dictionary(frames), ""
+    elif dictionary is None:
+        raise InputError(f"method {method}: needs a dictionary (--dictionary DICT.zarr)")
+    else:
+        atoms, key = dictionary, dictionary_key
+    prepared = prepare_dictionary(atoms, dictionary_name or f"of method {method}")
+    if prepared is not atoms:  # the caller's key names the given atoms: key the cache by the used ones
+        return used, prepared, ""
+    return used, atoms, key
+
+
+def reconstruct_method(
+    method: str,
+    coded: np.ndarray,
+    mask: np.ndarray,
+    *,
+    dictionary: np.ndarray | None = None,
+    dictionary_key: str = "",
+    dictionary_name: str = "",
+    settings=None,
+    tile: int = DEFAULT_TILE,
+    cache: str = DEFAULT_CACHE,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = False,
+) -> tuple[np.ndarray, dict]:
+    """Reconstruct with any method of :data:`codedvideo.engine.methods.METHOD_NAMES` on the same forward model.
+
+    ``omp`` runs :func:`codedvideo.engine.windows.reconstruct_volume` with
+    ``dictionary``; ``dct`` runs it with the complete 3D DCT
+    (:func:`codedvideo.solvers.dictionaries.dct_dictionary`); ``thinout``,
+    ``interp`` and ``gaptv`` run those of :mod:`codedvideo.solvers.baselines` with their
+    defaults.
+
+    Parameters
+    ----------
+    method : str
+        One of :data:`codedvideo.engine.methods.METHOD_NAMES`.
+    coded : ndarray of shape (H, W)
+    mask : ndarray of shape (N, H, W)
+    dictionary : ndarray of shape (N * 49, K), optional
+        Required for ``omp``; ignored otherwise.  Atoms of any nonzero norm
+        give the same answer: it goes through
+        :func:`~codedvideo.solvers.dictionaries.prepare_dictionary` (unit norm, zero
+        atoms dropped with a warning, all-zero refused).
+    dictionary_name : str
+        Names the dictionary in those messages (e.g. its path).
+    dictionary_key, settings, tile, cache, scheduler, workers, progress
+        Passed to :func:`~codedvideo.engine.windows.reconstruct_volume` (``settings``
+        an :class:`~codedvideo.solvers.region.OmpSettings`; default settings when None).
+
+    Returns
+    -------
+    volume : ndarray of shape (N, H, W), float32
+    info : dict
+        ``method``, ``patches``, ``patches_per_second``, ``seconds``
+        (``reconstruct``: wall time) and ``measurement_residual_rms``;
+        for ``omp``/``dct`` everything :func:`reconstruct_volume` reports.
+    """
+    physics.check_pair(np.shape(coded), np.shape(mask))
+    if methods.method(method).sparse:
+        used, atoms, key = sparse_method(method, settings or OmpSettings(), dictionary, dictionary_key,
+                                         dictionary_name, frames=mask.shape[0])
+        volume, info = reconstruct_volume(coded, mask, atoms, settings=used, tile=tile, cache=cache,
+                                          scheduler=scheduler, workers=workers, progress=progress,
+                                          dictionary_key=key)
+        return volume, dict(info, method=method, dictionary_atoms=int(atoms.shape[1]))
+    solve = methods.solver(method)
+    t0 = time.perf_counter()
+    volume = solve(coded, mask)
+    seconds = time.perf_counter() - t0
+    residual = physics.forward(volume, mask) - np.asarray(coded, np.float32)
+    info = dict(method=method, patches=0, patches_per_second=0.0, seconds=dict(reconstruct=seconds),
+                measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))))
+    return volume, info

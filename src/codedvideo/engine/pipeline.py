@@ -1,0 +1,147 @@
+"""A run of pipeline.yaml: the stages its config names (:func:`run_pipeline`), each a function of its settings.
+
+The command line (``codedvideo run``) and the ``tasks/`` scripts call it.  Each result is cached under a key
+that hashes its settings and inputs (:mod:`codedvideo.engine.cache`), so a rerun reuses a dictionary or
+finished reconstruction tiles instead of recomputing them.  Every reconstruction writes a metrics JSON beside
+its output: seconds per stage, patches per second, atoms used, and PSNR/SSIM when the truth is known.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from pathlib import Path
+
+from codedvideo.data.scenes import load_video
+from codedvideo.data.shipped import check_dictionary
+from codedvideo.engine.captures import CaptureSettings, reconstruct_capture, trivial_estimate
+from codedvideo.engine.config import PipelineConfig
+from codedvideo.engine.simulation import sensor_model, simulate_capture
+from codedvideo.engine.training import train_dictionary
+from codedvideo.formats import io as cio
+from codedvideo.formats.store import load_dictionary
+from codedvideo.formats.volumes import CAPTURE_FILES, metrics_path, write_capture, write_json, write_volume
+from codedvideo.model.metrics import evaluate
+
+
+def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str | Path | None = None) -> dict:
+    """Run the stages the config names; return the metrics written.
+
+    Every output is checked before any work (:func:`codedvideo.formats.outputs.check_outputs`):
+    none may touch the config file, the scene, the code file, the dictionary,
+    the training videos or the cache.
+    """
+    from codedvideo.engine.config import omp_settings
+    from codedvideo.formats.outputs import mark_written
+
+    out = Path(cfg.output.dir)
+    _check_outputs(cfg, out, config_path)  # before any work
+    from codedvideo.engine.config import check_scheduler
+
+    cio.check_cache(cfg.cache)
+    check_scheduler(cfg.reconstruct.scheduler)
+    report: dict = dict(config=cfg.model_dump(mode="json"), seconds={})
+    dict_path = capture = None
+    if "simulate" in cfg.stages or "reconstruct" in cfg.stages:
+        # the scene and the code read (and so checked) and the capture simulated before any training: a missing,
+        # short or too small video, or a code file that does not fit, ends the run in a second, not after K-SVD
+        t0 = time.perf_counter()
+        video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
+        capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed,
+                                   p=cfg.code.p, code_path=cfg.code.path, sensor=sensor_model(cfg.noise))
+        del video
+        report["seconds"]["simulate"] = time.perf_counter() - t0
+    if "train" in cfg.stages or "reconstruct" in cfg.stages:
+        t0 = time.perf_counter()
+        dict_path, dmeta = train_dictionary(cfg, progress=progress)
+        report["seconds"]["train"] = time.perf_counter() - t0
+        report["dictionary"] = dict(path=str(dict_path), reused=dmeta["reused"], atoms=dmeta["atoms"],
+                                    method=dmeta.get("method"), final_rmse=dmeta.get("final_rmse"))
+    # each output is recorded as codedvideo's as soon as it is in place, so that a run that fails or is
+    # stopped later does not leave files that the next run must refuse as the user's
+    if capture is not None:
+        t0 = time.perf_counter()
+        capture_paths = write_capture(capture, out / "capture")
+        for path in capture_paths.values():
+            mark_written(path)
+        report["capture"] = {k: str(v) for k, v in capture_paths.items()}
+        report["seconds"]["simulate"] += time.perf_counter() - t0
+    if "reconstruct" in cfg.stages:
+        D, dmeta = load_dictionary(dict_path)
+        check_dictionary(dmeta, cfg.frames, dict_path)
+        from codedvideo.model.units import capture_units
+
+        rc = cfg.reconstruct
+        report["preset"] = rc.preset_used()
+        sensor = sensor_model(cfg.noise)
+        # with shot noise / quantisation: the RMS noise at the mean coded level
+        sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
+        units = capture_units([capture["coded"]], lambda i: capture["mask"], given=cfg.output.data_range,
+                              noise_sigma=cfg.noise.sigma, where="simulated capture",
+                              levels={"noise.sigma": cfg.noise.sigma, "noise.white_level": cfg.noise.white_level,
+                                      "reconstruct.tol_rms": rc.tol_rms if rc.tol_rms != "auto" else None})
+        report["data_range"] = units.as_dict()
+        t0 = time.perf_counter()
+        # saturated pixels (noise.white_level) are missing measurements
+        volume, info = reconstruct_capture(CaptureSettings(
+            rc.method, data_range=units, settings=omp_settings(rc, sigma, scale=units.scale),
+            dictionary=D, dictionary_key=dmeta["sha256"], dictionary_name=str(dict_path),
+            white_level=cfg.noise.white_level, where="simulated capture", tile=rc.tile, cache=cfg.cache,
+            scheduler=rc.scheduler, workers=rc.workers, progress=progress, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds,
+            refine=rc.refine, noise_sigma=sigma, cache_budget=rc.cache_budget), capture["coded"], capture["mask"])
+        report["seconds"]["reconstruct"] = time.perf_counter() - t0
+        report["reconstruction"] = info
+        t0 = time.perf_counter()
+        report["outputs"] = _write_outputs(cfg, out, volume, units.value)
+        report["seconds"]["write"] = time.perf_counter() - t0
+        if "evaluate" in cfg.stages:
+            t0 = time.perf_counter()
+            report["quality"] = evaluate(volume, capture["truth"], data_range=units.value)
+            report["trivial"] = evaluate(trivial_estimate(capture["coded"], capture["mask"]), capture["truth"],
+                                         data_range=units.value)
+            report["seconds"]["evaluate"] = time.perf_counter() - t0
+    report["seconds"]["total"] = sum(report["seconds"].values())
+    # a run that reconstructs nothing (`make simulate`) keeps its record beside the capture: it replaced the last
+    # reconstruction's record (and its PSNR), and says that reconstruction is not of this capture
+    mpath = metrics_path(out / cfg.output.video) if "reconstruct" in cfg.stages else out / "capture" / "metrics.json"
+    if "simulate" in cfg.stages and "reconstruct" not in cfg.stages:
+        earlier = [p for p in (out / cfg.output.video, out / "recon.npy") if p.exists()]
+        if earlier:
+            warnings.warn(f"{', '.join(map(str, earlier))}: from an earlier run, not reconstructed from this capture "
+                          "(run the reconstruct stage to replace them)", stacklevel=2)
+    mark_written(write_json(mpath, report))
+    report["metrics_path"] = str(mpath)
+    return report
+
+
+def _check_outputs(cfg: PipelineConfig, out: Path, config_path) -> None:
+    """Every output of the run checked (:func:`codedvideo.formats.outputs.check_outputs`): none may touch the
+    config file, the scene, the code file, the dictionary, the training videos or the cache."""
+    from codedvideo.formats.outputs import Output, check_outputs
+
+    outputs = [Output(out, "place", "output.dir"), Output(out / cfg.output.video, "file", "output.video"),
+               Output(out / "recon.npy", "file"), Output(metrics_path(out / cfg.output.video), "file", "metrics"),
+               Output(out / "capture", "place", "capture folder")]
+    outputs += [Output(out / "capture" / name, "file") for name in (*CAPTURE_FILES, "metrics.json")]
+    if cfg.output.frames != "none":
+        outputs.append(Output(out / "frames", "folder", "frames folder"))
+    check_outputs(outputs, dict(config=config_path, scene=cfg.scene.video, code=cfg.code.path,
+                                dictionary=cfg.dictionary.path, training=list(cfg.dictionary.training), cache=cfg.cache),
+                  overwrite=cfg.output.overwrite)
+
+
+def _write_outputs(cfg: PipelineConfig, out: Path, volume, data_range: float) -> dict:
+    """The reconstruction written: the video, the frames (unless ``output.frames`` is none) and recon.npy, each
+    recorded as codedvideo's once it is in place; their paths."""
+    from codedvideo.formats.outputs import mark_written
+
+    video_path = write_volume(volume, out / cfg.output.video, fps=cfg.output.fps, data_range=data_range)
+    mark_written(video_path)
+    outputs = dict(video=str(video_path))
+    if cfg.output.frames != "none":
+        outputs["frames"] = str(out / "frames")
+        cio.write_frames(out / "frames", volume, fmt=cfg.output.frames, data_range=data_range)
+        mark_written(out / "frames")
+    mark_written(cio.write_array(out / "recon.npy", volume))
+    outputs["volume"] = str(out / "recon.npy")
+    return outputs
