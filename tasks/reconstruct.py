@@ -3,7 +3,7 @@ import sys
 
 from _common import config_from_argv, config_path, guarded
 
-from codedvideo.engine.pipeline import run_pipeline
+from codedvideo.api import run_pipeline
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ import sys
 from _common import guarded
 
 from codedvideo.engine.config import ReconstructConfig, load_config, validated
-from codedvideo.engine.pipeline import run_pipeline
+from codedvideo.api import run_pipeline
 
 
 def main() -> None:

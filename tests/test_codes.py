@@ -214,7 +214,7 @@ def test_file_code_npy_and_tiff(tmp_path):
 
     mask = make_code("hitomi", (20, 24), frames=8, bump=2, rng=4)
     np.save(tmp_path / "m.npy", mask)
-    write_multipage_tiff(tmp_path / "m.tif", mask)
+    write_multipage_tiff(tmp_path / "m.tif", mask * 255)  # a mask image: open at the image's full scale
     for path in (tmp_path / "m.npy", tmp_path / "m.tif"):
         got = load_code_file(path, frames=8, shape=(20, 24))
         assert got.dtype == np.uint8 and np.array_equal(got, mask)

@@ -143,3 +143,25 @@ def test_simulate_takes_a_codes_unused_option_at_its_default_and_refuses_another
     assert rc == 0, err  # 2 is the default: nothing is ignored
     rc, _, err = _cli(capsys, *common, "--bump", 3, "--output", tmp_path / "b")
     assert rc == 2 and "--bump 3" in err and "does not use it" in err, err
+
+
+def test_a_presets_record_is_the_same_from_pipeline_yaml_and_the_command_line(tmp_path, capsys):
+    """`preset: best` with `adapt: false` beside it: the run warns that the preset's adapt_rounds is left out,
+    naming pipeline.yaml's key, and records what the command line records for `--preset best --no-adapt`."""
+    folder = tmp_path
+    rc, _, err = _cli(capsys, "simulate", "synth:default", "--frames", N, "--size", 32, 32, "--output", folder / "cap")
+    assert rc == 0, err
+    (folder / "p.yaml").write_text(
+        f"frames: {N}\ncache: {folder / 'cache'}\nscene: {{video: synth:default, size: [32, 32]}}\n"
+        f"reconstruct: {{preset: best, adapt: false, refine: 2, tile: 32}}\noutput: {{dir: {folder / 'out'}, frames: none}}\n")
+    with pytest.warns(UserWarning, match=r"preset best: reconstruct\.adapt_rounds 2 is left out"):
+        rc, _, err = _cli(capsys, "run", folder / "p.yaml")
+    assert rc == 0, err
+    yaml_record = json.loads((folder / "out" / "recon.metrics.json").read_text())["preset"]
+    rc, _, err = _cli(capsys, "reconstruct", "--coded", folder / "cap" / "coded.npy", "--mask",
+                      folder / "cap" / "mask.npy", "--preset", "best", "--no-adapt", "--refine", 2, "--tile", 32,
+                      "--output", folder / "r.npy", "--cache", folder / "cache")
+    assert rc == 0, err
+    cli_record = json.loads((folder / "r.metrics.json").read_text())["preset"]
+    assert yaml_record == cli_record
+    assert yaml_record["given"] == ["adapt", "refine"] and list(yaml_record["left_out"]) == ["adapt_rounds"]

@@ -297,7 +297,7 @@ def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_pat
 
 def test_pipeline_white_level_and_shot_noise(tmp_path):
     from codedvideo.engine.config import PipelineConfig
-    from codedvideo.engine.pipeline import run_pipeline
+    from codedvideo.api import run_pipeline
 
     cfg = PipelineConfig.model_validate(dict(
         frames=4, cache=str(tmp_path / "c"), stages=["simulate", "reconstruct"],

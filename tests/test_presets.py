@@ -75,11 +75,12 @@ def test_options_given_beside_a_preset_win(tmp_path, capsys, capture):
     with pytest.warns(UserWarning, match="reconstruct.method omp given beside reconstruct.preset best wins"):
         section = load_config(path).reconstruct
     assert section.method == "omp" and section.adapt is True and section.preset_used()["given"] == ["method"]
-    path.write_text("reconstruct: {preset: best, adapt: true}\n")  # the preset's own value: nothing to say
+    path.write_text("reconstruct: {preset: best, adapt: true}\n")  # the preset's own value: nothing to warn of
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         section = load_config(path).reconstruct
-    assert section.method == "nonlocal" and section.preset_used()["given"] == []
+    # ... and recorded as given, as the command line records `--preset best --adapt`
+    assert section.method == "nonlocal" and section.preset_used()["given"] == ["adapt"]
 
 
 def test_a_bad_preset_is_one_line_naming_the_key_and_the_names(tmp_path, capsys, capture):

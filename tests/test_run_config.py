@@ -122,7 +122,7 @@ def test_simulating_again_keeps_the_last_reconstructions_record_and_says_it_is_s
     """Reported: `make simulate` after `run` rewrote recon.metrics.json without its PSNR, beside a recon.mp4
     that was no longer of the capture in capture/."""
     from codedvideo.engine.config import load_config
-    from codedvideo.engine.pipeline import run_pipeline
+    from codedvideo.api import run_pipeline
 
     out = tmp_path / "out"
     cfg_text = (f"frames: 4\ncache: {tmp_path / 'cache'}\nscene: {{video: synth:default, size: [24, 24]}}\n"

@@ -405,3 +405,4 @@ from codedvideo.api._settings import Resolved, resolve as resolve_settings  # no
 from codedvideo.api._simulate import (SimulateSettings, SimulationPlan, captures_of, plan_simulation,  # noqa: E402
                                      simulate_captures, simulate_whole)
 from codedvideo.api._train import plan_training, train_dictionary  # noqa: E402
+from codedvideo.api._pipeline import run_pipeline  # noqa: E402

@@ -265,6 +265,8 @@ class ReconstructionJob:
 
         self._steps = StepErrors()
         self.seconds_prepared = time.perf_counter() - t0
+        #: Seconds spent scoring the results against the truth (part of each result's time).
+        self.seconds_scored = 0.0
 
     def _warn_before_work(self) -> None:
         r, job = self.r, self.captures
@@ -323,6 +325,7 @@ class ReconstructionJob:
             entry["raw"] = self.raw[i]
         truth = job.truth(i)
         if truth is not None:
+            t0 = time.perf_counter()
             h, w = self.shape[-2:]
             frames = np.asarray(volume)  # (a capture kept on disk read whole to be scored)
             entry["quality"] = evaluate(frames.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=self.units.value)
@@ -333,6 +336,7 @@ class ReconstructionJob:
                 self._trivial[key] += entry["trivial"][f"{key}_per_frame"]
             if job.kind in ("captures", "measurements"):
                 self._steps.add(frames, truth)
+            self.seconds_scored += time.perf_counter() - t0
         self.entries.append(entry)
         return entry
 

@@ -15,8 +15,12 @@ from codedvideo.engine.config import (PRESET_KEYS, NoiseConfig, OutputConfig, Re
 from codedvideo.formats.io import check_cache
 from codedvideo.model.errors import CodedVideoError, ConfigError
 
-#: The doors a setting can be named through.
-DOORS = ("cli", "api")
+#: The doors a setting can be named through: the command line, the Python API, pipeline.yaml.
+DOORS = ("cli", "api", "config")
+
+#: pipeline.yaml's keys of the settings it holds outside ``reconstruct:``.
+_CONFIG_KEYS = {"noise_sigma": "noise.sigma", "white_level": "noise.white_level", "black_level": "noise.black_level",
+                "bits": "noise.bits", "data_range": "output.data_range", "bayer": "bayer", "cache": "cache"}
 
 
 @dataclass(frozen=True)
@@ -80,8 +84,13 @@ class Resolved:
 
 
 def setting_name(field: str, door: str) -> str:
-    """What ``door`` calls a setting: ``--noise-sigma`` on the command line, ``noise_sigma`` in Python."""
-    return "--" + field.replace("_", "-") if door == "cli" else field
+    """What ``door`` calls a setting: ``--noise-sigma`` on the command line, ``noise_sigma`` in Python,
+    ``noise.sigma`` in pipeline.yaml."""
+    if door == "cli":
+        return "--" + field.replace("_", "-")
+    if door == "config":
+        return _CONFIG_KEYS.get(field, f"reconstruct.{field}")
+    return field
 
 
 #: The settings whose config field is named otherwise.
@@ -95,16 +104,24 @@ def _names(door: str) -> dict[str, str]:
     return names
 
 
-def in_api_terms(message: str) -> str:
-    """A message that names command-line options, with the API's argument names in their place (``--noise-sigma``
-    -> ``noise_sigma``): the options of reconstruct and simulate that are arguments of the API."""
+def in_terms(message: str, door: str = "api") -> str:
+    """A message that names command-line options, with ``door``'s names in their place (``--noise-sigma`` ->
+    ``noise_sigma`` in Python, ``noise.sigma`` in pipeline.yaml): the options of reconstruct and simulate that
+    the door takes."""
+    if door == "cli":
+        return message
     known = {f.name for f in fields(ReconstructSettings)} | {"shot_noise", "full_well", "gain", "seed", "frames"}
 
     def swap(match: re.Match) -> str:
         field = match.group(1).replace("-", "_")
-        return field if field in known else match.group(0)
+        return setting_name(field, door) if field in known else match.group(0)
 
     return re.sub(r"(?<![\w-])--([a-z][a-z-]*)", swap, message)
+
+
+def in_api_terms(message: str) -> str:
+    """:func:`in_terms` for the Python API."""
+    return in_terms(message, "api")
 
 
 def resolve(settings: ReconstructSettings, *, door: str = "api") -> Resolved:
@@ -114,7 +131,7 @@ def resolve(settings: ReconstructSettings, *, door: str = "api") -> Resolved:
     except CodedVideoError as exc:
         if door == "cli":
             raise
-        raise type(exc)(in_api_terms(str(exc))) from exc
+        raise type(exc)(in_terms(str(exc), door)) from exc
 
 
 def _resolve(s: ReconstructSettings, door: str) -> Resolved:

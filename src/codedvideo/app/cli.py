@@ -585,7 +585,7 @@ def _config(a, use: str = "run"):
 
 
 def _cmd_run(a) -> int:
-    from codedvideo.engine.pipeline import run_pipeline
+    from codedvideo.api import run_pipeline
 
     report = run_pipeline(_config(a), progress=not a.quiet, config_path=a.config)
     lines = [f"metrics: {report['metrics_path']}"]

@@ -229,17 +229,20 @@ class ReconstructConfig(_Strict):
     #: recently used are removed as the job goes (a rerun computes their tiles again).
     cache_budget: int | None = None
 
-    @model_validator(mode="before")
-    @classmethod
-    def _preset(cls, data):
-        """A preset's keys under those given beside it (an explicit key wins); an unknown name is left to the
-        field's own check, which names the allowed ones."""
-        if isinstance(data, dict) and isinstance(data.get("preset"), str) and data["preset"] in PRESETS:
-            merged = {**PRESETS[data["preset"]], **data}
-            if merged.get("adapt") is False and "adapt_rounds" not in data:  # (adapt: false beside best)
-                merged.pop("adapt_rounds", None)
-            return merged
-        return data
+    @model_validator(mode="after")
+    def _preset(self) -> "ReconstructConfig":
+        """A preset's keys under those given beside it, resolved as the command line resolves them
+        (:func:`resolve_preset`: a key given wins; one of the preset's that the keys given void is left out, with
+        a warning).  The keys given stay the section's ``model_fields_set``, so the record says which they were."""
+        if self.preset is None:
+            return self
+        try:
+            options, _ = resolve_preset(self.preset, self.given())
+        except ConfigError:  # a key given that the run cannot take: said by the checks of the fields themselves
+            return self
+        for key, value in options.items():
+            object.__setattr__(self, key, value)
+        return self
 
     @model_validator(mode="after")
     def _rounds_of_adapt(self) -> "ReconstructConfig":
@@ -247,12 +250,15 @@ class ReconstructConfig(_Strict):
             raise ValueError(f"adapt_rounds {self.adapt_rounds} applies with adapt: true only")
         return self
 
+    def given(self) -> dict:
+        """The keys of :data:`PRESET_KEYS` this section gives (beside its preset, or without one) and their values."""
+        return {k: getattr(self, k) for k in PRESET_KEYS if k in self.model_fields_set}
+
     def preset_used(self) -> dict | None:
-        """What the metrics say of this section's preset (:func:`preset_record`; None: no preset): the keys set
-        beside it are those that differ from the preset's (or that it does not set)."""
-        sets = PRESETS.get(self.preset, {})
-        beside = [k for k in PRESET_KEYS if k in self.model_fields_set and (k not in sets or sets[k] != getattr(self, k))]
-        return preset_record(self.preset, {k: getattr(self, k) for k in PRESET_KEYS}, beside)
+        """What the metrics say of this section's preset (:func:`preset_record`; None: no preset), as the command
+        line says it: every key given beside the preset, and the preset's keys those void, left out."""
+        options, left_out = resolve_preset(self.preset, self.given())
+        return preset_record(self.preset, options, self.given(), left_out)
 
     @field_validator("cache_budget", mode="before")
     @classmethod

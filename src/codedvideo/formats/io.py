@@ -869,8 +869,9 @@ def stack_writer(path: str | os.PathLike, pages: int, *, dtype=None):
 def write_multipage_tiff(path: str | os.PathLike, stack: np.ndarray) -> Path:
     """Write an (N, H, W) stack (e.g. a mask) as a multi-page TIFF of its own type.
 
-    uint8 and uint16 stay integer (a mask of 0/1 stays 0/1); anything else is
-    written as float32 pages.
+    uint8 and uint16 stay integer; anything else is written as float32 pages.
+    Mask images are read as a fraction of full scale, so a binary mask for
+    ``--mask`` is written as 0/255 (uint8) or 0/65535 (uint16).
     """
     stack = np.asarray(stack)
     dtype = stack.dtype if stack.dtype in (np.uint8, np.uint16) else np.float32

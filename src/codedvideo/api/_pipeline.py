@@ -1,4 +1,6 @@
-"""A run of pipeline.yaml: the stages its config names (:func:`run_pipeline`), each a function of its settings.
+"""A run of pipeline.yaml: the stages its config names (:func:`run_pipeline`), each a function of its settings,
+its reconstruction the API's job (:class:`codedvideo.api.ReconstructionJob`) with the settings of its
+``reconstruct:`` section, resolved and checked as the command line's options are.
 
 The command line (``codedvideo run``) and the ``tasks/`` scripts call it.  Each result is cached under a key
 that hashes its settings and inputs (:mod:`codedvideo.engine.cache`), so a rerun reuses a dictionary or
@@ -12,16 +14,14 @@ import time
 import warnings
 from pathlib import Path
 
+from codedvideo.api._job import Captures, ReconstructionJob
+from codedvideo.api._settings import ReconstructSettings, in_terms, resolve
 from codedvideo.data.scenes import load_video
-from codedvideo.data.shipped import check_dictionary
-from codedvideo.engine.captures import CaptureSettings, reconstruct_capture, trivial_estimate
-from codedvideo.engine.config import PipelineConfig
+from codedvideo.engine.config import PRESET_KEYS, PipelineConfig
 from codedvideo.engine.simulation import sensor_model, simulate_capture
 from codedvideo.engine.training import train_dictionary
 from codedvideo.formats import io as cio
-from codedvideo.formats.store import load_dictionary
 from codedvideo.formats.volumes import CAPTURE_FILES, metrics_path, write_capture, write_json, write_volume
-from codedvideo.model.metrics import evaluate
 
 
 def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str | Path | None = None) -> dict:
@@ -31,7 +31,6 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     none may touch the config file, the scene, the code file, the dictionary,
     the training videos or the cache.
     """
-    from codedvideo.engine.config import omp_settings
     from codedvideo.formats.outputs import mark_written
 
     out = Path(cfg.output.dir)
@@ -67,39 +66,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
         report["capture"] = {k: str(v) for k, v in capture_paths.items()}
         report["seconds"]["simulate"] += time.perf_counter() - t0
     if "reconstruct" in cfg.stages:
-        D, dmeta = load_dictionary(dict_path)
-        check_dictionary(dmeta, cfg.frames, dict_path)
-        from codedvideo.model.units import capture_units
-
-        rc = cfg.reconstruct
-        report["preset"] = rc.preset_used()
-        sensor = sensor_model(cfg.noise)
-        # with shot noise / quantisation: the RMS noise at the mean coded level
-        sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
-        units = capture_units([capture["coded"]], lambda i: capture["mask"], given=cfg.output.data_range,
-                              noise_sigma=cfg.noise.sigma, where="simulated capture",
-                              levels={"noise.sigma": cfg.noise.sigma, "noise.white_level": cfg.noise.white_level,
-                                      "reconstruct.tol_rms": rc.tol_rms if rc.tol_rms != "auto" else None})
-        report["data_range"] = units.as_dict()
-        t0 = time.perf_counter()
-        # saturated pixels (noise.white_level) are missing measurements
-        volume, info = reconstruct_capture(CaptureSettings(
-            rc.method, data_range=units, settings=omp_settings(rc, sigma, scale=units.scale),
-            dictionary=D, dictionary_key=dmeta["sha256"], dictionary_name=str(dict_path),
-            white_level=cfg.noise.white_level, where="simulated capture", tile=rc.tile, cache=cfg.cache,
-            scheduler=rc.scheduler, workers=rc.workers, progress=progress, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds,
-            refine=rc.refine, noise_sigma=sigma, cache_budget=rc.cache_budget), capture["coded"], capture["mask"])
-        report["seconds"]["reconstruct"] = time.perf_counter() - t0
-        report["reconstruction"] = info
-        t0 = time.perf_counter()
-        report["outputs"] = _write_outputs(cfg, out, volume, units.value)
-        report["seconds"]["write"] = time.perf_counter() - t0
-        if "evaluate" in cfg.stages:
-            t0 = time.perf_counter()
-            report["quality"] = evaluate(volume, capture["truth"], data_range=units.value)
-            report["trivial"] = evaluate(trivial_estimate(capture["coded"], capture["mask"]), capture["truth"],
-                                         data_range=units.value)
-            report["seconds"]["evaluate"] = time.perf_counter() - t0
+        _reconstruct(cfg, capture, dict_path, out, report, progress)
     report["seconds"]["total"] = sum(report["seconds"].values())
     # a run that reconstructs nothing (`make simulate`) keeps its record beside the capture: it replaced the last
     # reconstruction's record (and its PSNR), and says that reconstruction is not of this capture
@@ -145,3 +112,47 @@ def _write_outputs(cfg: PipelineConfig, out: Path, volume, data_range: float) ->
     mark_written(cio.write_array(out / "recon.npy", volume))
     outputs["volume"] = str(out / "recon.npy")
     return outputs
+
+
+def run_settings(cfg: PipelineConfig, dictionary, noise_sigma: float, progress: bool) -> ReconstructSettings:
+    """The reconstruction settings of pipeline.yaml: its ``reconstruct:`` section (the preset and the keys given
+    beside it, as the command line's options give them), the noise's sigma and white level, and the output's
+    data range."""
+    rc = cfg.reconstruct
+    return ReconstructSettings(
+        preset=rc.preset, **rc.given(), dictionary=dictionary, tol_rms=None if rc.tol_rms == "auto" else rc.tol_rms,
+        noise_sigma=noise_sigma, data_range=cfg.output.data_range, white_level=cfg.noise.white_level,
+        **{k: getattr(rc, k) for k in ("static_atoms", "weighting", "tile", "batch", "scheduler", "workers",
+                                       "cache_budget") if k not in PRESET_KEYS},
+        cache=cfg.cache, progress=progress)
+
+
+def _reconstruct(cfg: PipelineConfig, capture: dict, dict_path, out: Path, report: dict, progress: bool) -> None:
+    """The reconstruct stage: the API's job on the simulated capture, its outputs written, scored with the truth
+    when the evaluate stage is named; the report gains its records and seconds."""
+    sensor = sensor_model(cfg.noise)
+    # with shot noise / quantisation: the RMS noise at the mean coded level
+    sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
+    said: list = []
+    try:
+        with warnings.catch_warnings(record=True) as said:  # (said in pipeline.yaml's terms, below)
+            warnings.simplefilter("always")
+            resolved = resolve(run_settings(cfg, dict_path, sigma, progress), door="config")
+            job = ReconstructionJob(Captures(codeds=[capture["coded"]], masks=[capture["mask"]],
+                                             truths=capture["truth"] if "evaluate" in cfg.stages else None,
+                                             source="simulated capture"), resolved)
+    finally:  # (outside the catch, so that what is said again is not caught again)
+        for w in said:
+            warnings.warn(in_terms(str(w.message), "config"), w.category, stacklevel=3)
+    report["preset"] = resolved.preset
+    report["data_range"] = job.units.as_dict()
+    t0 = time.perf_counter()
+    (_, volume, entry), = job.run(cfg.cache)
+    report["seconds"]["reconstruct"] = time.perf_counter() - t0 - job.seconds_scored
+    report["reconstruction"] = entry["reconstruction"]
+    t0 = time.perf_counter()
+    report["outputs"] = _write_outputs(cfg, out, volume, job.units.value)
+    report["seconds"]["write"] = time.perf_counter() - t0
+    if "quality" in entry:
+        report["quality"], report["trivial"] = entry["quality"], entry["trivial"]
+        report["seconds"]["evaluate"] = job.seconds_scored
