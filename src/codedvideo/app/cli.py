@@ -637,9 +637,10 @@ def _cmd_reconstruct(a) -> int:
     if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
         from codedvideo.engine.bayer import reconstruct_bayer, static_estimate
 
-        results = iter([(0, *reconstruct_bayer(CaptureSettings(a.method, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds,
-                                                               refine=rc.refine, cache_budget=rc.cache_budget, **options),
-                                               job.codeds[0], job.mask(0), pattern=a.bayer))])
+        results = iter([(0, *reconstruct_bayer(
+            CaptureSettings(a.method, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds, refine=rc.refine,
+                            cache_budget=rc.cache_budget, **options),
+            job.codeds[0], job.mask(0), pattern=a.bayer))])
         trivial_of = lambda coded, mask: static_estimate(coded, mask, a.bayer)  # noqa: E731
     else:  # every coded image in one job: one graph over (capture, tile), one progress bar, in order
         stream = job.kind in ("captures", "measurements") and count > 1 and not a.independent_captures
