@@ -89,7 +89,10 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
                         row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
                     with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # --adapt: both passes timed
                         t = time.perf_counter()
-                        vol, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, data_range=infer_data_range(255.0), settings=s, dictionary=D, cache=tmp, progress=False), cap["coded"], cap["mask"])
+                        vol, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True,
+                                                                     data_range=infer_data_range(255.0), settings=s,
+                                                                     dictionary=D, cache=tmp, progress=False),
+                                                     cap["coded"], cap["mask"])
                         row["adapt"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
                 t = time.perf_counter()
                 vol = gap_tv(cap["coded"], cap["mask"])

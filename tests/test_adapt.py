@@ -37,7 +37,8 @@ def carphone():
 def test_adapting_to_the_capture_beats_the_shipped_dictionary_on_held_out_footage(tmp_path, D, carphone):
     video, cap = carphone
     plain, _ = reconstruct_capture(CaptureSettings("omp", **common(D, tmp_path / "a")), cap["coded"], cap["mask"])
-    adapted, info = reconstruct_capture(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "b")), cap["coded"], cap["mask"])
+    adapted, info = reconstruct_capture(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "b")),
+                                        cap["coded"], cap["mask"])
     assert info["adapted"]["adapted"] and info["adapted"]["samples"] == 7000
     gain = evaluate(adapted, video)["psnr"] - evaluate(plain, video)["psnr"]
     assert gain > 0.3, gain  # measured +0.67 dB here, +0.4 to +1.0 on 64x64 and 96x96 crops of three scenes
@@ -45,9 +46,12 @@ def test_adapting_to_the_capture_beats_the_shipped_dictionary_on_held_out_footag
 
 def test_adapt_is_reproducible_and_a_rerun_reuses_both_passes(tmp_path, D, carphone):
     _, cap = carphone
-    a, info_a = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "a")), cap["coded"], cap["mask"])
-    again, info_again = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "a")), cap["coded"], cap["mask"])
-    fresh, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "b")), cap["coded"], cap["mask"])
+    a, info_a = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "a")),
+                                    cap["coded"], cap["mask"])
+    again, info_again = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "a")),
+                                            cap["coded"], cap["mask"])
+    fresh, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "b")),
+                                   cap["coded"], cap["mask"])
     np.testing.assert_array_equal(a, again)
     np.testing.assert_array_equal(a, fresh)
     assert info_a["tiles_computed"] == info_a["tiles"] and info_again["tiles_computed"] == 0
@@ -68,7 +72,8 @@ def test_nonlocal_adapt_solves_its_groups_from_the_survey_not_from_default_tiles
     video, cap = carphone
     options = common(D, tmp_path / "a")
     settings = dataclasses.replace(options["settings"], method="nonlocal")
-    adapted, info = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True), cap["coded"], cap["mask"])
+    adapted, info = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True),
+                                        cap["coded"], cap["mask"])
     survey, _ = reconstruct_volume(cap["coded"], cap["mask"], D, tile=32, cache=tmp_path / "b", progress=False,
                                    settings=dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP))
     Da, record = adapt_dictionary(survey, D)
@@ -76,7 +81,8 @@ def test_nonlocal_adapt_solves_its_groups_from_the_survey_not_from_default_tiles
     whole, _ = nonlocal_region(cap["coded"], cap["mask"], Da, survey,
                                dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP))
     np.testing.assert_allclose(adapted, whole, rtol=0, atol=1e-3)
-    plain, _ = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings)), cap["coded"], cap["mask"])
+    plain, _ = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings)),
+                                   cap["coded"], cap["mask"])
     assert evaluate(adapted, video)["psnr"] > evaluate(plain, video)["psnr"] + 0.3
 
 
@@ -93,8 +99,11 @@ def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path,
     video, cap = carphone
     options = common(D, tmp_path / "a")
     settings = dataclasses.replace(options["settings"], method="nonlocal")
-    two, info = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True, adapt_rounds=2), cap["coded"], cap["mask"])
-    one, _ = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True), cap["coded"], cap["mask"])
+    two, info = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True,
+                                                    adapt_rounds=2),
+                                    cap["coded"], cap["mask"])
+    one, _ = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True),
+                                 cap["coded"], cap["mask"])
     survey, _ = reconstruct_volume(cap["coded"], cap["mask"], D, tile=32, cache=tmp_path / "b", progress=False,
                                    settings=dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP))
     Da, _ = adapt_dictionary(survey, D)
@@ -109,7 +118,9 @@ def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path,
     assert evaluate(two, video)["psnr"] > evaluate(one, video)["psnr"]
     assert info["seconds"]["adapt"] == pytest.approx(sum(r["seconds"] for r in info["adapted"]["rounds"]))
     # a rerun (resume) reuses every pass from the cache and gives the same bits
-    again, info_again = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True, adapt_rounds=2), cap["coded"], cap["mask"])
+    again, info_again = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings),
+                                                            adapt=True, adapt_rounds=2),
+                                            cap["coded"], cap["mask"])
     np.testing.assert_array_equal(again, two)
     assert info["tiles_computed"] > 0 and info_again["tiles_computed"] == 0
 
@@ -126,7 +137,9 @@ def test_two_rounds_killed_in_the_last_pass_resume_with_the_same_bits(tmp_path, 
     _, cap = carphone
     options = common(D, tmp_path / "a")
     settings = dataclasses.replace(options["settings"], method="nonlocal")
-    run = lambda: reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True, adapt_rounds=2), cap["coded"], cap["mask"])
+    run = lambda: reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True,
+                                                      adapt_rounds=2),
+                                      cap["coded"], cap["mask"])
     ref, info = run()
     store = WorkStore(info["work_store"])  # the last pass's store
     store.group["volume"][:, 32:64, 0:32] = 1e30  # tile 2's core, as if half-done
@@ -160,7 +173,8 @@ def test_a_second_pass_whose_survey_is_damaged_is_not_given_as_a_result(tmp_path
     adaptation.adapt_dictionary = adapt_then_damage
     try:
         with pytest.raises(RuntimeError, match="tile 0 is not finished or fails its checksum"):
-            reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True), cap["coded"], cap["mask"])
+            reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True),
+                                cap["coded"], cap["mask"])
     finally:
         adaptation.adapt_dictionary = real
 
@@ -194,10 +208,13 @@ def test_each_capture_of_a_stream_gets_its_own_dictionary(tmp_path, D):
     second = cap["coded"][0].copy()
     second[:, 40:] = cap["coded"][1][:, 40:]  # the left tiles (core 0..32, halo to 38) equal the first capture's
     codeds = [cap["coded"][0], second, cap["coded"][0]]
-    results = list(reconstruct_captures(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "job")), codeds, lambda i: cap["mask"]))
+    results = list(reconstruct_captures(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "job")),
+                                        codeds, lambda i: cap["mask"]))
     assert [i for i, _, _ in results] == [0, 1, 2]
     for i, volume, info in results:
-        alone, info_alone = reconstruct_capture(CaptureSettings("omp", adapt=True, **common(D, tmp_path / f"alone{i}")), codeds[i], cap["mask"])
+        alone, info_alone = reconstruct_capture(CaptureSettings("omp", adapt=True,
+                                                                **common(D, tmp_path / f"alone{i}")),
+                                                codeds[i], cap["mask"])
         np.testing.assert_array_equal(volume, alone)
         assert info["adapted"]["final_rmse"] == info_alone["adapted"]["final_rmse"]
     assert results[0][2]["adapted"]["final_rmse"] != results[1][2]["adapted"]["final_rmse"]
@@ -210,7 +227,8 @@ def test_a_stream_adapted_again_into_its_cache_or_a_fresh_one_is_the_same(tmp_pa
     graph saw that graph's limit; in a rerun (no graph: every tile in the cache) it did not."""
     video = load_video("footage:carphone", frames=24, size=(64, 64))
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=3)
-    runs = [list(reconstruct_captures(CaptureSettings("omp", adapt=True, **common(D, tmp_path / cache)), list(cap["coded"]), lambda i: cap["mask"]))
+    runs = [list(reconstruct_captures(CaptureSettings("omp", adapt=True, **common(D, tmp_path / cache)),
+                                      list(cap["coded"]), lambda i: cap["mask"]))
             for cache in ("a", "a", "b")]
     for (_, first, info), (_, again, info_again), (_, fresh, _) in zip(*runs):
         np.testing.assert_array_equal(first, again)
@@ -235,7 +253,9 @@ def test_a_capture_saturated_everywhere_is_still_said_with_adapt(tmp_path, D):
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=2)
     codeds = [cap["coded"][0], np.full_like(cap["coded"][1], 2000.0)]
     with pytest.warns(UserWarning, match="capture 2 of 2: every measured pixel is at or above"):
-        out = list(reconstruct_captures(CaptureSettings("omp", adapt=True, white_level=1000.0, **common(D, tmp_path / "c")), codeds, lambda i: cap["mask"]))
+        out = list(reconstruct_captures(CaptureSettings("omp", adapt=True, white_level=1000.0,
+                                                        **common(D, tmp_path / "c")),
+                                        codeds, lambda i: cap["mask"]))
     assert len(out) == 2 and all(np.isfinite(v).all() for _, v, _ in out)
 
 
@@ -245,7 +265,8 @@ def test_a_flat_capture_keeps_the_dictionary_and_stays_finite(tmp_path, D):
     assert same is D and not record["adapted"]
     mask = simulate_capture(flat, code="hitomi", bump=2, sigma=0.0, seed=0)["mask"]
     dark = np.zeros((24, 24), np.float32)
-    volume, info = reconstruct_capture(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "c")), dark + 1e-3, mask)
+    volume, info = reconstruct_capture(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "c")),
+                                       dark + 1e-3, mask)
     assert np.isfinite(volume).all() and np.abs(volume).max() < 1
     assert not info["adapted"]["adapted"] and info["tiles_computed"] == 0  # the first job's tiles, not solved again
 
@@ -293,8 +314,11 @@ def test_nonlocal_adapt_within_a_cache_budget_keeps_the_surveys_until_the_job_en
     cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=3)
     run = dict(common(D, tmp_path / "free"), settings=omp_settings(PipelineConfig().reconstruct.model_copy(
         update=dict(method="nonlocal")), 0.0))
-    free = list(reconstruct_captures(CaptureSettings("nonlocal", adapt=True, **run), list(cap["coded"]), lambda i: cap["mask"]))
-    bounded = list(reconstruct_captures(CaptureSettings("nonlocal", adapt=True, **dict(run, cache="bounded"), cache_budget=100_000), list(cap["coded"]), lambda i: cap["mask"]))
+    free = list(reconstruct_captures(CaptureSettings("nonlocal", adapt=True, **run),
+                                     list(cap["coded"]), lambda i: cap["mask"]))
+    bounded = list(reconstruct_captures(CaptureSettings("nonlocal", adapt=True, **dict(run, cache="bounded"),
+                                                        cache_budget=100_000),
+                                        list(cap["coded"]), lambda i: cap["mask"]))
     for (_, want, _), (_, got, info) in zip(free, bounded):
         np.testing.assert_array_equal(got, want)
         assert info["adapted"]["adapted"]

@@ -236,8 +236,11 @@ def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(c
     common = dict(data_range=infer_data_range(255.0), settings=OmpSettings(max_atoms=8, tol_rms=2.0), dictionary=D,
                   tile=32, progress=False, adapt=True, adapt_rounds=rounds,
                   refine=8 if rounds == 2 else 0)  # (2: --preset best's third pass, then the refinement: its bits tested)
-    local = list(reconstruct_captures(CaptureSettings(method, cache=tmp_path / "a", **common), list(cap["coded"]), lambda i: cap["mask"]))
-    remote = list(reconstruct_captures(CaptureSettings(method, cache=tmp_path / "b", scheduler=cluster.scheduler_address, **common), list(cap["coded"]), lambda i: cap["mask"]))
+    local = list(reconstruct_captures(CaptureSettings(method, cache=tmp_path / "a", **common),
+                                      list(cap["coded"]), lambda i: cap["mask"]))
+    remote = list(reconstruct_captures(CaptureSettings(method, cache=tmp_path / "b",
+                                                       scheduler=cluster.scheduler_address, **common),
+                                       list(cap["coded"]), lambda i: cap["mask"]))
     for (_, a, info), (_, b, _) in zip(local, remote):
         assert info["adapted"]["adapted"] and len(info["adapted"].get("rounds", [None])) == rounds
         np.testing.assert_array_equal(a, b)

@@ -245,7 +245,11 @@ def test_a_yielded_capture_is_not_held_by_the_job_while_its_consumer_works(tmp_p
     video = make_scene("default", frames=8, size=(24, 24))
     codeds = [simulate(video[:4], make_code("hitomi", (24, 24), frames=4, bump=2, rng=s)) for s in (1, 2)]
     masks = [make_code("hitomi", (24, 24), frames=4, bump=2, rng=s) for s in (1, 2)]
-    results = reconstruct_captures(CaptureSettings(method, data_range=infer_data_range(255.0, given=255.0), settings=OmpSettings(max_atoms=4, tol_rms=2.0), dictionary=dct_dictionary(4), cache=tmp_path / "cache", tile=16, progress=False), codeds, masks.__getitem__)
+    results = reconstruct_captures(CaptureSettings(method, data_range=infer_data_range(255.0, given=255.0),
+                                                   settings=OmpSettings(max_atoms=4, tol_rms=2.0),
+                                                   dictionary=dct_dictionary(4), cache=tmp_path / "cache", tile=16,
+                                                   progress=False),
+                                   codeds, masks.__getitem__)
     i, volume, info = next(results)
     assert i == 0 and volume.shape == (4, 24, 24)
     gone = weakref.ref(volume)

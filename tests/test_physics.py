@@ -286,8 +286,10 @@ def test_saturated_pixels_left_out_still_record_at_least_the_white_level(tmp_pat
                   dictionary=dct_dictionary(8), tile=48, progress=False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # (the never-open notice)
-        vol, info = reconstruct_capture(CaptureSettings("omp", white_level=W, cache=tmp_path / "a", **common), coded, mask)
-        left_out, _ = reconstruct_capture(CaptureSettings("omp", cache=tmp_path / "b", **common), *drop_saturated(coded, mask, W)[:2])
+        vol, info = reconstruct_capture(CaptureSettings("omp", white_level=W, cache=tmp_path / "a", **common),
+                                        coded, mask)
+        left_out, _ = reconstruct_capture(CaptureSettings("omp", cache=tmp_path / "b", **common),
+                                          *drop_saturated(coded, mask, W)[:2])
     saturated = coded >= W
     assert saturated.mean() > 0.01 and info["saturated_raised"] > 0
     assert ((mask * vol).sum(0)[saturated] >= W - 1e-2).all()

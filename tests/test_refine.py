@@ -201,7 +201,12 @@ def test_saturated_pixels_are_not_held_to_their_clipped_values_and_still_record_
     saturated = coded >= np.float32(white)
     runs = {}
     for refine in (0, 6):
-        runs[refine] = reconstruct_capture(CaptureSettings("omp", refine=refine, white_level=white, dictionary=dct_dictionary(8), data_range=infer_data_range(255.0, given=255.0), tile=32, progress=False, cache=tmp_path, settings=omp_settings(PipelineConfig().reconstruct, 0.0)), coded, cap["mask"])
+        runs[refine] = reconstruct_capture(CaptureSettings("omp", refine=refine, white_level=white,
+                                                           dictionary=dct_dictionary(8),
+                                                           data_range=infer_data_range(255.0, given=255.0), tile=32,
+                                                           progress=False, cache=tmp_path,
+                                                           settings=omp_settings(PipelineConfig().reconstruct, 0.0)),
+                                           coded, cap["mask"])
     vol, info = runs[6]
     assert np.isfinite(vol).all() and info["refine"]["iterations"] == 6 and saturated.sum() > 100
     recorded = forward(vol, cap["mask"])

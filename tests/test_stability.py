@@ -413,7 +413,12 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     truth = video if kind == "noise" else _scene(kind)
     sigma = 80.0 if kind == "noise" else 0.0
     coded = simulate(truth, mask, sigma=sigma, rng=2)
-    vol, info = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, adapt_rounds=2, refine=32, data_range=infer_data_range(255.0, given=255.0), settings=OmpSettings(max_atoms=8, tol_rms=max(sigma, 2.0)), dictionary=load_dictionary(shipped.verified(8))[0], cache=tmp_path, progress=False, tile=32), coded, mask)
+    vol, info = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, adapt_rounds=2, refine=32,
+                                                    data_range=infer_data_range(255.0, given=255.0),
+                                                    settings=OmpSettings(max_atoms=8, tol_rms=max(sigma, 2.0)),
+                                                    dictionary=load_dictionary(shipped.verified(8))[0],
+                                                    cache=tmp_path, progress=False, tile=32),
+                                    coded, mask)
     assert np.isfinite(vol).all()
     if kind == "dark":
         assert (vol == 0).all()

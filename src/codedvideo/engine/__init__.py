@@ -1,1 +1,2 @@
-"""The engine: validated settings, tiling into Dask graphs over Zarr stores, the cache, the methods, and the stages of a run (training, simulation, reconstruction, the pipeline)."""
+"""The engine: validated settings, the methods, tiling into Dask graphs over Zarr stores, the cache, and the stages
+of a run (training, simulation, reconstruction, the pipeline)."""

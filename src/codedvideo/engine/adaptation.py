@@ -78,7 +78,8 @@ def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictio
     an adaptation's bits when it ran beside one).  The passes' warnings (never-open pixels, dependent stops) are
     swallowed: the last job, which gives the result, says them.  ``pass_settings``: one per pass before the last;
     ``matched``: the non-local method's passes, each matched on and solved from the previous pass's working store
-    (where the code's groups can be solved: ``nonlocal_problem(mask)`` is None); ``run``: :func:`codedvideo.engine.windows.sparse_volumes`
+    (where the code's groups can be solved: ``nonlocal_problem(mask)`` is None); ``run``:
+    :func:`codedvideo.engine.windows.sparse_volumes`
     with the job's tiles, cache and scheduler.  Stops early where a result has nothing to learn from.
 
     Returns the dictionary for the last pass (``dictionary`` itself if none was adapted), the working store the

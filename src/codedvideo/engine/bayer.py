@@ -121,7 +121,8 @@ def demosaic_malvar(raw: np.ndarray, pattern: str) -> np.ndarray:
         for r in (0, 1):
             if (idx[r::2] == c).any():
                 c_row[r::2] = True
-        est = np.where(idx == c, values, np.where(idx == other, conv["cross"], np.where(c_row, conv["row"], conv["col"])))
+        est = np.where(idx == c, values,
+                       np.where(idx == other, conv["cross"], np.where(c_row, conv["row"], conv["col"])))
         out[c] = est
     out[1] = np.where(idx == 1, values, conv["g"])
     return out.astype(np.float32)

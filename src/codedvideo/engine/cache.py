@@ -237,7 +237,7 @@ class CacheBudget:
         their lock again would not show them in use).  Returns the stores removed now."""
         from codedvideo.formats.store import entry_lock
 
-        held = {Path(b).absolute() for b in busy}
+        in_use = {Path(b).absolute() for b in busy}
         now = max(time.time(), max(self.used.values(), default=0.0))
         for entry in entries:
             entry = Path(entry).absolute()
@@ -248,7 +248,7 @@ class CacheBudget:
         for entry in sorted(self.sizes, key=lambda e: self.used.get(e, 0.0)):
             if total <= self.budget:
                 break
-            if entry in self.keep or entry in held:
+            if entry in self.keep or entry in in_use:
                 continue
             with entry_lock(entry, blocking=False) as held:
                 if not held:  # in use (by this job or another run): kept

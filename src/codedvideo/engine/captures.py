@@ -317,8 +317,9 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
     if job.sparse and info.get("method") != "static":  # (the static estimate says so)
         info = _sparse_info(job, i, info, mask_used)
     if saturated:  # a saturated pixel recorded at least the white level: no frame sum below it
-        info["saturated_raised"] = physics.raise_to_white(volume, np.asarray(inputs.codeds[i]) >= np.float32(o.white_level),
-                                                          inputs.mask_of(i), float(o.white_level) * float(inputs.scale))
+        clipped = np.asarray(inputs.codeds[i]) >= np.float32(o.white_level)
+        info["saturated_raised"] = physics.raise_to_white(volume, clipped, inputs.mask_of(i),
+                                                          float(o.white_level) * float(inputs.scale))
     if still is not None and not job.sparse:  # no patches: the pixels whose every patch would be still
         inner = erode_to_patches(still, PATCH)
         volume[:, inner] = normalised(coded_used, mask_used)[0][inner]
@@ -379,7 +380,8 @@ def reconstruct_stream(options: CaptureSettings, codeds, mask_of, *, join: bool,
     share still answers (False for a benchmark file's measurements, each of its own scene).  ``spill``: a
     folder where the captures the join holds wait on disk (:func:`codedvideo.formats.volumes.spilled`: the same bits,
     read a few frames at a time), or None to hold them in memory.  What the command line and the Python API
-    (:func:`codedvideo.api.reconstruct`) both run; ``options``: the method and its options (:class:`CaptureSettings`); ``options.noise_sigma`` and ``white_level`` the still answers' too."""
+    (:func:`codedvideo.api.reconstruct`) both run; ``options``: the method and its options
+    (:class:`CaptureSettings`); its ``noise_sigma`` and ``white_level`` are the still answers' too."""
     count = len(codeds)
     if not join or count < 2:
         return reconstruct_captures(options, codeds, mask_of)

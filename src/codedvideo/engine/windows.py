@@ -245,8 +245,8 @@ def sparse_volumes(
         per capture (to plan, then to finish), so that no more than one
         capture's inputs are held at a time.
     D : ndarray of shape (N * 49, K), or a callable ``D(i)`` giving capture ``i``'s own
-        dictionary and its cache key (a dictionary adapted to each capture, :func:`adapt_dictionary`;
-        an empty key: keyed by its contents)
+        dictionary and its cache key (a dictionary adapted to each capture,
+        :func:`codedvideo.engine.adaptation.adapt_dictionary`; an empty key: keyed by its contents)
     first_of : callable, optional
         The non-local method: ``first_of(i)`` -> the working store of an earlier
         job on capture ``i`` (same tiles) whose result is the first estimate its
