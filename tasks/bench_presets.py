@@ -41,7 +41,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tasks"))
-from bench import _cli  # noqa: E402
+from _bench_common import _cli  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 SCENES = ("footage:bikes-a", "footage:bikes-b", "footage:carphone", "footage:bunny")
