@@ -419,7 +419,8 @@ def _reconstruct_options(a):
     (:data:`~codedvideo.engine.config.PRESETS`) are set on ``a`` as resolved.
     """
     from codedvideo.data import shipped
-    from codedvideo.formats.io import check_cache, gif_rate_problem
+    from codedvideo.formats.atomic import check_cache
+    from codedvideo.formats.io import gif_rate_problem
     from codedvideo.formats.volumes import metrics_path, output_kind
 
     if not a.cacti and not (a.coded and a.mask):
