@@ -1,6 +1,7 @@
 """The scripts in tasks/: each answers ``--help`` (exit 0, a usage text) without doing work, and the modules of
 tasks/ import one another without a cycle (imports inside functions included).  Modules whose name starts with
-an underscore (_common.py, _bench_common.py) are shared helpers, not scripts: they are checked for cycles only."""
+an underscore (_common.py, _bench_common.py) are shared helpers, not scripts: they are checked for cycles only.
+The shell scripts (tasks/*.sh) answer --help too."""
 from __future__ import annotations
 
 import ast
@@ -14,7 +15,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = ROOT / "tasks"
 MODULES = sorted(TASKS.glob("*.py"))
-SCRIPTS = [p for p in MODULES if not p.name.startswith("_")]
+SCRIPTS = [p for p in MODULES if not p.name.startswith("_")] + sorted(TASKS.glob("*.sh"))
 
 
 def test_tasks_holds_scripts():
@@ -25,7 +26,7 @@ def test_tasks_holds_scripts():
 def helps() -> dict[str, subprocess.CompletedProcess]:
     """Every script run with --help, all at once (each mostly waits on its imports)."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, [str(ROOT / "src"), os.environ.get("PYTHONPATH")])))
-    procs = {p.name: subprocess.Popen([sys.executable, str(p), "--help"], stdout=subprocess.PIPE,
+    procs = {p.name: subprocess.Popen([sys.executable if p.suffix == ".py" else "bash", str(p), "--help"], stdout=subprocess.PIPE,
                                       stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env) for p in SCRIPTS}
     done = {}
     for name, proc in procs.items():
