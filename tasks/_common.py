@@ -1,18 +1,26 @@
-"""Shared helpers of the stage scripts: read the config named on the command line."""
+"""Shared helpers of the stage scripts: their command line (argparse: `--help` answers without doing work) and
+the config it names."""
 from __future__ import annotations
 
-import sys
+import argparse
 
 from codedvideo.engine.config import load_config
 
 
-def config_path(default: str = "pipeline.yaml") -> str:
-    """The config named on the command line (default: pipeline.yaml)."""
-    return sys.argv[1] if len(sys.argv) > 1 else default
+def parser(doc: str | None) -> argparse.ArgumentParser:
+    """A stage script's parser: its docstring as the description, and the config as the first argument."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("config", nargs="?", default="pipeline.yaml", help="the pipeline config (default: pipeline.yaml)")
+    return ap
 
 
-def config_from_argv(default: str = "pipeline.yaml"):
-    return load_config(config_path(default))
+def config_args(doc: str | None, argv: list[str] | None = None) -> argparse.Namespace:
+    """The command line of a stage that reads only a config: ``args.config``."""
+    return parser(doc).parse_args(argv)
+
+
+def load(path: str):
+    return load_config(path)
 
 
 def guarded(fn) -> int:

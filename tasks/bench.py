@@ -66,16 +66,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: (cold: thread pool and caches starting) is kept in the JSON as seconds_first.
 REPEATS = 5
 RESULTS = ROOT / "bench" / "results"
-
-
-def sgemm_gflops(n: int = 2048, repeats: int = 5) -> float:
-    a = np.random.default_rng(0).random((n, n), dtype=np.float32)
-    b = a.T.copy()
-    a @ b
-    t = time.perf_counter()
-    for _ in range(repeats):
-        a @ b
-    return 2 * n**3 * repeats / (time.perf_counter() - t) / 1e9
+sys.path.insert(0, str(ROOT / "tasks"))
+from _bench_common import QUALITY_CODES, QUALITY_SCENES, _cli, _q, sgemm_gflops  # noqa: E402,F401
 
 
 def peak_rss_mb() -> float:
@@ -239,11 +231,6 @@ def case_static(quick: bool) -> dict:
     return out
 
 
-QUALITY_SCENES = ("footage:bikes-a", "footage:bikes-b", "footage:carphone", "footage:bunny",
-                  "synth:default", "synth:coins-translate", "synth:camera-rotate")
-QUALITY_CODES = (("bernoulli", 2), ("hitomi", 2), ("hitomi", 3))
-
-
 def case_quality(quick: bool) -> dict:
     """Issue "quality beyond the paper": default reconstruction against GAP-TV and the 3D DCT
     (same OMP, up to 16 atoms) on held-out real footage and synthetic test scenes, N = 8."""
@@ -280,10 +267,6 @@ def case_quality(quick: bool) -> dict:
                 row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
                 rows.append(row)
     return dict(case="quality", size=list(size), frames=8, rows=rows, sgemm_gflops=sgemm_gflops())
-
-
-def _q(metrics: dict) -> dict:
-    return dict(psnr=metrics["psnr"], ssim=metrics["ssim"])
 
 
 def quality_table(r: dict) -> list[str]:
@@ -330,17 +313,6 @@ def case_bayer(quick: bool) -> dict:
     return dict(case="bayer", size=list(size), frames=8, bump=2, pattern="RGGB", sgemm_gflops=sgemm_gflops(),
                 omp=dict(seconds=seconds, psnr=q["psnr"], ssim=q["ssim"], patches_per_second=info["patches"] / seconds),
                 static=dict(psnr=static["psnr"], ssim=static["ssim"]))
-
-
-def _cli(*args, cwd) -> tuple[float, float]:
-    """Run the codedvideo CLI as a user would; its wall time (whole process) and peak resident MB."""
-    cmd = ["/usr/bin/time", "-f", "%M", sys.executable, "-m", "codedvideo.app.cli", "-q", *map(str, args)]
-    t = time.perf_counter()
-    proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd)
-    seconds = time.perf_counter() - t
-    if proc.returncode != 0:
-        raise RuntimeError(proc.stderr.strip().splitlines()[-1])
-    return seconds, float(proc.stderr.strip().splitlines()[-1]) / 1024.0
 
 
 def _psnr(recon: np.ndarray, truth: np.ndarray, cols=slice(None)) -> float:
@@ -900,7 +872,7 @@ def table(results: dict) -> str:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", default="a,static,b,b1,c,quality,nonlocal,adapt,bayer,sequence,video,footage,calibrated,startup,units")
     ap.add_argument("--quick", action="store_true", help="smaller sizes (a smoke run)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)

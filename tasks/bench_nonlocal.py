@@ -20,7 +20,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tasks"))
-from bench import QUALITY_CODES, QUALITY_SCENES, _q, sgemm_gflops  # noqa: E402
+from _bench_common import QUALITY_CODES, QUALITY_SCENES, _q, sgemm_gflops  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 

@@ -41,7 +41,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tasks"))
-from bench import _cli  # noqa: E402
+from _bench_common import _cli  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 SCENES = ("footage:bikes-a", "footage:bikes-b", "footage:carphone", "footage:bunny")
@@ -308,7 +308,7 @@ def table(results: dict) -> str:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--candidates", action="store_true", help="measure the settings `fast` is chosen among")
     ap.add_argument("--scaling", action="store_true", help="time default and best at 256, 512 and 1024 pixels square")
     ap.add_argument("--issue-cases", action="store_true",

@@ -3,6 +3,14 @@
 # the Python API from an empty folder: what a user who runs `pip install codedvideo` gets.
 # Usage: tasks/check_wheel.sh [PYTHON]    (CI runs it after `make test`; `make wheel-check`)
 set -euo pipefail
+case "${1:-}" in
+  -h|--help)
+    echo "usage: tasks/check_wheel.sh [PYTHON]"
+    echo
+    echo "Build the wheel, install it into a fresh venv with PYTHON (default: python3), and run the CLI and the"
+    echo "Python API from an empty folder."
+    exit 0 ;;
+esac
 root="$(cd "$(dirname "$0")/.." && pwd)"
 python="${1:-python3}"
 work="$(mktemp -d -t codedvideo-wheel-XXXXXX)"

@@ -6,7 +6,7 @@
 """
 import sys
 
-from _common import config_from_argv, guarded
+from _common import guarded, load, parser
 
 from codedvideo.data import manifest
 from codedvideo.data import shipped
@@ -21,14 +21,18 @@ def _shipped(frames: list[int]) -> None:
     print(f"manifests: {', '.join(map(str, shipped.write_manifests()))}")
 
 
-def main() -> None:
-    if sys.argv[1:2] == ["--shipped"]:
-        _shipped([int(n) for n in sys.argv[2:]] or shipped.available())
+def main(args) -> None:
+    if args.shipped is not None:
+        _shipped(args.shipped or shipped.available())
         return
-    path, meta = train_dictionary(config_from_argv())
+    path, meta = train_dictionary(load(args.config))
     state = "shipped" if meta.get("shipped") else "reused" if meta["reused"] else "trained"
     print(f"dictionary: {path} ({meta['atoms']} atoms, {state} in {meta['seconds']:.1f} s)")
 
 
 if __name__ == "__main__":
-    sys.exit(guarded(main))
+    ap = parser(__doc__)
+    ap.add_argument("--shipped", nargs="*", type=int, metavar="N",
+                    help="retrain the shipped dictionaries (all, or those of N frames) and rewrite both manifests")
+    args = ap.parse_args()
+    sys.exit(guarded(lambda: main(args)))

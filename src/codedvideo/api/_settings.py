@@ -12,7 +12,7 @@ from pathlib import Path
 
 from codedvideo.engine.config import (PRESET_KEYS, NoiseConfig, OutputConfig, ReconstructConfig, check_scheduler,
                                       preset_record, resolve_preset, validated)
-from codedvideo.formats.io import check_cache
+from codedvideo.formats.atomic import check_cache
 from codedvideo.model.errors import CodedVideoError, ConfigError
 
 #: The doors a setting can be named through: the command line, the Python API, pipeline.yaml.

@@ -405,7 +405,7 @@ def run_report(cfg: PipelineConfig, *, progress: bool = False, config_path=None)
     dict with ``html``, ``csv``, ``video`` (paths), ``computed`` and ``reused``
     (experiments), ``seconds`` and ``findings``.
     """
-    from codedvideo.formats.io import check_cache
+    from codedvideo.formats.atomic import check_cache
     from codedvideo.formats.outputs import check_outputs, mark_written
     from codedvideo.app.report_html import write_report
 

@@ -25,6 +25,7 @@ import numpy as np
 from codedvideo.data import manifest
 from codedvideo.model.errors import ConfigError, InputError
 from codedvideo.model.patches import PATCH
+from codedvideo.formats.atomic import atomic_output
 from codedvideo.formats.store import load_dictionary
 
 #: The folder of the shipped dictionaries (this package's own folder, installed as package data).
@@ -112,7 +113,8 @@ def write_manifest(path: str | Path = manifest.DEFAULT_PATH) -> Path:
         lines.append("\t".join([f"synth-{scene}", f"synth:{scene}", "8", "test", manifest._synth_digest(scene, 8),
                                 "codedvideo.data.synth from test photographs", "as its photographs"]))
     lines += shipped_rows(Path(path).parent)
-    Path(path).write_text("\n".join(lines) + "\n")
+    with atomic_output(path) as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
     return Path(path)
 
 

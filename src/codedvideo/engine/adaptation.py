@@ -25,15 +25,15 @@ ADAPT_SAMPLES, ADAPT_ITERATIONS, ADAPT_SPARSITY = 7000, 4, 6
 #: ``nonlocal --adapt``: the first pass solves the groups of every 7th reference patch (a survey, 0.2 of the
 #: groups of the non-local method's stride 3), the second pass the groups of every 4th from the survey's
 #: result, with no per-patch tiles (:attr:`codedvideo.engine.parallel.TileWork.first`).  Measured on the 24
-#: held-out real cases, in one thread (2026-11-26): surveys of every 5th or 7th reference gave the quality of
+#: held-out real cases, in one thread: surveys of every 5th or 7th reference gave the quality of
 #: two full passes (GAP-TV + 3.80 dB with a second pass of every 3rd, against + 3.84), in 5.5 to 5.9x the
 #: default's time against 9.2x; with a second pass of every 4th, + 3.66 dB in 4.3x (README).
 ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP = 7, 4
 #: ``--adapt-rounds 2`` (``--preset best``): the dictionary adapted again to the second pass's result (K-SVD
 #: started from the first adaptation, the same settings), then a third pass with it; the non-local method's
 #: third pass solves the groups of every 3rd reference, matched on the second pass's result.  Measured in one
-#: thread (tasks/research_best.py, 256x256, N = 8, hitomi L = 2 and Bernoulli, no noise; chosen on bikes-a and
-#: carphone, 2026-11-27): over ``nonlocal --adapt`` +0.46 dB on those, +0.48 dB on bikes-b and bunny (every
+#: thread (the research_best script of docs/research.md, 256x256, N = 8, hitomi L = 2 and Bernoulli, no noise; chosen on bikes-a and
+#: carphone): over ``nonlocal --adapt`` +0.46 dB on those, +0.48 dB on bikes-b and bunny (every
 #: case +0.18 or more) and +0.45 on their next 8 frames, in 1.8x its time; a third pass every 4th +0.38, a
 #: third adaptation and a fourth pass +0.51 (worst case +0.10) in 2.1x, denser second passes +0.13 to +0.20.
 ADAPT_LAST_STEP = 3

@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from codedvideo.engine.config import parse_size
+from codedvideo.formats.atomic import discard, temporary_pattern
 from codedvideo.model.errors import InputError
 from codedvideo.model.patches import PATCH
 
@@ -48,7 +49,7 @@ __all__ = ["verify_cache", "clean_cache", "CacheBudget", "parse_size", "REMOVED_
            "content_key", "dictionary_key", "recon_key", "recon_entry", "dictionary_entry"]
 
 _ENTRY = re.compile(r"^(dict|recon)-([0-9a-f]{16})\.zarr$")
-_TEMP = re.compile(r"^\.((dict|recon)-[0-9a-f]{16}\.zarr)\.tmp-\d+-[0-9a-f]{8}$")
+_TEMP = re.compile(temporary_pattern(r"(dict|recon)-[0-9a-f]{16}\.zarr"))
 _LOCK = re.compile(r"^((dict|recon)-[0-9a-f]{16})\.lock$")
 _REPORT = re.compile(r"^([0-9a-f]{16})\.(json|npy)$")
 #: What a store of each kind may hold at its top level (a damaged one is still recognised by these).
@@ -376,12 +377,12 @@ def _looks_like_entry(path: Path, prefix: str) -> bool:
 
 
 def _remove_entry(path: Path, removed: list, *, lock: bool = True) -> None:
-    from codedvideo.formats.store import _discard, remove_locked_entry
+    from codedvideo.formats.store import remove_locked_entry
 
     if lock:
         remove_locked_entry(path)  # we hold its lock
     else:
-        _discard(path)
+        discard(path)
     removed.append(path)
 
 

@@ -42,7 +42,8 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo.model.errors import InputError, OutputError
-from codedvideo.formats.io import atomic_output, frames_of
+from codedvideo.formats.atomic import atomic_output
+from codedvideo.formats.io import frames_of
 
 CACTI_KEYS = ("orig", "mask", "meas")
 VOLUME_KEYS = ("recon", "orig")

@@ -2,7 +2,7 @@
 
 Arrays are time-first ``(N, H, W)`` float32 inside the project; values keep
 the units of the file (0..255 for 8-bit, 0..65535 for 16-bit).  Every writer
-goes through :func:`atomic_output`: a temporary name in the target's folder,
+goes through :func:`codedvideo.formats.atomic.atomic_output`: a temporary name in the target's folder,
 renamed onto the target only when writing succeeded.
 
 Colour is an explicit choice of every reader (``color=``):
@@ -27,13 +27,12 @@ import contextlib
 import json
 import os
 import re
-import shutil
-import time
-import uuid
 from pathlib import Path
 
 import numpy as np
 
+from codedvideo.formats.atomic import atomic_output, check_cache, check_writable  # noqa: F401 (the writers' API here)
+from codedvideo.formats.atomic import one_line as _one_line
 from codedvideo.model.errors import InputError, OutputError
 from codedvideo.model.units import EIGHT_BIT
 
@@ -49,124 +48,11 @@ COLOR_CHOICES = ("luma", "channels", "error")
 _NATIVE = ("uint8", "int8", "uint16", "int16", "uint32", "int32", "float", "half", "double")
 
 
-def _one_line(msg: str) -> str:
-    """Library error text (often several lines) as one line."""
-    return "; ".join(part.strip() for part in str(msg).splitlines() if part.strip()) or "unknown error"
-
-
 def check_color(color: str) -> str:
     """Validate a colour policy (see the module docstring)."""
     if color not in COLOR_CHOICES:
         raise InputError(f"color: unknown choice {color!r} (use {', '.join(COLOR_CHOICES)})")
     return color
-
-
-# ----------------------------------------------------------------------------- atomic writes
-@contextlib.contextmanager
-def atomic_output(path: str | os.PathLike):
-    """Yield a temporary sibling of ``path``; rename it onto ``path`` on success.
-
-    The temporary keeps ``path``'s suffix, so writers that choose a format by
-    extension still work.  On an exception the temporary (file or folder) is
-    removed and the exception re-raised; an existing ``path`` is untouched.
-    """
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{path}: cannot create folder {path.parent} ({exc.strerror or exc})") from exc
-    if not os.access(path.parent, os.W_OK):
-        raise OutputError(f"{path}: folder {path.parent} is not writable")
-    _remove_dead_temporaries(path)
-    tmp = path.with_name(f".{path.stem}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}{path.suffix}")
-    try:
-        try:
-            yield tmp
-        except OSError as exc:  # disk full, permissions...: one line naming the output
-            if isinstance(exc, OutputError):
-                raise
-            raise OutputError(f"{path}: cannot write ({exc.strerror or _one_line(exc)})") from exc
-        _rename_into_place(tmp, path)
-    except BaseException:
-        if tmp.is_dir():
-            # a chunk write of zarr's I/O thread still in flight when Ctrl-C came can land after the removal
-            for _ in range(5):
-                shutil.rmtree(tmp, ignore_errors=True)
-                if not tmp.exists():
-                    break
-                time.sleep(0.02)
-        else:
-            tmp.unlink(missing_ok=True)
-        raise
-
-
-def _remove_dead_temporaries(path: Path) -> None:
-    """Remove temporaries of ``path`` that a killed process left (its pid, in the name, no longer runs):
-    ``.STEM.tmp-PID-HEX.SUFFIX`` (:func:`atomic_output`) and ``.NAME.tmp-PID-HEX`` (the Zarr stores of
-    :mod:`codedvideo.formats.store`)."""
-    pattern = re.compile(rf"^\.(?:{re.escape(path.stem)}\.tmp-(\d+)-[0-9a-f]{{8}}{re.escape(path.suffix)}|"
-                         rf"{re.escape(path.name)}\.tmp-(\d+)-[0-9a-f]{{8}})$")
-    try:
-        siblings = list(path.parent.iterdir())
-    except OSError:
-        return
-    for sib in siblings:
-        m = pattern.match(sib.name)
-        pid = int(m.group(1) or m.group(2)) if m else None
-        if pid is None or pid == os.getpid():
-            continue
-        try:
-            os.kill(pid, 0)
-            continue  # still running: its own temporary
-        except ProcessLookupError:
-            pass
-        except OSError:
-            continue
-        shutil.rmtree(sib, ignore_errors=True) if sib.is_dir() else sib.unlink(missing_ok=True)
-
-
-def _rename_into_place(tmp: Path, path: Path) -> None:
-    """Rename a finished temporary file or folder onto ``path`` (replacing what is there)."""
-    # a file never replaces a folder, nor a folder a file (codedvideo.formats.outputs refuses both before
-    # any work; this keeps the rule for every writer)
-    if path.is_dir() != tmp.is_dir() and (path.exists() or path.is_symlink()):
-        have = "a folder" if path.is_dir() else "a file"
-        raise OutputError(f"{path}: exists and is {have}; codedvideo does not replace it with "
-                          f"{'a folder' if tmp.is_dir() else 'a file'}")
-    try:
-        if tmp.is_dir() and path.exists():  # the old folder stays whole until the new one is in place
-            old = path.with_name(f".{path.name}.old-{uuid.uuid4().hex[:8]}")
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)  # atomic for a file
-    except OSError as exc:
-        raise OutputError(f"{path}: cannot rename the finished output into place ({exc.strerror or exc})") from exc
-
-
-def check_writable(path: str | os.PathLike, *, what: str = "") -> Path:
-    """Raise :class:`OutputError` unless ``path`` could be written (checked before any work is done).
-
-    The nearest existing folder above ``path`` must be a writable folder
-    (missing folders are created by the writer).  Nothing is created here.
-    ``what`` names the path in the message (default: the path itself).
-    """
-    path = Path(path)
-    name = f"{what} {path.parent}" if what else str(path)
-    parent = path.absolute().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise OutputError(f"{name}: cannot create it, {parent} is a file, not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputError(f"{name}: folder {parent} is not writable")
-    return path
-
-
-def check_cache(cache: str | os.PathLike) -> None:
-    """Raise :class:`OutputError` unless the cache folder could hold a new entry (before any work)."""
-    check_writable(Path(cache) / "entry", what="cache")
 
 
 # ----------------------------------------------------------------------------- reading

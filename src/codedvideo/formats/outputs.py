@@ -24,7 +24,7 @@ Every command names its outputs and its inputs before any work is done, and
   rerun replaces its own unchanged results and nothing else.
 
 Writers replace an output by renaming a finished temporary onto it
-(:func:`codedvideo.formats.io.atomic_output`), so the old output stays whole until the
+(:func:`codedvideo.formats.atomic.atomic_output`), so the old output stays whole until the
 new one is complete.  Call :func:`mark_written` after writing a file or folder
 output (the record is itself written atomically).
 """
@@ -103,7 +103,7 @@ def _raise(exc: OSError) -> None:
 
 def mark_written(path: str | os.PathLike) -> None:
     """Record that codedvideo wrote the file or folder ``path`` as it is now (see the module docstring)."""
-    from codedvideo.formats.io import atomic_output
+    from codedvideo.formats.atomic import atomic_output
 
     path = Path(path)
     try:
@@ -197,7 +197,7 @@ def check_outputs(outputs: list[Output], inputs: dict[str, object], *, overwrite
     Raises :class:`OutputError` naming the output, the problem and, for a
     clash, the input.  Creates nothing.
     """
-    from codedvideo.formats.io import check_writable
+    from codedvideo.formats.atomic import check_writable
 
     named: dict[Path, Output] = {}
     for out in outputs:  # two outputs of one run in one place: the second would replace the first

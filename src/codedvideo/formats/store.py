@@ -27,7 +27,6 @@ import logging
 import os
 import shutil
 import threading
-import uuid
 from collections import OrderedDict
 from pathlib import Path
 
@@ -41,6 +40,9 @@ try:
 except ImportError:  # pragma: no cover - not POSIX: no locks, create-then-rename still holds
     fcntl = None
 
+from codedvideo.formats.atomic import atomic_output
+from codedvideo.formats.atomic import discard as _discard
+from codedvideo.formats.atomic import remove_dead_temporaries, replace_dir, temporaries_of, temporary_name
 from codedvideo.model.errors import InputError, OutputError
 
 log = logging.getLogger("codedvideo")
@@ -54,53 +56,6 @@ WORKSTORE_FORMAT = 3
 DIGEST_SIZE = 32
 #: The arrays of a working store.
 WORKSTORE_ARRAYS = ("coded", "mask", "still", "volume", "stats", "digest")
-
-
-def _tmp_sibling(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-
-
-def _discard(path: Path) -> None:
-    """Remove a folder or a file, as far as possible."""
-    if os.path.isdir(path) and not os.path.islink(path):
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        with contextlib.suppress(OSError):
-            os.unlink(path)
-
-
-def _replace_dir(tmp: Path, path: Path) -> None:
-    """Rename the finished folder ``tmp`` to ``path``, replacing what is there.
-
-    An existing ``path`` is first moved aside (and removed once ``tmp`` is in
-    place; put back when the final rename fails).  Another process putting
-    its own ``path`` in place between the two renames is moved aside too.
-    """
-    for attempt in range(8):
-        old = None
-        if os.path.lexists(path):
-            old = _tmp_sibling(path)
-            try:
-                os.replace(path, old)
-            except FileNotFoundError:  # someone else moved it meanwhile
-                old = None
-        try:
-            os.replace(tmp, path)
-        except OSError as exc:
-            if old is not None and not os.path.lexists(path):
-                try:
-                    os.replace(old, path)  # keep the old one rather than nothing
-                    old = None
-                except OSError:
-                    pass  # left as the hidden sibling, not removed
-            elif old is not None:  # a concurrent writer's folder took its place
-                _discard(old)
-            if exc.errno in (errno.ENOTEMPTY, errno.EEXIST) and attempt < 7:
-                continue  # move that folder aside too
-            raise
-        if old is not None:
-            _discard(old)
-        return
 
 
 def lock_path(entry: str | os.PathLike) -> Path:
@@ -178,7 +133,7 @@ def remove_locked_entry(entry: Path) -> None:
     """Remove a cache entry (folder or file), its lock file and its temporaries; hold its lock."""
     entry = Path(entry)
     if entry.is_dir() and not entry.is_symlink():
-        gone = _tmp_sibling(entry)
+        gone = temporary_name(entry, keep_suffix=False)
         os.replace(entry, gone)  # out of sight at once, then removed
         _discard(gone)
     elif os.path.lexists(entry):
@@ -191,7 +146,7 @@ def remove_locked_entry(entry: Path) -> None:
 def remove_temporaries(entry: Path) -> list[Path]:
     """Remove the temporaries ``.NAME.tmp-*`` a killed writer of ``entry`` left; hold its lock."""
     removed = []
-    for tmp in Path(entry).parent.glob(f".{Path(entry).name}.tmp-*"):
+    for tmp in temporaries_of(entry):
         _discard(tmp)
         removed.append(tmp)
     return removed
@@ -217,13 +172,11 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
         atoms=int(D.shape[1]),
         sha256=hashlib.sha256(D.tobytes()).hexdigest(),
     )
-    from codedvideo.formats.io import _remove_dead_temporaries
-
-    tmp = _tmp_sibling(path)
+    tmp = temporary_name(path, keep_suffix=False)
     zipped = path.suffix.lower() == ".zip"  # one file (the shipped dictionaries): a zipped Zarr store
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        _remove_dead_temporaries(path)  # what a killed run left
+        remove_dead_temporaries(path)  # what a killed run left
         store = zarr.storage.ZipStore(tmp, mode="w") if zipped else str(tmp)
         group = zarr.open_group(store, mode="w", attributes=json.loads(json.dumps(attrs)))
         arr = group.create_array("atoms", shape=D.shape, chunks=D.shape, dtype="float32")
@@ -232,7 +185,7 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
             store.close()
             os.replace(tmp, path)
         else:
-            _replace_dir(tmp, path)
+            replace_dir(tmp, path)
     except OSError as exc:
         _discard(tmp)
         raise OutputError(f"dictionary {path}: cannot write ({exc.strerror or exc})") from exc
@@ -519,7 +472,7 @@ class WorkStore:
                 return cls(path)
             log.warning("cache entry %s: %s; rebuilding it", path, problem)
         n, h, w = mask.shape
-        tmp = _tmp_sibling(path)
+        tmp = temporary_name(path, keep_suffix=False)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             remove_temporaries(path)  # left by killed runs (we hold the lock)
@@ -527,7 +480,7 @@ class WorkStore:
             sync(_build_entry(tmp, layout, dict(coded=coded, mask=mask, still=still), json.loads(json.dumps(dict(
                 attrs, kind=WORKSTORE_KIND, format_version=WORKSTORE_FORMAT, tile=int(tile), n_tiles=int(n_tiles),
                 inputs_digest=inputs_digest(coded, mask, still), complete_inputs=True)))))
-            _replace_dir(tmp, path)
+            replace_dir(tmp, path)
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             raise OutputError(f"working store {path}: cannot write ({exc.strerror or exc})") from exc
@@ -710,8 +663,6 @@ def array_writer(path: str | os.PathLike, shape: tuple, dtype, *, chunks=None, a
     without an error do its attributes (with the format version) go in and
     the store appear under ``path``, so a reader never sees it half-written.
     """
-    from codedvideo.formats.io import atomic_output  # (its temporaries' names, so a killed run's is found and removed)
-
     path = Path(path)
     with atomic_output(path) as tmp:
         try:

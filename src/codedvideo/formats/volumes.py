@@ -2,7 +2,7 @@
 
 Readers check what they read (finite values, mask weights in [0, 1]) and
 name the file in their errors; writers go through a temporary name
-(:func:`codedvideo.formats.io.atomic_output`), so nothing is left half-written.
+(:func:`codedvideo.formats.atomic.atomic_output`), so nothing is left half-written.
 """
 
 from __future__ import annotations

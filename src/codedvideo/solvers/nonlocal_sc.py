@@ -32,7 +32,7 @@ Measured (tasks/bench_nonlocal.py, 256x256, N = 8, the 3 codes x sigma 0 and 4 o
 case_quality; seconds include the default's): on the four held-out real clips
 33.71 dB against the default's 32.40 and GAP-TV's 30.68 (GAP-TV + 3.03 dB, the
 default GAP-TV + 1.72), 4.4x the default's time on the tile graph (4.1x after
-the interleaved dot products of the Gram-Schmidt steps, 2026-11-26), never
+the interleaved dot products of the Gram-Schmidt steps), never
 below it (+0.64 to +2.45 dB a case); synthetic scenes +0.90 dB.  Chosen on a 5-case mix: groups of
 16 at reference stride 3 (8 at stride 2: +1.08 dB, 12: +1.25 but 1.4x slower,
 24 at stride 3: +1.29 but 1.75x), a support of 16 atoms (8: +0.75, 24 helps
