@@ -286,7 +286,7 @@ def reconstruct(coded, mask, settings: ReconstructSettings | None = None, *, tru
 
 
 def _reconstruct_arrays(coded, mask, settings, *, truth=None, full_output=False):
-    from codedvideo.api._job import ReconstructionJob, array_captures
+    from codedvideo.api._job import array_captures
     from codedvideo.api._settings import resolve
 
     resolved = resolve(settings, door="api")
@@ -400,9 +400,12 @@ def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, s
                           psnr_peak=dict(value=units.value, source=units.source), **extra))
 
 
-from codedvideo.api._job import Captures, ReconstructionJob  # noqa: E402  (the job the command line runs)
-from codedvideo.api._settings import Resolved, resolve as resolve_settings  # noqa: E402
-from codedvideo.api._simulate import (SimulateSettings, SimulationPlan, captures_of, plan_simulation,  # noqa: E402
+from codedvideo.api._job import Captures, ReconstructionJob  # noqa: E402, F401  (the job the command line runs)
+from codedvideo.api._settings import Resolved, resolve as resolve_settings  # noqa: E402, F401
+from codedvideo.api._simulate import (SimulateSettings, SimulationPlan, captures_of, plan_simulation,  # noqa: E402, F401
                                      simulate_captures, simulate_whole)
-from codedvideo.api._train import plan_training, train_dictionary  # noqa: E402
-from codedvideo.api._pipeline import run_pipeline  # noqa: E402
+from codedvideo.api._train import plan_training, train_dictionary  # noqa: E402, F401
+from codedvideo.api._pipeline import run_pipeline  # noqa: E402, F401
+from codedvideo.api.cache import clean_cache, verify_cache  # noqa: E402, F401  (codedvideo cache)
+from codedvideo.engine.bayer import PATTERNS as BAYER_PATTERNS  # noqa: E402, F401  (the Bayer patterns bayer= takes)
+from codedvideo.engine.methods import METHOD_NAMES, REGISTRY as METHODS  # noqa: E402, F401  (the methods, by name)

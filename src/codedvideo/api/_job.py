@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo.api._settings import Resolved
-from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, trivial_estimate
+from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, result_recipe, trivial_estimate
 from codedvideo.engine.methods import SPARSE, WITH_DICTIONARY
 from codedvideo.engine.windows import cache_room
 from codedvideo.engine.config import omp_settings
@@ -57,6 +57,10 @@ class Captures:
     def __post_init__(self):
         if self.kind not in KINDS:
             raise InputError(f"captures: kind {self.kind!r}; one of {', '.join(KINDS)}")
+        if self.kind == "bayer":  # whole 2x2 cells of the mosaic
+            from codedvideo.engine.bayer import check_even
+
+            check_even(self.codeds[0].shape, self.source)
         if self.labels is None:
             count = len(self.codeds)
             self.labels = [{}] if self.kind in ("single", "bayer") else \
@@ -104,13 +108,10 @@ def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
 
 
 def _bayer_captures(coded, mask, truth, pattern: str, where: str) -> Captures:
-    from codedvideo.engine.bayer import check_even
-
     dtype = np.asarray(coded).dtype
     coded = check_coded(coded, f"{where}: coded")
     if coded.ndim != 2:
         raise InputError(f"{where}: coded {coded.shape}; under bayer= it is one single-channel mosaic (H, W)")
-    check_even(coded.shape, f"{where}: coded")
     mask = check_mask(mask, f"{where}: mask")
     if mask.ndim != 3 or mask.shape[-2:] != coded.shape:
         raise InputError(f"{where}: coded {coded.shape} and mask {mask.shape} do not fit: the mask is (N, H, W)")
@@ -290,6 +291,13 @@ class ReconstructionJob:
                                scheduler=r.rc.scheduler, workers=r.rc.workers, progress=r.progress, adapt=r.rc.adapt,
                                adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine, noise_sigma=r.noise.sigma,
                                cache_budget=r.rc.cache_budget)
+
+    def recipe(self) -> dict:
+        """What this job's results depend on beside its inputs, its OMP settings and its dictionary (the
+        solver's version, the adaptation's and the refinement's settings): a record of a result is keyed by it
+        (:func:`codedvideo.engine.captures.result_recipe`)."""
+        rc = self.r.rc
+        return result_recipe(self.r.method, adapt=rc.adapt, adapt_rounds=rc.adapt_rounds, refine=rc.refine)
 
     def results(self, cache):
         """The method's results ``(i, volume, info)`` in order, working in ``cache``."""

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from codedvideo.engine.config import (PRESET_KEYS, NoiseConfig, OutputConfig, ReconstructConfig, check_scheduler,
                                       preset_record, resolve_preset, validated)
+from codedvideo.engine.methods import WITH_DICTIONARY
 from codedvideo.formats.atomic import check_cache
 from codedvideo.model.errors import CodedVideoError, ConfigError
 
@@ -140,9 +141,9 @@ def _resolve(s: ReconstructSettings, door: str) -> Resolved:
     options, left_out = resolve_preset(s.preset, given, bayer=s.bayer)  # (an option given and refused: an error)
     preset = preset_record(s.preset, options, given, left_out)
     method = options["method"]
-    if s.dictionary is not None and method not in ("omp", "nonlocal"):
+    if s.dictionary is not None and method not in WITH_DICTIONARY:
         shown = s.dictionary if isinstance(s.dictionary, (str, Path)) else "(an array)"
-        raise ConfigError(f"option {names['dictionary']} {shown}: used by method omp and nonlocal only "
+        raise ConfigError(f"option {names['dictionary']} {shown}: used by method {' and '.join(WITH_DICTIONARY)} only "
                           f"(method {method} {'has its own DCT atoms' if method == 'dct' else 'has no dictionary'})")
     chosen = dict(static_atoms=s.static_atoms, weighting=s.weighting, tile=s.tile, batch=s.batch, workers=s.workers,
                   cache_budget=s.cache_budget)

@@ -11,8 +11,6 @@ import argparse
 import atexit
 import contextlib
 import dataclasses
-import functools
-import itertools
 import json
 import logging
 import os
@@ -27,14 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo import __version__, api
-from codedvideo.solvers.baselines import METHODS
-from codedvideo.engine.bayer import PATTERNS as BAYER_PATTERNS
+from codedvideo.api.config import PRESETS, OutputConfig, PipelineConfig, load_config, preset_options, validated
 from codedvideo.model.codes import CODE_NAMES
-from codedvideo.engine.config import (
-    BUMP_CODES, P_CODES, PRESET_KEYS, PRESETS, CodeConfig, DictionaryConfig, NoiseConfig, OutputConfig, PipelineConfig,
-    ReconstructConfig, SceneConfig, check_scheduler, load_config, omp_settings, preset_options, preset_record,
-    resolve_preset, validated,
-)
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.formats.outputs import Output, check_outputs, mark_written
 from codedvideo.model.metrics import json_safe
@@ -111,7 +103,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--white-level", type=float, default=None, help="clip the coded image at this grey level (saturation)")
     s.add_argument("--black-level", type=float, default=0.0,
                    help="raw output: add this offset once per read-out (then clipping and quantisation)")
-    s.add_argument("--bayer", type=str.upper, choices=BAYER_PATTERNS, default=None, metavar="PATTERN",
+    s.add_argument("--bayer", type=str.upper, choices=api.BAYER_PATTERNS, default=None, metavar="PATTERN",
                    help="film the video's colours through a Bayer filter (RGGB, BGGR, GRBG, GBRG): coded.npy is the "
                         "single-channel mosaic, truth.npy the colour video (3, N, H, W)")
     s.add_argument("--seed", type=int, default=0)
@@ -140,14 +132,14 @@ def _parser() -> argparse.ArgumentParser:
                    help="with --cacti: reconstruct only measurement Q (1-based)")
     r.add_argument("--color", choices=("luma", "channels"), default="luma",
                    help="colour coded image: its luma (default), or each channel with the same mask (colour output)")
-    r.add_argument("--bayer", type=str.upper, choices=BAYER_PATTERNS, default=None, metavar="PATTERN",
+    r.add_argument("--bayer", type=str.upper, choices=api.BAYER_PATTERNS, default=None, metavar="PATTERN",
                    help="the coded image is a Bayer mosaic (RGGB, BGGR, GRBG, GBRG): write the colour video (3, N, H, W)")
     r.add_argument("--dictionary", default=None,
                    help="dictionary store (.zarr) for --method omp (default: the one shipped for the mask's N)")
     r.add_argument("--preset", choices=tuple(PRESETS), default=None,
                    help="named settings: fast (" + preset_options("fast") + "), default (the paper's method), best ("
                         + preset_options("best") + "); an option given beside it wins (docs/quality.md, Presets)")
-    r.add_argument("--method", choices=METHODS, default=None,
+    r.add_argument("--method", choices=api.METHOD_NAMES, default=None,
                    help="omp: learned dictionary, every patch on its own (default); nonlocal: then groups of "
                         "similar patches solved together under their own codes (better, about 4x the time); "
                         "dct: 3D DCT dictionary, same OMP; thinout, interp, gaptv: baselines (see README)")
@@ -356,12 +348,9 @@ def _read_captures(a) -> api.Captures:
             labels=[dict(measurement=q + 1) for q in chosen], kind="measurements",
             inputs=dict(cacti=a.cacti, dictionary=a.dictionary, measurements=[q + 1 for q in chosen]),
             dtype=None, source=f"CACTI file {a.cacti}")
-    if a.bayer:  # one single-channel mosaic, whole 2x2 cells; a colour truth (3, N, H, W)
-        from codedvideo.engine.bayer import check_even
-
+    if a.bayer:  # one single-channel mosaic, whole 2x2 cells (checked by the job); a colour truth (3, N, H, W)
         coded = read_coded(a.coded, color="error")
         check_size(coded.shape, a.coded)
-        check_even(coded.shape, f"coded image {a.coded}")
         mask = read_masks(a.mask)
         check_pair(coded.shape, mask.shape, where=f"mask {a.mask}")
         truths = None
@@ -614,7 +603,7 @@ def _cmd_report(a) -> int:
 
 
 def _cmd_cache(a) -> int:
-    from codedvideo.engine.cache import clean_cache, verify_cache
+    from codedvideo.api.cache import clean_cache, verify_cache
 
     if not str(a.cache).strip():  # (Path("") is the current folder)
         raise ConfigError("cache '': name the cache folder (default: cache)")

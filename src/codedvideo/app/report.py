@@ -1,12 +1,9 @@
 """``codedvideo report``: the paper's experiments and error against run time.
 
 Runs, on synthetic *test* scenes only (:mod:`codedvideo.data.synth`; never a
-training scene), through the pipeline's own stages
-(:func:`~codedvideo.data.scenes.load_video`,
-:func:`~codedvideo.engine.stages.simulate_capture`,
-:func:`~codedvideo.engine.stages.train_dictionary`,
-:func:`~codedvideo.engine.stages.reconstruct_volume` via
-:func:`~codedvideo.engine.stages.reconstruct_method`):
+training scene), through the API's jobs, as ``codedvideo simulate`` and
+``reconstruct`` run them (:func:`codedvideo.api.simulate_whole`,
+:func:`codedvideo.api.train_dictionary`, :class:`codedvideo.api.ReconstructionJob`):
 
 * Table 1 of Hitomi et al. (2011): PSNR against bump length L and read noise
   sigma (hitomi code, learned dictionary, OMP with ``tol_rms = max(sigma, 2)``);
@@ -23,8 +20,8 @@ training scene), through the pipeline's own stages
 Every experiment (one scene, code, noise level, method and setting) is cached
 as ``CACHE/report/<key>.json``, the key hashing its settings, the coded image,
 the mask, the truth, the dictionary's checksum and the code of the method
-(``RECON_VERSION`` for OMP, the source of :mod:`codedvideo.solvers.baselines` for the
-baselines), so a re-run recomputes only what changed.  OMP runs in a fresh
+(the job's :meth:`~codedvideo.api.ReconstructionJob.recipe`: the solver's version, a
+baseline's source, the adaptation's and refinement's settings), so a re-run recomputes only what changed.  OMP runs in a fresh
 working store each time it is computed, so its wall time never includes reused
 tiles.  Rendering (figures, HTML, CSV, video) is in
 :mod:`codedvideo.app.report_html`.
@@ -32,7 +29,6 @@ tiles.  Rendering (figures, HTML, CSV, video) is in
 
 from __future__ import annotations
 
-import inspect
 import json
 import sys
 import tempfile
@@ -42,24 +38,18 @@ from pathlib import Path
 
 import numpy as np
 
-from codedvideo.solvers import baselines
-from codedvideo.formats import io as cio
-from codedvideo.engine.config import (PRESETS, PipelineConfig, auto_tolerance, omp_settings, preset_options,
-                                      resolve_preset)
-from codedvideo.model.metrics import evaluate
-from codedvideo.model.errors import InputError
-from codedvideo.engine.cache import RECON_VERSION, content_key, report_record_problem
-from codedvideo.formats.volumes import write_json
+from codedvideo import api
+from codedvideo.api.cache import content_key, report_record_problem
+from codedvideo.api.config import (BUMP_CODES, P_CODES, PRESETS, PipelineConfig, auto_tolerance, preset_options,
+                                   resolve_preset)
 from codedvideo.data.scenes import load_video
-from codedvideo.engine.adaptation import (ADAPT_ITERATIONS, ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SAMPLES,
-                                          ADAPT_SPARSITY, ADAPT_SURVEY_STEP)
-from codedvideo.engine.captures import CaptureSettings, reconstruct_capture, reconstruct_method
-from codedvideo.engine.methods import SPARSE as SPARSE_METHODS
-from codedvideo.engine.simulation import simulate_capture
-from codedvideo.engine.training import train_dictionary
+from codedvideo.formats import io as cio
 from codedvideo.formats.store import load_dictionary
-from codedvideo.solvers.refine import recipe as refine_recipe
-from codedvideo.model.units import infer_data_range
+from codedvideo.formats.volumes import write_json
+from codedvideo.model.errors import InputError
+from codedvideo.model.metrics import evaluate
+from codedvideo.model.patches import PATCH
+from codedvideo.model.units import EIGHT_BIT
 
 #: Part of every experiment key: bump it when what an experiment records changes.
 REPORT_VERSION = "report-v1"
@@ -85,6 +75,7 @@ class Runner:
     reused: int = 0
     _videos: dict = field(default_factory=dict)
     _dicts: dict = field(default_factory=dict)
+    _captures: dict = field(default_factory=dict)
 
     @property
     def folder(self) -> Path:
@@ -114,9 +105,35 @@ class Runner:
         if k not in self._dicts:
             if self.progress:
                 print(f"report: dictionary N = {frames}, atoms = {atoms or 'default'}", file=sys.stderr, flush=True)
-            path, _ = train_dictionary(self.dictionary_config(frames, atoms), progress=False)
+            path, _ = api.train_dictionary(self.dictionary_config(frames, atoms), progress=False)
             self._dicts[k] = load_dictionary(path)
         return self._dicts[k]
+
+    def capture(self, scene: str, frames: int, code: str, bump: int, sigma: float) -> dict:
+        """The capture of a test scene (read noise only, the pipeline's seed): ``coded``, ``mask`` and ``truth``,
+        made as ``codedvideo simulate`` makes it."""
+        k = (scene, frames, code, bump, float(sigma))
+        if k not in self._captures:
+            given = dict(bump=bump) if code in BUMP_CODES else {}
+            if code in P_CODES:
+                given["p"] = self.cfg.code.p
+            plan = api.plan_simulation(api.SimulateSettings(
+                video=f"synth:{scene}", frames=frames, code=code, noise_sigma=sigma, seed=self.cfg.seed,
+                size=tuple(self.cfg.report.size), **given))
+            self._captures = {k: api.simulate_whole(plan, 1)}  # (the last one only: each is used in turn)
+        return self._captures[k]
+
+    def _job(self, cap: dict, method: str, dictionary, sigma: float, **chosen) -> api.ReconstructionJob:
+        """The API's reconstruction job of one experiment: the pipeline's ``reconstruct:`` settings with those
+        ``chosen`` (None: the pipeline's), in the report's 8-bit units."""
+        r = self.cfg.reconstruct
+        chosen = {k: v for k, v in chosen.items() if v is not None and v is not False}
+        settings = api.ReconstructSettings(
+            **dict(dict(max_atoms=r.max_atoms, stride=r.stride, tol_rms=None), **chosen), method=method,
+            dictionary=dictionary, noise_sigma=sigma, data_range=EIGHT_BIT, weighting=r.weighting,
+            static_atoms=r.static_atoms, batch=r.batch, tile=r.tile, workers=r.workers)
+        captures = api.Captures(codeds=[cap["coded"]], masks=[cap["mask"]], source="report: simulated capture")
+        return api.ReconstructionJob(captures, api.resolve_settings(settings))
 
     def main_atoms(self) -> int:
         return self.cfg.report.dictionary.atoms or self.cfg.dictionary.atoms
@@ -131,7 +148,7 @@ class Runner:
         ----------
         scene, frames, code, bump, sigma
             The capture (read noise only, seed of the pipeline).
-        method : one of :data:`codedvideo.solvers.baselines.METHODS`
+        method : one of :data:`codedvideo.api.METHOD_NAMES`
         max_atoms, tol_rms, atoms
             OMP settings (None: the pipeline's ``reconstruct:`` values, the
             tolerance ``max(sigma, 2)``, the report's dictionary size).
@@ -154,38 +171,23 @@ class Runner:
         """
         rc = self.cfg.report
         repeats = rc.repeats if timed else 1
-        cap = simulate_capture(self.video(scene, frames), code=code, bump=bump, sigma=sigma, seed=self.cfg.seed,
-                               p=self.cfg.code.p)
+        cap = self.capture(scene, frames, code, bump, sigma)
         settings = dict(scene=scene, size=list(rc.size), frames=frames, code=code, bump=bump, sigma=float(sigma),
                         method=method, seed=self.cfg.seed, repeats=repeats)
-        D, dkey, omp = None, "", None
-        if method in SPARSE_METHODS:
-            r = self.cfg.reconstruct
-            omp = omp_settings(r.model_copy(update=dict(
-                max_atoms=max_atoms or r.max_atoms, tol_rms="auto" if tol_rms is None else float(tol_rms),
-                stride=stride or r.stride, method="nonlocal" if method == "nonlocal" else "omp")), sigma)
-            settings.update(omp.__dict__, tile=r.tile, version=RECON_VERSION, method=method)
-            if adapt:  # the recipe, so that a changed one is computed again (absent otherwise: earlier keys stand)
-                settings["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY,
-                                         **(dict(survey_step=ADAPT_SURVEY_STEP, refine_step=ADAPT_REFINE_STEP)
-                                            if method == "nonlocal" else {}))
-                if adapt_rounds != 1:  # (absent for one round: the earlier keys stand)
-                    settings["adapt"].update(rounds=adapt_rounds, last_step=ADAPT_LAST_STEP)
-            if method != "dct":
-                D, meta = self.dictionary(frames, atoms)
-                dkey = meta["sha256"]
-                settings["dictionary_atoms"] = int(D.shape[1])
-            else:
-                settings["dictionary_atoms"] = frames * 49
-        else:
-            fn = dict(thinout=baselines.thinout, interp=baselines.interp, gaptv=baselines.gap_tv)[method]
-            settings["version"] = content_key(inspect.getsource(baselines))
-            settings["defaults"] = {k: v.default for k, v in inspect.signature(fn).parameters.items()
-                                    if v.default is not inspect.Parameter.empty}
-        if refine and omp is None:
+        entry = api.METHODS[method]
+        if refine and not entry.sparse:
             raise ValueError(f"report: refine is run after the sparse methods only, not {method}")
-        if refine:  # (absent without: the earlier keys stand)
-            settings["refine"] = dict(refine_recipe(), iterations=refine)
+        D, dkey = None, ""
+        if entry.dictionary:
+            D, meta = self.dictionary(frames, atoms)
+            dkey = meta["sha256"]
+        job = self._job(cap, method, D, sigma, max_atoms=max_atoms, tol_rms=tol_rms, stride=stride, adapt=adapt,
+                        adapt_rounds=adapt_rounds, refine=refine)
+        omp = job.omp if entry.sparse else None
+        if entry.sparse:
+            settings.update(omp.__dict__, tile=self.cfg.reconstruct.tile)
+            settings["dictionary_atoms"] = int(D.shape[1]) if D is not None else frames * PATCH * PATCH
+        settings.update(job.recipe(), method=method)
         key = content_key(REPORT_VERSION, settings, dkey, cap["coded"], cap["mask"], cap["truth"])
         path = self.folder / f"{key}.json"
         vol_path = self.folder / f"{key}.npy"
@@ -214,19 +216,8 @@ class Runner:
         for _ in range(repeats):  # best of `repeats` wall times
             with tempfile.TemporaryDirectory(dir=self.folder, prefix="work-") as tmp:  # fresh store: no reused tiles
                 t0 = time.perf_counter()
-                if adapt or refine:
-                    volume, info = reconstruct_capture(CaptureSettings(method, adapt=adapt,
-                                                       adapt_rounds=adapt_rounds, refine=refine, noise_sigma=sigma,
-                                                       data_range=infer_data_range(255.0, given=255.0), settings=omp,
-                                                       dictionary=D, dictionary_key=dkey, cache=tmp,
-                                                       tile=self.cfg.reconstruct.tile,
-                                                       workers=self.cfg.reconstruct.workers, progress=False),
-                                                       cap["coded"], cap["mask"])
-                else:
-                    volume, info = reconstruct_method(method, cap["coded"], cap["mask"], dictionary=D,
-                                                                dictionary_key=dkey, settings=omp, cache=tmp,
-                                                                tile=self.cfg.reconstruct.tile,
-                                                                workers=self.cfg.reconstruct.workers)
+                (_, volume, done), = job.run(tmp)
+                info = done["reconstruction"]
                 seconds = min(seconds, time.perf_counter() - t0)
         if existing is not None:
             cio.write_array(vol_path, volume.astype(np.float32))
@@ -397,7 +388,7 @@ def report_outputs(cfg: PipelineConfig) -> list:
 def run_report(cfg: PipelineConfig, *, progress: bool = False, config_path=None) -> dict:
     """Run (or reuse) every experiment and write report.html, report.csv, figures and video.
 
-    Every output is checked first, as :func:`codedvideo.engine.stages.run_pipeline`'s are: a file in
+    Every output is checked first, as :func:`codedvideo.api.run_pipeline`'s are: a file in
     ``report.dir`` that codedvideo did not write is replaced only with ``output.overwrite``.
 
     Returns

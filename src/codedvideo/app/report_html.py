@@ -19,9 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from codedvideo.engine.config import PRESETS, preset_options
+from codedvideo.api.config import PRESETS, preset_options
 from codedvideo.formats import io as cio
-from codedvideo.engine.simulation import simulate_capture
 
 CSV_FIELDS = ("experiment", "label", "scene", "frames", "code", "bump", "sigma", "method", "max_atoms", "tol_rms",
               "dictionary_atoms", "psnr", "ssim", "seconds", "atoms_mean", "key")
@@ -103,9 +102,8 @@ def fig_fig4(runner, results: dict, rc, folder: Path) -> str:
     plt = _plt()
     recs = [r for r in results["fig4"] if r["scene"] == rc.video_scene]
     fig, axes = plt.subplots(len(recs), 3, figsize=(9, 3 * len(recs)), squeeze=False)
-    truth = runner.video(rc.video_scene, rc.frames)
     for row, rec in zip(axes, recs):
-        cap = simulate_capture(truth, code=rec["code"], bump=rec["bump"], sigma=0.0, seed=runner.cfg.seed)
+        cap = runner.capture(rc.video_scene, rc.frames, rec["code"], rec["bump"], 0.0)
         vol = _volume(runner, rec)
         for ax, img, title, vmax in ((row[0], cap["mask"][0], f"{rec['code']}: exposure, sub-frame 1", 1),
                                      (row[1], cap["coded"], "coded image", rec["bump"] * 255.0),
@@ -141,7 +139,7 @@ def side_by_side(runner, results: dict, rc, out: Path) -> Path:
     rec = next(r for r in results["fig7"]
                if r["scene"] == rc.video_scene and r["frames"] == rc.frames and r["method"] == "omp")
     truth = runner.video(rc.video_scene, rc.frames)
-    cap = simulate_capture(truth, code=rec["code"], bump=rec["bump"], sigma=0.0, seed=runner.cfg.seed)
+    cap = runner.capture(rc.video_scene, rc.frames, rec["code"], rec["bump"], 0.0)
     vol = np.clip(_volume(runner, rec), 0, 255)
     coded = np.broadcast_to(cap["coded"] / rec["bump"], truth.shape)
     err = np.clip(np.abs(vol - truth) * ERROR_GAIN, 0, 255)

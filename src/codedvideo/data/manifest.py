@@ -20,7 +20,6 @@ scene may only use test photographs.
 from __future__ import annotations
 
 import csv
-import os
 import functools
 import hashlib
 import re

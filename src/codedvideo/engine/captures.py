@@ -537,3 +537,34 @@ def reconstruct_method(
     info = dict(method=method, patches=0, patches_per_second=0.0, seconds=dict(reconstruct=seconds),
                 measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))))
     return volume, info
+
+
+def result_recipe(method: str, *, adapt: bool = False, adapt_rounds: int = 1, refine: int = 0) -> dict:
+    """What a method's result depends on beside its inputs, its OMP settings and its dictionary: the version of
+    the sparse code's solver (or a baseline's source and defaults), the adaptation's and the refinement's
+    settings.  A record of a result is keyed by it, so that a changed recipe is computed again; the adaptation
+    and the refinement appear only when used (and a second round only when asked), so that the keys of results
+    without them stand."""
+    import inspect
+
+    from codedvideo.engine.adaptation import ADAPT_ITERATIONS, ADAPT_SAMPLES, ADAPT_SPARSITY
+    from codedvideo.engine.cache import RECON_VERSION
+    from codedvideo.solvers import baselines
+
+    entry = methods.method(method)
+    if entry.sparse:
+        recipe: dict = dict(version=RECON_VERSION)
+        if adapt:
+            recipe["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY,
+                                   **(dict(survey_step=ADAPT_SURVEY_STEP, refine_step=ADAPT_REFINE_STEP)
+                                      if method == "nonlocal" else {}))
+            if adapt_rounds != 1:
+                recipe["adapt"].update(rounds=adapt_rounds, last_step=ADAPT_LAST_STEP)
+    else:
+        fn = methods.solver(method)
+        recipe = dict(version=content_key(inspect.getsource(baselines)),
+                      defaults={k: v.default for k, v in inspect.signature(fn).parameters.items()
+                                if v.default is not inspect.Parameter.empty})
+    if refine:
+        recipe["refine"] = dict(refinement.recipe(), iterations=refine)
+    return recipe

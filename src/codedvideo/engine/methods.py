@@ -1,7 +1,7 @@
 """The reconstruction methods, one registry: what each is, how it is run and what it takes.
 
 ``codedvideo reconstruct --method``, ``reconstruct.method`` in pipeline.yaml, the Python API and the
-report all name a method of :data:`METHODS`.  The sparse methods (:data:`SPARSE`) sparse-code 7x7xN
+report all name a method of :data:`REGISTRY`.  The sparse methods (:data:`SPARSE`) sparse-code 7x7xN
 patches over tiles (:func:`codedvideo.engine.windows.sparse_volumes`), ``omp`` and ``nonlocal`` with a
 dictionary given (:data:`WITH_DICTIONARY`), ``dct`` with the complete 3D DCT; the others are the
 classical baselines of :mod:`codedvideo.solvers.baselines`, run with their defaults.  Light: nothing is
@@ -56,7 +56,7 @@ _METHODS = (
 
 #: Every method by its name, in the order ``--method`` lists them.
 REGISTRY: dict[str, Method] = {m.name: m for m in _METHODS}
-#: The names of every method (:data:`codedvideo.solvers.baselines.METHODS`, the same, in the same order).
+#: The names of every method, in the order ``--method`` lists them.
 METHOD_NAMES = tuple(REGISTRY)
 #: The methods that sparse-code patches over tiles.
 SPARSE = tuple(m.name for m in _METHODS if m.sparse)

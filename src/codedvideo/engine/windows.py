@@ -276,7 +276,6 @@ def sparse_volumes(
     estimate): that capture's result is the static estimate ``coded / open
     count`` itself (``method: "static"``), computed without tiles.
     """
-    per_capture = callable(D)
     planner = _Planner(count, capture, D, dictionary_key, settings=settings, tile=tile, cache=cache, first_of=first_of)
     with contextlib.closing(planner.locks), GraphRunner(scheduler=scheduler, workers=workers, progress=progress,
                                                         desc=desc) as runner:

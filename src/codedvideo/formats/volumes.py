@@ -18,7 +18,7 @@ from codedvideo.formats import io as cio
 from codedvideo.model.errors import InputError
 from codedvideo.formats.io import VIDEO_SUFFIXES
 from codedvideo.model.patches import PATCH
-from codedvideo.formats.store import array_writer, load_array, save_array
+from codedvideo.formats.store import array_writer, load_array
 from codedvideo.model.units import EIGHT_BIT
 from codedvideo.model.codes import is_binary
 

@@ -2,10 +2,9 @@
 
 Every baseline takes the coded image ``(H, W)`` and its code ``(N, H, W)`` in
 the sum convention of :mod:`codedvideo.model.physics` and returns a video
-``(N, H, W)`` float32; :data:`METHODS` lists the names ``codedvideo
-reconstruct --method`` accepts (``omp`` and ``dct`` are the per-patch OMP of
-:func:`codedvideo.engine.windows.reconstruct_volume` with a learned or a 3D DCT
-dictionary; the others are here).
+``(N, H, W)`` float32.  The methods ``codedvideo reconstruct --method`` accepts
+are listed once, in :data:`codedvideo.engine.methods.REGISTRY` (``omp``,
+``nonlocal`` and ``dct`` sparse-code patches over tiles; the others are here).
 
 * :func:`thinout` -- the draft-mode (thin-out) movie: each sub-frame keeps the
   pixels open in it and interpolates the rest (exactly linear between rows
@@ -42,10 +41,6 @@ import numpy as np
 from codedvideo.model.errors import InputError
 from codedvideo.model.physics import adjoint, check_pair, forward, static_estimate
 from codedvideo.model.units import EIGHT_BIT
-
-#: Names of ``codedvideo reconstruct --method``: per-patch OMP with the learned
-#: dictionary (``omp``) or the 3D DCT (``dct``), and the baselines of this module.
-METHODS = ("omp", "nonlocal", "dct", "thinout", "interp", "gaptv")
 
 
 def _tent(radius: int) -> np.ndarray:
