@@ -51,7 +51,7 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     Dd = dct_dictionary(8)
     rc = PipelineConfig().reconstruct
     size = (96, 96) if quick else (256, 256)
-    options = options or {}
+    extra = options or {}
     (ROOT / "cache").mkdir(exist_ok=True)
     # compile the non-local kernels outside the timings
     warm = load_video((scenes or QUALITY_SCENES)[0], frames=8, size=(32, 32))
@@ -74,10 +74,10 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
                         row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
                     if label == "default":
                         first = vol
-                if options:  # parameters the pipeline does not take: the whole image in this thread
+                if extra:  # parameters the pipeline does not take: the whole image in this thread
                     t = time.perf_counter()
                     vol, _ = nonlocal_region(cap["coded"], cap["mask"], D, first, omp_settings(rc, sigma),
-                                                 **options)
+                                                 **extra)
                     row["nonlocal"] = dict(seconds=row["default"]["seconds"] + time.perf_counter() - t,
                                            **_q(evaluate(vol, video)))
                 else:  # as `--method nonlocal` runs: the default's tile graph with the groups in each tile
@@ -99,7 +99,7 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
                 row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
                 rows.append(row)
                 print("  ".join(table_row(row)), flush=True)
-    return dict(case="nonlocal", size=list(size), frames=8, options=options, rows=rows,
+    return dict(case="nonlocal", size=list(size), frames=8, options=extra, rows=rows,
                 sgemm_gflops=sgemm_gflops())
 
 

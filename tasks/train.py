@@ -8,7 +8,6 @@ import sys
 
 from _common import guarded, load, parser
 
-from codedvideo.data import manifest
 from codedvideo.data import shipped
 from codedvideo.engine.config import PipelineConfig
 from codedvideo.engine.training import train_dictionary

@@ -134,23 +134,23 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     from codedvideo.engine.simulation import sensor_model, simulate_stream
     from codedvideo.formats.volumes import check_coded, check_mask
 
-    video = check_coded(video, "simulate: video")
-    mask = np.asarray(mask)
-    n = mask.shape[-3] if mask.ndim in (3, 4) else 0
-    if video.ndim != 3 or not n or video.shape[0] % n or video.shape[1:] != mask.shape[-2:]:
-        raise InputError(f"simulate: video {video.shape} and mask {mask.shape} do not fit: the video is (N, H, W) "
+    frames = check_coded(video, "simulate: video")
+    masks = np.asarray(mask)
+    n = masks.shape[-3] if masks.ndim in (3, 4) else 0
+    if frames.ndim != 3 or not n or frames.shape[0] % n or frames.shape[1:] != masks.shape[-2:]:
+        raise InputError(f"simulate: video {frames.shape} and mask {masks.shape} do not fit: the video is (N, H, W) "
                          "or (T*N, H, W), the mask (N, H, W) or (T, N, H, W)")
-    count = video.shape[0] // n
-    if mask.ndim == 4 and mask.shape[0] != count:
-        raise InputError(f"simulate: {count} captures in the video, {mask.shape[0]} masks")
-    codes = [check_mask(m, "simulate: mask") for m in (mask if mask.ndim == 4 else [mask])]
+    count = frames.shape[0] // n
+    if masks.ndim == 4 and masks.shape[0] != count:
+        raise InputError(f"simulate: {count} captures in the video, {masks.shape[0]} masks")
+    codes = [check_mask(m, "simulate: mask") for m in (masks if masks.ndim == 4 else [masks])]
     given = {k: v for k, v in dict(full_well=full_well, gain=gain).items() if v is not None}
     noise = validated(NoiseConfig, dict(sigma=noise_sigma, shot_noise=shot_noise, bits=bits, white_level=white_level,
                                         black_level=black_level, **given), {"sigma": "noise_sigma"})
-    stream = simulate_stream((video[i * n:(i + 1) * n] for i in range(count)), code="array", bump=0,
+    stream = simulate_stream((frames[i * n:(i + 1) * n] for i in range(count)), code="array", bump=0,
                              sigma=noise.sigma, seed=seed, sensor=sensor_model(noise), captures=count, codes=codes)
     coded = [one for one, _, _ in stream]
-    return coded[0] if count == 1 and mask.ndim == 3 else np.stack(coded)
+    return coded[0] if count == 1 and masks.ndim == 3 else np.stack(coded)
 
 
 @_door
@@ -276,13 +276,13 @@ def reconstruct(coded, mask, settings: ReconstructSettings | None = None, *, tru
     """
     from codedvideo.api._settings import replaced
 
-    settings = replaced(settings or ReconstructSettings(), **options)
+    chosen = replaced(settings or ReconstructSettings(), **options)
     if _is_dask(coded):
         if full_output or truth is not None:
             raise ConfigError("reconstruct: a dask input gives a lazy array of frames; full_output and truth "
                               "need numpy arrays")
-        return _reconstruct_lazy(coded, mask, settings)
-    return _reconstruct_arrays(coded, mask, settings, truth=truth, full_output=full_output)
+        return _reconstruct_lazy(coded, mask, chosen)
+    return _reconstruct_arrays(coded, mask, chosen, truth=truth, full_output=full_output)
 
 
 def _reconstruct_arrays(coded, mask, settings, *, truth=None, full_output=False):
@@ -325,15 +325,15 @@ def _reconstruct_lazy(coded, mask, settings):
     from codedvideo.api._settings import resolve
 
     resolve(settings, door="api")  # the settings checked now; the values when the graph is computed
-    mask = np.asarray(mask)
+    masks = np.asarray(mask)
     stack = coded[None] if coded.ndim == 2 else coded
-    if stack.ndim != 3 or mask.ndim not in (3, 4) or tuple(stack.shape[-2:]) != mask.shape[-2:]:
-        raise InputError(f"reconstruct: coded {tuple(coded.shape)} and mask {tuple(mask.shape)} do not fit: coded "
+    if stack.ndim != 3 or masks.ndim not in (3, 4) or tuple(stack.shape[-2:]) != masks.shape[-2:]:
+        raise InputError(f"reconstruct: coded {tuple(coded.shape)} and mask {tuple(masks.shape)} do not fit: coded "
                          "is (H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
-    count, n, (h, w) = stack.shape[0], mask.shape[-3], stack.shape[-2:]
-    if mask.ndim == 4 and mask.shape[0] != count:
-        raise InputError(f"reconstruct: {count} coded images, {mask.shape[0]} masks")
-    whole = dask.delayed(_stream_frames, pure=True)(stack, mask, settings)
+    count, n, (h, w) = stack.shape[0], masks.shape[-3], stack.shape[-2:]
+    if masks.ndim == 4 and masks.shape[0] != count:
+        raise InputError(f"reconstruct: {count} coded images, {masks.shape[0]} masks")
+    whole = dask.delayed(_stream_frames, pure=True)(stack, masks, settings)
     parts = [da.from_delayed(whole[i * n:(i + 1) * n], shape=(n, h, w), dtype=np.float32,
                              meta=np.empty((0, 0, 0), np.float32)) for i in range(count)]
     return da.concatenate(parts) if count > 1 else parts[0]
@@ -384,19 +384,20 @@ def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, s
     ``extra``: more keys for the result.  Warns when the two do not look like the same units."""
     from codedvideo.model.metrics import evaluate as _evaluate, json_safe
 
-    recon = recon if hasattr(recon, "shape") else np.asarray(recon, np.float32)
-    truth = truth if hasattr(truth, "shape") else np.asarray(truth, np.float32)
-    if tuple(recon.shape) != tuple(truth.shape):
-        raise InputError(f"evaluate: reconstruction {tuple(recon.shape)} and truth {tuple(truth.shape)} differ in shape")
-    units = truth_data_range(truth, data_range=data_range, where=names[1])
-    peak, recon_peak = units.peak, _peak(recon)
+    frames = recon if hasattr(recon, "shape") else np.asarray(recon, np.float32)
+    reference = truth if hasattr(truth, "shape") else np.asarray(truth, np.float32)
+    if tuple(frames.shape) != tuple(reference.shape):
+        raise InputError(f"evaluate: reconstruction {tuple(frames.shape)} and truth {tuple(reference.shape)} differ "
+                         "in shape")
+    units = truth_data_range(reference, data_range=data_range, where=names[1])
+    peak, recon_peak = units.peak, _peak(frames)
     # another unit: a score that means nothing; against the truth's own peak, not its range (a dark scene's
     # reconstruction peaks as far below 255 as its truth does)
     if peak > 0 and not peak / 16 <= recon_peak <= 4 * peak:
         warnings.warn(f"evaluate: {names[0]} peaks at {recon_peak:.4g} and {names[1]} at {peak:.4g} (data range "
                       f"{units.value:g}, {units.source}); are they in the same units? (a [0, 1] reconstruction "
                       "against 8-bit truth scores about 10 dB)", stacklevel=2)
-    return json_safe(dict(_evaluate(recon, truth, data_range=units.value), data_range_source=units.source,
+    return json_safe(dict(_evaluate(frames, reference, data_range=units.value), data_range_source=units.source,
                           psnr_peak=dict(value=units.value, source=units.source), **extra))
 
 

@@ -86,16 +86,16 @@ def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
     if bayer is not None:
         return _bayer_captures(coded, mask, truth, bayer, where), True
     dtype = np.asarray(coded).dtype if hasattr(coded, "dtype") else None
-    coded = check_coded(coded, f"{where}: coded")
-    mask = np.asarray(mask)
-    if coded.ndim not in (2, 3) or mask.ndim not in (3, 4) or coded.shape[-2:] != mask.shape[-2:]:
-        raise InputError(f"{where}: coded {tuple(coded.shape)} and mask {tuple(mask.shape)} do not fit: coded is "
+    image = check_coded(coded, f"{where}: coded")
+    given = np.asarray(mask)
+    if image.ndim not in (2, 3) or given.ndim not in (3, 4) or image.shape[-2:] != given.shape[-2:]:
+        raise InputError(f"{where}: coded {tuple(image.shape)} and mask {tuple(given.shape)} do not fit: coded is "
                          "(H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
-    single = coded.ndim == 2
-    codeds = coded[None] if single else coded
-    if mask.ndim == 4 and mask.shape[0] != len(codeds):
-        raise InputError(f"{where}: {len(codeds)} coded images, {mask.shape[0]} masks")
-    masks = [check_mask(m, f"{where}: mask") for m in (mask if mask.ndim == 4 else [mask])]
+    single = image.ndim == 2
+    codeds = image[None] if single else image
+    if given.ndim == 4 and given.shape[0] != len(codeds):
+        raise InputError(f"{where}: {len(codeds)} coded images, {given.shape[0]} masks")
+    masks = [check_mask(m, f"{where}: mask") for m in (given if given.ndim == 4 else [given])]
     truths = None
     if truth is not None:
         truths = check_coded(truth, f"{where}: truth")
@@ -109,19 +109,19 @@ def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
 
 def _bayer_captures(coded, mask, truth, pattern: str, where: str) -> Captures:
     dtype = np.asarray(coded).dtype
-    coded = check_coded(coded, f"{where}: coded")
-    if coded.ndim != 2:
-        raise InputError(f"{where}: coded {coded.shape}; under bayer= it is one single-channel mosaic (H, W)")
-    mask = check_mask(mask, f"{where}: mask")
-    if mask.ndim != 3 or mask.shape[-2:] != coded.shape:
-        raise InputError(f"{where}: coded {coded.shape} and mask {mask.shape} do not fit: the mask is (N, H, W)")
+    mosaic = check_coded(coded, f"{where}: coded")
+    if mosaic.ndim != 2:
+        raise InputError(f"{where}: coded {mosaic.shape}; under bayer= it is one single-channel mosaic (H, W)")
+    code = check_mask(mask, f"{where}: mask")
+    if code.ndim != 3 or code.shape[-2:] != mosaic.shape:
+        raise InputError(f"{where}: coded {mosaic.shape} and mask {code.shape} do not fit: the mask is (N, H, W)")
     truths = None
     if truth is not None:
         truths = check_coded(truth, f"{where}: truth")
-        if truths.shape != (3, *mask.shape):
-            raise InputError(f"{where}: truth {truths.shape} != (3, N, H, W) {(3, *mask.shape)} (the colour video, "
+        if truths.shape != (3, *code.shape):
+            raise InputError(f"{where}: truth {truths.shape} != (3, N, H, W) {(3, *code.shape)} (the colour video, "
                              "under bayer=)")
-    return Captures(codeds=coded[None], masks=[mask], truths=truths, kind="bayer", dtype=dtype,
+    return Captures(codeds=mosaic[None], masks=[code], truths=truths, kind="bayer", dtype=dtype,
                     source=f"{where}: coded")
 
 
@@ -372,18 +372,18 @@ class ReconstructionJob:
                                                  for d in (0, 1)])
                                for c in (self.cuts(i) and dict(boundary=i, **self.cuts(i))
                                          for i in range(self.count - 1)) if c]
-        read += self.seconds_prepared
+        read_all = read + self.seconds_prepared
         total = time.perf_counter() - started if started is not None else None
         if job.kind in ("single", "bayer"):
             info = self.entries[0]["reconstruction"]
-            info["seconds"] = dict(read=read, **info["seconds"], write=write,
-                                   total=total if total is not None else read + sum(info["seconds"].values()))
+            info["seconds"] = dict(read=read_all, **info["seconds"], write=write,
+                                   total=total if total is not None else read_all + sum(info["seconds"].values()))
             metrics["reconstruction"] = info
             if job.kind == "bayer":
                 metrics.update(layout="(C, N, H, W)", bayer=dict(info.get("bayer", {}), pattern=r.bayer))
                 metrics["settings"]["bayer"] = r.bayer
         else:
-            metrics.update(self._stream_totals(read, write, total))
+            metrics.update(self._stream_totals(read_all, write, total))
         if self._frames["psnr"]:
             metrics["quality"], metrics["trivial"] = self._quality(output)
         return metrics

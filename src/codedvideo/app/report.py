@@ -127,9 +127,9 @@ class Runner:
         """The API's reconstruction job of one experiment: the pipeline's ``reconstruct:`` settings with those
         ``chosen`` (None: the pipeline's), in the report's 8-bit units."""
         r = self.cfg.reconstruct
-        chosen = {k: v for k, v in chosen.items() if v is not None and v is not False}
+        given = {k: v for k, v in chosen.items() if v is not None and v is not False}
         settings = api.ReconstructSettings(
-            **dict(dict(max_atoms=r.max_atoms, stride=r.stride, tol_rms=None), **chosen), method=method,
+            **dict(dict(max_atoms=r.max_atoms, stride=r.stride, tol_rms=None), **given), method=method,
             dictionary=dictionary, noise_sigma=sigma, data_range=EIGHT_BIT, weighting=r.weighting,
             static_atoms=r.static_atoms, batch=r.batch, tile=r.tile, workers=r.workers)
         captures = api.Captures(codeds=[cap["coded"]], masks=[cap["mask"]], source="report: simulated capture")
