@@ -68,6 +68,7 @@ REPEATS = 5
 RESULTS = ROOT / "bench" / "results"
 sys.path.insert(0, str(ROOT / "tasks"))
 from _bench_common import QUALITY_CODES, QUALITY_SCENES, _cli, _q, sgemm_gflops  # noqa: E402,F401
+from _bench_table import table  # noqa: E402  (the results as the table bench prints)
 
 
 def peak_rss_mb() -> float:
@@ -269,22 +270,6 @@ def case_quality(quick: bool) -> dict:
     return dict(case="quality", size=list(size), frames=8, rows=rows, sgemm_gflops=sgemm_gflops())
 
 
-def quality_table(r: dict) -> list[str]:
-    out = [f"{'scene':<24}{'code':<12}{'sigma':>6}  {'default dB/SSIM/s':>22}  {'gap-tv':>22}  {'dct (16 atoms)':>22}"]
-    cell = lambda v: f"{v['psnr']:6.2f} {v['ssim']:.3f} {v['seconds']:5.2f}s"
-    for x in r["rows"]:
-        out.append(f"{x['scene']:<24}{x['code'] + ' L=' + str(x['bump']):<12}{x['sigma']:>6.0f}  {cell(x['default']):>22}  "
-                   f"{cell(x['gaptv']):>22}  {cell(x['dct']):>22}")
-    for kind in ("real", "synthetic"):
-        sel = [x for x in r["rows"] if x["kind"] == kind]
-        if sel:
-            m = {k: np.mean([x[k]["psnr"] for x in sel]) for k in ("default", "gaptv", "dct")}
-            wins = sum(x["default"]["psnr"] > x["gaptv"]["psnr"] for x in sel)
-            out.append(f"mean over {kind} scenes: default {m['default']:.2f} dB, gap-tv {m['gaptv']:.2f} dB, "
-                       f"dct {m['dct']:.2f} dB; default beats gap-tv in {wins}/{len(sel)}")
-    return out
-
-
 def case_bayer(quick: bool) -> dict:
     """Issue 14: a Bayer (RGGB) coded capture of synth:color-default, reconstructed in colour."""
     import tempfile
@@ -377,54 +362,73 @@ def case_sequence(quick: bool) -> dict:
         out["moving_vs_still70_pipeline_time"] = (out["static70"]["sequence"]["seconds_pipeline"]
                                                   / out["moving"]["sequence"]["seconds_pipeline"])
         out["still_vs_moving_time"] = out["still"]["sequence"]["seconds"] / out["moving"]["sequence"]["seconds"]
-        # the same two scenes three times as long: the ~1 s that every run pays before its first tile
-        # (interpreter, imports, numba's set-up, the stores) weighs a third as much
-        longer = 3 * t_count
-        runs = {}
-        for name, spec in (("static70", "default-static70"), ("moving", "default")):
-            cap = simulate_capture(make_scene(spec, frames=8 * longer, size=size), code="hitomi", bump=2, sigma=0.0,
-                                   seed=0, captures=longer)
-            np.save(tmp / f"{name}-long-coded.npy", cap["coded"])
-            np.save(tmp / f"{name}-long-mask.npy", cap["mask"])
-        for repeat in range(1 if quick else SEQUENCE_REPEATS):
-            for name in ("static70", "moving"):
-                seconds, _ = _cli("reconstruct", "--coded", tmp / f"{name}-long-coded.npy", "--mask",
-                                  tmp / f"{name}-long-mask.npy", "--output", tmp / f"{name}-long.npy", "--cache",
-                                  tmp / f"cache-long-{repeat}", "--overwrite", cwd=ROOT)
-                runs.setdefault(name, []).append(seconds)
-                shutil.rmtree(tmp / f"cache-long-{repeat}", ignore_errors=True)
-        out["longer"] = dict(captures=longer, seconds={k: float(np.median(v)) for k, v in runs.items()},
-                             seconds_runs=runs, moving_vs_still70_time=float(np.median(runs["static70"])
-                                                                             / np.median(runs["moving"])))
-        memory = {}
-        for t in ((1, 4) if quick else (1, 10, 100)):
-            video = make_scene("default", frames=8 * t, size=size)
-            cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=t)
-            np.save(tmp / "m-coded.npy", cap["coded"])
-            np.save(tmp / "m-mask.npy", cap["mask"])
-            seconds, peak = _cli("reconstruct", "--coded", tmp / "m-coded.npy", "--mask", tmp / "m-mask.npy", "--output",
-                                 tmp / f"m{t}.npy", "--cache", tmp / f"cache-m{t}", cwd=ROOT)
-            memory[str(t)] = dict(seconds=seconds, peak_rss_mb=peak)
-        out["memory"] = memory
-        # heavy read noise: the still answer is then noisier than OMP's estimate (sequence.STILL_NOISE_MAX)
-        noisy, video = {}, scenes["static70"]
-        for sigma in ((40,) if quick else (10, 20, 40)):
-            cap = simulate_capture(video, code="hitomi", bump=2, sigma=float(sigma), seed=0, captures=t_count)
-            np.save(tmp / "n-coded.npy", cap["coded"])
-            np.save(tmp / "n-mask.npy", cap["mask"])
-            row = {}
-            for mode, flag in (("sequence", []), ("independent", ["--independent-captures"])):
-                cache = tmp / f"cache-n{sigma}-{mode}"  # (where nothing is still, both modes make the same stores)
-                seconds, _ = _cli("reconstruct", "--coded", tmp / "n-coded.npy", "--mask", tmp / "n-mask.npy",
-                                  "--noise-sigma", sigma, "--output", tmp / "n.npy", "--cache", cache,
-                                  "--overwrite", *flag, cwd=ROOT)
-                shutil.rmtree(cache)
-                recon = np.load(tmp / "n.npy")
-                row[mode] = dict(seconds=seconds, psnr=_psnr(recon, video),
-                                 psnr_moving=_psnr(recon, video, slice(int(round(0.7 * size[1])), None)))
-            noisy[str(sigma)] = row
-        out["noisy"] = noisy
+        out["longer"] = _sequence_longer(tmp, size, 3 * t_count, quick)
+        out["memory"] = _sequence_memory(tmp, size, quick)
+        out["noisy"] = _sequence_noisy(tmp, size, scenes["static70"], t_count, quick)
     return out
+
+
+def _sequence_longer(tmp: Path, size, longer: int, quick: bool) -> dict:
+    """The sequence case's 70 %-still and moving scenes, ``longer`` captures each: the ~1 s that every run pays
+    before its first tile (interpreter, imports, numba's set-up, the stores) weighs less."""
+    from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.data.synth import make_scene
+
+    runs: dict = {}
+    for name, spec in (("static70", "default-static70"), ("moving", "default")):
+        cap = simulate_capture(make_scene(spec, frames=8 * longer, size=size), code="hitomi", bump=2, sigma=0.0,
+                               seed=0, captures=longer)
+        np.save(tmp / f"{name}-long-coded.npy", cap["coded"])
+        np.save(tmp / f"{name}-long-mask.npy", cap["mask"])
+    for repeat in range(1 if quick else SEQUENCE_REPEATS):
+        for name in ("static70", "moving"):
+            seconds, _ = _cli("reconstruct", "--coded", tmp / f"{name}-long-coded.npy", "--mask",
+                              tmp / f"{name}-long-mask.npy", "--output", tmp / f"{name}-long.npy", "--cache",
+                              tmp / f"cache-long-{repeat}", "--overwrite", cwd=ROOT)
+            runs.setdefault(name, []).append(seconds)
+            shutil.rmtree(tmp / f"cache-long-{repeat}", ignore_errors=True)
+    return dict(captures=longer, seconds={k: float(np.median(v)) for k, v in runs.items()},
+                seconds_runs=runs, moving_vs_still70_time=float(np.median(runs["static70"]) / np.median(runs["moving"])))
+
+
+def _sequence_memory(tmp: Path, size, quick: bool) -> dict:
+    """The peak memory of whole processes by the stream's length T."""
+    from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.data.synth import make_scene
+
+    memory = {}
+    for t in ((1, 4) if quick else (1, 10, 100)):
+        video = make_scene("default", frames=8 * t, size=size)
+        cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=t)
+        np.save(tmp / "m-coded.npy", cap["coded"])
+        np.save(tmp / "m-mask.npy", cap["mask"])
+        seconds, peak = _cli("reconstruct", "--coded", tmp / "m-coded.npy", "--mask", tmp / "m-mask.npy", "--output",
+                             tmp / f"m{t}.npy", "--cache", tmp / f"cache-m{t}", cwd=ROOT)
+        memory[str(t)] = dict(seconds=seconds, peak_rss_mb=peak)
+    return memory
+
+
+def _sequence_noisy(tmp: Path, size, video: np.ndarray, t_count: int, quick: bool) -> dict:
+    """Heavy read noise: the still answer is then noisier than OMP's estimate (sequence.STILL_NOISE_MAX)."""
+    from codedvideo.engine.simulation import simulate_capture
+
+    noisy = {}
+    for sigma in ((40,) if quick else (10, 20, 40)):
+        cap = simulate_capture(video, code="hitomi", bump=2, sigma=float(sigma), seed=0, captures=t_count)
+        np.save(tmp / "n-coded.npy", cap["coded"])
+        np.save(tmp / "n-mask.npy", cap["mask"])
+        row = {}
+        for mode, flag in (("sequence", []), ("independent", ["--independent-captures"])):
+            cache = tmp / f"cache-n{sigma}-{mode}"  # (where nothing is still, both modes make the same stores)
+            seconds, _ = _cli("reconstruct", "--coded", tmp / "n-coded.npy", "--mask", tmp / "n-mask.npy",
+                              "--noise-sigma", sigma, "--output", tmp / "n.npy", "--cache", cache,
+                              "--overwrite", *flag, cwd=ROOT)
+            shutil.rmtree(cache)
+            recon = np.load(tmp / "n.npy")
+            row[mode] = dict(seconds=seconds, psnr=_psnr(recon, video),
+                             psnr_moving=_psnr(recon, video, slice(int(round(0.7 * size[1])), None)))
+        noisy[str(sigma)] = row
+    return noisy
 
 
 def _boundary_ratio(recon: np.ndarray, truth: np.ndarray, n: int) -> float:
@@ -743,132 +747,6 @@ def run_child(name: str, quick: bool) -> dict:
     if proc.returncode != 0:
         return dict(case=name, error=proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "failed")
     return json.loads(proc.stdout.strip().splitlines()[-1])
-
-
-def table(results: dict) -> str:
-    rows = []
-    fmt = "{:<34} {:>9} {:>9} {:>8} {:>12} {:>9}"
-    rows.append(fmt.format("case", "seconds", "PSNR dB", "SSIM", "patches/s", "peak MB"))
-    for name, r in results["cases"].items():
-        if "error" in r:
-            rows.append(f"{name:<34} error: {r['error']}")
-            continue
-        peak = f"{r['peak_rss_mb']:.0f}" if "peak_rss_mb" in r else ""
-        for key, label in (("omp", "omp sliding"), ("gaptv", "gap-tv sliding"), ("hitomi", "omp sliding"),
-                           ("hitomi-tiled", "omp tiled"), ("gaptv-tiled", "gap-tv tiled"),
-                           ("omp-stride2", "omp sliding, stride 2")):
-            if key in r:
-                v = r[key]
-                rows.append(fmt.format(f"{name} {r.get('size')} N={r.get('frames')} {label}", f"{v['seconds']:.2f}",
-                                       f"{v['psnr']:.2f}", f"{v['ssim']:.3f}",
-                                       f"{v['patches_per_second']:.0f}" if "patches_per_second" in v else "", peak))
-        if "naive" in r:
-            nv = r["naive"]
-            rows.append(f"  naive OMP on a {nv['crop']}x{nv['crop']} crop: {nv['naive_seconds']:.1f} s, {nv['naive_psnr']:.2f} dB "
-                        f"(fast: {nv['fast_seconds']:.2f} s, {nv['fast_psnr']:.2f} dB); full image extrapolated "
-                        f"{nv['extrapolated_full_seconds']:.0f} s")
-            if "kernel_load_seconds" in r:
-                rows.append(f"  compiled OMP kernel: loaded once per process in {r['kernel_load_seconds']:.2f} s, "
-                            "before the timings above")
-        if name == "units":
-            rows.append("  units: " + ", ".join(f"{k} {v['psnr']:.2f} dB (range {v['data_range']:g}) {v['seconds']:.1f} s"
-                                                for k, v in r.items() if isinstance(v, dict)))
-        if name == "adapt":
-            for x in r["rows"]:
-                base = x["default"]["seconds"]
-                rows.append(f"  --adapt, {x['scene']} {x['code']} ({x['units']}): " + ", ".join(
-                    f"{k} {x[k]['psnr']:.2f} dB {x[k]['seconds']:.2f} s ({x[k]['seconds'] / base:.2f}x)"
-                    for k in ("default", "omp --adapt", "nonlocal", "nonlocal --adapt")))
-        if name == "presets":
-            import bench_presets
-
-            rows.extend("  " + line for line in bench_presets.table(r).splitlines())
-        if name == "startup":
-            rows.append(f"  start-up: reconstruct {r['size']} as a whole process {r['process_seconds']:.2f} s, in-process "
-                        f"{r['in_process_seconds']:.2f} s: {r['ratio']:.2f}x (target 1.5x)")
-        if name == "calibrated":
-            for key, row in r.items():
-                if isinstance(row, dict) and "nominal" in row:
-                    rows.append(f"  misregistered code ({key}): nominal mask {row['nominal']['psnr']:.2f} dB "
-                                f"{row['nominal']['seconds']:.2f} s, measured mask {row['measured']['psnr']:.2f} dB "
-                                f"{row['measured']['seconds']:.2f} s")
-        if name == "sequence":
-            for scene in ("static70", "still", "moving"):
-                q, i = r[scene]["sequence"], r[scene]["independent"]
-                moving = (f", moving part {q['psnr_moving']:.2f} vs {i['psnr_moving']:.2f} dB"
-                          if "psnr_moving" in q else "")
-                rows.append(f"  {r['captures']} captures {scene}: one job {q['seconds']:.1f} s {q['psnr']:.2f} dB, "
-                            f"capture by capture {i['seconds']:.1f} s {i['psnr']:.2f} dB{moving}")
-            rows.append(f"  70 %-still / moving: {100 * r['moving_vs_still70_time']:.1f} % of the time; still / moving: "
-                        f"{100 * r['still_vs_moving_time']:.1f} %; moving, one job / capture by capture: "
-                        f"{100 * r['moving']['time_ratio']:.1f} % (medians of {len(r['moving']['sequence'].get('seconds_runs', [0]))} whole processes)")
-            if "moving_vs_still70_pipeline_time" in r:
-                rows.append(f"  70 %-still / moving, the pipeline's own time (metrics JSON, no start-up): "
-                            f"{100 * r['moving_vs_still70_pipeline_time']:.1f} %")
-            if "longer" in r:
-                lg = r["longer"]
-                rows.append(f"  70 %-still / moving at {lg['captures']} captures (whole processes): "
-                            f"{100 * lg['moving_vs_still70_time']:.1f} % ({lg['seconds']['static70']:.1f} s against "
-                            f"{lg['seconds']['moving']:.1f} s)")
-            rows.append("  boundary step / inside step: " + ", ".join(
-                f"{scene} {r[scene]['sequence'].get('boundary_to_inside') or 0:.2f} joined, "
-                f"{r[scene]['independent'].get('boundary_to_inside') or 0:.2f} alone" for scene in ("static70", "moving")))
-            rows.append("  peak RSS by T: " + ", ".join(f"T = {t}: {m['peak_rss_mb']:.0f} MB ({m['seconds']:.1f} s)"
-                                                       for t, m in r["memory"].items()))
-            for sigma, v in r.get("noisy", {}).items():
-                q, i = v["sequence"], v["independent"]
-                rows.append(f"  70 %-still, read noise {sigma}: one job {q['seconds']:.1f} s {q['psnr']:.2f} dB (moving part "
-                            f"{q['psnr_moving']:.2f}), capture by capture {i['seconds']:.1f} s {i['psnr']:.2f} dB "
-                            f"({i['psnr_moving']:.2f})")
-        if name == "video":
-            for key, v in r.items():
-                if isinstance(v, dict) and "captures" in v:
-                    rows.append(f"  video {key} N = 18: {v['seconds']:.0f} s ({v['seconds_per_capture']:.1f} s a capture), "
-                                f"peak {v['peak_rss_mb']:.0f} MB, {v['psnr']:.2f} dB")
-        if name == "outputs":
-            rows.append(f"  outputs {r['size'][1]}x{r['size'][0]} N = 18, peak RSS of whole processes (fresh caches): " +
-                        ", ".join(f"{k} {v['peak_rss_mb']:.0f} MB ({v['of_npy']:.2f}x)" for k, v in r["peaks"].items()))
-        if name == "outputs4k":
-            rows.append(f"  outputs {r['size'][1]}x{r['size'][0]} N = 18, peak RSS of whole processes (fresh caches): " +
-                        ", ".join(f"{k} {v['peak_rss_mb']:.0f} MB ({v['of_npy']:.2f}x, {v['seconds']:.0f} s)"
-                                  for k, v in r["peaks"].items()))
-            stream = [v for v in r["peaks"].values() if v["captures"] > 1]
-            rows.append("  a stream as one job, peak by captures: " + ", ".join(
-                f"{v['captures']}: {v['peak_rss_mb']:.0f} MB" for v in stream) +
-                f" (target 2 GB, {r['target_mb']:.0f} MB as counted here: {'met' if all(v['peak_rss_mb'] <= r['target_mb'] for v in stream) else 'NOT met'})")
-        if name == "footage":
-            for clip, v in r.items():
-                if isinstance(v, dict) and "sequence" in v:
-                    q, i, u = v["sequence"], v["independent"], v["sequence [0, 1]"]
-                    rows.append(f"  footage {clip} ({v['captures']} captures of {v['size'][0]}x{v['size'][1]}, N = 8, "
-                                f"noise {r['noise_sigma']:g}): one job {q['seconds']:.1f} s {q['psnr']:.2f} dB SSIM "
-                                f"{q['ssim']:.4f}, boundary step {q['boundary_to_inside']:.2f} of the inside step, "
-                                f"{100 * q['patches_still']:.0f} % of patches still; capture by capture {i['seconds']:.1f} s "
-                                f"{i['psnr']:.2f} dB SSIM {i['ssim']:.4f}, boundary {i['boundary_to_inside']:.2f} "
-                                f"({100 * v['time_ratio']:.1f} % of the time, medians of {len(q['seconds_runs'])})")
-                    rows.append(f"    [0, 1] floats {u['psnr']:.2f} dB {u['seconds']:.1f} s: largest difference "
-                                f"{v['unit_max_diff_grey']:.2g} grey levels, {100 * v['unit_share_over_0.01']:.3f} % of "
-                                f"values over 0.01; the 8-bit capture one float step up: {v['nudged_max_diff_grey']:.2g}, "
-                                f"{100 * v['nudged_share_over_0.01']:.3f} %")
-        if name == "bayer":
-            rows.append(f"  bayer {r['pattern']}: colour result {r['omp']['psnr']:.2f} dB, demosaicked static estimate "
-                        f"{r['static']['psnr']:.2f} dB")
-        for scene in ("default", "default-static70"):
-            if scene in r:
-                s = r[scene]
-                rows.append(f"  {scene}: still-scene test {s['skip']['seconds']:.2f} s {s['skip']['psnr']:.2f} dB "
-                            f"({100 * s['skip']['static_fraction']:.0f}% patches still) vs off {s['no_skip']['seconds']:.2f} s "
-                            f"{s['no_skip']['psnr']:.2f} dB")
-    if "nonlocal" in results["cases"] and "error" not in results["cases"]["nonlocal"]:
-        from bench_nonlocal import nonlocal_table
-
-        rows.extend(nonlocal_table(results["cases"]["nonlocal"]))
-    if "quality" in results["cases"] and "error" not in results["cases"]["quality"]:
-        rows.extend(quality_table(results["cases"]["quality"]))
-    c = results["cases"]
-    if "b" in c and "b1" in c and "error" not in c["b"] and "error" not in c["b1"]:
-        rows.append(f"two workers vs one on b: {c['b1']['omp']['seconds'] / c['b']['omp']['seconds']:.2f}x")
-    return "\n".join(rows)
 
 
 def main() -> int:
