@@ -34,6 +34,7 @@ $(DOCS_STAMP): $(STAMP) pyproject.toml $(CONSTRAINTS)
 
 docs: $(DOCS_STAMP)  ## the documentation with its API reference, from the docstrings: build/docs/index.html
 	sed -e 's#](docs/#](#g' -e 's#\[examples/\](examples/)#`examples/`#' README.md > docs/index.md
+	$(BIN)/python -m codedvideo.app.reference > docs/reference.md
 	$(BIN)/mkdocs build --strict
 
 wheel-check:  ## build the wheel, install it into a fresh venv, run the CLI and the API from an empty folder

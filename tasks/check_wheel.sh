@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Build the wheel from this checkout, install it into a fresh virtual environment, and run the commands and
-# the Python API from an empty folder: what a user who runs `pip install codedvideo` gets.
+# the Python API from an empty folder: what a user who runs `pip install codedvideo` gets (the built-in
+# pipeline.yaml run with no file, the default cache in the user's cache folder).
 # Usage: tasks/check_wheel.sh [PYTHON]    (CI runs it after `make test`; `make wheel-check`)
 set -euo pipefail
 case "${1:-}" in
@@ -21,6 +22,13 @@ trap 'rm -rf "$work"' EXIT
 mkdir "$work/empty"
 cd "$work/empty"
 cli="$work/venv/bin/codedvideo"
+export XDG_CACHE_HOME="$work/xdg"  # the user's cache folder, the default cache: here, removed with the rest
+# the built-in pipeline.yaml: printed, and run with no file of one's own
+"$cli" config > pipeline.yaml
+grep -q "^stages:" pipeline.yaml
+"$cli" -q run
+test -f out/run/recon.metrics.json && test -d "$XDG_CACHE_HOME/codedvideo"
+rm -rf out pipeline.yaml
 "$cli" -q simulate synth:default --frames 8 --bump 2 --size 64 64 --seed 0 --output cap
 "$cli" -q reconstruct --coded cap/coded.npy --mask cap/mask.npy --truth cap/truth.npy --output rec.npy
 "$work/venv/bin/python" - <<'PY'

@@ -10,8 +10,8 @@ import re
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-from codedvideo.engine.config import (PRESET_KEYS, NoiseConfig, OutputConfig, ReconstructConfig, check_scheduler,
-                                      preset_record, resolve_preset, validated)
+from codedvideo.engine.config import (PRESET_KEYS, NoiseConfig, OutputConfig, ReconstructConfig, budget_of,
+                                      check_scheduler, preset_record, resolve_preset, validated)
 from codedvideo.engine.methods import WITH_DICTIONARY
 from codedvideo.formats.atomic import check_cache
 from codedvideo.model.errors import CodedVideoError, ConfigError
@@ -150,6 +150,8 @@ def _resolve(s: ReconstructSettings, door: str) -> Resolved:
     rc = validated(ReconstructConfig, dict(
         {k: v for k, v in chosen.items() if v is not None}, tol_rms="auto" if s.tol_rms is None else s.tol_rms,
         scheduler=s.scheduler, **{k: options[k] for k in PRESET_KEYS if k != "method"}), names)
+    if rc.cache_budget is None and budget_of(s.cache, None) is not None:  # the default folder: its budget
+        rc = rc.model_copy(update=dict(cache_budget=budget_of(s.cache, None)))
     noise = validated(NoiseConfig, dict(sigma=s.noise_sigma, white_level=s.white_level, bits=s.bits,
                                         black_level=s.black_level), names)
     data_range = validated(OutputConfig, dict(data_range=s.data_range), names).data_range

@@ -26,13 +26,17 @@ from codedvideo.engine.config import (
     ReconstructConfig,
     ReportConfig,
     SceneConfig,
+    DEFAULT_CACHE,
+    DEFAULT_CACHE_BUDGET,
     auto_tolerance,
+    default_config_path,
     load_config,
     preset_options,
     resolve_preset,
     validated,
 )
 
-__all__ = ["BUMP_CODES", "P_CODES", "PRESETS", "PRESET_KEYS", "CodeConfig", "DictionaryConfig", "NoiseConfig", "OutputConfig", "PipelineConfig",
-           "ReconstructConfig", "ReportConfig", "SceneConfig", "auto_tolerance", "load_config", "preset_options",
-           "resolve_preset", "validated"]
+__all__ = ["BUMP_CODES", "DEFAULT_CACHE", "DEFAULT_CACHE_BUDGET", "P_CODES", "PRESETS", "PRESET_KEYS", "CodeConfig",
+           "DictionaryConfig", "NoiseConfig", "OutputConfig", "PipelineConfig", "ReconstructConfig", "ReportConfig",
+           "SceneConfig", "auto_tolerance", "default_config_path", "load_config", "preset_options", "resolve_preset",
+           "validated"]

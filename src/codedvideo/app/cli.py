@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo import __version__, api
-from codedvideo.api.config import PRESETS, OutputConfig, PipelineConfig, load_config, preset_options, validated
+from codedvideo.api.config import (DEFAULT_CACHE, PRESETS, OutputConfig, PipelineConfig, default_config_path, load_config,
+                                   preset_options, validated)
 from codedvideo.model.codes import CODE_NAMES
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.formats.outputs import Output, check_outputs, mark_written
@@ -37,6 +38,19 @@ log = logging.getLogger("codedvideo")
 _NEGATIVE_NUMBER = re.compile(r"^-(\d|\.\d|(inf|infinity|nan)$)", re.IGNORECASE)
 
 
+class _Help(argparse.ArgumentDefaultsHelpFormatter):
+    """Help with each option's default as the parser holds it, ``(default: X)``; none shown for a flag, an
+    option whose default is found at run time (None), or one whose help says its default itself."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if action.default is None or action.default is False or action.default == argparse.SUPPRESS \
+                or "default" in text \
+                or not (action.option_strings or action.nargs in ("?", "*")):
+            return text
+        return text + " (default: %(default)s)"
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with the project's error form: one line, ``codedvideo: error: ...``, exit status 2.
 
@@ -44,6 +58,7 @@ class _Parser(argparse.ArgumentParser):
     not an option (argparse's own rule takes only ``-5`` and ``-.5``), so that the option's range check names it."""
 
     def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _Help)
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = _NEGATIVE_NUMBER
 
@@ -53,158 +68,176 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="codedvideo", description="Video from a single coded-exposure photograph (Hitomi et al. 2011).")
+    p = _Parser(prog="codedvideo", description="Video from a single coded-exposure photograph (Hitomi et al. 2011).",
+                epilog="Each command's options: codedvideo COMMAND --help.  Guides and the full reference (every "
+                       "option and pipeline.yaml key): the docs/ folder of the source, or `make docs`.  Start a run "
+                       "of your own with `codedvideo config > pipeline.yaml`.")
     p.add_argument("--version", action="version", version=f"codedvideo {__version__}")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     t = sub.add_parser("train", help="learn a K-SVD dictionary (or build a 3D DCT one)")
-    t.add_argument("videos", nargs="*", metavar="VIDEO", help="training videos (default: the embedded synthetic set)")
-    t.add_argument("--frames", "-N", type=int, required=True, help="sub-frames N per coded image")
-    t.add_argument("--output", "-o", required=True, help="dictionary store (.zarr)")
+    ti = t.add_argument_group("input")
+    tk = t.add_argument_group("K-SVD", "the learned dictionary's settings")
+    to = t.add_argument_group("output")
+    ti.add_argument("videos", nargs="*", metavar="VIDEO", help="training videos (default: the embedded synthetic set)")
+    ti.add_argument("--frames", "-N", type=int, required=True, help="sub-frames N per coded image")
+    to.add_argument("--output", "-o", required=True, help="dictionary store (.zarr)")
     learned = PipelineConfig().dictionary  # (None: the default, so that --kind dct can tell a value given)
-    t.add_argument("--atoms", type=int, default=None, help=f"(default {learned.atoms})")
-    t.add_argument("--iterations", type=int, default=None, help=f"(default {learned.iterations})")
-    t.add_argument("--samples", type=int, default=None, help=f"(default {learned.samples})")
-    t.add_argument("--sparsity", type=int, default=None, help=f"(default {learned.sparsity})")
-    t.add_argument("--max-speed", type=float, default=None,
-                   help=f"fastest synthetic training motion, pixels per sub-frame (default {learned.max_speed:g})")
-    t.add_argument("--init", default=None, metavar="DICT",
-                   help="start K-SVD from this dictionary store ('shipped': the one shipped for N) and keep its atoms: "
-                        "adapt it to your scene, e.g. with --no-augment --iterations 1 on a reconstruction (README)")
-    t.add_argument("--no-augment", dest="augment", action="store_false",
-                   help="take the training patches as they are (default: rotated, flipped and reversed at random)")
-    t.add_argument("--kind", choices=("learned", "dct"), default="learned")
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--cache", default="cache")
-    t.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT that codedvideo did not write")
-    t.add_argument("--retrain", action="store_true",
-                   help="train even when a shipped dictionary was made with these settings (make train)")
+    tk.add_argument("--atoms", type=int, default=None, help=f"atoms K of the dictionary (default: {learned.atoms})")
+    tk.add_argument("--iterations", type=int, default=None, help=f"K-SVD iterations (default: {learned.iterations})")
+    tk.add_argument("--samples", type=int, default=None, help=f"training patches (default: {learned.samples})")
+    tk.add_argument("--sparsity", type=int, default=None, help=f"atoms per training patch (default: {learned.sparsity})")
+    ti.add_argument("--max-speed", type=float, default=None,
+                    help=f"fastest synthetic training motion, pixels per sub-frame (default: {learned.max_speed:g})")
+    ti.add_argument("--init", default=None, metavar="DICT",
+                    help="start K-SVD from this dictionary store ('shipped': the one shipped for N) and keep its atoms: "
+                         "adapt it to your scene, e.g. with --no-augment --iterations 1 on a reconstruction (docs/cli.md, train)")
+    ti.add_argument("--no-augment", dest="augment", action="store_false",
+                    help="take the training patches as they are (default: rotated, flipped and reversed at random)")
+    ti.add_argument("--kind", choices=("learned", "dct"), default="learned",
+                    help="learned: K-SVD on training videos; dct: the complete 3D DCT (N x 49 atoms, not trained)")
+    ti.add_argument("--seed", type=int, default=0, help="seed of the training patches' draw and of K-SVD")
+    to.add_argument("--cache", default=DEFAULT_CACHE, help="where a trained dictionary is kept for later runs")
+    to.add_argument("--overwrite", action="store_true", help="replace an existing OUTPUT that codedvideo did not write")
+    to.add_argument("--retrain", action="store_true",
+                    help="train even when a shipped dictionary was made with these settings (make train)")
 
     s = sub.add_parser("simulate", help="simulate a coded capture of a video")
-    s.add_argument("video", help="synth:NAME or a video / frame-sequence path")
-    s.add_argument("--frames", "-N", type=int, required=True)
-    s.add_argument("--bump", "-L", type=int, default=None,
-                   help=f"bump length of hitomi, hitomi-tiled and rowwise (default {PipelineConfig().code.bump})")
-    s.add_argument("--code", default=None, choices=CODE_NAMES,
-                   help="shutter code (default: hitomi, or file with --code-file); see README")
-    s.add_argument("--code-file", default=None, metavar="PATH",
-                   help="mask of --code file: .npy (N, H, W) or multi-page TIFF; or .npy (K, N, H, W), one code per "
-                        "capture in turn")
-    s.add_argument("--p", type=float, default=None,
-                   help=f"open probability of bernoulli / shifting (default {PipelineConfig().code.p:g})")
-    s.add_argument("--noise-sigma", type=float, default=0.0, help="read noise, grey levels")
-    s.add_argument("--shot-noise", action="store_true", help="Poisson photon noise (see --full-well, --gain)")
-    s.add_argument("--full-well", type=float, default=None,
-                   help=f"full-well capacity, electrons, with --shot-noise (default {PipelineConfig().noise.full_well:g})")
-    s.add_argument("--gain", type=float, default=None,
-                   help=f"electrons per grey level, with --shot-noise (default {PipelineConfig().noise.gain:g})")
-    s.add_argument("--bits", type=int, default=None, help="quantise the coded image to this bit depth")
-    s.add_argument("--white-level", type=float, default=None, help="clip the coded image at this grey level (saturation)")
-    s.add_argument("--black-level", type=float, default=0.0,
-                   help="raw output: add this offset once per read-out (then clipping and quantisation)")
-    s.add_argument("--bayer", type=str.upper, choices=api.BAYER_PATTERNS, default=None, metavar="PATTERN",
-                   help="film the video's colours through a Bayer filter (RGGB, BGGR, GRBG, GBRG): coded.npy is the "
-                        "single-channel mosaic, truth.npy the colour video (3, N, H, W)")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None, help="centre crop (synth: size)")
-    s.add_argument("--start", type=int, default=0, help="first frame of a video file")
-    s.add_argument("--captures", default="1", metavar="T",
-                   help="T consecutive coded images of N sub-frames each (a coded camera's stream), or 'all' that "
-                        "a video file holds; coded.npy is then (T, H, W) and truth.npy (T*N, H, W)")
-    s.add_argument("--new-code-per-capture", action="store_true",
-                   help="a new shutter code for every capture (mask.npy (T, N, H, W)); default: the code repeats")
-    s.add_argument("--output", "-o", required=True, help="output folder")
-    s.add_argument("--cacti-out", default=None, metavar="FILE.mat",
-                   help="also write the capture as a CACTI benchmark .mat (orig, mask, meas; one measurement)")
-    s.add_argument("--overwrite", action="store_true", help="replace existing output files that codedvideo did not write")
+    si = s.add_argument_group("input", "the video filmed")
+    sc = s.add_argument_group("code", "the shutter code")
+    ss = s.add_argument_group("sensor", "the camera's noise and units")
+    so = s.add_argument_group("output")
+    si.add_argument("video", help="synth:NAME or a video / frame-sequence path")
+    si.add_argument("--frames", "-N", type=int, required=True, help="sub-frames N per coded image")
+    sc.add_argument("--bump", "-L", type=int, default=None,
+                    help=f"bump length of hitomi, hitomi-tiled and rowwise (default: {PipelineConfig().code.bump})")
+    sc.add_argument("--code", default=None, choices=CODE_NAMES,
+                    help="shutter code (default: hitomi, or file with --code-file; the codes: docs/sampling.md)")
+    sc.add_argument("--code-file", default=None, metavar="PATH",
+                    help="mask of --code file: .npy (N, H, W) or multi-page TIFF; or .npy (K, N, H, W), one code per "
+                         "capture in turn")
+    sc.add_argument("--p", type=float, default=None,
+                    help=f"open probability of bernoulli / shifting (default: {PipelineConfig().code.p:g})")
+    ss.add_argument("--noise-sigma", type=float, default=0.0, help="read noise, grey levels")
+    ss.add_argument("--shot-noise", action="store_true", help="Poisson photon noise (see --full-well, --gain)")
+    ss.add_argument("--full-well", type=float, default=None,
+                    help=f"full-well capacity, electrons, with --shot-noise (default: {PipelineConfig().noise.full_well:g})")
+    ss.add_argument("--gain", type=float, default=None,
+                    help=f"electrons per grey level, with --shot-noise (default: {PipelineConfig().noise.gain:g})")
+    ss.add_argument("--bits", type=int, default=None, help="quantise the coded image to this bit depth")
+    ss.add_argument("--white-level", type=float, default=None, help="clip the coded image at this grey level (saturation)")
+    ss.add_argument("--black-level", type=float, default=0.0,
+                    help="raw output: add this offset once per read-out (then clipping and quantisation)")
+    ss.add_argument("--bayer", type=str.upper, choices=api.BAYER_PATTERNS, default=None, metavar="PATTERN",
+                    help="film the video's colours through a Bayer filter (RGGB, BGGR, GRBG, GBRG): coded.npy is the "
+                         "single-channel mosaic, truth.npy the colour video (3, N, H, W)")
+    ss.add_argument("--seed", type=int, default=0, help="seed of the code and of the noise (and of a synthetic scene)")
+    si.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None, help="centre crop (synth: size)")
+    si.add_argument("--start", type=int, default=0, help="first frame of a video file")
+    si.add_argument("--captures", default="1", metavar="T",
+                    help="T consecutive coded images of N sub-frames each (a coded camera's stream), or 'all' that "
+                         "a video file holds; coded.npy is then (T, H, W) and truth.npy (T*N, H, W)")
+    sc.add_argument("--new-code-per-capture", action="store_true",
+                    help="a new shutter code for every capture (mask.npy (T, N, H, W)); default: the code repeats")
+    so.add_argument("--output", "-o", required=True, help="output folder")
+    so.add_argument("--cacti-out", default=None, metavar="FILE.mat",
+                    help="also write the capture as a CACTI benchmark .mat (orig, mask, meas; one measurement)")
+    so.add_argument("--overwrite", action="store_true", help="replace existing output files that codedvideo did not write")
 
     r = sub.add_parser("reconstruct", help="recover the video from a coded image and its mask")
-    r.add_argument("--coded", default=None,
-                   help="coded image (H, W) or a stream of them: .npy (T, H, W), .tif (multi-page), .exr, .dpx, .png, "
-                        "a folder or printf pattern of images, a lossless video; required unless --cacti")
-    r.add_argument("--mask", default=None,
-                   help="mask: .npy (N, H, W) or one per capture (T, N, H, W), a multi-page TIFF or frames; "
-                        "required unless --cacti")
-    r.add_argument("--cacti", default=None, metavar="FILE.mat",
-                   help="instead of --coded/--mask: a CACTI .mat (mask, meas, orig); every measurement is reconstructed")
-    r.add_argument("--measurement", type=int, default=None, metavar="Q",
-                   help="with --cacti: reconstruct only measurement Q (1-based)")
-    r.add_argument("--color", choices=("luma", "channels"), default="luma",
-                   help="colour coded image: its luma (default), or each channel with the same mask (colour output)")
-    r.add_argument("--bayer", type=str.upper, choices=api.BAYER_PATTERNS, default=None, metavar="PATTERN",
-                   help="the coded image is a Bayer mosaic (RGGB, BGGR, GRBG, GBRG): write the colour video (3, N, H, W)")
-    r.add_argument("--dictionary", default=None,
-                   help="dictionary store (.zarr) for --method omp (default: the one shipped for the mask's N)")
-    r.add_argument("--preset", choices=tuple(PRESETS), default=None,
-                   help="named settings: fast (" + preset_options("fast") + "), default (the paper's method), best ("
-                        + preset_options("best") + "); an option given beside it wins (docs/quality.md, Presets)")
-    r.add_argument("--method", choices=api.METHOD_NAMES, default=None,
-                   help="omp: learned dictionary, every patch on its own (default); nonlocal: then groups of "
-                        "similar patches solved together under their own codes (better, about 4x the time); "
-                        "dct: 3D DCT dictionary, same OMP; thinout, interp, gaptv: baselines (see README)")
-    r.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=None,
-                   help="adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, "
-                        "reconstruct again with it (omp, nonlocal, dct; omp: about twice the time; nonlocal: a sparse survey "
-                        "first, about 1.2x nonlocal's time, +0.6 dB on real footage); --no-adapt: not (over --preset best)")
-    r.add_argument("--adapt-rounds", type=int, choices=(1, 2), default=None,
-                   help="with --adapt: 2 adapts again to the second pass's result and reconstructs a third time "
-                        "(--preset best; +0.5 dB on real footage, 1.8x the time of one round)")
-    r.add_argument("--refine", type=int, default=None, metavar="ITERATIONS",
-                   help="after the method's result: ITERATIONS of GAP with a low-rank prior on groups of similar "
-                        "8x8 patches followed across sub-frames, the noise level annealed from 6 to 1 grey level; "
-                        "with --noise-sigma the steps to the measurements are relaxed (0: none, the default; "
-                        "--preset best: 32, +0.9 dB on held-out real footage, about 0.8x the time of the passes "
-                        "before it)")
-    r.add_argument("--output", "-o", required=True,
-                   help=".npy, .zarr, .mat, .tif/.tiff, .mp4/.mov (H.264), .mkv/.avi (FFV1), .gif, or a name without "
-                        "suffix (or ending .d): a folder of 16-bit TIFF frames (--cacti: all measurements, time-first)")
-    r.add_argument("--truth", default=None,
-                   help="ground truth for PSNR/SSIM in the metrics: (T*N, H, W) frames, (3, N, H, W) for colour")
-    r.add_argument("--max-atoms", type=int, default=None,
-                   help=f"OMP's atoms per patch at most (default {PipelineConfig().reconstruct.max_atoms})")
-    r.add_argument("--tol-rms", type=float, default=None, help="residual tolerance, RMS per pixel (default: from --noise-sigma)")
-    r.add_argument("--noise-sigma", type=float, default=0.0, help="read noise of the capture, grey levels")
-    r.add_argument("--white-level", type=float, default=None,
-                   help="saturation level of the coded image: pixels at or above it are treated as missing")
-    r.add_argument("--trust-saturated", action="store_true", help="with --white-level: use saturated pixels anyway")
-    r.add_argument("--black-level", type=float, default=0.0,
-                   help="raw frames: the offset of every read-out, subtracted first (coded units)")
-    r.add_argument("--bits", type=int, default=None,
-                   help="raw frames: ADC bit depth; values at 2**bits - 1 are saturated (missing), above it an error")
-    r.add_argument("--bad-pixels", default=None, metavar="FILE",
-                   help="defective pixels, missing measurements: text rows 'y x', or .npy (K, 2) or an (H, W) map")
-    r.add_argument("--detect-bad-pixels", action="store_true",
-                   help="find hot or dead pixels as outliers against their neighbourhood (across all captures)")
-    r.add_argument("--stride", type=int, default=None,
-                   help="patch stride 1..7: 1 solves every overlapping patch (the paper, the default), s about s*s "
-                        "times fewer")
-    r.add_argument("--weighting", choices=("uniform", "fit"), default=PipelineConfig().reconstruct.weighting,
-                   help="average of overlapping estimates: uniform (the paper) or weighted by each patch's misfit")
-    r.add_argument("--static-atoms", type=int, default=PipelineConfig().reconstruct.static_atoms,
-                   help="still-scene test: 2D DCT atoms before full OMP (0: off)")
-    r.add_argument("--tile", type=int, default=PipelineConfig().reconstruct.tile,
-                   help=f"tile side in pixels, a task each (default {PipelineConfig().reconstruct.tile})")
-    r.add_argument("--batch", type=int, default=PipelineConfig().reconstruct.batch,
-                   help=f"patches solved together in a tile (default {PipelineConfig().reconstruct.batch})")
-    r.add_argument("--scheduler", default=None, help="dask.distributed scheduler address (default: local, both cores)")
-    r.add_argument("--workers", type=int, default=None, help="local worker threads")
-    r.add_argument("--data-range", type=float, default=None,
-                   help="peak value of the frames: the PSNR peak, the full scale of videos, and the working "
-                        "scale, so the default tolerance is 2/255 of it (default: found from the capture; see "
-                        "README, Units)")
-    r.add_argument("--fps", type=int, default=30, help="frame rate of a video output (default 30)")
-    r.add_argument("--cache", default="cache",
-                   help="working stores and dictionaries, reused by later runs (default: cache)")
-    r.add_argument("--cache-budget", default=None, metavar="SIZE",
-                   help="keep the cache's working stores within SIZE (e.g. 20G) as a long job goes, removing the "
-                        "least recently used (a rerun computes their tiles again; default: no limit)")
-    r.add_argument("--overwrite", action="store_true",
-                   help="replace an existing output file that codedvideo did not write (folders: never)")
-    r.add_argument("--independent-captures", action="store_true",
-                   help="a stack of coded images (or a CACTI file's measurements): reconstruct each on its own "
-                        "(default: regions still from one capture to the next take coded / open count, without "
-                        "sparse coding, and the step from one capture to the next is smoothed along the motion)")
+    ri = r.add_argument_group("input", "the capture and its code")
+    rs = r.add_argument_group("sensor", "the camera's units, noise and defects")
+    rm = r.add_argument_group("method", "how the video is recovered")
+    ro = r.add_argument_group("output")
+    rp = r.add_argument_group("performance", "where and how the work runs; none changes the result")
+    ri.add_argument("--coded", default=None,
+                    help="coded image (H, W) or a stream of them: .npy (T, H, W), .tif (multi-page), .exr, .dpx, .png, "
+                         "a folder or printf pattern of images, a lossless video; required unless --cacti")
+    ri.add_argument("--mask", default=None,
+                    help="mask: .npy (N, H, W) or one per capture (T, N, H, W), a multi-page TIFF or frames; "
+                         "required unless --cacti")
+    ri.add_argument("--cacti", default=None, metavar="FILE.mat",
+                    help="instead of --coded/--mask: a CACTI .mat (mask, meas, orig); every measurement is reconstructed")
+    ri.add_argument("--measurement", type=int, default=None, metavar="Q",
+                    help="with --cacti: reconstruct only measurement Q (1-based)")
+    ri.add_argument("--color", choices=("luma", "channels"), default="luma",
+                    help="colour coded image: its luma (default), or each channel with the same mask (colour output)")
+    ri.add_argument("--bayer", type=str.upper, choices=api.BAYER_PATTERNS, default=None, metavar="PATTERN",
+                    help="the coded image is a Bayer mosaic (RGGB, BGGR, GRBG, GBRG): write the colour video (3, N, H, W)")
+    rm.add_argument("--dictionary", default=None,
+                    help="dictionary store (.zarr) for --method omp (default: the one shipped for the mask's N)")
+    rm.add_argument("--preset", choices=tuple(PRESETS), default=None,
+                    help="named settings: fast (" + preset_options("fast") + "), default (the paper's method), best ("
+                         + preset_options("best") + "); an option given beside it wins (docs/quality.md, Presets)")
+    rm.add_argument("--method", choices=api.METHOD_NAMES, default=None,
+                    help="omp: learned dictionary, every patch on its own (default); nonlocal: then groups of "
+                         "similar patches solved together under their own codes (better, about 4x the time); "
+                         "dct: 3D DCT dictionary, same OMP; thinout, interp, gaptv: baselines (docs/baselines.md)")
+    rm.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=None,
+                    help="adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, "
+                         "reconstruct again with it (omp, nonlocal, dct; omp: about twice the time; nonlocal: a sparse survey "
+                         "first, about 1.2x nonlocal's time, +0.6 dB on real footage); --no-adapt: not (over --preset best)")
+    rm.add_argument("--adapt-rounds", type=int, choices=(1, 2), default=None,
+                    help="with --adapt: 2 adapts again to the second pass's result and reconstructs a third time "
+                         "(--preset best; +0.5 dB on real footage, 1.8x the time of one round)")
+    rm.add_argument("--refine", type=int, default=None, metavar="ITERATIONS",
+                    help="after the method's result: ITERATIONS of GAP with a low-rank prior on groups of similar "
+                         "8x8 patches followed across sub-frames, the noise level annealed from 6 to 1 grey level; "
+                         "with --noise-sigma the steps to the measurements are relaxed (0: none, the default; "
+                         "--preset best: 32, +0.9 dB on held-out real footage, about 0.8x the time of the passes "
+                         "before it)")
+    ro.add_argument("--output", "-o", required=True,
+                    help=".npy, .zarr, .mat, .tif/.tiff, .mp4/.mov (H.264), .mkv/.avi (FFV1), .gif, or a name without "
+                         "suffix (or ending .d): a folder of 16-bit TIFF frames (--cacti: all measurements, time-first)")
+    ri.add_argument("--truth", default=None,
+                    help="ground truth for PSNR/SSIM in the metrics: (T*N, H, W) frames, (3, N, H, W) for colour")
+    rm.add_argument("--max-atoms", type=int, default=None,
+                    help=f"OMP's atoms per patch at most (default: {PipelineConfig().reconstruct.max_atoms})")
+    rm.add_argument("--tol-rms", type=float, default=None, help="residual tolerance, RMS per pixel (default: from --noise-sigma)")
+    rs.add_argument("--noise-sigma", type=float, default=0.0, help="read noise of the capture, grey levels")
+    rs.add_argument("--white-level", type=float, default=None,
+                    help="saturation level of the coded image: pixels at or above it are treated as missing")
+    rs.add_argument("--trust-saturated", action="store_true", help="with --white-level: use saturated pixels anyway")
+    rs.add_argument("--black-level", type=float, default=0.0,
+                    help="raw frames: the offset of every read-out, subtracted first (coded units)")
+    rs.add_argument("--bits", type=int, default=None,
+                    help="raw frames: ADC bit depth; values at 2**bits - 1 are saturated (missing), above it an error")
+    rs.add_argument("--bad-pixels", default=None, metavar="FILE",
+                    help="defective pixels, missing measurements: text rows 'y x', or .npy (K, 2) or an (H, W) map")
+    rs.add_argument("--detect-bad-pixels", action="store_true",
+                    help="find hot or dead pixels as outliers against their neighbourhood (across all captures)")
+    rm.add_argument("--stride", type=int, default=None,
+                    help="patch stride 1..7: 1 solves every overlapping patch (the paper, the default), s about s*s "
+                         "times fewer")
+    rm.add_argument("--weighting", choices=("uniform", "fit"), default=PipelineConfig().reconstruct.weighting,
+                    help="average of overlapping estimates: uniform (the paper) or weighted by each patch's misfit")
+    rm.add_argument("--static-atoms", type=int, default=PipelineConfig().reconstruct.static_atoms,
+                    help="still-scene test: 2D DCT atoms before full OMP (0: off)")
+    rp.add_argument("--tile", type=int, default=PipelineConfig().reconstruct.tile,
+                    help="tile side in pixels, a task each")
+    rp.add_argument("--batch", type=int, default=PipelineConfig().reconstruct.batch,
+                    help="patches solved together in a tile")
+    rp.add_argument("--scheduler", default=None, help="dask.distributed scheduler address (default: local, both cores)")
+    rp.add_argument("--workers", type=int, default=None, help="local worker threads")
+    rs.add_argument("--data-range", type=float, default=None,
+                    help="peak value of the frames: the PSNR peak, the full scale of videos, and the working "
+                         "scale, so the default tolerance is 2/255 of it (default: found from the capture; "
+                         "docs/formats.md, Units)")
+    ro.add_argument("--fps", type=int, default=30, help="frame rate of a video output")
+    rp.add_argument("--cache", default=DEFAULT_CACHE,
+                    help="working stores and dictionaries, reused by later runs (in the user's cache folder, the working "
+                         "stores are kept within 20 GiB)")
+    rp.add_argument("--cache-budget", default=None, metavar="SIZE",
+                    help="keep the cache's working stores within SIZE (e.g. 20G) as a long job goes, removing the "
+                         "least recently used (a rerun computes their tiles again; default: 20G in the user's cache folder, no "
+                         "limit in a folder given with --cache)")
+    ro.add_argument("--overwrite", action="store_true",
+                    help="replace an existing output file that codedvideo did not write (folders: never)")
+    rm.add_argument("--independent-captures", action="store_true",
+                    help="a stack of coded images (or a CACTI file's measurements): reconstruct each on its own "
+                         "(default: regions still from one capture to the next take coded / open count, without "
+                         "sparse coding, and the step from one capture to the next is smoothed along the motion)")
 
     e = sub.add_parser("evaluate", help="per-frame and mean PSNR/SSIM as JSON")
     e.add_argument("--recon", required=True, help=".npy, .zarr, .mat, .tif, a video or frames")
@@ -215,7 +248,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--overwrite", action="store_true", help="replace an existing --output that codedvideo did not write")
 
     u = sub.add_parser("run", help="run the stages a pipeline.yaml names")
-    u.add_argument("config", help="pipeline.yaml")
+    u.add_argument("config", nargs="?", default=None,
+                   help="pipeline.yaml (default: the built-in one that `codedvideo config` prints)")
     u.add_argument("--overwrite", action="store_true",
                    help="replace existing output files that codedvideo did not write (as output.overwrite: true)")
 
@@ -224,12 +258,16 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("--overwrite", action="store_true",
                     help="replace existing files in report.dir that codedvideo did not write (as output.overwrite: true)")
 
+    cf = sub.add_parser("config", help="print the built-in pipeline.yaml: every key, its default and what it does")
+    cf.add_argument("--output", "-o", default=None, help="write it to this file instead (a new file)")
+    cf.add_argument("--overwrite", action="store_true", help="replace an existing --output that codedvideo did not write")
+
     ca = sub.add_parser("cache", help="check or clean a cache folder (--cache, cache: in pipeline.yaml)")
     casub = ca.add_subparsers(dest="cache_command", required=True, metavar="ACTION")
     cv = casub.add_parser("verify", help="check every entry; exit 1 when one is broken")
-    cv.add_argument("cache", nargs="?", default="cache")
+    cv.add_argument("cache", nargs="?", default=DEFAULT_CACHE, help="the cache folder")
     cc = casub.add_parser("clean", help="remove cache entries (only codedvideo's own; entries in use are left)")
-    cc.add_argument("cache", nargs="?", default="cache")
+    cc.add_argument("cache", nargs="?", default=DEFAULT_CACHE, help="the cache folder")
     cc.add_argument("--broken", action="store_true", help="remove only broken, stale and leftover entries")
 
     c = sub.add_parser("codes", help="shutter codes")
@@ -566,8 +604,9 @@ def _scored_volume(path: str, what: str):
 
 
 def _config(a, use: str = "run"):
-    """The config file of ``run`` and ``report``, ``--overwrite`` as ``output.overwrite: true``."""
-    cfg = load_config(a.config, use=use)
+    """The config file of ``run`` and ``report`` (``run`` without one: the built-in pipeline.yaml), ``--overwrite``
+    as ``output.overwrite: true``."""
+    cfg = load_config(a.config or default_config_path(), use=use)
     if a.overwrite:
         cfg = cfg.model_copy(update=dict(output=cfg.output.model_copy(update=dict(overwrite=True))))
     return cfg
@@ -576,7 +615,7 @@ def _config(a, use: str = "run"):
 def _cmd_run(a) -> int:
     from codedvideo.api import run_pipeline
 
-    report = run_pipeline(_config(a), progress=not a.quiet, config_path=a.config)
+    report = run_pipeline(_config(a), progress=not a.quiet, config_path=a.config or default_config_path())
     lines = [f"metrics: {report['metrics_path']}"]
     if "outputs" in report:
         lines.insert(0, f"video: {report['outputs']['video']}")
@@ -587,6 +626,25 @@ def _cmd_run(a) -> int:
     secs = ", ".join(f"{k} {v:.1f} s" for k, v in report["seconds"].items())
     lines.append(f"time: {secs}")
     print("\n".join(lines))
+    return 0
+
+
+def _cmd_config(a) -> int:
+    """The built-in pipeline.yaml, printed or written to a new file (a starting point for a run of one's own)."""
+    text = default_config_path().read_text(encoding="utf-8")
+    if a.output is None:
+        sys.stdout.write(text)
+        return 0
+    from codedvideo.formats.atomic import atomic_output
+
+    output = Path(a.output)
+    if output.suffix.lower() not in (".yaml", ".yml"):
+        raise ConfigError(f"config --output {output}: a pipeline file; name it .yaml")
+    check_outputs([Output(output, "file")], {}, overwrite=a.overwrite)
+    with atomic_output(output) as tmp:
+        Path(tmp).write_text(text, encoding="utf-8")
+    mark_written(output)
+    print(output)
     return 0
 
 
@@ -606,7 +664,7 @@ def _cmd_cache(a) -> int:
     from codedvideo.api.cache import clean_cache, verify_cache
 
     if not str(a.cache).strip():  # (Path("") is the current folder)
-        raise ConfigError("cache '': name the cache folder (default: cache)")
+        raise ConfigError(f"cache '': name the cache folder (default: {DEFAULT_CACHE})")
     if a.cache_command == "verify":
         records = verify_cache(a.cache)
         for r in records:
@@ -640,7 +698,8 @@ def _cmd_codes(a) -> int:
 
 
 COMMANDS = dict(train=_cmd_train, simulate=_cmd_simulate, reconstruct=_cmd_reconstruct, evaluate=_cmd_evaluate,
-                run=_cmd_run, report=_cmd_report, codes=_cmd_codes, cache=_cmd_cache)
+                run=_cmd_run, report=_cmd_report, codes=_cmd_codes, cache=_cmd_cache,
+                config=_cmd_config)
 
 
 def _one_line(message, category, filename, lineno, line=None) -> str:

@@ -12,6 +12,7 @@ import warnings
 from pathlib import Path
 from typing import Annotated, Literal
 
+import platformdirs
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
@@ -22,8 +23,22 @@ from codedvideo.model.units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX
 from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
 STAGES = ("train", "simulate", "reconstruct", "evaluate")
-#: The tile side in pixels (``reconstruct.tile``, ``--tile``) and the cache folder (``cache``, ``--cache``) by default.
-DEFAULT_TILE, DEFAULT_CACHE = 128, "cache"
+#: The tile side in pixels (``reconstruct.tile``, ``--tile``) by default.
+DEFAULT_TILE = 128
+#: The cache folder (``cache``, ``--cache``) by default: the user's cache folder (``~/.cache/codedvideo`` on
+#: Linux, ``$XDG_CACHE_HOME`` honoured; ``~/Library/Caches/codedvideo`` on macOS; ``%LOCALAPPDATA%`` on Windows).
+DEFAULT_CACHE = platformdirs.user_cache_dir("codedvideo", appauthor=False)
+#: The budget of the default cache folder's working stores (``--cache-budget``), in bytes: 20 GiB.
+DEFAULT_CACHE_BUDGET = 20 * 2**30
+
+
+def budget_of(cache, budget: int | None) -> int | None:
+    """A cache folder's budget for working stores: ``budget`` when given; else :data:`DEFAULT_CACHE_BUDGET` for
+    the default folder (a user who never chose a folder never fills a disk), and none for a folder of the user's
+    own."""
+    if budget is not None or cache is None:
+        return budget
+    return DEFAULT_CACHE_BUDGET if Path(cache).expanduser().absolute() == Path(DEFAULT_CACHE).absolute() else None
 #: A method that takes a dictionary (:data:`codedvideo.engine.methods.WITH_DICTIONARY`): ``reconstruct.method``.
 DictionaryMethod = Literal[WITH_DICTIONARY]
 
@@ -408,6 +423,7 @@ class ReportConfig(_Strict):
 class PipelineConfig(_Strict):
     seed: int = Field(0, ge=0, le=2**63 - 1)
     frames: int = Field(8, ge=1, le=64)
+    #: The cache folder; null: the user's cache folder (:data:`DEFAULT_CACHE`).
     cache: str = DEFAULT_CACHE
     stages: list[Literal["train", "simulate", "reconstruct", "evaluate"]] = list(STAGES)
     scene: SceneConfig = SceneConfig()
@@ -417,6 +433,11 @@ class PipelineConfig(_Strict):
     reconstruct: ReconstructConfig = ReconstructConfig()
     output: OutputConfig = OutputConfig()
     report: ReportConfig = ReportConfig()
+
+    @field_validator("cache", mode="before")
+    @classmethod
+    def _default_cache(cls, v):
+        return DEFAULT_CACHE if v is None else v
 
     @field_validator("stages")
     @classmethod
@@ -622,6 +643,14 @@ def _first_error(exc: ValidationError, model: type[BaseModel] | None = None) -> 
 
     more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
     return msg + more, err
+
+
+def default_config_path() -> Path:
+    """The built-in pipeline.yaml: every key at its default, with a comment on each (``codedvideo config`` prints
+    it; ``codedvideo run`` with no file runs it)."""
+    from importlib.resources import files
+
+    return Path(str(files("codedvideo.data") / "pipeline.yaml"))
 
 
 def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> PipelineConfig:
