@@ -292,7 +292,7 @@ def test_a_run_stopped_after_its_capture_is_written_does_not_block_the_next(tmp_
     its capture files leaves files that the next run replaces, not the user's files to refuse."""
     import yaml
 
-    from codedvideo.engine import pipeline
+    from codedvideo.api import _pipeline as pipeline
 
     cfg = tmp_path / "p.yaml"
     cfg.write_text(yaml.safe_dump(dict(cache=str(tmp_path / "cache"), scene=dict(size=[32, 32]),
