@@ -4,6 +4,7 @@ marker file copied into a folder of the user's, makes a rerun refuse, --overwrit
 """
 import json
 import os
+import time
 
 import pytest
 
@@ -108,3 +109,53 @@ def test_pipeline_frames_folder_holding_a_users_file_is_refused_before_any_work(
     before = tree(tmp_path)
     refused(capsys, ["run", cfg], "MYNOTES.txt", root=tmp_path)
     assert tree(tmp_path) == before and os.path.exists(frames / "MYNOTES.txt")
+
+
+def _edit_in_place_keeping_size_and_mtime(path):
+    """The user's edit that size and modification time cannot see: bytes changed in place, the time set back."""
+    st = os.stat(path)
+    time.sleep(0.05)  # (a real edit comes later than the coarse clock's tick after the write)
+    with open(path, "r+b") as f:
+        f.seek(st.st_size // 2)
+        byte = f.read(1)
+        f.seek(st.st_size // 2)
+        f.write(bytes([byte[0] ^ 0xFF]))
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    after = os.stat(path)
+    assert (after.st_size, after.st_mtime_ns, after.st_ino) == (st.st_size, st.st_mtime_ns, st.st_ino)
+    return path.read_bytes()
+
+
+def test_a_frame_edited_in_place_with_its_size_and_mtime_kept_is_the_users(files, tmp_path, capsys):
+    output = tmp_path / "o" / "frames"
+    args = reconstruct_args(files, tmp_path, output=output)
+    assert run(args) == 0 and written_by_codedvideo(output)
+    frame = sorted(output.glob("frame_*"))[1]
+    edited = _edit_in_place_keeping_size_and_mtime(frame)
+    assert not written_by_codedvideo(output)
+    for overwrite in ([], ["--overwrite"]):
+        refused(capsys, [*args, *overwrite], frame.name, "changed", root=tmp_path)
+    assert frame.read_bytes() == edited
+
+
+def test_a_file_output_edited_in_place_with_its_size_and_mtime_kept_is_the_users(files, tmp_path, capsys):
+    output = tmp_path / "o" / "r.npy"
+    args = reconstruct_args(files, tmp_path, output=output)
+    assert run(args) == 0 and written_by_codedvideo(output)
+    edited = _edit_in_place_keeping_size_and_mtime(output)
+    assert not written_by_codedvideo(output)
+    refused(capsys, args, "r.npy", "not written by codedvideo", root=tmp_path)
+    assert output.read_bytes() == edited
+
+
+def test_a_record_written_before_change_times_were_kept_still_counts(files, tmp_path, capsys):
+    output = tmp_path / "o" / "frames"
+    args = reconstruct_args(files, tmp_path, output=output)
+    assert run(args) == 0
+    record = json.loads(record_path(output).read_text())
+    for fingerprint in record["files"].values():
+        if fingerprint is not None:
+            del fingerprint["ctime_ns"]
+    record_path(output).write_text(json.dumps(record))
+    assert written_by_codedvideo(output)
+    assert run(args) == 0 and written_by_codedvideo(output)

@@ -29,6 +29,7 @@ import numpy as np
 
 from codedvideo.api._settings import ReconstructSettings, in_api_terms
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
+from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
 __all__ = ["CodedVideoError", "ConfigError", "InputError", "Reconstruction", "ReconstructSettings", "evaluate",
            "load_dictionary", "make_code", "reconstruct", "simulate", "synthetic_scene", "train"]
@@ -190,8 +191,9 @@ def load_dictionary(frames: int | None = None, path: str | Path | None = None) -
 
 
 @_door
-def train(videos, *, frames: int, atoms: int = 512, samples: int = 80000, iterations: int = 20,
-          sparsity: int = 6, seed: int = 0, augment: bool = True) -> np.ndarray:
+def train(videos, *, frames: int, atoms: int = KSVD_ATOMS, samples: int = KSVD_SAMPLES,
+          iterations: int = KSVD_ITERATIONS, sparsity: int = KSVD_SPARSITY, seed: int = 0,
+          augment: bool = True) -> np.ndarray:
     """A dictionary learned with K-SVD on 7x7xN patches of ``videos`` (the command line's defaults).
 
     Parameters

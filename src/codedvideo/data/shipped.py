@@ -27,6 +27,7 @@ from codedvideo.model.errors import ConfigError, InputError
 from codedvideo.model.patches import PATCH
 from codedvideo.formats.atomic import atomic_output
 from codedvideo.formats.store import load_dictionary
+from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
 #: The folder of the shipped dictionaries (this package's own folder, installed as package data).
 DATA = Path(__file__).resolve().parent
@@ -126,8 +127,9 @@ def shipped_rows(root: Path) -> list[str]:
         D, _ = load_dictionary(store)
         rows.append("\t".join([manifest_id(frames), os.path.relpath(store, root), str(frames), "model",
                                 hashlib.sha256(D.tobytes()).hexdigest(),
-                                f"{train_command(frames)} (defaults: K-SVD 512 atoms, 80000 samples, 20 iterations, "
-                                "sparsity 6, 144 clips of synth:train, max speed 4, seed 0)",
+                                f"{train_command(frames)} (defaults: K-SVD {KSVD_ATOMS} atoms, {KSVD_SAMPLES} samples, "
+                                f"{KSVD_ITERATIONS} iterations, sparsity {KSVD_SPARSITY}, 144 clips of synth:train, "
+                                "max speed 4, seed 0)",
                                 "as its training photographs (split train)"]))
     return rows
 

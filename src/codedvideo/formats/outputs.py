@@ -13,15 +13,19 @@ Every command names its outputs and its inputs before any work is done, and
 - an existing folder that codedvideo did not write, ``overwrite`` or not.  A
   folder is codedvideo's only when its record (``.NAME.codedvideo`` beside it)
   names every file and folder codedvideo wrote in it (relative path; size,
-  modification time and inode of each file) and the folder holds nothing else,
+  modification time, change time and inode of each file) and the folder holds nothing else,
   each file unchanged.  A file or folder put inside by the user, a file the
   user changed, or a folder with no record (a marker file such as
   ``codedvideo-frames.json`` proves nothing) is named in the refusal; a file
   the user removed loses nothing of theirs;
 - an existing file that codedvideo did not write, unless ``overwrite`` is
   given.  A file codedvideo wrote has a hidden record beside it
-  (``.NAME.codedvideo``: size, modification time and inode at writing), so a
-  rerun replaces its own unchanged results and nothing else.
+  (``.NAME.codedvideo``: size, modification time, change time and inode at
+  writing), so a rerun replaces its own unchanged results and nothing else.
+  The change time (``st_ctime``) is what an edit in place cannot hide: one
+  that keeps the size and sets the modification time back (``touch -r``,
+  ``os.utime``) still moves it.  A record written before it was kept (no
+  ``ctime_ns``) is checked on the rest.
 
 Writers replace an output by renaming a finished temporary onto it
 (:func:`codedvideo.formats.atomic.atomic_output`), so the old output stays whole until the
@@ -75,7 +79,19 @@ def record_path(path: str | os.PathLike) -> Path:
 
 
 def _fingerprint(st: os.stat_result) -> dict:
-    return dict(size=st.st_size, mtime_ns=st.st_mtime_ns, inode=st.st_ino)
+    """What a record holds of a file: an edit in place that keeps the size and sets the modification time back
+    still moves the change time, which no user can set."""
+    return dict(size=st.st_size, mtime_ns=st.st_mtime_ns, ctime_ns=st.st_ctime_ns, inode=st.st_ino)
+
+
+def _unchanged(recorded, now: dict | None) -> bool:
+    """True when the record ``recorded`` of a file holds its fingerprint as it is now (``now``; None, a folder:
+    recorded as one); a record written before change times were kept (no ``ctime_ns``) is checked on the rest."""
+    if now is None or recorded is None:
+        return now is recorded
+    if not isinstance(recorded, dict) or "kind" in now:  # (a link, a FIFO...: never codedvideo's)
+        return False
+    return all(recorded.get(k) == v for k, v in now.items() if k != "ctime_ns" or "ctime_ns" in recorded)
 
 
 def _folder_entries(path: Path) -> dict[str, dict | None]:
@@ -150,7 +166,7 @@ def folder_problem(path: str | os.PathLike) -> str | None:
     for rel, fingerprint in found.items():
         if rel not in files:
             return f"holds {path / rel}, which codedvideo did not write"
-        if files[rel] != fingerprint:
+        if not _unchanged(files[rel], fingerprint):
             return f"{path / rel} changed since codedvideo wrote it"
     return None
 
@@ -170,7 +186,7 @@ def written_by_codedvideo(path: str | os.PathLike) -> bool:
         recorded = json.loads(record_path(path).read_text())
     except (OSError, ValueError):
         return False
-    return isinstance(recorded, dict) and all(recorded.get(k) == v for k, v in _fingerprint(st).items())
+    return _unchanged(recorded, _fingerprint(st))
 
 
 def _kind_of(st: os.stat_result) -> str | None:
