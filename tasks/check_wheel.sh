@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Build the wheel from this checkout, install it into a fresh virtual environment, and run the commands and
 # the Python API from an empty folder: what a user who runs `pip install codedvideo` gets (the built-in
-# pipeline.yaml run with no file, the default cache in the user's cache folder).
+# pipeline.yaml run with no file, the default cache in the user's cache folder); then into an environment that
+# already holds napari and scikit-image.
 # Usage: tasks/check_wheel.sh [PYTHON]    (CI runs it after `make test`; `make wheel-check`)
 set -euo pipefail
 case "${1:-}" in
@@ -42,3 +43,17 @@ print(f"wheel: simulate and reconstruct from an empty folder, PSNR {m['quality']
 PY
 # the Python API from the same folder: the README's quick start
 "$work/venv/bin/python" "$root/examples/quickstart.py"
+# beside the scientific stack: into an environment that already holds napari and scikit-image (at the versions
+# their own requirements chose), the wheel installs without changing any package there, and pip finds every
+# requirement met
+"$python" -m venv "$work/stack"
+"$work/stack/bin/python" -m pip install --quiet napari scikit-image
+"$work/stack/bin/python" -m pip freeze | grep -v '^codedvideo' | sort > "$work/before.txt"
+"$work/stack/bin/python" -m pip install --quiet "$work"/dist/codedvideo-*.whl
+"$work/stack/bin/python" -m pip check
+"$work/stack/bin/python" -m pip freeze | sort > "$work/after.txt"
+if comm -23 "$work/before.txt" "$work/after.txt" | grep .; then
+  echo "wheel: installing codedvideo changed the packages above in an environment with napari" >&2
+  exit 1
+fi
+echo "wheel: installed beside $(grep -i '^napari==' "$work/after.txt") and $(grep -i '^scikit-image==' "$work/after.txt"), nothing changed"
