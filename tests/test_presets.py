@@ -229,3 +229,30 @@ def test_run_records_the_preset_it_resolved(tmp_path, capsys):
     record = json.loads((out / "recon.metrics.json").read_text())
     assert record["preset"] == dict(name="fast", options=resolve_preset("fast", {})[0], given=[], left_out={})
     assert all(record["config"]["reconstruct"][k] == v for k, v in PRESETS["fast"].items())
+
+
+def test_best_under_heavy_read_noise_leaves_out_its_non_local_passes_and_keeps_the_refinement():
+    from codedvideo.engine.config import NOISY_BEST, resolve_preset
+
+    options, left_out = resolve_preset("best", {}, noise=NOISY_BEST)
+    assert (options["method"], options["adapt"], options["adapt_rounds"], options["refine"]) == ("omp", False, 1, 32)
+    assert set(left_out) == {"method", "adapt", "adapt_rounds"} and "read noise" in left_out["method"]
+    quiet, nothing = resolve_preset("best", {}, noise=NOISY_BEST - 1)
+    assert quiet["method"] == "nonlocal" and not nothing
+    kept, left = resolve_preset("best", {"method": "nonlocal"}, noise=2 * NOISY_BEST)  # given beside it: stands
+    assert kept["method"] == "nonlocal" and set(left) == {"adapt", "adapt_rounds"}
+    assert resolve_preset("fast", {}, noise=2 * NOISY_BEST) == resolve_preset("fast", {})
+
+
+@pytest.mark.parametrize("scale", [1.0, 1 / 255])
+def test_best_under_heavy_noise_is_the_refined_default_in_any_units_and_says_why(scale):
+    """The rule reads the noise in working units: 40 grey levels of 8-bit frames, or 40/255 of [0, 1] frames."""
+    video = cv.synthetic_scene("default", frames=8, size=(48, 48)).astype(np.float32) * np.float32(scale)
+    mask = cv.make_code("hitomi", (48, 48), frames=8, bump=2, seed=0)
+    sigma = 40.0 * scale
+    coded = cv.simulate(video, mask, noise_sigma=sigma, seed=1)
+    with pytest.warns(UserWarning, match=r"preset best: method nonlocal, adapt, adapt_rounds 2 are left out: read noise"):
+        best = cv.reconstruct(coded, mask, preset="best", noise_sigma=sigma, data_range=255.0 * scale, full_output=True)
+    refined = cv.reconstruct(coded, mask, refine=32, noise_sigma=sigma, data_range=255.0 * scale)
+    assert np.array_equal(best.frames, refined)
+    assert best.record["preset"]["options"]["method"] == "omp"

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from codedvideo.api._settings import Resolved
+from codedvideo.api._settings import Resolved, for_noise
 from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, result_recipe, trivial_estimate
 from codedvideo.engine.methods import SPARSE, WITH_DICTIONARY
 from codedvideo.engine.windows import cache_room
@@ -253,6 +253,8 @@ class ReconstructionJob:
                     setting_name("white_level", door): noise.white_level,
                     setting_name("black_level", door): noise.black_level},
             names={k: setting_name(k, door) for k in ("noise_sigma", "data_range", "white_level")})
+        # the read noise known in working units: heavy noise leaves out a preset's non-local passes
+        self.r = for_noise(resolved, noise.sigma * self.units.scale)
         self.omp = omp_settings(rc, noise.sigma, scale=self.units.scale)
         self._warn_before_work()
         h, w = captures.codeds[0].shape[-2:]

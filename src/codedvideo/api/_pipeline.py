@@ -144,7 +144,7 @@ def _reconstruct(cfg: PipelineConfig, capture: dict, dict_path, out: Path, repor
     finally:  # (outside the catch, so that what is said again is not caught again)
         for w in said:
             warnings.warn(in_terms(str(w.message), "config"), w.category, stacklevel=3)
-    report["preset"] = resolved.preset
+    report["preset"] = job.r.preset
     report["data_range"] = job.units.as_dict()
     t0 = time.perf_counter()
     (_, volume, entry), = job.run(cfg.cache)

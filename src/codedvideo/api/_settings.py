@@ -161,6 +161,22 @@ def _resolve(s: ReconstructSettings, door: str) -> Resolved:
     return Resolved(s, rc, noise, data_range, preset, method, door)
 
 
+def for_noise(r: Resolved, noise: float) -> Resolved:
+    """``r`` once the capture's read noise is known in working units (``noise``): the preset resolved again with
+    it (:func:`codedvideo.engine.config.resolve_preset`), the keys it leaves out said in a warning; ``r`` itself
+    when nothing changes."""
+    s = r.settings
+    if s.preset is None:
+        return r
+    given = {k: getattr(s, k) for k in PRESET_KEYS if getattr(s, k) is not None}
+    options, left_out = resolve_preset(s.preset, given, bayer=s.bayer, noise=noise)
+    if left_out.keys() == r.preset["left_out"].keys():
+        return r
+    rc = r.rc.model_copy(update={k: options[k] for k in PRESET_KEYS if k != "method"})
+    record = preset_record(s.preset, options, given, left_out, said=r.preset["left_out"])
+    return dataclasses.replace(r, rc=rc, method=options["method"], preset=record)
+
+
 def replaced(settings: ReconstructSettings, **changes) -> ReconstructSettings:
     """``settings`` with ``changes`` (unknown names refused, as the API refuses them)."""
     unknown = set(changes) - {f.name for f in fields(ReconstructSettings)}

@@ -520,7 +520,20 @@ def preset_options(name: str) -> str:
     return " ".join(as_option(k, v) for k, v in PRESETS[name].items())
 
 
-def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None) -> tuple[dict, dict[str, str]]:
+#: Read noise from which ``best`` leaves out its non-local passes and its adaptation (keeping the refinement):
+#: in working units (grey levels of a data range of 255).  Measured at 128x128, N = 8, hitomi L = 2, with
+#: ``--noise-sigma`` given, on synth:default and four real clips (carphone, bunny, bikes-a, bikes-b): at 25 grey
+#: levels best is above the default on all five and above the refined per-patch OMP on four; at 30 the two are
+#: even (best over the refined OMP: +0.01 to +0.26 dB on four, -0.49 on bunny, where best fell 0.30 dB below the
+#: default); at 40 the refined OMP is above best on every clip and above the default by 0.13 to 0.76 dB.  (Chosen
+#: after all five clips were seen: no held-out check.)
+NOISY_BEST = 30.0
+#: The keys of a preset the noise rule leaves out (their defaults taken).
+_NOISY_KEYS = ("method", "adapt", "adapt_rounds")
+
+
+def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
+                   noise: float | None = None) -> tuple[dict, dict[str, str]]:
     """The values of :data:`PRESET_KEYS` for a run: those ``given`` beside the preset, then preset ``name``'s
     (None: no preset), then the defaults of ``reconstruct:``.
 
@@ -535,6 +548,10 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None) -
         Every key of :data:`PRESET_KEYS` and its value.
     left_out : dict
         The preset's keys left out, each with the reason (empty: none).
+
+    ``noise``: the capture's read noise in working units, once it is known; from :data:`NOISY_BEST` on, the
+    preset's non-local method and adaptation are left out (measured: under such noise they lose to the per-patch
+    OMP, and the refinement alone gains on it); a method or adaptation given beside the preset stands.
     """
     if name is not None and name not in PRESETS:
         raise ConfigError(f"preset {name!r}: unknown; choose one of {', '.join(PRESETS)}")
@@ -549,18 +566,29 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None) -
             raise ConfigError(f"option {as_option(key, given[key])}: {problem}")
         options[key] = defaults[key]
         left_out[key] = problem
+    if name and noise is not None and noise >= NOISY_BEST:
+        for key in _NOISY_KEYS:
+            if key in PRESETS[name] and key not in given and options[key] != defaults[key]:
+                options[key] = defaults[key]
+                left_out[key] = (f"read noise of {noise:.3g} grey levels (of a data range of 255) is {NOISY_BEST:g} or "
+                                 "more, where the per-patch OMP, refined, was measured better")
     return options, left_out
 
 
-def preset_record(name: str | None, options: dict, given=(), left_out: dict | None = None) -> dict | None:
+def preset_record(name: str | None, options: dict, given=(), left_out: dict | None = None,
+                  said=()) -> dict | None:
     """What the metrics JSON says of a run's preset (None: no preset): its name, the options it resolved to, the
     keys given beside it, and the preset's keys left out with their reasons.  With ``left_out`` a warning says
-    so, once."""
+    so, once (``said``: keys a warning named already)."""
     if name is None:
         return None
-    if left_out:
-        warnings.warn(f"preset {name}: " + "; ".join(f"{as_option(k, PRESETS[name][k])} is left out: {why}"
-                                                     for k, why in left_out.items())
+    by_reason: dict[str, list[str]] = {}  # (keys left out for one reason said together)
+    for k, why in (left_out or {}).items():
+        if k not in said:
+            by_reason.setdefault(why, []).append(as_option(k, PRESETS[name][k]))
+    if by_reason:
+        warnings.warn(f"preset {name}: " + "; ".join(f"{', '.join(keys)} {'is' if len(keys) == 1 else 'are'} left out: "
+                                                     f"{why}" for why, keys in by_reason.items())
                       + "; the defaults are taken in their place (preset.left_out in the metrics)", stacklevel=2)
     return dict(name=name, options={k: options[k] for k in PRESET_KEYS}, given=sorted(given),
                 left_out=dict(left_out or {}))
