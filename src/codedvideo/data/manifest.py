@@ -83,30 +83,30 @@ class Entry:
 
 def load_manifest(path: str | Path = DEFAULT_PATH) -> list[Entry]:
     """Parse and validate the manifest (header, splits, checksums' form, unique ids)."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"manifest {path}: no such file")
-    rows = list(csv.reader(path.read_text().splitlines(), delimiter="\t"))
+    file = Path(path)
+    if not file.exists():
+        raise InputError(f"manifest {file}: no such file")
+    rows = list(csv.reader(file.read_text().splitlines(), delimiter="\t"))
     if not rows or tuple(rows[0]) != HEADER:
-        raise InputError(f"manifest {path}: line 1 must be the header {' '.join(HEADER)}")
+        raise InputError(f"manifest {file}: line 1 must be the header {' '.join(HEADER)}")
     entries: list[Entry] = []
     seen: set[str] = set()
     for n, row in enumerate(rows[1:], start=2):
         if not row or row[0].startswith("#"):
             continue
         if len(row) != len(HEADER):
-            raise InputError(f"manifest {path} line {n}: expected {len(HEADER)} tab-separated columns, got {len(row)}")
+            raise InputError(f"manifest {file} line {n}: expected {len(HEADER)} tab-separated columns, got {len(row)}")
         id_, ref, frames, split, sha, source, licence = row
         if id_ in seen:
-            raise InputError(f"manifest {path} line {n}: duplicate id {id_!r}")
+            raise InputError(f"manifest {file} line {n}: duplicate id {id_!r}")
         if split not in SPLITS:
-            raise InputError(f"manifest {path} line {n} ({id_}): split {split!r} is not train, test or model")
+            raise InputError(f"manifest {file} line {n} ({id_}): split {split!r} is not train, test or model")
         if not re.fullmatch(r"[0-9a-f]{64}", sha):
-            raise InputError(f"manifest {path} line {n} ({id_}): malformed sha256 {sha!r}")
+            raise InputError(f"manifest {file} line {n} ({id_}): malformed sha256 {sha!r}")
         if not frames.isdigit() or int(frames) < 1:
-            raise InputError(f"manifest {path} line {n} ({id_}): frames must be a positive integer, got {frames!r}")
+            raise InputError(f"manifest {file} line {n} ({id_}): frames must be a positive integer, got {frames!r}")
         seen.add(id_)
-        entries.append(Entry(id_, ref, int(frames), split, sha, source, licence, n, path))
+        entries.append(Entry(id_, ref, int(frames), split, sha, source, licence, n, file))
     check_splits(entries)
     return entries
 

@@ -152,7 +152,7 @@ def working_units(video: np.ndarray, *, what: str = "video") -> np.ndarray:
     units = infer_data_range(float(video.max()), what="frame values", outlier_ranges=(1.0, 255.0),
                              quantile=lambda: float(np.quantile(video[:, ::3, ::3], 1 - OUTLIER_SHARE)))
     if units.scale != 1:
-        video *= np.float32(units.scale)
+        np.multiply(video, np.float32(units.scale), out=video)  # in place: ``video *= ...``
     log.info("%s: data range %g (%s)", what, units.value, units.source)
     return video
 

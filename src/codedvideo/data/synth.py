@@ -128,14 +128,14 @@ def _disc_alpha(size, centre, radius, softness=1.5):
 def occlude(background, foreground, *, frames, size, velocity=(0.3, 1.5), radius=None, drift=(0.0, 0.0), start=None):
     """A (drifting) background crossed by a moving disc cut from another photo."""
     h, w = size
-    radius = radius or 0.22 * min(h, w)
+    disc_radius = radius or 0.22 * min(h, w)
     bg = translate(background, frames=frames, size=size, velocity=drift)
     fg = translate(foreground, frames=frames, size=size, velocity=velocity)
-    start = np.array(start if start is not None else (h * 0.45, w * 0.3), float)
+    origin = np.array(start if start is not None else (h * 0.45, w * 0.3), float)
     v = np.asarray(velocity, float)
     out = np.empty_like(bg)
     for t in range(frames):
-        a = _disc_alpha(size, start + v * t, radius)
+        a = _disc_alpha(size, origin + v * t, disc_radius)
         out[t] = a * fg[t] + (1 - a) * bg[t]
     return out
 
@@ -159,19 +159,19 @@ def make_scene(spec: str, *, frames: int, size=(256, 256), seed: int = 0) -> np.
     ``PHOTO-MOTION`` for any test photo and motion (e.g. ``coins-rotate``),
     and ``train-K`` for the K-th training clip.
     """
-    size = tuple(int(s) for s in size)
+    hw = tuple(int(s) for s in size)
     if spec == "default":
-        return occlude(photo("camera"), photo("coins"), frames=frames, size=size,
+        return occlude(photo("camera"), photo("coins"), frames=frames, size=hw,
                        velocity=(0.4, 1.5), drift=(0.15, 0.25))
     if spec == "default-static70":
-        return _static70(frames, size)
+        return _static70(frames, hw)
     if spec.startswith("train-"):
         k = int(spec.split("-", 1)[1])
-        return training_videos(frames=frames, count=k + 1, size=size, seed=seed)[k]
+        return training_videos(frames=frames, count=k + 1, size=hw, seed=seed)[k]
     if "-" in spec:
         name, motion = spec.rsplit("-", 1)
         if name in TEST_PHOTOS + TRAIN_PHOTOS and motion in MOTIONS:
-            return _clip(name, motion, frames=frames, size=size, rng=np.random.default_rng(seed), speed=1.0)
+            return _clip(name, motion, frames=frames, size=hw, rng=np.random.default_rng(seed), speed=1.0)
     raise InputError(f"scene {spec!r}: unknown synthetic scene (default, default-static70, PHOTO-MOTION, train-K)")
 
 
@@ -209,14 +209,14 @@ def training_videos(
     ``max_speed`` px per sub-frame) from a seed derived per clip, so clip ``k``
     does not depend on ``count``.
     """
-    length = length or frames
+    clip_frames = length or frames
     clips = []
     for k, child in enumerate(np.random.SeedSequence(seed).spawn(count)):
         rng = np.random.default_rng(child)
         name = TRAIN_PHOTOS[rng.integers(len(TRAIN_PHOTOS))]
         motion = MOTIONS[rng.integers(len(MOTIONS))]
         speed = float(np.exp(rng.uniform(np.log(MIN_SPEED), np.log(max_speed))))
-        clips.append(_clip(name, motion, frames=length, size=size, rng=rng, speed=speed))
+        clips.append(_clip(name, motion, frames=clip_frames, size=size, rng=rng, speed=speed))
     return clips
 
 

@@ -31,11 +31,11 @@ def one_line(msg) -> str:
 def temporary_name(path: str | os.PathLike, *, keep_suffix: bool = True) -> Path:
     """A new temporary sibling of ``path``, hidden, naming this process: ``.STEM.tmp-PID-HEX.SUFFIX``, or
     with ``keep_suffix=False`` ``.NAME.tmp-PID-HEX``."""
-    path = Path(path)
+    target = Path(path)
     mark = f".tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     if keep_suffix:
-        return path.with_name(f".{path.stem}{mark}{path.suffix}")
-    return path.with_name(f".{path.name}{mark}")
+        return target.with_name(f".{target.stem}{mark}{target.suffix}")
+    return target.with_name(f".{target.name}{mark}")
 
 
 def temporary_pattern(name: str) -> str:
@@ -46,10 +46,10 @@ def temporary_pattern(name: str) -> str:
 
 def temporaries_of(path: str | os.PathLike) -> list[Path]:
     """The ``keep_suffix=False`` temporaries of ``path`` there are (any process's)."""
-    path = Path(path)
-    pattern = re.compile(temporary_pattern(re.escape(path.name)))
+    target = Path(path)
+    pattern = re.compile(temporary_pattern(re.escape(target.name)))
     try:
-        return sorted(p for p in path.parent.iterdir() if pattern.match(p.name))
+        return sorted(p for p in target.parent.iterdir() if pattern.match(p.name))
     except OSError:
         return []
 
@@ -71,23 +71,23 @@ def atomic_output(path: str | os.PathLike):
     extension still work.  On an exception the temporary (file or folder) is
     removed and the exception re-raised; an existing ``path`` is untouched.
     """
-    path = Path(path)
+    target = Path(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+        target.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"{path}: cannot create folder {path.parent} ({exc.strerror or exc})") from exc
-    if not os.access(path.parent, os.W_OK):
-        raise OutputError(f"{path}: folder {path.parent} is not writable")
-    remove_dead_temporaries(path)
-    tmp = temporary_name(path)
+        raise OutputError(f"{target}: cannot create folder {target.parent} ({exc.strerror or exc})") from exc
+    if not os.access(target.parent, os.W_OK):
+        raise OutputError(f"{target}: folder {target.parent} is not writable")
+    remove_dead_temporaries(target)
+    tmp = temporary_name(target)
     try:
         try:
             yield tmp
         except OSError as exc:  # disk full, permissions...: one line naming the output
             if isinstance(exc, OutputError):
                 raise
-            raise OutputError(f"{path}: cannot write ({exc.strerror or one_line(exc)})") from exc
-        rename_into_place(tmp, path)
+            raise OutputError(f"{target}: cannot write ({exc.strerror or one_line(exc)})") from exc
+        rename_into_place(tmp, target)
     except BaseException:
         if tmp.is_dir():
             # a chunk write of zarr's I/O thread still in flight when Ctrl-C came can land after the removal
@@ -104,11 +104,11 @@ def atomic_output(path: str | os.PathLike):
 def remove_dead_temporaries(path: Path) -> None:
     """Remove temporaries of ``path`` (both spellings of :func:`temporary_name`) that a killed process left
     (its pid, in the name, no longer runs)."""
-    path = Path(path)
-    pattern = re.compile(rf"^\.(?:{re.escape(path.stem)}{_MARK}{re.escape(path.suffix)}|"
-                         rf"{re.escape(path.name)}{_MARK})$")
+    target = Path(path)
+    pattern = re.compile(rf"^\.(?:{re.escape(target.stem)}{_MARK}{re.escape(target.suffix)}|"
+                         rf"{re.escape(target.name)}{_MARK})$")
     try:
-        siblings = list(path.parent.iterdir())
+        siblings = list(target.parent.iterdir())
     except OSError:
         return
     for sib in siblings:
@@ -184,16 +184,16 @@ def check_writable(path: str | os.PathLike, *, what: str = "") -> Path:
     (missing folders are created by the writer).  Nothing is created here.
     ``what`` names the path in the message (default: the path itself).
     """
-    path = Path(path)
-    name = f"{what} {path.parent}" if what else str(path)
-    parent = path.absolute().parent
+    target = Path(path)
+    name = f"{what} {target.parent}" if what else str(target)
+    parent = target.absolute().parent
     while not parent.exists():
         parent = parent.parent
     if not parent.is_dir():
         raise OutputError(f"{name}: cannot create it, {parent} is a file, not a folder")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise OutputError(f"{name}: folder {parent} is not writable")
-    return path
+    return target
 
 
 def check_cache(cache: str | os.PathLike) -> None:

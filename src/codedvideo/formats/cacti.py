@@ -103,45 +103,45 @@ def read_mat_arrays(path: str | os.PathLike, keys: tuple[str, ...]) -> dict[str,
     -------
     dict of name -> ndarray in MATLAB's layout (e.g. ``orig`` (H, W, F))
     """
-    path = Path(path)
-    version = _mat_version(path)
+    file = Path(path)
+    version = _mat_version(file)
     out: dict[str, np.ndarray] = {}
     if version == 1:
         import scipy.io
 
         try:
-            data = scipy.io.loadmat(str(path), variable_names=list(keys), squeeze_me=False)
+            data = scipy.io.loadmat(str(file), variable_names=list(keys), squeeze_me=False)
         except Exception as exc:  # truncated or corrupt: OSError, ValueError, IndexError, zlib.error ...
-            raise InputError(f"mat file {path}: corrupt or truncated ({_msg(exc)})") from exc
+            raise InputError(f"mat file {file}: corrupt or truncated ({_msg(exc)})") from exc
         for key in keys:
             if key in data:
-                out[key] = _numeric(data[key], path, key)
+                out[key] = _numeric(data[key], file, key)
     else:
         import h5py
 
         try:
-            with h5py.File(str(path), "r") as fh:
+            with h5py.File(str(file), "r") as fh:
                 for key in keys:
                     if key not in fh:
                         continue
                     node = fh[key]
                     if not isinstance(node, h5py.Dataset):
-                        raise InputError(f"mat file {path}: variable {key!r} is a struct or cell, not a numeric array")
-                    out[key] = _numeric(np.asarray(node[()]).T, path, key)  # HDF5 holds MATLAB arrays reversed
+                        raise InputError(f"mat file {file}: variable {key!r} is a struct or cell, not a numeric array")
+                    out[key] = _numeric(np.asarray(node[()]).T, file, key)  # HDF5 holds MATLAB arrays reversed
         except InputError:
             raise
         except Exception as exc:  # OSError for truncated files, KeyError/RuntimeError for damaged ones
-            raise InputError(f"mat file {path}: corrupt or truncated v7.3 (HDF5) file ({_msg(exc)})") from exc
+            raise InputError(f"mat file {file}: corrupt or truncated v7.3 (HDF5) file ({_msg(exc)})") from exc
     return out
 
 
 def _numeric(arr, path: Path, key: str) -> np.ndarray:
-    arr = np.asarray(arr)
-    if arr.dtype.kind not in "biuf":
-        raise InputError(f"mat file {path}: variable {key!r} is not a real numeric array (dtype {arr.dtype})")
-    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+    values = np.asarray(arr)
+    if values.dtype.kind not in "biuf":
+        raise InputError(f"mat file {path}: variable {key!r} is not a real numeric array (dtype {values.dtype})")
+    if values.dtype.kind == "f" and not np.isfinite(values).all():
         raise InputError(f"mat file {path}: variable {key!r} contains NaN or Inf")
-    return arr
+    return values
 
 
 def _keys_present(path: Path) -> list[str]:
@@ -166,16 +166,16 @@ def read_mat_volume(path: str | os.PathLike, keys: tuple[str, ...] = VOLUME_KEYS
     -------
     ndarray of shape (F, H, W), or (C, F, H, W) for an (H, W, C, F) variable, float32
     """
-    path = Path(path)
-    arrays = read_mat_arrays(path, keys)
+    file = Path(path)
+    arrays = read_mat_arrays(file, keys)
     for key in keys:
         if key in arrays:
             arr = arrays[key]
             if arr.ndim not in (2, 3, 4):
-                raise InputError(f"mat file {path}: {key!r} has shape {arr.shape}, expected (H, W, F)")
+                raise InputError(f"mat file {file}: {key!r} has shape {arr.shape}, expected (H, W, F)")
             return np.ascontiguousarray(from_matlab(arr), dtype=np.float32)
-    raise InputError(f"mat file {path}: holds none of the variables {', '.join(keys)} "
-                     f"(found: {', '.join(_keys_present(path)) or 'none'})")
+    raise InputError(f"mat file {file}: holds none of the variables {', '.join(keys)} "
+                     f"(found: {', '.join(_keys_present(file)) or 'none'})")
 
 
 @dataclass(frozen=True)
@@ -220,32 +220,34 @@ def check_cacti(mask: np.ndarray, meas: np.ndarray, orig: np.ndarray | None, *, 
     ``orig`` with F frames must give F // N == Q measurements; frames beyond
     Q*N are dropped.
     """
-    mask, meas = np.asarray(mask), np.asarray(meas)
-    for name, arr in (("mask", mask), ("meas", meas)) + ((("orig", np.asarray(orig)),) if orig is not None else ()):
+    mask_arr, meas_arr = np.asarray(mask), np.asarray(meas)
+    named = (("mask", mask_arr), ("meas", meas_arr)) + ((("orig", np.asarray(orig)),) if orig is not None else ())
+    for name, arr in named:
         if arr.ndim != 3:
             raise InputError(f"{where}: {name} must be (frames, H, W) time-first here, got shape {arr.shape}")
         if arr.dtype.kind not in "biuf":
             raise InputError(f"{where}: {name} is not numeric (dtype {arr.dtype})")
         if arr.dtype.kind == "f" and not np.isfinite(arr).all():
             raise InputError(f"{where}: {name} contains NaN or Inf")
-    n, h, w = mask.shape
-    q = meas.shape[0]
+    n, h, w = mask_arr.shape
+    q = meas_arr.shape[0]
     if n == 0 or q == 0:
         raise InputError(f"{where}: empty mask ({n} frames) or meas ({q} measurements)")
-    if not np.isin(mask, (0, 1)).all():
+    if not np.isin(mask_arr, (0, 1)).all():
         raise InputError(f"{where}: mask is not binary (values other than 0 and 1)")
-    if meas.shape[1:] != (h, w):
-        raise InputError(f"{where}: meas is {meas.shape[1]}x{meas.shape[2]} pixels, mask is {h}x{w}")
+    if meas_arr.shape[1:] != (h, w):
+        raise InputError(f"{where}: meas is {meas_arr.shape[1]}x{meas_arr.shape[2]} pixels, mask is {h}x{w}")
+    truth = None
     if orig is not None:
-        orig = np.asarray(orig)
-        f = orig.shape[0]
-        if orig.shape[1:] != (h, w):
-            raise InputError(f"{where}: orig is {orig.shape[1]}x{orig.shape[2]} pixels, mask is {h}x{w}")
+        orig_arr = np.asarray(orig)
+        f = orig_arr.shape[0]
+        if orig_arr.shape[1:] != (h, w):
+            raise InputError(f"{where}: orig is {orig_arr.shape[1]}x{orig_arr.shape[2]} pixels, mask is {h}x{w}")
         if f // n != q:
             raise InputError(f"{where}: orig has {f} frames = {f // n} measurements of N = {n} (the mask's frames), "
                              f"but meas holds {q}")
-        orig = np.ascontiguousarray(orig[: q * n], dtype=np.float32)
-    return mask.astype(np.uint8), np.ascontiguousarray(meas, dtype=np.float32), orig
+        truth = np.ascontiguousarray(orig_arr[: q * n], dtype=np.float32)
+    return mask_arr.astype(np.uint8), np.ascontiguousarray(meas_arr, dtype=np.float32), truth
 
 
 def read_cacti(path: str | os.PathLike) -> CactiData:
@@ -263,19 +265,19 @@ def read_cacti(path: str | os.PathLike) -> CactiData:
         ``mask`` (N, H, W) uint8, ``meas`` (Q, H, W) float32, ``orig``
         (Q*N, H, W) float32 or None.
     """
-    path = Path(path)
-    arrays = read_mat_arrays(path, CACTI_KEYS)
+    file = Path(path)
+    arrays = read_mat_arrays(file, CACTI_KEYS)
     missing = [k for k in ("mask", "meas") if k not in arrays]
     if missing:
-        raise InputError(f"cacti {path}: lacks {' and '.join(repr(k) for k in missing)} "
-                         f"(found: {', '.join(_keys_present(path)) or 'no variables'})")
+        raise InputError(f"cacti {file}: lacks {' and '.join(repr(k) for k in missing)} "
+                         f"(found: {', '.join(_keys_present(file)) or 'no variables'})")
     converted = {}
     for key, arr in arrays.items():
         if arr.ndim not in (2, 3):
-            raise InputError(f"cacti {path}: {key!r} has shape {arr.shape}, expected (H, W) or (H, W, frames)")
+            raise InputError(f"cacti {file}: {key!r} has shape {arr.shape}, expected (H, W) or (H, W, frames)")
         converted[key] = from_matlab(arr)
-    mask, meas, orig = check_cacti(converted["mask"], converted["meas"], converted.get("orig"), where=f"cacti {path}")
-    return CactiData(mask=mask, meas=meas, orig=orig, path=path)
+    mask, meas, orig = check_cacti(converted["mask"], converted["meas"], converted.get("orig"), where=f"cacti {file}")
+    return CactiData(mask=mask, meas=meas, orig=orig, path=file)
 
 
 # ----------------------------------------------------------------------------- writing
@@ -307,13 +309,14 @@ def write_cacti(
         Written as ``orig`` (H, W, Q*N): uint8 when every value is an integer
         in 0..255 (as in the benchmark files), double otherwise.
     """
-    path = Path(path)
-    mask, meas, orig = check_cacti(mask, meas, orig, where=f"cacti {path}")
-    variables = dict(mask=to_matlab(mask).astype(np.float64), meas=to_matlab(meas).astype(np.float64))
-    if orig is not None:
-        integral = orig.min() >= 0 and orig.max() <= 255 and np.array_equal(orig, np.rint(orig))
-        variables["orig"] = to_matlab(orig).astype(np.uint8 if integral else np.float64)
-    return _savemat(path, variables)
+    target = Path(path)
+    checked_mask, checked_meas, checked_orig = check_cacti(mask, meas, orig, where=f"cacti {target}")
+    variables = dict(mask=to_matlab(checked_mask).astype(np.float64), meas=to_matlab(checked_meas).astype(np.float64))
+    if checked_orig is not None:
+        integral = (checked_orig.min() >= 0 and checked_orig.max() <= 255
+                    and np.array_equal(checked_orig, np.rint(checked_orig)))
+        variables["orig"] = to_matlab(checked_orig).astype(np.uint8 if integral else np.float64)
+    return _savemat(target, variables)
 
 
 def write_mat_volume(path: str | os.PathLike, volume: np.ndarray, *, key: str = "recon") -> Path:
@@ -324,11 +327,11 @@ def write_mat_volume(path: str | os.PathLike, volume: np.ndarray, *, key: str = 
     volume : ndarray of shape (N, H, W), or (C, N, H, W) for colour
         Written as ``key`` (H, W, N) or (H, W, C, N), single precision.
     """
-    volume = np.asarray(volume)
-    if volume.ndim not in (3, 4):
-        raise InputError(f"mat file {path}: expected a volume (N, H, W) or (C, N, H, W), got shape {volume.shape}")
-    check_mat_size(path, volume.shape)
-    return _savemat(Path(path), {key: to_matlab(volume).astype(np.float32)})
+    data = np.asarray(volume)
+    if data.ndim not in (3, 4):
+        raise InputError(f"mat file {path}: expected a volume (N, H, W) or (C, N, H, W), got shape {data.shape}")
+    check_mat_size(path, data.shape)
+    return _savemat(Path(path), {key: to_matlab(data).astype(np.float32)})
 
 
 # MAT-file v5 element types and the single-precision class (MathWorks, "MAT-File Format", the v5 chapter)
@@ -367,16 +370,16 @@ def mat_writer(path: str | os.PathLike, shape: tuple[int, int, int], *, key: str
     temporary that replaces ``path`` only when all ``F`` frames were given;
     read back by :func:`scipy.io.loadmat` as :func:`write_mat_volume`'s file.
     """
-    path = Path(path)
+    target = Path(path)
     f_count, h, w = (int(v) for v in shape)
     data_bytes = 4 * f_count * h * w
     head = (_element(_MI_UINT32, struct.pack("<II", _MX_SINGLE_CLASS, 0))
             + _element(_MI_INT32, struct.pack("<iii", h, w, f_count))
             + _element(_MI_INT8, key.encode("ascii")))
     matrix_bytes = len(head) + 8 + data_bytes + (-data_bytes % 8)
-    check_mat_size(path, shape)
+    check_mat_size(target, shape)
     text = f"MATLAB 5.0 MAT-file, Platform: codedvideo, Created on: {time.asctime()}".encode("ascii")
-    with atomic_output(path) as tmp:
+    with atomic_output(target) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(text[:116].ljust(116) + bytes(8) + struct.pack("<H", 0x0100) + b"IM")
             start = fh.tell()
@@ -388,22 +391,22 @@ def mat_writer(path: str | os.PathLike, shape: tuple[int, int, int], *, key: str
 
             def write(part):
                 nonlocal written
-                part = part if hasattr(part, "shape") else np.asarray(part, dtype="<f4")
-                if len(part.shape) != 3 or tuple(part.shape[1:]) != (h, w) or written + part.shape[0] > f_count:
-                    raise ValueError(f"mat file {path}: part of shape {part.shape} after {written} of {f_count} "
+                block = part if hasattr(part, "shape") else np.asarray(part, dtype="<f4")
+                if len(block.shape) != 3 or tuple(block.shape[1:]) != (h, w) or written + block.shape[0] > f_count:
+                    raise ValueError(f"mat file {target}: part of shape {block.shape} after {written} of {f_count} "
                                      f"frames of {h}x{w}")
-                for frame in frames_of(part):  # converted a frame at a time: no copy of the part
+                for frame in frames_of(block):  # converted a frame at a time: no copy of the part
                     fh.write(z.compress(np.ascontiguousarray(np.asarray(frame, dtype="<f4").T).tobytes()))  # column-major (H, W)
-                written += part.shape[0]
+                written += block.shape[0]
 
             yield write
             if written != f_count:
-                raise RuntimeError(f"mat file {path}: {written} of {f_count} frames written")
+                raise RuntimeError(f"mat file {target}: {written} of {f_count} frames written")
             fh.write(z.compress(bytes(-data_bytes % 8)) + z.flush())
             end = fh.tell()
             if end - start - 8 >= MAT_ELEMENT_BYTES:  # frames zlib could not shrink, just under the limit (checked before)
-                raise OutputError(f"mat file {path}: the compressed frames came to {(end - start) / 2**30:.2f} GiB, "
+                raise OutputError(f"mat file {target}: the compressed frames came to {(end - start) / 2**30:.2f} GiB, "
                                   "past a v5 .mat file's 4 GiB; write .npy, .zarr or .tif instead")
             fh.seek(start + 4)
             fh.write(struct.pack("<I", end - start - 8))
-    return path
+    return target

@@ -64,11 +64,10 @@ def _finite(arr: np.ndarray, path, what: str = "image") -> np.ndarray:
 
 def _to_channels(arr: np.ndarray) -> np.ndarray:
     """(H, W, C) or (H, W) pixels -> (C', H, W) float32, alpha dropped."""
-    if arr.ndim == 2:
-        arr = arr[..., None]
-    c = arr.shape[-1]
+    pixels = arr[..., None] if arr.ndim == 2 else arr
+    c = pixels.shape[-1]
     keep = 1 if c <= 2 else 3  # grey(+alpha) or RGB(+alpha/extra)
-    return np.moveaxis(arr[..., :keep], -1, 0).astype(np.float32)
+    return np.moveaxis(pixels[..., :keep], -1, 0).astype(np.float32)
 
 
 def _to_gray(arr: np.ndarray, path, color: str) -> np.ndarray:
@@ -130,23 +129,23 @@ def _oiio_read_all(path: Path, color: str, first_only: bool, *, page: int = 0) -
 
 def read_page(path: str | os.PathLike, page: int, *, color: str = "luma") -> np.ndarray:
     """Page ``page`` (from 0) of a multi-page image file, in the file's units, float32 (as :func:`read_image`)."""
-    path = Path(path)
+    file = Path(path)
     check_color(color)
-    return _finite(_oiio_read_all(path, color, first_only=True, page=page)[0], path)
+    return _finite(_oiio_read_all(file, color, first_only=True, page=page)[0], file)
 
 
 def tiff_page_count(path: str | os.PathLike) -> int:
     """Pages in the main IFD chain of a (Big)TIFF; :class:`InputError` when the chain runs past the end."""
     import mmap
 
-    path = Path(path)
+    file = Path(path)
     try:
-        with open(path, "rb") as fh:  # mapped, not read: a long stack is not held to count its pages
+        with open(file, "rb") as fh:  # mapped, not read: a long stack is not held to count its pages
             data = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if os.fstat(fh.fileno()).st_size else b""
     except OSError as exc:
-        raise InputError(f"image {path}: cannot read ({exc.strerror or exc})") from exc
+        raise InputError(f"image {file}: cannot read ({exc.strerror or exc})") from exc
     try:
-        return _ifd_chain_length(data, path)
+        return _ifd_chain_length(data, file)
     finally:
         if isinstance(data, mmap.mmap):
             data.close()
@@ -203,27 +202,27 @@ def stored_dtype(path: str | os.PathLike) -> np.dtype:
     .npy: its header; images: OpenImageIO's pixel format; videos: uint8;
     a folder or printf pattern of frames: its first file's.
     """
-    path = Path(path)
-    suffix = path.suffix.lower()
+    file = Path(path)
+    suffix = file.suffix.lower()
     if suffix == ".npy":
         try:
-            return np.load(path, mmap_mode="r", allow_pickle=False).dtype  # the header only
+            return np.load(file, mmap_mode="r", allow_pickle=False).dtype  # the header only
         except (OSError, ValueError, AttributeError) as exc:
-            raise InputError(f"array {path}: not a readable .npy file ({exc})") from exc
+            raise InputError(f"array {file}: not a readable .npy file ({exc})") from exc
     if suffix in VIDEO_SUFFIXES:
         return np.dtype(np.uint8)
-    if path.is_dir() or (is_pattern(str(path)) and not path.exists()):
-        files = (_pattern_frames(str(path)) if not path.is_dir() else
-                 sorted((f for f in path.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")),
+    if file.is_dir() or (is_pattern(str(file)) and not file.exists()):
+        files = (_pattern_frames(str(file)) if not file.is_dir() else
+                 sorted((f for f in file.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")),
                         key=_natural_key))
         if not files:
-            raise InputError(f"frames {path}: the folder holds no image files")
+            raise InputError(f"frames {file}: the folder holds no image files")
         return stored_dtype(files[0])
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(str(file))
     if inp is None:
-        raise InputError(f"image {path}: cannot read ({_one_line(oiio.geterror() or 'unknown format or corrupt file')})")
+        raise InputError(f"image {file}: cannot read ({_one_line(oiio.geterror() or 'unknown format or corrupt file')})")
     try:
         return np.dtype(_OIIO_DTYPES.get(str(inp.spec().format), "float32"))
     finally:
@@ -245,18 +244,18 @@ def read_image(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
     -------
     ndarray of shape (H, W), or (C, H, W) for ``color="channels"``, float32
     """
-    path = Path(path)
+    file = Path(path)
     check_color(color)
-    if path.suffix.lower() == ".npy":
-        arr = _read_npy(path)
+    if file.suffix.lower() == ".npy":
+        arr = _read_npy(file)
         if arr.ndim == 3 and arr.shape[-1] in (1, 2, 3, 4):
-            arr = _to_gray(arr, path, color)
+            arr = _to_gray(arr, file, color)
         elif arr.ndim == 2 and color == "channels":
             arr = arr[None]
         if arr.ndim != (3 if color == "channels" else 2):
-            raise InputError(f"image {path}: expected shape (H, W) or (H, W, C), got {arr.shape}")
-        return _finite(arr.astype(np.float32), path)
-    return _finite(_oiio_read_all(path, color, first_only=True)[0], path)
+            raise InputError(f"image {file}: expected shape (H, W) or (H, W, C), got {arr.shape}")
+        return _finite(arr.astype(np.float32), file)
+    return _finite(_oiio_read_all(file, color, first_only=True)[0], file)
 
 
 _PATTERN = re.compile(r"%0?\d*d")
@@ -304,40 +303,40 @@ def read_stack(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
     """
     check_color(color)
     files = frame_files(path)
-    path = Path(path)
+    source = Path(path)
     if files is not None:
         frames = [read_image(f, color=color) for f in files]
-    elif path.suffix.lower() == ".npy":
-        arr = _read_npy(path)
+    elif source.suffix.lower() == ".npy":
+        arr = _read_npy(source)
         if color == "channels" and arr.ndim == 3:
             arr = arr[None]
         if arr.ndim != (4 if color == "channels" else 3):
-            raise InputError(f"stack {path}: expected shape (N, H, W), got {arr.shape}")
-        return _finite(arr.astype(np.float32), path, "stack")
+            raise InputError(f"stack {source}: expected shape (N, H, W), got {arr.shape}")
+        return _finite(arr.astype(np.float32), source, "stack")
     else:
-        frames = _oiio_read_all(path, color, first_only=False)
+        frames = _oiio_read_all(source, color, first_only=False)
     shapes = {f.shape for f in frames}
     if len(shapes) != 1:
-        raise InputError(f"stack {path}: frames differ in shape {sorted(shapes)}")
+        raise InputError(f"stack {source}: frames differ in shape {sorted(shapes)}")
     stack = np.stack(frames, axis=1 if color == "channels" else 0)
-    return _finite(stack.astype(np.float32), path, "stack")
+    return _finite(stack.astype(np.float32), source, "stack")
 
 
 def frame_files(path: str | os.PathLike) -> list[Path] | None:
     """The image files of a folder of frames (natural order: ``f_2`` before ``f_10``) or a printf pattern
     (``frames/%04d.png``: numbers from 0 or 1 up to the first gap); None for any other path."""
     spath = str(path)
-    path = Path(path)
-    if is_pattern(spath) and not path.exists():
+    source = Path(path)
+    if is_pattern(spath) and not source.exists():
         files = _pattern_frames(spath)
         if not files:
             raise InputError(f"frames {spath}: no file matches the pattern")
         return files
-    if path.is_dir():
-        files = sorted((f for f in path.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")),
-                       key=_natural_key)
+    if source.is_dir():
+        files = sorted((f for f in source.iterdir()
+                        if f.suffix.lower() in IMAGE_SUFFIXES and not f.name.startswith(".")), key=_natural_key)
         if not files:
-            raise InputError(f"frames {path}: the folder holds no image files")
+            raise InputError(f"frames {source}: the folder holds no image files")
         return files
     return None
 
@@ -355,24 +354,24 @@ def read_video(
     ndarray of shape (F, H, W), or (C, F, H, W) for ``color="channels"``, float32
     """
     check_color(color)
-    path = Path(path)
-    if path.suffix.lower() == ".npy":
-        layout = npy_layout(path)
+    source = Path(path)
+    if source.suffix.lower() == ".npy":
+        layout = npy_layout(source)
         if layout is not None and len(layout[0]) == 4:  # a colour video: (F, H, W, C) or (C, F, H, W)
-            stack = _npy_colour_video(read_array(path), path, color)
+            stack = _npy_colour_video(read_array(source), source, color)
             sl = slice(start, None if max_frames is None else start + max_frames)
             return stack[:, sl] if color == "channels" else stack[sl]
-    if path.suffix.lower() not in VIDEO_SUFFIXES:
-        stack = read_stack(path, color=color)
+    if source.suffix.lower() not in VIDEO_SUFFIXES:
+        stack = read_stack(source, color=color)
         sl = slice(start, None if max_frames is None else start + max_frames)
         return stack[:, sl] if color == "channels" else stack[sl]
     frames = []
-    for frame in iter_video(path, color=color, start=start):
+    for frame in iter_video(source, color=color, start=start):
         frames.append(frame)
         if max_frames is not None and len(frames) >= max_frames:
             break
     if not frames:
-        raise InputError(f"video {path}: no frames decoded (from frame {start})")
+        raise InputError(f"video {source}: no frames decoded (from frame {start})")
     return np.stack(frames, axis=1 if color == "channels" else 0).astype(np.float32)
 
 
@@ -380,11 +379,13 @@ def _npy_colour_video(arr: np.ndarray, path: Path, color: str) -> np.ndarray:
     """A 4-D .npy video, (F, H, W, C) with C in (3, 4) or (C, F, H, W) with C in (1, 3, 4) (as ``simulate
     --bayer`` writes its truth): (F, H, W) luma, or (C, F, H, W) for ``color="channels"``."""
     if arr.shape[-1] in (3, 4):  # (a grey video 3 or 4 pixels wide could not be used anyway)
-        arr = np.moveaxis(arr, -1, 0)
+        channels_first = np.moveaxis(arr, -1, 0)
     elif arr.shape[0] not in (1, 3, 4):
         raise InputError(f"video {path}: expected shape (F, H, W), (F, H, W, 3) or (3, F, H, W), got {arr.shape}")
-    arr = _finite(arr.astype(np.float32), path, "video")
-    channels = arr[:1] if arr.shape[0] == 1 else arr[:3]  # (an alpha channel dropped)
+    else:
+        channels_first = arr
+    video = _finite(channels_first.astype(np.float32), path, "video")
+    channels = video[:1] if video.shape[0] == 1 else video[:3]  # (an alpha channel dropped)
     if color == "channels":
         return np.ascontiguousarray(channels)
     if channels.shape[0] == 1:
@@ -404,20 +405,20 @@ def iter_video(path: str | os.PathLike, *, color: str = "luma", start: int = 0):
     """
     import av
 
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"video {path}: no such file")
-    if path.suffix.lower() == ".gif" and not _gif_complete(path):
-        raise InputError(f"video {path}: truncated (no GIF trailer)")
+    source = Path(path)
+    if not source.exists():
+        raise InputError(f"video {source}: no such file")
+    if source.suffix.lower() == ".gif" and not _gif_complete(source):
+        raise InputError(f"video {source}: truncated (no GIF trailer)")
     decoded = 0
     try:
-        with av.open(str(path)) as container:
+        with av.open(str(source)) as container:
             if not container.streams.video:
-                raise InputError(f"video {path}: has no video stream")
+                raise InputError(f"video {source}: has no video stream")
             stream = container.streams.video[0]
             # a GIF's frame delays are whole hundredths of a second (30 fps is stored as 3/100 s), so its
             # duration x rate misses the frame count; its trailer, checked above, tells a truncated one
-            expected = None if path.suffix.lower() == ".gif" else _expected_frames(container, stream)
+            expected = None if source.suffix.lower() == ".gif" else _expected_frames(container, stream)
             size = _tagged_size(container)
             for i, frame in enumerate(container.decode(video=0)):
                 decoded = i + 1
@@ -425,15 +426,15 @@ def iter_video(path: str | os.PathLike, *, color: str = "luma", start: int = 0):
                     continue
                 grey = frame.format.name in ("gray", "gray8", "gray16le")
                 if color == "error" and not grey:
-                    raise InputError(f"video {path}: frames are in colour ({frame.format.name}); grey frames are required")
+                    raise InputError(f"video {source}: frames are in colour ({frame.format.name}); grey frames are required")
                 pixels = frame.to_ndarray() if grey else frame.to_ndarray(format="rgb24")
                 if size is not None:  # written by write_video: undo the encoder's padding
                     pixels = pixels[: size[0], : size[1]]
-                yield _to_gray(pixels, path, "channels" if color == "channels" else "luma").astype(np.float32)
+                yield _to_gray(pixels, source, "channels" if color == "channels" else "luma").astype(np.float32)
             if expected is not None and decoded < expected - 1:  # a stream that ends early was cut short
-                raise InputError(f"video {path}: truncated (decoded {decoded} of {expected} frames)")
+                raise InputError(f"video {source}: truncated (decoded {decoded} of {expected} frames)")
     except (av.error.FFmpegError, OSError) as exc:
-        raise InputError(f"video {path}: cannot decode ({_one_line(exc)})") from exc
+        raise InputError(f"video {source}: cannot decode ({_one_line(exc)})") from exc
 
 
 def _tagged_size(container) -> tuple[int, int] | None:
@@ -474,9 +475,9 @@ def _gif_complete(path: Path) -> bool:
 # ----------------------------------------------------------------------------- writing
 def _to_uint8(frames: np.ndarray, data_range: float) -> np.ndarray:
     """Frames scaled so ``data_range`` maps to 255, rounded and clipped to uint8 (in float64, one copy, in place)."""
-    frames = np.asarray(frames)
-    work = np.empty(frames.shape, np.float64)
-    work[...] = frames
+    values = np.asarray(frames)
+    work = np.empty(values.shape, np.float64)
+    work[...] = values
     np.multiply(work, 255.0 / data_range, out=work)
     np.rint(work, out=work)
     np.clip(work, 0, 255, out=work)
@@ -501,14 +502,14 @@ def _frames_last(frames: np.ndarray, path, what: str) -> np.ndarray:
     """(N, H, W) or (C, N, H, W) with C in (1, 3) -> (N, H, W) grey or (N, H, W, 3) colour (views, no copy)."""
     if not isinstance(frames, np.ndarray) and getattr(frames, "ndim", None) == 3:
         return frames  # frames read one at a time (frames_of)
-    frames = np.asarray(frames)
-    if frames.ndim == 4:
-        if frames.shape[0] not in (1, 3):
-            raise InputError(f"{what} {path}: colour frames need 1 or 3 channels, got shape {frames.shape}")
-        return frames[0] if frames.shape[0] == 1 else np.moveaxis(frames, 0, -1)
-    if frames.ndim != 3:
-        raise InputError(f"{what} {path}: expected frames (N, H, W) or (C, N, H, W), got shape {frames.shape}")
-    return frames
+    arr = np.asarray(frames)
+    if arr.ndim == 4:
+        if arr.shape[0] not in (1, 3):
+            raise InputError(f"{what} {path}: colour frames need 1 or 3 channels, got shape {arr.shape}")
+        return arr[0] if arr.shape[0] == 1 else np.moveaxis(arr, 0, -1)
+    if arr.ndim != 3:
+        raise InputError(f"{what} {path}: expected frames (N, H, W) or (C, N, H, W), got shape {arr.shape}")
+    return arr
 
 
 def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: float = EIGHT_BIT, fps: int = 30) -> Path:
@@ -524,11 +525,11 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, *, data_range: floa
         row/column, and the size is recorded in the container's comment so
         that :func:`read_video` crops the padding off again.
     """
-    path = Path(path)
-    data = _frames_last(frames, path, "video")
-    with video_writer(path, data.shape[1:3], colour=data.ndim == 4, data_range=data_range, fps=fps) as write:
+    target = Path(path)
+    data = _frames_last(frames, target, "video")
+    with video_writer(target, data.shape[1:3], colour=data.ndim == 4, data_range=data_range, fps=fps) as write:
         write(data)
-    return path
+    return target
 
 
 #: A GIF stores each frame's delay in whole hundredths of a second: no faster rate can be written.
@@ -555,8 +556,8 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
     """
     import av
 
-    path = Path(path)
-    suffix = path.suffix.lower()
+    target = Path(path)
+    suffix = target.suffix.lower()
     height, width = size
     pad = (0, 0)
     if suffix in (".mp4", ".mov"):
@@ -567,11 +568,11 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
     elif suffix == ".gif":
         codec, pix_fmt, options = "gif", "rgb8" if colour else "gray", {}
     else:
-        raise InputError(f"video {path}: unsupported container {suffix!r} (use .mp4, .mov, .mkv, .avi or .gif)")
+        raise InputError(f"video {target}: unsupported container {suffix!r} (use .mp4, .mov, .mkv, .avi or .gif)")
     if suffix == ".gif" and fps > GIF_MAX_FPS:
-        raise InputError(f"video {path}: {gif_rate_problem(fps)}")
+        raise InputError(f"video {target}: {gif_rate_problem(fps)}")
     in_fmt = "rgb24" if colour else "gray"
-    with atomic_output(path) as tmp:
+    with atomic_output(target) as tmp:
         try:
             with av.open(str(tmp), mode="w") as container:
                 # the size before any padding, so read_video returns the frames as given
@@ -595,7 +596,7 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
                 for packet in stream.encode(None):
                     container.mux(packet)
         except (av.error.FFmpegError, OSError) as exc:
-            raise OutputError(f"video {path}: cannot write ({exc})") from exc
+            raise OutputError(f"video {target}: cannot write ({exc})") from exc
 
 
 class _OiioPages:
@@ -619,11 +620,11 @@ class _OiioPages:
         import OpenImageIO as oiio
 
         # OpenImageIO wants (H, W, C) pixels; a 2-D array is misread
-        page = page[..., None] if page.ndim == 2 else np.moveaxis(page, 0, -1)
+        pixels = page[..., None] if page.ndim == 2 else np.moveaxis(page, 0, -1)
         if self.written >= self.pages:
             raise OutputError(f"image {self.path}: more than the {self.pages} pages announced")
         if self.spec is None:
-            h, w, c = page.shape
+            h, w, c = pixels.shape
             self.spec = oiio.ImageSpec(w, h, c, fmt)
             self.spec.attribute("DateTime", "")  # no time of writing: the same pixels give the same bytes
             if c in (2, 4):
@@ -636,12 +637,13 @@ class _OiioPages:
                 ok = self.out.open(str(self.path), self.spec)
             if not ok:
                 raise OutputError(f"image {self.path}: cannot open for writing ({self.out.geterror()})")
-        elif page.shape != (self.spec.height, self.spec.width, self.spec.nchannels):
-            raise OutputError(f"image {self.path}: page {self.written + 1} is {page.shape[0]}x{page.shape[1]}x"
-                              f"{page.shape[2]}, the first {self.spec.height}x{self.spec.width}x{self.spec.nchannels}")
+        elif pixels.shape != (self.spec.height, self.spec.width, self.spec.nchannels):
+            raise OutputError(f"image {self.path}: page {self.written + 1} is "
+                              f"{pixels.shape[0]}x{pixels.shape[1]}x{pixels.shape[2]}, "
+                              f"the first {self.spec.height}x{self.spec.width}x{self.spec.nchannels}")
         elif not self.out.open(str(self.path), self.spec, "AppendSubimage"):
             raise OutputError(f"image {self.path}: cannot append page {self.written} ({self.out.geterror()})")
-        if not self.out.write_image(np.ascontiguousarray(page)):
+        if not self.out.write_image(np.ascontiguousarray(pixels)):
             raise OutputError(f"image {self.path}: cannot write ({self.out.geterror()})")
         self.written += 1
 
@@ -697,16 +699,16 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype=None) -> Pa
     image : ndarray of shape (H, W), or (C, H, W) with C in (1, 3, 4)
     dtype : pixel type, optional
     """
-    path = Path(path)
-    image = np.asarray(image)
-    if path.suffix.lower() == ".npy":
-        return write_array(path, image)
-    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[0] not in (1, 3, 4)):
-        raise InputError(f"image {path}: expected shape (H, W) or (C, H, W), got {image.shape}")
-    arr, fmt = _pixels(path, image, dtype)
-    with atomic_output(path) as tmp:
+    target = Path(path)
+    pixels = np.asarray(image)
+    if target.suffix.lower() == ".npy":
+        return write_array(target, pixels)
+    if pixels.ndim not in (2, 3) or (pixels.ndim == 3 and pixels.shape[0] not in (1, 3, 4)):
+        raise InputError(f"image {target}: expected shape (H, W) or (C, H, W), got {pixels.shape}")
+    arr, fmt = _pixels(target, pixels, dtype)
+    with atomic_output(target) as tmp:
         _oiio_write(tmp, [arr], fmt)
-    return path
+    return target
 
 
 def write_stack(path: str | os.PathLike, stack: np.ndarray, *, dtype=None) -> Path:
@@ -716,13 +718,13 @@ def write_stack(path: str | os.PathLike, stack: np.ndarray, *, dtype=None) -> Pa
     :func:`write_image` (TIFF: float32 by default, uint8 or uint16; EXR:
     float32 or float16).  A (C, N, H, W) colour stack gives C-channel pages.
     """
-    stack = np.asarray(stack)
-    if stack.ndim == 4:
-        stack = np.moveaxis(stack, 0, 1)  # (N, C, H, W): one C-channel page per frame
-    elif stack.ndim != 3:
-        raise InputError(f"stack {path}: expected shape (N, H, W) or (C, N, H, W), got {stack.shape}")
-    with stack_writer(path, len(stack), dtype=dtype) as write:
-        write(stack)
+    data = np.asarray(stack)
+    if data.ndim == 4:
+        data = np.moveaxis(data, 0, 1)  # (N, C, H, W): one C-channel page per frame
+    elif data.ndim != 3:
+        raise InputError(f"stack {path}: expected shape (N, H, W) or (C, N, H, W), got {data.shape}")
+    with stack_writer(path, len(data), dtype=dtype) as write:
+        write(data)
     return Path(path)
 
 
@@ -734,22 +736,22 @@ def stack_writer(path: str | os.PathLike, pages: int, *, dtype=None):
     as it comes, so a long stack is never held whole; the file appears under
     ``path`` only when the block ends with all ``pages`` pages written.
     """
-    path = Path(path)
-    if path.suffix.lower() not in (".tif", ".tiff", ".exr"):
-        raise InputError(f"stack {path}: multi-page files are .tif/.tiff or .exr, not {path.suffix!r}")
-    _pixels(path, np.zeros(1), dtype)  # the pixel type is checked before anything is written
-    with atomic_output(path) as tmp:
+    target = Path(path)
+    if target.suffix.lower() not in (".tif", ".tiff", ".exr"):
+        raise InputError(f"stack {target}: multi-page files are .tif/.tiff or .exr, not {target.suffix!r}")
+    _pixels(target, np.zeros(1), dtype)  # the pixel type is checked before anything is written
+    with atomic_output(target) as tmp:
         out = _OiioPages(tmp, pages)
         try:
             def write(part: np.ndarray) -> None:
                 for page in frames_of(part):
-                    out.add(*_pixels(path, page, dtype))
+                    out.add(*_pixels(target, page, dtype))
 
             yield write
         finally:
             out.close()
         if out.written != pages:
-            raise OutputError(f"stack {path}: {out.written} of {pages} pages written")
+            raise OutputError(f"stack {target}: {out.written} of {pages} pages written")
 
 
 def write_multipage_tiff(path: str | os.PathLike, stack: np.ndarray) -> Path:
@@ -759,11 +761,11 @@ def write_multipage_tiff(path: str | os.PathLike, stack: np.ndarray) -> Path:
     Mask images are read as a fraction of full scale, so a binary mask for
     ``--mask`` is written as 0/255 (uint8) or 0/65535 (uint16).
     """
-    stack = np.asarray(stack)
-    dtype = stack.dtype if stack.dtype in (np.uint8, np.uint16) else np.float32
-    if stack.dtype == bool:
-        stack, dtype = stack.astype(np.uint8), np.uint8
-    return write_stack(path, stack, dtype=dtype)
+    data = np.asarray(stack)
+    dtype = data.dtype if data.dtype in (np.uint8, np.uint16) else np.float32
+    if data.dtype == bool:
+        data, dtype = data.astype(np.uint8), np.uint8
+    return write_stack(path, data, dtype=dtype)
 
 
 def write_frames(
@@ -781,13 +783,13 @@ def write_frames(
         ``data_range`` -> 65535).  Files are numbered with at least 4 digits,
         as many as the last number needs (names sort in frame order).
     """
-    frames = np.asarray(frames)
-    if frames.ndim == 4:
-        frames = np.moveaxis(frames, 0, 1)  # (N, C, H, W): one colour file per frame
-    elif frames.ndim != 3:
-        raise InputError(f"frames {directory}: expected shape (N, H, W) or (C, N, H, W), got {frames.shape}")
-    with frames_writer(directory, fmt=fmt, data_range=data_range, prefix=prefix, total=frames.shape[0]) as write:
-        return write(frames)
+    data = np.asarray(frames)
+    if data.ndim == 4:
+        data = np.moveaxis(data, 0, 1)  # (N, C, H, W): one colour file per frame
+    elif data.ndim != 3:
+        raise InputError(f"frames {directory}: expected shape (N, H, W) or (C, N, H, W), got {data.shape}")
+    with frames_writer(directory, fmt=fmt, data_range=data_range, prefix=prefix, total=data.shape[0]) as write:
+        return write(data)
 
 
 #: Frame formats of :func:`write_frames`: name -> (file extension, OpenImageIO type, the full scale data_range maps to)
@@ -805,12 +807,12 @@ def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_ran
     when it is not known), so that the names sort in frame order; the folder
     appears under ``directory`` only when the block ends without an error.
     """
-    directory = Path(directory)
+    folder = Path(directory)
     if fmt not in _FRAME_FORMATS:
-        raise InputError(f"frames {directory}: unknown frame format {fmt!r}")
+        raise InputError(f"frames {folder}: unknown frame format {fmt!r}")
     ext, ofmt, full = _FRAME_FORMATS[fmt]
     digits = max(4, len(str(max(total - 1, 0)))) if total is not None else 6
-    with atomic_output(directory) as tmp:
+    with atomic_output(folder) as tmp:
         tmp.mkdir()
         count = 0
 
@@ -826,7 +828,7 @@ def frames_writer(directory: str | os.PathLike, *, fmt: str = "tiff16", data_ran
                     arr = np.clip(np.rint(frame * (full / data_range)), 0, full).astype(np.uint16)
                 name = f"{prefix}_{count:0{digits}d}.{ext}"
                 _oiio_write(tmp / name, [arr], ofmt)
-                names.append(directory / name)
+                names.append(folder / name)
                 count += 1
             return names
 
@@ -851,11 +853,11 @@ def read_frames_scale(directory: str | os.PathLike) -> float:
 
 def write_array(path: str | os.PathLike, array: np.ndarray) -> Path:
     """Write a .npy file atomically (the name is kept exactly)."""
-    path = Path(path)
-    with atomic_output(path) as tmp:
+    target = Path(path)
+    with atomic_output(target) as tmp:
         with open(tmp, "wb") as fh:
             np.save(fh, np.asarray(array), allow_pickle=False)
-    return path
+    return target
 
 
 @contextlib.contextmanager
@@ -867,25 +869,25 @@ def npy_writer(path: str | os.PathLike, shape: tuple, dtype="<f4"):
     does not grow with the file (a memory map would: its written pages stay in
     the process's resident set).
     """
-    path = Path(path)
-    dtype = np.dtype(dtype)
-    total = int(np.prod(shape)) * dtype.itemsize
-    with atomic_output(path) as tmp:
+    target = Path(path)
+    np_dtype = np.dtype(dtype)
+    total = int(np.prod(shape)) * np_dtype.itemsize
+    with atomic_output(target) as tmp:
         with open(tmp, "wb") as fh:
-            np.lib.format.write_array_header_2_0(fh, dict(descr=np.lib.format.dtype_to_descr(dtype),
+            np.lib.format.write_array_header_2_0(fh, dict(descr=np.lib.format.dtype_to_descr(np_dtype),
                                                           fortran_order=False, shape=tuple(shape)))
             start = fh.tell()
 
             def write(part) -> None:
-                if isinstance(part, np.ndarray) and part.dtype == dtype and part.flags.c_contiguous:
+                if isinstance(part, np.ndarray) and part.dtype == np_dtype and part.flags.c_contiguous:
                     part.tofile(fh)  # no copy
                 else:  # converted a frame at a time (no copy of the whole part)
                     for frame in frames_of(part):
-                        np.ascontiguousarray(frame, dtype=dtype).tofile(fh)
+                        np.ascontiguousarray(frame, dtype=np_dtype).tofile(fh)
 
             yield write
             if fh.tell() - start != total:
-                raise RuntimeError(f"output {path}: {fh.tell() - start} of {total} bytes written")
+                raise RuntimeError(f"output {target}: {fh.tell() - start} of {total} bytes written")
 
 
 def read_array(path: str | os.PathLike) -> np.ndarray:

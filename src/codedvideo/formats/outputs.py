@@ -64,8 +64,8 @@ class Output:
 
 def _real(path: Path) -> Path:
     """Absolute path with symbolic links of its folders resolved (the last part is kept as named)."""
-    path = Path(path).absolute()
-    return Path(os.path.realpath(path.parent)) / path.name
+    absolute = Path(path).absolute()
+    return Path(os.path.realpath(absolute.parent)) / absolute.name
 
 
 def _inside(child: Path, parent: Path) -> bool:
@@ -74,8 +74,8 @@ def _inside(child: Path, parent: Path) -> bool:
 
 def record_path(path: str | os.PathLike) -> Path:
     """The hidden record beside a file or folder output."""
-    path = Path(path)
-    return path.with_name(f".{path.name}{OWNED_SUFFIX}")
+    target = Path(path)
+    return target.with_name(f".{target.name}{OWNED_SUFFIX}")
 
 
 def _fingerprint(st: os.stat_result) -> dict:
@@ -121,18 +121,18 @@ def mark_written(path: str | os.PathLike) -> None:
     """Record that codedvideo wrote the file or folder ``path`` as it is now (see the module docstring)."""
     from codedvideo.formats.atomic import atomic_output
 
-    path = Path(path)
+    target = Path(path)
     try:
-        st = os.lstat(path)
+        st = os.lstat(target)
         if stat.S_ISDIR(st.st_mode):
-            record = dict(name=path.name, kind="folder", inode=st.st_ino, files=_folder_entries(path))
+            record = dict(name=target.name, kind="folder", inode=st.st_ino, files=_folder_entries(target))
         elif stat.S_ISREG(st.st_mode):
-            record = dict(_fingerprint(st), name=path.name)
+            record = dict(_fingerprint(st), name=target.name)
         else:
             return
     except OSError:
         return
-    with atomic_output(record_path(path)) as tmp:
+    with atomic_output(record_path(target)) as tmp:
         Path(tmp).write_text(json.dumps(record) + "\n")
 
 
@@ -142,13 +142,13 @@ def folder_problem(path: str | os.PathLike) -> str | None:
     One phrase naming the first file or folder (in sorted order) that codedvideo did not write there, or that
     changed since: "holds PATH, which codedvideo did not write", "PATH changed since codedvideo wrote it".
     """
-    path = Path(path)
+    folder = Path(path)
     try:
-        st = os.lstat(path)
-        found = _folder_entries(path)
+        st = os.lstat(folder)
+        found = _folder_entries(folder)
     except OSError as exc:
         return f"cannot read it ({exc.strerror or exc})"
-    record = record_path(path)
+    record = record_path(folder)
     try:
         recorded = json.loads(record.read_text())
     except FileNotFoundError:
@@ -161,29 +161,29 @@ def folder_problem(path: str | os.PathLike) -> str | None:
             f"its record {record.name} does not describe this folder"
         first = next(iter(found), None)
         return f"is a folder codedvideo did not write ({why}; " + \
-            (f"the first file in it: {path / first})" if first else "it is empty)")
+            (f"the first file in it: {folder / first})" if first else "it is empty)")
     files = recorded["files"]
     for rel, fingerprint in found.items():
         if rel not in files:
-            return f"holds {path / rel}, which codedvideo did not write"
+            return f"holds {folder / rel}, which codedvideo did not write"
         if not _unchanged(files[rel], fingerprint):
-            return f"{path / rel} changed since codedvideo wrote it"
+            return f"{folder / rel} changed since codedvideo wrote it"
     return None
 
 
 def written_by_codedvideo(path: str | os.PathLike) -> bool:
     """True when ``path`` is a file or folder that codedvideo wrote and nobody changed since."""
-    path = Path(path)
+    target = Path(path)
     try:
-        st = os.lstat(path)
+        st = os.lstat(target)
     except OSError:
         return False
     if stat.S_ISDIR(st.st_mode):
-        return folder_problem(path) is None
+        return folder_problem(target) is None
     if not stat.S_ISREG(st.st_mode):
         return False
     try:
-        recorded = json.loads(record_path(path).read_text())
+        recorded = json.loads(record_path(target).read_text())
     except (OSError, ValueError):
         return False
     return _unchanged(recorded, _fingerprint(st))

@@ -60,8 +60,8 @@ WORKSTORE_ARRAYS = ("coded", "mask", "still", "volume", "stats", "digest")
 
 def lock_path(entry: str | os.PathLike) -> Path:
     """The lock file of a cache entry: ``recon-KEY.zarr`` -> ``recon-KEY.lock`` beside it."""
-    entry = Path(entry)
-    return entry.with_name(entry.name.removesuffix(".zarr") + ".lock")
+    entry_path = Path(entry)
+    return entry_path.with_name(entry_path.name.removesuffix(".zarr") + ".lock")
 
 
 def _acquire(lock: Path, blocking: bool):
@@ -131,16 +131,16 @@ def entry_lock(entry: str | os.PathLike, *, blocking: bool = True):
 
 def remove_locked_entry(entry: Path) -> None:
     """Remove a cache entry (folder or file), its lock file and its temporaries; hold its lock."""
-    entry = Path(entry)
-    if entry.is_dir() and not entry.is_symlink():
-        gone = temporary_name(entry, keep_suffix=False)
-        os.replace(entry, gone)  # out of sight at once, then removed
+    entry_path = Path(entry)
+    if entry_path.is_dir() and not entry_path.is_symlink():
+        gone = temporary_name(entry_path, keep_suffix=False)
+        os.replace(entry_path, gone)  # out of sight at once, then removed
         _discard(gone)
-    elif os.path.lexists(entry):
-        entry.unlink()
-    remove_temporaries(entry)
+    elif os.path.lexists(entry_path):
+        entry_path.unlink()
+    remove_temporaries(entry_path)
     with contextlib.suppress(FileNotFoundError):
-        lock_path(entry).unlink()  # waiters notice the new inode and lock afresh
+        lock_path(entry_path).unlink()  # waiters notice the new inode and lock afresh
 
 
 def remove_temporaries(entry: Path) -> list[Path]:
@@ -158,41 +158,41 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
     ``meta`` must hold at least ``patch`` and ``frames``; the number of atoms,
     the format version and a content hash are added here.
     """
-    path = Path(path)
-    D = np.ascontiguousarray(D, dtype=np.float32)
+    target = Path(path)
+    atoms = np.ascontiguousarray(D, dtype=np.float32)
     for key in ("patch", "frames"):
         if key not in meta:
             raise ValueError(f"dictionary metadata lacks {key!r}")
-    if D.shape[0] != meta["frames"] * meta["patch"] ** 2:
-        raise ValueError(f"dictionary rows {D.shape[0]} != frames * patch^2")
+    if atoms.shape[0] != meta["frames"] * meta["patch"] ** 2:
+        raise ValueError(f"dictionary rows {atoms.shape[0]} != frames * patch^2")
     attrs = dict(meta)
     attrs.update(
         kind=DICTIONARY_KIND,
         format_version=FORMAT_VERSION,
-        atoms=int(D.shape[1]),
-        sha256=hashlib.sha256(D.tobytes()).hexdigest(),
+        atoms=int(atoms.shape[1]),
+        sha256=hashlib.sha256(atoms.tobytes()).hexdigest(),
     )
-    tmp = temporary_name(path, keep_suffix=False)
-    zipped = path.suffix.lower() == ".zip"  # one file (the shipped dictionaries): a zipped Zarr store
+    tmp = temporary_name(target, keep_suffix=False)
+    zipped = target.suffix.lower() == ".zip"  # one file (the shipped dictionaries): a zipped Zarr store
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        remove_dead_temporaries(path)  # what a killed run left
+        target.parent.mkdir(parents=True, exist_ok=True)
+        remove_dead_temporaries(target)  # what a killed run left
         store = zarr.storage.ZipStore(tmp, mode="w") if zipped else str(tmp)
         group = zarr.open_group(store, mode="w", attributes=json.loads(json.dumps(attrs)))
-        arr = group.create_array("atoms", shape=D.shape, chunks=D.shape, dtype="float32")
-        arr[:] = D
+        arr = group.create_array("atoms", shape=atoms.shape, chunks=atoms.shape, dtype="float32")
+        arr[:] = atoms
         if zipped:
             store.close()
-            os.replace(tmp, path)
+            os.replace(tmp, target)
         else:
-            replace_dir(tmp, path)
+            replace_dir(tmp, target)
     except OSError as exc:
         _discard(tmp)
-        raise OutputError(f"dictionary {path}: cannot write ({exc.strerror or exc})") from exc
+        raise OutputError(f"dictionary {target}: cannot write ({exc.strerror or exc})") from exc
     except BaseException:  # Ctrl-C, SIGTERM: no temporary left
         _discard(tmp)
         raise
-    return path
+    return target
 
 
 def load_dictionary(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
@@ -203,26 +203,26 @@ def load_dictionary(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
     D : ndarray of shape (frames * patch**2, atoms), float32
     meta : dict
     """
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"dictionary {path}: no such file or directory")
+    source = Path(path)
+    if not source.exists():
+        raise InputError(f"dictionary {source}: no such file or directory")
     try:
-        store = zarr.storage.ZipStore(path, mode="r") if path.suffix.lower() == ".zip" else str(path)
+        store = zarr.storage.ZipStore(source, mode="r") if source.suffix.lower() == ".zip" else str(source)
         group = zarr.open_group(store, mode="r")
         meta = dict(group.attrs)
         D = np.asarray(group["atoms"][:], dtype=np.float32)
         if not isinstance(store, str):
             store.close()
     except (KeyError, ValueError, OSError, TypeError) as exc:
-        raise InputError(f"dictionary {path}: not a readable codedvideo dictionary ({exc})") from exc
+        raise InputError(f"dictionary {source}: not a readable codedvideo dictionary ({exc})") from exc
     except Exception as exc:  # zarr raises its own types for corrupt metadata
-        raise InputError(f"dictionary {path}: corrupt store ({type(exc).__name__}: {exc})") from exc
+        raise InputError(f"dictionary {source}: corrupt store ({type(exc).__name__}: {exc})") from exc
     if meta.get("kind") != DICTIONARY_KIND:
-        raise InputError(f"dictionary {path}: not a codedvideo dictionary (kind={meta.get('kind')!r})")
+        raise InputError(f"dictionary {source}: not a codedvideo dictionary (kind={meta.get('kind')!r})")
     if meta.get("sha256") != hashlib.sha256(D.tobytes()).hexdigest():
-        raise InputError(f"dictionary {path}: atoms do not match their recorded checksum (corrupt)")
+        raise InputError(f"dictionary {source}: atoms do not match their recorded checksum (corrupt)")
     if not np.isfinite(D).all():
-        raise InputError(f"dictionary {path}: contains NaN or Inf")
+        raise InputError(f"dictionary {source}: contains NaN or Inf")
     return D, meta
 
 
@@ -251,10 +251,10 @@ def mask_dtype(mask: np.ndarray) -> np.dtype:
 
 def workstore_inputs(coded: np.ndarray, mask: np.ndarray, still: np.ndarray | None):
     """``(coded, mask, still)`` as a working store holds them: float32, :func:`mask_dtype`, uint8 (None: all 0)."""
-    coded = np.asarray(coded, dtype=np.float32)
-    mask = np.asarray(mask, dtype=mask_dtype(mask))
-    still = np.zeros(coded.shape, np.uint8) if still is None else np.asarray(still, dtype=np.uint8)
-    return coded, mask, still
+    held_coded = np.asarray(coded, dtype=np.float32)
+    held_mask = np.asarray(mask, dtype=mask_dtype(mask))
+    held_still = np.zeros(held_coded.shape, np.uint8) if still is None else np.asarray(still, dtype=np.uint8)
+    return held_coded, held_mask, held_still
 
 
 def inputs_digest(coded: np.ndarray, mask: np.ndarray, still: np.ndarray) -> str:
@@ -291,8 +291,9 @@ def workstore_layout(n: int, h: int, w: int, *, tile: int, n_stats: int, n_tiles
 
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
-    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
-    return a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a.view(np.uint8), b.view(np.uint8))
+    left, right = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    return (left.shape == right.shape and left.dtype == right.dtype
+            and np.array_equal(left.view(np.uint8), right.view(np.uint8)))
 
 
 def workstore_problem(group, *, key: str | None = None) -> str | None:
@@ -352,14 +353,14 @@ def write_tiles(places: list[tuple["WorkStore", int, tuple[int, int, int, int]]]
     (none, or an old one of other contents), so it is never taken for done; a
     digest that matches vouches for exactly the bytes it was computed from.
     """
-    volume = np.ascontiguousarray(volume, dtype=np.float32)
-    stats = np.ascontiguousarray(stats, dtype=np.float64)
+    tile_volume = np.ascontiguousarray(volume, dtype=np.float32)
+    tile_stats = np.ascontiguousarray(stats, dtype=np.float64)
     writes, digests = [], []
     for store, index, (y0, y1, x0, x1) in places:  # arrays opened here: never from inside zarr's event loop
-        writes.append((store.array("volume").async_array, (slice(None), slice(y0, y1), slice(x0, x1)), volume))
-        writes.append((store.array("stats").async_array, (slice(index, index + 1), slice(None)), stats[None]))
+        writes.append((store.array("volume").async_array, (slice(None), slice(y0, y1), slice(x0, x1)), tile_volume))
+        writes.append((store.array("stats").async_array, (slice(index, index + 1), slice(None)), tile_stats[None]))
         digests.append((store.array("digest").async_array, (slice(index, index + 1), slice(None)),
-                        tile_digest(store.key, index, (y0, y1, x0, x1), volume, stats)[None]))
+                        tile_digest(store.key, index, (y0, y1, x0, x1), tile_volume, tile_stats)[None]))
 
     async def write():
         await asyncio.gather(*(arr.setitem(sel, value) for arr, sel, value in writes))
@@ -463,30 +464,31 @@ class WorkStore:
         entry, built under a temporary name and renamed into place, so no
         reader ever sees it half-made.  The caller holds :func:`entry_lock`.
         """
-        path = Path(path)
-        coded, mask, still = workstore_inputs(coded, mask, still)
-        if os.path.lexists(path):
-            problem = cls._problem(path, coded, mask, still, key=attrs.get("key"), tile=tile, n_stats=n_stats,
-                                   n_tiles=n_tiles)
+        target = Path(path)
+        held_coded, held_mask, held_still = workstore_inputs(coded, mask, still)
+        if os.path.lexists(target):
+            problem = cls._problem(target, held_coded, held_mask, held_still, key=attrs.get("key"), tile=tile,
+                                   n_stats=n_stats, n_tiles=n_tiles)
             if problem is None:
-                return cls(path)
-            log.warning("cache entry %s: %s; rebuilding it", path, problem)
-        n, h, w = mask.shape
-        tmp = temporary_name(path, keep_suffix=False)
+                return cls(target)
+            log.warning("cache entry %s: %s; rebuilding it", target, problem)
+        n, h, w = held_mask.shape
+        tmp = temporary_name(target, keep_suffix=False)
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            remove_temporaries(path)  # left by killed runs (we hold the lock)
-            layout = workstore_layout(n, h, w, tile=tile, n_stats=n_stats, n_tiles=n_tiles, mask=mask.dtype)
-            sync(_build_entry(tmp, layout, dict(coded=coded, mask=mask, still=still), json.loads(json.dumps(dict(
+            target.parent.mkdir(parents=True, exist_ok=True)
+            remove_temporaries(target)  # left by killed runs (we hold the lock)
+            layout = workstore_layout(n, h, w, tile=tile, n_stats=n_stats, n_tiles=n_tiles, mask=held_mask.dtype)
+            inputs = dict(coded=held_coded, mask=held_mask, still=held_still)
+            sync(_build_entry(tmp, layout, inputs, json.loads(json.dumps(dict(
                 attrs, kind=WORKSTORE_KIND, format_version=WORKSTORE_FORMAT, tile=int(tile), n_tiles=int(n_tiles),
-                inputs_digest=inputs_digest(coded, mask, still), complete_inputs=True)))))
-            replace_dir(tmp, path)
+                inputs_digest=inputs_digest(held_coded, held_mask, held_still), complete_inputs=True)))))
+            replace_dir(tmp, target)
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
-            raise OutputError(f"working store {path}: cannot write ({exc.strerror or exc})") from exc
-        store = cls(path)
+            raise OutputError(f"working store {target}: cannot write ({exc.strerror or exc})") from exc
+        store = cls(target)
         store.created = True
-        _remember(_entry_ident(path), store)
+        _remember(_entry_ident(target), store)
         return store
 
     @staticmethod
@@ -569,25 +571,26 @@ class WorkStore:
         stats : ndarray (n_tiles, n_stats) float64
             The statistics rows as read (valid where ``ok``).
         """
-        tiles = list(tiles)
+        wanted = list(tiles)
+        assembled = volume
         digests = self._rows("digest", 0)
         stats = self._rows("stats", np.nan)
         n_tiles = digests.shape[0]
         ok = np.zeros(n_tiles, bool)
         damaged = np.zeros(n_tiles, bool)
         varr = self.array("volume")
-        claimed = [t for t in tiles if digests[t.index].any()]
+        claimed = [t for t in wanted if digests[t.index].any()]
         bulk = None
         if not assemble:
-            volume = None
+            assembled = None
         elif claimed and 2 * len(claimed) > n_tiles:  # most of the volume: one read, chunks fetched concurrently
             try:
                 bulk = np.asarray(varr[...])
             except Exception:  # some chunk cannot be decoded: tile by tile below
                 bulk = None
-        adopt = assemble and volume is None and bulk is not None and len(tiles) == n_tiles
-        if assemble and volume is None:
-            volume = bulk if adopt else np.full(varr.shape, np.nan, np.float32)
+        adopt = assemble and assembled is None and bulk is not None and len(wanted) == n_tiles
+        if assemble and assembled is None:
+            assembled = bulk if adopt else np.full(varr.shape, np.nan, np.float32)
         for t in claimed:
             y0, y1, x0, x1 = t.core
             if bulk is not None:
@@ -601,15 +604,15 @@ class WorkStore:
             if tile_digest(self.key, t.index, t.core, core, stats[t.index]).tobytes() == digests[t.index].tobytes():
                 ok[t.index] = True
                 if assemble and not adopt:
-                    volume[:, y0:y1, x0:x1] = core
+                    assembled[:, y0:y1, x0:x1] = core
             else:
                 damaged[t.index] = True
         if adopt:  # never hand out a core that failed
-            for t in tiles:
+            for t in wanted:
                 if not ok[t.index]:
                     y0, y1, x0, x1 = t.core
-                    volume[:, y0:y1, x0:x1] = np.nan
-        return ok, damaged, volume, stats
+                    assembled[:, y0:y1, x0:x1] = np.nan
+        return ok, damaged, assembled, stats
 
     def read_tile(self, index: int, core: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
         """One finished tile's volume core and statistics row, checked against its digest (used inside tasks:
@@ -663,26 +666,26 @@ def array_writer(path: str | os.PathLike, shape: tuple, dtype, *, chunks=None, a
     without an error do its attributes (with the format version) go in and
     the store appear under ``path``, so a reader never sees it half-written.
     """
-    path = Path(path)
-    with atomic_output(path) as tmp:
+    target = Path(path)
+    with atomic_output(target) as tmp:
         try:
             arr = zarr.create_array(str(tmp), shape=tuple(shape), chunks=chunks or tuple(shape), dtype=dtype)
             yield arr
             if attrs:
                 arr.update_attributes(json.loads(json.dumps(dict(attrs, format_version=FORMAT_VERSION))))
         except OSError as exc:
-            raise OutputError(f"{path}: cannot write Zarr array ({exc.strerror or exc})") from exc
+            raise OutputError(f"{target}: cannot write Zarr array ({exc.strerror or exc})") from exc
 
 
 def load_array(path: str | os.PathLike) -> np.ndarray:
     """Read a Zarr array (or the ``volume`` array of a working store)."""
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: no such file or directory")
+    source = Path(path)
+    if not source.exists():
+        raise InputError(f"{source}: no such file or directory")
     try:
-        node = zarr.open(str(path), mode="r")
+        node = zarr.open(str(source), mode="r")
         if isinstance(node, zarr.Group):
             node = node["volume"]
         return np.asarray(node[...])
     except Exception as exc:
-        raise InputError(f"{path}: not a readable Zarr array ({type(exc).__name__}: {exc})") from exc
+        raise InputError(f"{source}: not a readable Zarr array ({type(exc).__name__}: {exc})") from exc

@@ -49,9 +49,9 @@ CAPTURE_FILES = ("coded.npy", "mask.npy", "truth.npy", "coded.tif")
 
 def capture_paths(outdir: str | Path) -> dict[str, Path]:
     """Where a simulated capture's files go (:data:`CAPTURE_FILES`)."""
-    outdir = Path(outdir)
-    return dict(coded=outdir / "coded.npy", mask=outdir / "mask.npy", truth=outdir / "truth.npy",
-                coded_tif=outdir / "coded.tif")
+    folder = Path(outdir)
+    return dict(coded=folder / "coded.npy", mask=folder / "mask.npy", truth=folder / "truth.npy",
+                coded_tif=folder / "coded.tif")
 
 
 def write_capture(capture: dict[str, np.ndarray], outdir: str | Path) -> dict[str, Path]:
@@ -180,10 +180,10 @@ class ImageStack(_LazyStack):
         return cio.read_image(self.files[i]) if self.files is not None else cio.read_page(self.path, i)
 
     def __getitem__(self, i):
-        i = self._index(i)
-        image = self._read(i)
+        index = self._index(i)
+        image = self._read(index)
         if image.shape != self.shape[1:]:
-            name = self.files[i] if self.files is not None else f"{self.path} (page {i + 1})"
+            name = self.files[index] if self.files is not None else f"{self.path} (page {index + 1})"
             raise InputError(f"coded image {name}: {image.shape[0]}x{image.shape[1]} pixels, but the "
                              f"first image of {self.path} has {self.shape[1]}x{self.shape[2]}")
         return image.astype(np.float32)
@@ -212,21 +212,21 @@ class VideoStack(_LazyStack):
         self._frames, self._next, self._kept = None, 0, {}
 
     def __getitem__(self, i):
-        i = self._index(i)
-        if i in self._kept:
-            return self._kept[i].copy()
-        if self._frames is None or i < self._next:
+        index = self._index(i)
+        if index in self._kept:
+            return self._kept[index].copy()
+        if self._frames is None or index < self._next:
             if self._frames is not None:
                 self._frames.close()
             self._frames, self._next = cio.iter_video(self.path), 0
-        while self._next <= i:
+        while self._next <= index:
             try:
                 self._kept[self._next] = next(self._frames)
             except StopIteration:  # the file changed since it was checked
                 raise InputError(f"coded image {self.path}: ends at frame {self._next} of {len(self)}") from None
             self._kept.pop(self._next - self.KEEP, None)
             self._next += 1
-        return self._kept[i].copy()
+        return self._kept[index].copy()
 
     def __del__(self):
         if getattr(self, "_frames", None) is not None:
@@ -236,13 +236,13 @@ class VideoStack(_LazyStack):
 def read_truth_stack(path: str | Path, frames: int, *, what: str = "truth") -> np.ndarray | NpyStack:
     """A video (T*N, H, W), a truth or a reconstruction: a long .npy stream is read ``frames`` at a time
     (checked whole first, part by part); anything else whole (:func:`read_volume`)."""
-    path = Path(path)
-    layout = cio.npy_layout(path) if path.suffix.lower() == ".npy" else None
+    source = Path(path)
+    layout = cio.npy_layout(source) if source.suffix.lower() == ".npy" else None
     if layout is not None and len(layout[0]) == 3 and layout[0][0] > frames:
-        stack = NpyStack(path, *layout, what=what)
+        stack = NpyStack(source, *layout, what=what)
         stack.check(frames)
         return stack
-    return read_volume(path)
+    return read_volume(source)
 
 
 def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack | VideoStack:
@@ -250,32 +250,32 @@ def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack | V
     printf pattern of images, or a lossless video (one coded image per video frame).  A .npy (H, W, 3) or
     (H, W, 4) is a colour image, taken as its luma like a colour PNG or TIFF (as a stack it would be images
     3 or 4 pixels wide, narrower than a patch)."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    layout = cio.npy_layout(path) if suffix == ".npy" else None
+    source = Path(path)
+    suffix = source.suffix.lower()
+    layout = cio.npy_layout(source) if suffix == ".npy" else None
     if layout is not None and len(layout[0]) == 3 and layout[0][-1] in (3, 4) and layout[0][-1] < PATCH:
-        return cio.read_image(path, color="luma")[None]
+        return cio.read_image(source, color="luma")[None]
     if layout is not None and len(layout[0]) == 3 and layout[0][0] > 1:  # a stream: read capture by capture
-        stack = NpyStack(path, *layout)
+        stack = NpyStack(source, *layout)
         stack.check()  # before any work, one capture at a time
         return stack
-    files = None if suffix == ".npy" else cio.frame_files(path)
-    pages = cio.tiff_page_count(path) if files is None and suffix in (".tif", ".tiff") else 1
+    files = None if suffix == ".npy" else cio.frame_files(source)
+    pages = cio.tiff_page_count(source) if files is None and suffix in (".tif", ".tiff") else 1
     if (files is not None and len(files) > 1) or pages > 1:  # images a capture each: read capture by capture
-        stack = ImageStack(path, files=files, pages=pages)
+        stack = ImageStack(source, files=files, pages=pages)
         stack.check()
         return stack
     if suffix == ".npy":
-        arr = cio.read_array(path)
+        arr = cio.read_array(source)
         if arr.ndim not in (2, 3):
-            raise InputError(f"coded image {path}: expected shape (H, W) or (T, H, W), got {arr.shape}")
+            raise InputError(f"coded image {source}: expected shape (H, W) or (T, H, W), got {arr.shape}")
         coded = arr.astype(np.float32).reshape((-1, *arr.shape[-2:]))
     elif suffix in VIDEO_SUFFIXES:  # a frame a capture: decoded capture by capture
-        stack = VideoStack(path)
+        stack = VideoStack(source)
         return stack if len(stack) > 1 else stack[0][None]
     else:
-        coded = cio.read_stack(path)
-    return check_coded(coded, f"coded image {path}")
+        coded = cio.read_stack(source)
+    return check_coded(coded, f"coded image {source}")
 
 
 def read_masks(path: str | Path) -> np.ndarray:
@@ -314,30 +314,30 @@ def check_mask(mask, where: str) -> np.ndarray:
     """A mask as both doors take it: a binary code (uint8), or a calibrated mask, each pixel's measured response
     per sub-frame in [0, 1] (float32).  ``where`` names it in the one-line error (``mask m.npy``, or the API's
     argument); NaN or Inf, values outside [0, 1] and an all-zero mask are refused."""
-    mask = np.asarray(mask)
-    if mask.dtype.kind not in "biuf":
-        raise InputError(f"{where}: values of type {mask.dtype}; a mask holds numbers (0/1, or weights in [0, 1])")
-    if not np.isfinite(mask).all():
+    arr = np.asarray(mask)
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"{where}: values of type {arr.dtype}; a mask holds numbers (0/1, or weights in [0, 1])")
+    if not np.isfinite(arr).all():
         raise InputError(f"{where}: contains NaN or Inf")
-    outside = (mask < 0) | (mask > 1)
+    outside = (arr < 0) | (arr > 1)
     if outside.any():
-        bad = np.unique(mask[outside])[:3].tolist()
+        bad = np.unique(arr[outside])[:3].tolist()
         raise InputError(f"{where}: values outside [0, 1] (e.g. {bad}); a mask is 0/1, or a calibrated "
                          "response per sub-frame in [0, 1]")
-    if not mask.any():
+    if not arr.any():
         raise InputError(f"{where}: no pixel is ever open (all zeros); there is nothing to reconstruct")
-    return mask.astype(np.uint8) if is_binary(mask) else mask.astype(np.float32)
+    return arr.astype(np.uint8) if is_binary(arr) else arr.astype(np.float32)
 
 
 def check_coded(coded, where: str) -> np.ndarray:
     """A coded image (or a stack) as both doors take it: numbers, finite; float32 (its stored type is the
     caller's to record: 8-bit integers are 0..255 whatever they hold)."""
-    coded = np.asarray(coded)
-    if coded.dtype.kind not in "biuf":
-        raise InputError(f"{where}: values of type {coded.dtype}; a coded image holds numbers")
-    if not np.isfinite(coded).all():
+    arr = np.asarray(coded)
+    if arr.dtype.kind not in "biuf":
+        raise InputError(f"{where}: values of type {arr.dtype}; a coded image holds numbers")
+    if not np.isfinite(arr).all():
         raise InputError(f"{where}: contains NaN or Inf")
-    return coded.astype(np.float32, copy=False)
+    return arr.astype(np.float32, copy=False)
 
 
 @contextlib.contextmanager
@@ -357,29 +357,29 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = EIGHT
     ``output`` only when the block ends complete.  Colour volumes gather the
     parts and go through :func:`write_volume` at the end.
     """
-    output = Path(output)
-    suffix = output.suffix.lower()
+    target = Path(output)
+    suffix = target.suffix.lower()
     grey = len(shape) == 3
     streamed = None
     if suffix == ".npy":
-        streamed = cio.npy_writer(output, shape)
+        streamed = cio.npy_writer(target, shape)
     elif grey and suffix in VIDEO_SUFFIXES:
-        streamed = cio.video_writer(output, tuple(shape[1:]), data_range=data_range, fps=fps)
+        streamed = cio.video_writer(target, tuple(shape[1:]), data_range=data_range, fps=fps)
     elif grey and suffix in (".tif", ".tiff"):
-        streamed = cio.stack_writer(output, shape[0], dtype=np.float32)
+        streamed = cio.stack_writer(target, shape[0], dtype=np.float32)
     elif grey and suffix in ("", ".d"):
-        streamed = cio.frames_writer(output, fmt="tiff16", data_range=data_range, total=shape[0])
+        streamed = cio.frames_writer(target, fmt="tiff16", data_range=data_range, total=shape[0])
     elif grey and suffix == ".mat":
         from codedvideo.formats.cacti import mat_writer
 
-        streamed = mat_writer(output, shape)
+        streamed = mat_writer(target, shape)
     if streamed is not None:
         with streamed as write:
             yield lambda index, part: write(part)
         return
     if grey and suffix == ".zarr":
         chunks = (min(part or shape[0], shape[0]), *(min(256, s) for s in shape[1:]))
-        with array_writer(output, shape, np.float32, chunks=chunks, attrs=dict(kind="codedvideo-volume")) as arr:
+        with array_writer(target, shape, np.float32, chunks=chunks, attrs=dict(kind="codedvideo-volume")) as arr:
             def put(index, part):
                 # a chunk at a time, each written once and whole: no float copy of the part (a part kept on
                 # disk, a FrameFile, is read a band of chunk rows at a time)
@@ -405,7 +405,7 @@ def volume_writer(output: str | Path, shape: tuple, *, data_range: float = EIGHT
         gathered[0][index] = part
 
     yield gather
-    write_volume(gathered[0] if gathered else np.empty(tuple(shape), np.float32), output, data_range=data_range, fps=fps)
+    write_volume(gathered[0] if gathered else np.empty(tuple(shape), np.float32), target, data_range=data_range, fps=fps)
 
 
 def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = EIGHT_BIT, fps: int = 30) -> Path:
@@ -422,32 +422,32 @@ def write_volume(volume: np.ndarray, output: str | Path, *, data_range: float = 
         folder of 16-bit TIFF frames.  Videos and frames scale ``data_range``
         to full scale.
     """
-    output = Path(output)
-    suffix = output.suffix.lower()
-    volume = np.asarray(volume)
+    target = Path(output)
+    suffix = target.suffix.lower()
+    data = np.asarray(volume)
     if suffix == ".npy":  # (a float32 volume written as it is: no copy)
-        cio.write_array(output, np.asarray(volume, np.float32))
+        cio.write_array(target, np.asarray(data, np.float32))
     elif suffix == ".zarr":  # a chunk at a time, each written once and whole: no float copy of the volume
-        chunks = volume.shape[:-2] + (256, 256)
-        with array_writer(output, volume.shape, np.float32, chunks=chunks, attrs=dict(kind="codedvideo-volume")) as arr:
-            for top in range(0, volume.shape[-2], 256):
-                for left in range(0, volume.shape[-1], 256):
+        chunks = data.shape[:-2] + (256, 256)
+        with array_writer(target, data.shape, np.float32, chunks=chunks, attrs=dict(kind="codedvideo-volume")) as arr:
+            for top in range(0, data.shape[-2], 256):
+                for left in range(0, data.shape[-1], 256):
                     where = (Ellipsis, slice(top, top + 256), slice(left, left + 256))
-                    arr[where] = np.asarray(volume[where], np.float32)
+                    arr[where] = np.asarray(data[where], np.float32)
     elif suffix == ".mat":
         from codedvideo.formats.cacti import write_mat_volume
 
-        write_mat_volume(output, volume)
+        write_mat_volume(target, data)
     elif suffix in (".tif", ".tiff"):
-        cio.write_stack(output, volume, dtype=np.float32)
+        cio.write_stack(target, data, dtype=np.float32)
     elif suffix in VIDEO_SUFFIXES:
-        cio.write_video(output, volume, data_range=data_range, fps=fps)
+        cio.write_video(target, data, data_range=data_range, fps=fps)
     elif suffix in ("", ".d"):
-        cio.write_frames(output, volume, fmt="tiff16", data_range=data_range)
+        cio.write_frames(target, data, fmt="tiff16", data_range=data_range)
     else:
-        raise InputError(f"output {output}: unknown format {suffix!r} "
+        raise InputError(f"output {target}: unknown format {suffix!r} "
                          "(use .npy, .zarr, .mat, .tif, .mp4, .mov, .mkv, .avi, .gif or a folder)")
-    return output
+    return target
 
 
 #: Suffixes :func:`write_volume` writes ("" and ".d": a folder of 16-bit TIFF frames).
@@ -479,8 +479,8 @@ def check_size(shape: tuple, path, patch: int = PATCH) -> None:
 
 
 def metrics_path(output: str | Path) -> Path:
-    output = Path(output)
-    return output.with_name((output.stem if output.suffix else output.name) + ".metrics.json")
+    target = Path(output)
+    return target.with_name((target.stem if target.suffix else target.name) + ".metrics.json")
 
 
 def read_volume(path: str | Path, *, color: str = "luma") -> np.ndarray:
@@ -494,26 +494,26 @@ def read_volume(path: str | Path, *, color: str = "luma") -> np.ndarray:
     -------
     ndarray of shape (N, H, W) (or (C, N, H, W)), float32
     """
-    path = Path(path)
-    suffix = path.suffix.lower()
+    source = Path(path)
+    suffix = source.suffix.lower()
     if suffix == ".zarr":
-        return load_array(path)
+        return load_array(source)
     if suffix == ".mat":
         from codedvideo.formats.cacti import read_mat_volume
 
-        return read_mat_volume(path)
+        return read_mat_volume(source)
     if suffix == ".npy":
-        arr = cio.read_array(path)
+        arr = cio.read_array(source)
         if arr.ndim not in (3, 4):
-            raise InputError(f"volume {path}: expected shape (N, H, W) or (C, N, H, W), got {arr.shape}")
+            raise InputError(f"volume {source}: expected shape (N, H, W) or (C, N, H, W), got {arr.shape}")
         if not np.isfinite(arr).all():
-            raise InputError(f"volume {path}: contains NaN or Inf")
+            raise InputError(f"volume {source}: contains NaN or Inf")
         return arr.astype(np.float32)
     if suffix in VIDEO_SUFFIXES:
-        return cio.read_video(path, color=color)
-    if path.is_dir():  # a frame folder written by write_frames reads back in frame units
-        return cio.read_stack(path, color=color) * np.float32(cio.read_frames_scale(path))
-    return cio.read_stack(path, color=color)
+        return cio.read_video(source, color=color)
+    if source.is_dir():  # a frame folder written by write_frames reads back in frame units
+        return cio.read_stack(source, color=color) * np.float32(cio.read_frames_scale(source))
+    return cio.read_stack(source, color=color)
 
 
 
@@ -535,15 +535,15 @@ class FrameFile:
     def __init__(self, volume: np.ndarray, folder: str | Path | None = None):
         import tempfile
 
-        volume = np.asarray(volume)
-        if volume.ndim != 3:
-            raise ValueError(f"FrameFile: a volume (N, H, W), not {volume.shape}")
+        data = np.asarray(volume)
+        if data.ndim != 3:
+            raise ValueError(f"FrameFile: a volume (N, H, W), not {data.shape}")
         if folder is not None:
             Path(folder).mkdir(parents=True, exist_ok=True)
-        self.shape, self.dtype = tuple(volume.shape), volume.dtype
+        self.shape, self.dtype = tuple(data.shape), data.dtype
         self._frame_bytes = int(np.prod(self.shape[1:])) * self.dtype.itemsize
         self._fh = tempfile.TemporaryFile(dir=folder, prefix=".codedvideo-frames-")
-        for frame in volume:
+        for frame in data:
             self._fh.write(np.ascontiguousarray(frame).data)
         self._fh.flush()
 
@@ -591,27 +591,27 @@ class FrameFile:
             os.pwrite(self._fh.fileno(), data.data.cast("B"), f * self._frame_bytes)
 
     def __getitem__(self, key):
-        key = key if isinstance(key, tuple) else (key,)
-        frames = self._frames(key[0])
-        if len(key) > 1 and isinstance(key[1], slice) and key[1].step in (None, 1):  # only those rows read
-            out, key = self._read(frames, key[1]), (key[0], slice(None), *key[2:])
+        index = key if isinstance(key, tuple) else (key,)
+        frames = self._frames(index[0])
+        if len(index) > 1 and isinstance(index[1], slice) and index[1].step in (None, 1):  # only those rows read
+            out, index = self._read(frames, index[1]), (index[0], slice(None), *index[2:])
         else:
             out = self._read(frames)
-        if isinstance(key[0], (int, np.integer)):
-            return out[0][key[1:]]
-        return out[(slice(None), *key[1:])]
+        if isinstance(index[0], (int, np.integer)):
+            return out[0][index[1:]]
+        return out[(slice(None), *index[1:])]
 
     def __setitem__(self, key, values) -> None:
-        key = key if isinstance(key, tuple) else (key,)
-        frames = self._frames(key[0])
-        if isinstance(key[0], (int, np.integer)):
+        index = key if isinstance(key, tuple) else (key,)
+        frames = self._frames(index[0])
+        if isinstance(index[0], (int, np.integer)):
             current = self._read(frames)
-            current[0][key[1:]] = values
-        elif len(key) == 1:
+            current[0][index[1:]] = values
+        elif len(index) == 1:
             current = np.broadcast_to(np.asarray(values, self.dtype), (len(frames), *self.shape[1:]))
         else:
             current = self._read(frames)
-            current[(slice(None), *key[1:])] = values
+            current[(slice(None), *index[1:])] = values
         self._write(frames, current)
 
     def __iter__(self):

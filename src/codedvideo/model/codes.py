@@ -145,13 +145,13 @@ def bump_starts(
         Start sub-frame of each pixel's bump, in ``0 .. N - L``.
     """
     _check_bump(frames, bump, patch)
-    rng = np.random.default_rng(rng)
+    gen = np.random.default_rng(rng)
     h, w = shape
     nstart = frames - bump + 1
-    cover = _covering_starts(frames, bump, rng)
+    cover = _covering_starts(frames, bump, gen)
     # the tile: covering roles at random positions, the rest uniform
-    tile = rng.integers(0, nstart, size=patch * patch)
-    roles = rng.permutation(patch * patch)[: len(cover)]
+    tile = gen.integers(0, nstart, size=patch * patch)
+    roles = gen.permutation(patch * patch)[: len(cover)]
     tile[roles] = cover
     tile = tile.reshape(patch, patch)
     yy, xx = np.mgrid[0:h, 0:w]
@@ -161,7 +161,7 @@ def bump_starts(
     is_role = np.zeros(patch * patch, dtype=bool)
     is_role[roles] = True
     role_map = is_role.reshape(patch, patch)[yy % patch, xx % patch]
-    free = rng.integers(0, nstart, size=(h, w))
+    free = gen.integers(0, nstart, size=(h, w))
     return np.where(role_map, tiled_starts, free).astype(np.int16)
 
 
@@ -207,13 +207,13 @@ def row_starts(
         Start sub-frame of each row's bump, in ``0 .. N - L``.
     """
     _check_bump(frames, bump, None)
-    rng = np.random.default_rng(rng)
+    gen = np.random.default_rng(rng)
     nstart = frames - bump + 1
-    free = rng.integers(0, nstart, size=height)
+    free = gen.integers(0, nstart, size=height)
     if patch * bump < frames:
         return free.astype(np.int16)
-    cover = _covering_starts(frames, bump, rng)
-    roles = rng.permutation(patch)[: len(cover)]
+    cover = _covering_starts(frames, bump, gen)
+    roles = gen.permutation(patch)[: len(cover)]
     role_start = np.full(patch, -1)
     role_start[roles] = cover
     by_role = role_start[np.arange(height) % patch]
@@ -273,9 +273,9 @@ def flutter_sequence(frames: int, *, rng: np.random.Generator | int | None = 0) 
     """
     if frames < 1:
         raise InputError(f"code flutter: frames must be >= 1, got {frames}")
-    rng = np.random.default_rng(rng)
+    gen = np.random.default_rng(rng)
     seq = np.zeros(frames, np.uint8)
-    seq[rng.permutation(frames)[: (frames + 1) // 2]] = 1
+    seq[gen.permutation(frames)[: (frames + 1) // 2]] = 1
     return seq
 
 
@@ -338,15 +338,15 @@ def make_code(
     if name == "flutter":
         seq = flutter_sequence(frames, rng=rng)
         return np.ascontiguousarray(np.broadcast_to(seq[:, None, None], (frames, *shape)))
-    rng = np.random.default_rng(rng)
+    gen = np.random.default_rng(rng)
     if name in ("bernoulli", "shifting"):
         if not 0.0 < p <= 1.0:
             raise InputError(f"code {name}: p must be in (0, 1], got {p}")
         if frames < 1:
             raise InputError(f"code {name}: frames must be >= 1, got {frames}")
         if name == "bernoulli":
-            return (rng.random((frames, *shape)) < p).astype(np.uint8)
-        base = (rng.random(shape) < p).astype(np.uint8)
+            return (gen.random((frames, *shape)) < p).astype(np.uint8)
+        base = (gen.random(shape) < p).astype(np.uint8)
         return np.stack([np.roll(base, t, axis=1) for t in range(frames)])
     if name == "global":
         return np.ones((frames, *shape), dtype=np.uint8)
@@ -454,14 +454,14 @@ def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
     -------
     report : CodeReport
     """
-    mask = np.asarray(mask)
-    if mask.ndim != 3:
-        raise InputError(f"mask: expected shape (N, H, W), got {mask.shape}")
-    binary = bool(np.isin(mask, (0, 1)).all())
-    nonzero = mask[mask != 0]
+    arr = np.asarray(mask)
+    if arr.ndim != 3:
+        raise InputError(f"mask: expected shape (N, H, W), got {arr.shape}")
+    binary = bool(np.isin(arr, (0, 1)).all())
+    nonzero = arr[arr != 0]
     # a calibrated mask's leakage (a closed shutter passing a few per cent) is not an opening
-    threshold = 1.0 if binary else 0.5 * float(mask.max(initial=0.0))
-    m = ((mask >= threshold) & (mask != 0)).astype(np.int8)
+    threshold = 1.0 if binary else 0.5 * float(arr.max(initial=0.0))
+    m = ((arr >= threshold) & (arr != 0)).astype(np.int8)
     counts = m.sum(0)
     # a single contiguous bump <=> at most one rising edge (0 -> 1) along time
     rises = (np.diff(np.concatenate([np.zeros_like(m[:1]), m]), axis=0) == 1).sum(0)
@@ -469,22 +469,22 @@ def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
     open_counts = counts[counts > 0]
     fixed = single and open_counts.size > 0 and bool((open_counts == open_counts[0]).all())
     uncovered = None  # no window in an image smaller than one
-    if min(mask.shape[1:]) >= patch:
+    if min(arr.shape[1:]) >= patch:
         missing = (window_coverage(m, patch) == 0).any(0)
         uncovered = int(missing.sum())
     return CodeReport(
-        frames=int(mask.shape[0]),
+        frames=int(arr.shape[0]),
         binary=binary,
         single_bump=single,
         fixed_bump=fixed,
         bump_length=int(open_counts[0]) if fixed else None,
         window_coverage=None if uncovered is None else uncovered == 0,
-        never_open_pixels=int((~(mask != 0).any(0)).sum()),  # no light at all (leakage is a measurement)
+        never_open_pixels=int((~(arr != 0).any(0)).sum()),  # no light at all (leakage is a measurement)
         open_fraction=float(m.mean()),
         uncovered_windows=uncovered,
         patch=patch,
-        mean_weight=float(np.mean(mask, dtype=np.float64)) if mask.size else 0.0,
+        mean_weight=float(np.mean(arr, dtype=np.float64)) if arr.size else 0.0,
         weight_min=float(nonzero.min()) if nonzero.size else 0.0,
-        weight_max=float(mask.max()) if mask.size else 0.0,
+        weight_max=float(arr.max()) if arr.size else 0.0,
         open_threshold=threshold,
     )

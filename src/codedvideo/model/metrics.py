@@ -45,26 +45,26 @@ def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
     reconstructed exactly, :func:`mean_psnr`), ``exact_frames``, ``psnr_per_frame``,
     ``ssim_per_frame`` and ``data_range``.
     """
-    recon = recon if hasattr(recon, "shape") else np.asarray(recon)
-    truth = truth if hasattr(truth, "shape") else np.asarray(truth)
-    if tuple(recon.shape) != tuple(truth.shape):
-        raise InputError(f"evaluate: reconstruction shape {tuple(recon.shape)} != truth shape {tuple(truth.shape)}")
-    if len(recon.shape) != 3:
-        raise InputError(f"evaluate: expected (N, H, W) volumes, got shape {tuple(recon.shape)}")
+    rec = recon if hasattr(recon, "shape") else np.asarray(recon)
+    ref = truth if hasattr(truth, "shape") else np.asarray(truth)
+    if tuple(rec.shape) != tuple(ref.shape):
+        raise InputError(f"evaluate: reconstruction shape {tuple(rec.shape)} != truth shape {tuple(ref.shape)}")
+    if len(rec.shape) != 3:
+        raise InputError(f"evaluate: expected (N, H, W) volumes, got shape {tuple(rec.shape)}")
     # lazy, and only the SSIM module: importing it brings scipy.ndimage (0.1 s of a run's start, paid only when
     # there is a truth to compare with); skimage.metrics' PSNR lives beside an import of scipy.stats (1 s)
     from skimage.metrics import structural_similarity
 
     psnr = []
     ssim = []
-    win = min(7, *truth.shape[1:])
+    win = min(7, *ref.shape[1:])
     win -= 1 - win % 2  # odd window no larger than the frame
-    for start in range(0, recon.shape[0], EVALUATE_BLOCK):
+    for start in range(0, rec.shape[0], EVALUATE_BLOCK):
         part = slice(start, start + EVALUATE_BLOCK)
-        recon_part = np.asarray(recon[part], dtype=np.float64)
+        recon_part = np.asarray(rec[part], dtype=np.float64)
         if not np.isfinite(recon_part).all():
             raise InputError("evaluate: the reconstruction contains NaN or Inf")
-        for r, t in zip(recon_part, np.asarray(truth[part], dtype=np.float64)):
+        for r, t in zip(recon_part, np.asarray(ref[part], dtype=np.float64)):
             mse = float(np.mean((r - t) ** 2))
             psnr.append(float("inf") if mse == 0 else float(10 * np.log10(float(data_range) ** 2 / mse)))
             ssim.append(float(structural_similarity(t, r, data_range=data_range, win_size=max(win, 3)))

@@ -103,8 +103,8 @@ def fold_rows(patches: np.ndarray, out: np.ndarray, row: int, patch: int = PATCH
         raise ValueError(f"fold_rows: patches of {pt.shape[1] * pt.shape[2]} values are not {n}x{patch}x{patch}")
     if scalar and n != 1:
         raise ValueError("fold_rows: one value per patch folds into a single-frame accumulator")
-    skip = np.zeros(k * wp, np.bool_) if skip is None else np.ascontiguousarray(skip, dtype=np.bool_)
-    _fold_kernel(pt, out, row, patch, skip, scalar)
+    skipped = np.zeros(k * wp, np.bool_) if skip is None else np.ascontiguousarray(skip, dtype=np.bool_)
+    _fold_kernel(pt, out, row, patch, skipped, scalar)
 
 
 @njit(nogil=True, cache=True)

@@ -70,17 +70,17 @@ def forward(video: np.ndarray, mask: np.ndarray) -> np.ndarray:
     -------
     coded : ndarray of shape (H, W), float32
     """
-    video, mask = np.asanyarray(video), np.asanyarray(mask)
-    if video.shape != mask.shape:
-        raise InputError(f"forward: video shape {video.shape} != mask shape {mask.shape}")
-    n, h, w = video.shape
+    video_arr, mask_arr = np.asanyarray(video), np.asanyarray(mask)
+    if video_arr.shape != mask_arr.shape:
+        raise InputError(f"forward: video shape {video_arr.shape} != mask shape {mask_arr.shape}")
+    n, h, w = video_arr.shape
     coded = np.empty((h, w), np.float32)
     # a band of rows at a time: the float32 copies of a band of the mask (and of a video in another type) stay
     # small (a whole 4K N = 18 mask's copy was a second 600 MB volume); each pixel's sum is the same either way
     rows = max(1, _BAND_ELEMENTS // max(n * w, 1))
     for y in range(0, h, rows):
         band = (slice(None), slice(y, y + rows))
-        np.einsum("thw,thw->hw", np.asarray(video[band], np.float32), np.asarray(mask[band], np.float32),
+        np.einsum("thw,thw->hw", np.asarray(video_arr[band], np.float32), np.asarray(mask_arr[band], np.float32),
                   out=coded[y:y + rows], dtype=np.float32)
     return coded
 
@@ -99,11 +99,11 @@ def add_read_noise(coded: np.ndarray, sigma: float, rng: np.random.Generator | i
     """Add Gaussian read noise of standard deviation ``sigma`` (frame units)."""
     if sigma < 0 or not np.isfinite(sigma):
         raise InputError(f"noise: sigma must be finite and >= 0, got {sigma}")
-    coded = np.asarray(coded, dtype=np.float32)
+    image = np.asarray(coded, dtype=np.float32)
     if sigma == 0:
-        return coded.copy()
-    rng = np.random.default_rng(rng)
-    return (coded + rng.normal(0.0, sigma, size=coded.shape)).astype(np.float32)
+        return image.copy()
+    gen = np.random.default_rng(rng)
+    return (image + gen.normal(0.0, sigma, size=image.shape)).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -209,11 +209,11 @@ def add_shot_noise(
     noisy : ndarray of shape (H, W), float32
         Mean ``coded`` and variance ``coded / gain`` below saturation.
     """
-    rng = np.random.default_rng(rng)
+    gen = np.random.default_rng(rng)
     electrons = np.clip(np.asarray(coded, dtype=np.float64), 0.0, None) * gain
     # a mean far above the full well saturates whatever is drawn (numpy refuses means past about 1e19)
     electrons = np.minimum(electrons, 4.0 * full_well + 1e3)
-    counts = np.minimum(rng.poisson(electrons), full_well)
+    counts = np.minimum(gen.poisson(electrons), full_well)
     return (counts / gain).astype(np.float32)
 
 
@@ -301,15 +301,15 @@ def raise_to_white(volume: np.ndarray, saturated: np.ndarray, mask: np.ndarray, 
     Measured (96x96, N = 8, white levels 300 to 460, 0.5 to 81 % of pixels saturated, three scenes, hitomi
     L = 2 and Bernoulli codes): +0.03 to +0.83 dB over leaving them out alone, never worse.
     """
-    saturated = np.asarray(saturated, bool)  # (H, W), and white_level in the units of ``volume``
+    clipped = np.asarray(saturated, bool)  # (H, W), and white_level in the units of ``volume``
     s = np.asarray(mask, np.float32)
     recorded = (s * volume).sum(0)
     ss = (s * s).sum(0)
-    low = saturated & (recorded < white_level) & (ss > 0)
+    low = clipped & (recorded < white_level) & (ss > 0)
     if low.any():
         lift = np.zeros(recorded.shape, np.float32)
         lift[low] = (np.float32(white_level) - recorded[low]) / ss[low]
-        volume += (s * lift[None]).astype(volume.dtype)
+        np.add(volume, (s * lift[None]).astype(volume.dtype), out=volume)  # in place: ``volume += ...``
     return int(low.sum())
 
 
@@ -393,12 +393,12 @@ def blur_shift_mask(
         raise InputError(f"blur_shift_mask: expected a mask (N, H, W), got shape {m.shape}")
     if not (math.isfinite(sigma) and sigma >= 0):
         raise InputError(f"blur_shift_mask: sigma must be finite and >= 0, got {sigma}")
-    shift = tuple(float(v) for v in shift)
-    if len(shift) != 2 or not all(math.isfinite(v) for v in shift):
-        raise InputError(f"blur_shift_mask: shift must be two finite numbers (rows, columns), got {shift}")
+    offset = tuple(float(v) for v in shift)
+    if len(offset) != 2 or not all(math.isfinite(v) for v in offset):
+        raise InputError(f"blur_shift_mask: shift must be two finite numbers (rows, columns), got {offset}")
     out = np.empty(m.shape, np.float64)
     for t in range(m.shape[0]):
-        frame = ndimage.shift(m[t], shift, order=1, mode=mode, prefilter=False)
+        frame = ndimage.shift(m[t], offset, order=1, mode=mode, prefilter=False)
         if sigma > 0:
             frame = ndimage.gaussian_filter(frame, sigma, mode=mode)
         out[t] = frame

@@ -152,9 +152,9 @@ def correct_raw(
         ``coded`` in the frames' units (the white level of a pixel is then
         ``white_level - black_level``), ``mask`` without the missing pixels.
     """
-    coded = np.asarray(coded)
-    check_pair(coded.shape, np.shape(mask), where=where)
-    raw = coded.astype(np.float32)
+    arr = np.asarray(coded)
+    check_pair(arr.shape, np.shape(mask), where=where)
+    raw = arr.astype(np.float32)
     if not np.isfinite(raw).all():
         raise InputError(f"{where}: contains NaN or Inf")
     black = np.asarray(black_level, dtype=np.float32)
@@ -212,27 +212,27 @@ def drop_pixels(coded: np.ndarray, mask: np.ndarray, bad: np.ndarray) -> tuple[n
         Bad pixels.
     """
     check_pair(np.shape(coded), np.shape(mask), where="bad pixels")
-    bad = bad_pixel_map(bad, np.shape(coded))
-    coded = np.asarray(coded, dtype=np.float32).copy()
-    mask = np.array(mask, copy=True)
-    coded[bad] = 0.0
-    mask[:, bad] = 0
-    return coded, mask, int(bad.sum())
+    bad_map = bad_pixel_map(bad, np.shape(coded))
+    out_coded = np.asarray(coded, dtype=np.float32).copy()
+    out_mask = np.array(mask, copy=True)
+    out_coded[bad_map] = 0.0
+    out_mask[:, bad_map] = 0
+    return out_coded, out_mask, int(bad_map.sum())
 
 
 # ----------------------------------------------------------------------------- bad-pixel lists
 def bad_pixel_map(bad: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """A boolean map (H, W) of defective pixels from a map or from ``(y, x)`` rows (K, 2)."""
-    bad = np.asarray(bad)
-    shape = tuple(int(v) for v in shape)
-    if bad.dtype == np.bool_ and bad.shape == shape:
-        return bad.copy()
-    if bad.size == 0:
-        return np.zeros(shape, bool)
-    if bad.ndim != 2 or bad.shape[1] != 2:
-        raise InputError(f"bad pixels: expected a boolean map {shape} or (y, x) rows of shape (K, 2), got {bad.shape}")
-    rows = check_bad_rows(bad, shape, where="bad pixels")
-    out = np.zeros(shape, bool)
+    arr = np.asarray(bad)
+    size = tuple(int(v) for v in shape)
+    if arr.dtype == np.bool_ and arr.shape == size:
+        return arr.copy()
+    if arr.size == 0:
+        return np.zeros(size, bool)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise InputError(f"bad pixels: expected a boolean map {size} or (y, x) rows of shape (K, 2), got {arr.shape}")
+    rows = check_bad_rows(arr, size, where="bad pixels")
+    out = np.zeros(size, bool)
     out[rows[:, 0], rows[:, 1]] = True
     return out
 
@@ -244,25 +244,25 @@ def check_bad_rows(rows: np.ndarray, shape: tuple[int, int], *, where: str, line
     ``lines`` (1-based line numbers of a text file) name the offending entry;
     otherwise it is named by its 1-based row.
     """
-    rows = np.asarray(rows)
+    yx = np.asarray(rows)
     h, w = shape
-    if rows.size and rows.dtype.kind == "f":
-        nonint = ~np.isfinite(rows).all(1) | (rows != np.round(rows)).any(1)
+    if yx.size and yx.dtype.kind == "f":
+        nonint = ~np.isfinite(yx).all(1) | (yx != np.round(yx)).any(1)
         if nonint.any():
             i = int(np.flatnonzero(nonint)[0])
             at = f"line {lines[i]}" if lines else f"{unit} {i + 1}"
-            raise InputError(f"{where}: {at} ({rows[i, 0]:g} {rows[i, 1]:g}) is not two integers 'y x'")
-        rows = rows.astype(np.int64)
-    elif rows.size and rows.dtype.kind not in "iu":
-        raise InputError(f"{where}: expected integer (y, x) rows, got dtype {rows.dtype}")
-    rows = rows.astype(np.int64).reshape(-1, 2)
-    outside = (rows[:, 0] < 0) | (rows[:, 0] >= h) | (rows[:, 1] < 0) | (rows[:, 1] >= w)
+            raise InputError(f"{where}: {at} ({yx[i, 0]:g} {yx[i, 1]:g}) is not two integers 'y x'")
+        yx = yx.astype(np.int64)
+    elif yx.size and yx.dtype.kind not in "iu":
+        raise InputError(f"{where}: expected integer (y, x) rows, got dtype {yx.dtype}")
+    yx = yx.astype(np.int64).reshape(-1, 2)
+    outside = (yx[:, 0] < 0) | (yx[:, 0] >= h) | (yx[:, 1] < 0) | (yx[:, 1] >= w)
     if outside.any():
         i = int(np.flatnonzero(outside)[0])
         at = f"line {lines[i]}" if lines else f"{unit} {i + 1}"
-        raise InputError(f"{where}: {at} (y={rows[i, 0]}, x={rows[i, 1]}) is outside the {h}x{w} image "
-                         f"(0 <= y < {h}, 0 <= x < {w}); {int(outside.sum())} of {len(rows)} rows are outside")
-    return rows
+        raise InputError(f"{where}: {at} (y={yx[i, 0]}, x={yx[i, 1]}) is outside the {h}x{w} image "
+                         f"(0 <= y < {h}, 0 <= x < {w}); {int(outside.sum())} of {len(yx)} rows are outside")
+    return yx
 
 
 def read_bad_pixels(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
@@ -405,16 +405,16 @@ def outlier_scores(coded: np.ndarray, mask: np.ndarray, *, size: int = 5, simila
     """
     from scipy import ndimage
 
-    coded = np.asarray(coded, dtype=np.float64)
-    check_pair(coded.shape, np.shape(mask), where="detect_bad_pixels")
+    image = np.asarray(coded, dtype=np.float64)
+    check_pair(image.shape, np.shape(mask), where="detect_bad_pixels")
     for name, k in (("size", size), ("similar_size", similar_size)):
         if not (isinstance(k, (int, np.integer)) and k >= 3 and k % 2 == 1):
             raise InputError(f"detect_bad_pixels: {name} must be an odd integer >= 3, got {k}")
     n_open = _open_count(mask).astype(np.float64)
     open_ = n_open > 0
     if not open_.any():
-        return np.zeros(coded.shape, np.float32)
-    s = np.where(open_, coded / np.where(open_, n_open, 1.0), 0.0)
+        return np.zeros(image.shape, np.float32)
+    s = np.where(open_, image / np.where(open_, n_open, 1.0), 0.0)
     if not open_.all():  # never-open pixels take their nearest open neighbour's value: no false contrast
         _, (iy, ix) = ndimage.distance_transform_edt(~open_, return_indices=True)
         s = s[iy, ix]
@@ -476,28 +476,28 @@ def detect_bad_pixels(
     captures of the test scenes the default threshold flags no pixel or a
     handful (see the tests); a stack of captures lowers that further.
     """
-    coded = np.asarray(coded)
-    if threshold is None:
-        threshold = 8.0 if coded.ndim == 2 else 6.0
-    if not (math.isfinite(threshold) and threshold > 0):
-        raise InputError(f"detect_bad_pixels: threshold must be finite and > 0, got {threshold}")
+    data = np.asarray(coded)
+    limit = threshold
+    if limit is None:
+        limit = 8.0 if data.ndim == 2 else 6.0
+    if not (math.isfinite(limit) and limit > 0):
+        raise InputError(f"detect_bad_pixels: threshold must be finite and > 0, got {limit}")
     if not 0 <= min_fraction < 1:
         raise InputError(f"detect_bad_pixels: min_fraction must be in [0, 1), got {min_fraction}")
     kw = dict(size=size, similar_size=similar_size, min_similarity=min_similarity)
-    coded = np.asarray(coded)
-    mask = np.asarray(mask)
-    if coded.ndim == 2:
-        return outlier_scores(coded, mask, **kw) > threshold
-    if coded.ndim != 3:
-        raise InputError(f"detect_bad_pixels: expected a coded image (H, W) or a stack (T, H, W), got {coded.shape}")
-    if mask.ndim == 3:
-        masks = [mask] * coded.shape[0]
-    elif mask.ndim == 4 and mask.shape[0] == coded.shape[0]:
-        masks = list(mask)
+    mask_arr = np.asarray(mask)
+    if data.ndim == 2:
+        return outlier_scores(data, mask_arr, **kw) > limit
+    if data.ndim != 3:
+        raise InputError(f"detect_bad_pixels: expected a coded image (H, W) or a stack (T, H, W), got {data.shape}")
+    if mask_arr.ndim == 3:
+        masks = [mask_arr] * data.shape[0]
+    elif mask_arr.ndim == 4 and mask_arr.shape[0] == data.shape[0]:
+        masks = list(mask_arr)
     else:
-        raise InputError(f"detect_bad_pixels: mask {mask.shape} is neither one (N, H, W) nor one per capture "
-                         f"({coded.shape[0]}, N, H, W)")
-    return vote_bad_pixels(zip(coded, masks), coded.shape[0], threshold=threshold, min_fraction=min_fraction, **kw)
+        raise InputError(f"detect_bad_pixels: mask {mask_arr.shape} is neither one (N, H, W) nor one per capture "
+                         f"({data.shape[0]}, N, H, W)")
+    return vote_bad_pixels(zip(data, masks), data.shape[0], threshold=limit, min_fraction=min_fraction, **kw)
 
 
 def vote_bad_pixels(captures, count: int, *, threshold: float = 6.0, min_fraction: float = 0.5, **kw) -> np.ndarray:

@@ -99,12 +99,12 @@ def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0,
     -------
     ndarray of shape (H, W), float32, in working units
     """
-    sigma = sigma * scale
+    work_sigma = sigma * scale
 
     def usable(j: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Capture j's ``coded / open count`` in working units, its open count, and where it may take part."""
         q, k = normalised(codeds[j], masks(j))
-        quiet = (k > 0) & (sigma <= STILL_NOISE_MAX * k)
+        quiet = (k > 0) & (work_sigma <= STILL_NOISE_MAX * k)
         if white_level is not None:
             quiet &= np.asarray(codeds[j]) < np.float32(white_level)
         return q * np.float32(scale), k, quiet
@@ -119,14 +119,14 @@ def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0,
             continue
         qj, kj, quiet_j = usable(j)
         with np.errstate(divide="ignore"):
-            spread = sigma * np.sqrt(1 / np.maximum(k, 1e-12) ** 2 + 1 / np.maximum(kj, 1e-12) ** 2)
+            spread = work_sigma * np.sqrt(1 / np.maximum(k, 1e-12) ** 2 + 1 / np.maximum(kj, 1e-12) ** 2)
         tol = np.maximum(STILL_SIGMAS * spread, STILL_FLOOR)
         near = quiet & quiet_j & (np.abs(q - qj) <= tol)
         agree |= near
         w = np.where(near, kj * kj, 0).astype(np.float32)
         weight, pull = weight + w, pull + w * (qj - q)
-    if sigma > 0:  # flat regions: left to the single-capture still test, which also removes the noise
-        agree &= ~_flat(q, np.where(k > 0, sigma / np.maximum(k, 1e-12), 0).astype(np.float32))
+    if work_sigma > 0:  # flat regions: left to the single-capture still test, which also removes the noise
+        agree &= ~_flat(q, np.where(k > 0, work_sigma / np.maximum(k, 1e-12), 0).astype(np.float32))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(agree, q + pull / weight, np.nan).astype(np.float32)
 
@@ -199,8 +199,8 @@ class Cuts:
             hc, wc = -(-h // s), -(-w // s)
 
             def cells(a):  # block sums over s x s cells (the last ones partial)
-                a = np.pad(a, ((0, hc * s - h), (0, wc * s - w)))
-                return a.reshape(hc, s, wc, s).sum((1, 3), dtype=np.float64)
+                padded = np.pad(a, ((0, hc * s - h), (0, wc * s - w)))
+                return padded.reshape(hc, s, wc, s).sum((1, 3), dtype=np.float64)
 
             count = cells(seen.astype(np.float32))
             coarse = cells(q) / np.maximum(count, 1)
@@ -246,9 +246,9 @@ def _flat(q: np.ndarray, noise: np.ndarray, patch: int = PATCH) -> np.ndarray:
     """Pixels whose ``patch x patch`` window of ``q`` varies no more than its noise does (``FLAT_VARIANCE``)."""
     from scipy import ndimage  # lazy (see erode_to_patches)
 
-    q = q.astype(np.float64)
-    mean = ndimage.uniform_filter(q, patch, mode="nearest")
-    spread = ndimage.uniform_filter(q * q, patch, mode="nearest") - mean * mean
+    values = q.astype(np.float64)
+    mean = ndimage.uniform_filter(values, patch, mode="nearest")
+    spread = ndimage.uniform_filter(values * values, patch, mode="nearest") - mean * mean
     return spread <= FLAT_VARIANCE * ndimage.uniform_filter(noise.astype(np.float64) ** 2, patch, mode="nearest")
 
 
@@ -361,11 +361,11 @@ def _warp(frames: np.ndarray, vy: np.ndarray, vx: np.ndarray, tau: np.ndarray, *
     so a pixel whose samples lie inside the band gets the whole frame's bits.  ``rows``: only these rows of
     the result (the others are not worked out).
     """
-    frames = np.ascontiguousarray(frames, dtype=np.float32)
-    h = frames.shape[1]
+    stack = np.ascontiguousarray(frames, dtype=np.float32)
+    h = stack.shape[1]
     first, last, _ = (rows or slice(None)).indices(h)
-    out = np.empty((frames.shape[0], max(last - first, 0), frames.shape[2]), np.float32)
-    _warp_kernel(frames, np.ascontiguousarray(vy, dtype=np.float32), np.ascontiguousarray(vx, dtype=np.float32),
+    out = np.empty((stack.shape[0], max(last - first, 0), stack.shape[2]), np.float32)
+    _warp_kernel(stack, np.ascontiguousarray(vy, dtype=np.float32), np.ascontiguousarray(vx, dtype=np.float32),
                  np.ascontiguousarray(tau, dtype=np.float32), int(row0), int(h if height is None else height),
                  int(first), out)
     return out
@@ -485,9 +485,10 @@ def join_captures(
         raise ValueError(f"join_captures: before {b.shape} and after {a.shape} must both be (N, H, W)")
     if min(len(JOIN_WEIGHTS), b.shape[0] // 2) < 2:
         return b, a
-    if data_range is None:
-        data_range = max(static_peak(coded_before, mask_before), static_peak(coded_after, mask_after))
-    _join_region(b, a, mask_before, mask_after, data_range=data_range)
+    value_range = data_range
+    if value_range is None:
+        value_range = max(static_peak(coded_before, mask_before), static_peak(coded_after, mask_after))
+    _join_region(b, a, mask_before, mask_after, data_range=value_range)
     return b, a
 
 
@@ -564,9 +565,10 @@ def _join_region(before, after, mask_before, mask_after, *, data_range: float | 
         del frames, window
     if not moves:
         return  # nothing changes in time here: nothing to join
-    if data_range is None or not np.isfinite(data_range) or data_range <= 0:
-        data_range = float(np.max(peaks)) or 1.0
-    unit = np.float32(data_range)  # work in fractions of the data range: every constant is scale-free
+    value_range = data_range
+    if value_range is None or not np.isfinite(value_range) or value_range <= 0:
+        value_range = float(np.max(peaks)) or 1.0
+    unit = np.float32(value_range)  # work in fractions of the data range: every constant is scale-free
     # Only near what changes: the join is worked out on the box around it, the same values as over the
     # whole frame (tested).
     rows, cols = _around(changed, _join_reach(k))

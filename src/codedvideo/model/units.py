@@ -75,13 +75,13 @@ def open_ratios(coded: np.ndarray, mask: np.ndarray, step: int = 1, white_level:
     """``coded / open count`` of every pixel ever open (every ``step``-th row and column), flat; with
     ``white_level``, the pixels at or above it (saturated: no measurement) are left out."""
     counts = np.asarray(mask[..., ::step, ::step], np.float32).sum(-3)
-    coded = np.asarray(coded[..., ::step, ::step], np.float32)
-    if counts.shape != coded.shape[-2:]:
-        counts = np.broadcast_to(counts, coded.shape)
+    values = np.asarray(coded[..., ::step, ::step], np.float32)
+    if counts.shape != values.shape[-2:]:
+        counts = np.broadcast_to(counts, values.shape)
     open_ = counts > 0
     if white_level is not None:
-        open_ &= coded < np.float32(white_level)
-    return coded[open_] / counts[open_]
+        open_ &= values < np.float32(white_level)
+    return values[open_] / counts[open_]
 
 
 def static_peak(coded: np.ndarray, mask: np.ndarray, white_level: float | None = None) -> float:
@@ -144,8 +144,8 @@ NOISE_RANGE_RATIO = 2.0
 def noise_room(value: float, noise: float) -> float:
     """How far above the range ``value`` read noise ``noise`` (the capture's units) may carry values:
     :data:`NOISE_SIGMAS` sigmas, for a range at least :data:`NOISE_RANGE_RATIO` times the noise; else 0."""
-    noise = max(float(noise), 0.0)
-    return NOISE_SIGMAS * noise if value >= NOISE_RANGE_RATIO * noise else 0.0
+    sigma = max(float(noise), 0.0)
+    return NOISE_SIGMAS * sigma if value >= NOISE_RANGE_RATIO * sigma else 0.0
 
 
 def infer_data_range(peak: float, *, dtype=None, given: float | None = None, what: str = "coded / open count",
@@ -163,31 +163,31 @@ def infer_data_range(peak: float, *, dtype=None, given: float | None = None, wha
     to (up to ``OUTLIER_PEAK`` times each); training videos add 255, since a reconstruction overshoots its
     range (an 8-bit one peaking at 290 was taken as 12-bit).
     """
-    peak = float(peak)
+    peak_value = float(peak)
     if given is not None:
-        return DataRange(float(given), "given (--data-range)", peak)
+        return DataRange(float(given), "given (--data-range)", peak_value)
     kind = np.dtype(dtype) if dtype is not None else None
     if kind is not None and kind.kind in "iu" and kind.itemsize == 1:
-        return DataRange(255.0, f"dtype {kind.name}", peak)
+        return DataRange(255.0, f"dtype {kind.name}", peak_value)
     integer = kind is not None and kind.kind in "iub"
     for value in outlier_ranges if not integer and quantile is not None else ():
-        if value * NOISE_ROOM + noise_room(value, noise) < peak <= value * OUTLIER_PEAK:
+        if value * NOISE_ROOM + noise_room(value, noise) < peak_value <= value * OUTLIER_PEAK:
             typical = float(quantile())
             if typical <= value * NOISE_ROOM + noise_room(value, noise):
                 return DataRange(value, f"values ({1 - OUTLIER_SHARE:.0%} of {what} at most {typical:.4g}; its "
-                                        f"peak {peak:.4g} taken as outliers)", peak)
+                                        f"peak {peak_value:.4g} taken as outliers)", peak_value)
             break
     for value in COMMON_RANGES:
         if integer and value == 1.0:
             continue
-        if peak <= value * NOISE_ROOM + noise_room(value, noise):
-            return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
-    if not integer and peak > 0:  # a standard range in other decimal units (255000: thousandths of 8 bits)
+        if peak_value <= value * NOISE_ROOM + noise_room(value, noise):
+            return DataRange(value, f"values (peak of {what} {peak_value:.4g})", peak_value)
+    if not integer and peak_value > 0:  # a standard range in other decimal units (255000: thousandths of 8 bits)
         value = min((v * 10.0**k for v in COMMON_RANGES for k in range(1, 40)
-                     if peak <= v * 10.0**k * NOISE_ROOM + noise_room(v * 10.0**k, noise)), default=peak)
-        return DataRange(float(value), f"values (peak of {what} {peak:.4g})", peak)
-    value = float(2 ** math.ceil(math.log2(peak + 1)) - 1)
-    return DataRange(value, f"values (peak of {what} {peak:.4g})", peak)
+                     if peak_value <= v * 10.0**k * NOISE_ROOM + noise_room(v * 10.0**k, noise)), default=peak_value)
+        return DataRange(float(value), f"values (peak of {what} {peak_value:.4g})", peak_value)
+    value = float(2 ** math.ceil(math.log2(peak_value + 1)) - 1)
+    return DataRange(value, f"values (peak of {what} {peak_value:.4g})", peak_value)
 
 
 def check_range(units: DataRange, levels: dict[str, float | None], where: str) -> None:
@@ -224,13 +224,13 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = PATCH) -> 
     starts as the patch's coded values, so a patch whose coded RMS is within
     the tolerance gets no atom at all (it takes its still answer, coded / open count: no motion).
     """
-    coded = np.asarray(coded, np.float64)
+    arr = np.asarray(coded, np.float64)
     if not 0 < tol_rms < 1e150:  # (its square must be a float64)
         return None
-    if tol_rms <= 0 or min(coded.shape) < patch:
+    if tol_rms <= 0 or min(arr.shape) < patch:
         return None
     # each patch's mean square from running sums (no scipy.ndimage: a run of one capture starts 0.05 s sooner)
-    c = np.pad((coded**2).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    c = np.pad((arr**2).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
     sums = c[patch:, patch:] - c[:-patch, patch:] - c[patch:, :-patch] + c[:-patch, :-patch]
     share = float(np.mean(np.maximum(sums, 0) / patch**2 <= tol_rms**2))
     if share <= 0.5:
@@ -273,7 +273,7 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
 
     from codedvideo.model.errors import InputError
 
-    names = dict(CLI_NAMES, **(names or {}))
+    labels = dict(CLI_NAMES, **(names or {}))
     count = len(codeds)
     clip = white_level
     eight_bit = dtype is not None and np.dtype(dtype).kind in "iu" and np.dtype(dtype).itemsize == 1
@@ -283,12 +283,12 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
             clip = None  # nothing but the clipped pixels: they are the scene
         if clip is not None:
             warnings.warn(f"{where}: pixels of different open counts share the largest coded value {clip:.6g}: "
-                          f"clipped by the sensor; left out of the data range (give {names['white_level']} "
+                          f"clipped by the sensor; left out of the data range (give {labels['white_level']} "
                           f"{clip:.6g} to treat them as missing measurements)", stacklevel=2)
     peak = max(static_peak(codeds[i], mask_of(i), clip) for i in range(count))
     if peak <= 0 and white_level is not None and max(static_peak(codeds[i], mask_of(i)) for i in range(count)) > 0:
         raise InputError(f"{where}: every pixel that is ever open is at or above the white level {white_level:g} "
-                         f"({names['white_level']}): saturated, nothing is measured")
+                         f"({labels['white_level']}): saturated, nothing is measured")
     # a sum of frames is never negative: the wrong file, or a black level taken off twice
     if peak <= 0 and given is None:
         raise InputError(f"{where}: no coded value above 0 where the code is open; nothing to reconstruct "
@@ -296,15 +296,15 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     units = infer_data_range(peak, dtype=dtype, given=given, noise=noise_sigma, quantile=lambda: max(
         static_quantile(codeds[i], mask_of(i), 1 - OUTLIER_SHARE, white_level=clip) for i in range(count)))
     if given is not None:
-        units = DataRange(units.value, f"given ({names['data_range']})", units.peak)
+        units = DataRange(units.value, f"given ({labels['data_range']})", units.peak)
     check_range(units, levels or {}, where)
     level = units.value * NOISE_ROOM + noise_room(units.value, noise_sigma)
     if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
         warnings.warn(_above_range(codeds, mask_of, level, clip, peak, units, where), stacklevel=2)
     if given is None and units.value > 255 and peak <= 2 * 255:  # just past 8 bits: noise, or a dark frame?
         warnings.warn(f"{where}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
-                      f"just above 8-bit; if the frames are 8-bit with noise, give {names['noise_sigma']} or "
-                      f"{names['data_range']} 255", stacklevel=2)
+                      f"just above 8-bit; if the frames are 8-bit with noise, give {labels['noise_sigma']} or "
+                      f"{labels['data_range']} 255", stacklevel=2)
     return units
 
 

@@ -75,17 +75,17 @@ def normalized_fill(
         Exactly ``values`` where a sample is alone under the kernel; 0 only
         where no sample exists at all.
     """
-    values = np.asarray(values, np.float32)
+    vals = np.asarray(values, np.float32)
     from scipy import ndimage  # lazy: a command that needs none of it starts 0.05 to 0.1 s sooner
 
-    weights = np.asarray(weights, np.float32)
-    if len(radii) != values.ndim:
-        raise InputError(f"normalized_fill: {len(radii)} radii for an array of {values.ndim} axes")
-    out = np.zeros_like(values)
-    todo = np.ones(values.shape, bool)
+    wts = np.asarray(weights, np.float32)
+    if len(radii) != vals.ndim:
+        raise InputError(f"normalized_fill: {len(radii)} radii for an array of {vals.ndim} axes")
+    out = np.zeros_like(vals)
+    todo = np.ones(vals.shape, bool)
     r = [max(int(x), 1) for x in radii]
     for _ in range(max_doublings + 1):
-        num, den = values * weights, weights
+        num, den = vals * wts, wts
         for axis, rad in enumerate(r):
             if rad > 1:
                 k = _tent(rad)
@@ -96,7 +96,7 @@ def normalized_fill(
         todo &= ~ok
         if not todo.any():
             break
-        r = [min(2 * x, n) if x > 1 or n > 1 else 1 for x, n in zip(r, values.shape)]
+        r = [min(2 * x, n) if x > 1 or n > 1 else 1 for x, n in zip(r, vals.shape)]
     return out
 
 
@@ -188,12 +188,13 @@ def interp(coded: np.ndarray, mask: np.ndarray, *, radius_t: int = 3, radius_xy:
     """
     vals, w = _sample_values(coded, mask)
     n = vals.shape[0]
-    if radius_xy is None:
+    spatial_radius = radius_xy
+    if spatial_radius is None:
         per_pixel = float(w.sum(0).mean()) or 1.0
-        radius_xy = math.isqrt(max(math.ceil(n / per_pixel), 1) - 1) + 1
-    if radius_t < 1 or radius_xy < 1:
-        raise InputError(f"interp: radii must be >= 1, got radius_t = {radius_t}, radius_xy = {radius_xy}")
-    return normalized_fill(vals, w, (min(radius_t, n), radius_xy, radius_xy))
+        spatial_radius = math.isqrt(max(math.ceil(n / per_pixel), 1) - 1) + 1
+    if radius_t < 1 or spatial_radius < 1:
+        raise InputError(f"interp: radii must be >= 1, got radius_t = {radius_t}, radius_xy = {spatial_radius}")
+    return normalized_fill(vals, w, (min(radius_t, n), spatial_radius, spatial_radius))
 
 
 def gap_tv(

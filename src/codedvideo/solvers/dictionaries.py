@@ -70,18 +70,18 @@ def prepare_dictionary(D: np.ndarray, where: str) -> np.ndarray:
     InputError
         When ``D`` is not a 2D array, has no atoms, or every atom is zero or not finite.
     """
-    D = np.asarray(D)
-    if D.ndim != 2:
-        raise InputError(f"dictionary {where}: expected a 2D array (features, atoms), got shape {D.shape}")
-    if D.shape[1] == 0 or D.shape[0] == 0:
-        raise InputError(f"dictionary {where}: has no atoms (shape {D.shape})")
-    if not np.issubdtype(D.dtype, np.number) or np.iscomplexobj(D):
-        raise InputError(f"dictionary {where}: atoms must be real numbers, got dtype {D.dtype}")
-    norms = _column_norms(D)
+    atoms = np.asarray(D)
+    if atoms.ndim != 2:
+        raise InputError(f"dictionary {where}: expected a 2D array (features, atoms), got shape {atoms.shape}")
+    if atoms.shape[1] == 0 or atoms.shape[0] == 0:
+        raise InputError(f"dictionary {where}: has no atoms (shape {atoms.shape})")
+    if not np.issubdtype(atoms.dtype, np.number) or np.iscomplexobj(atoms):
+        raise InputError(f"dictionary {where}: atoms must be real numbers, got dtype {atoms.dtype}")
+    norms = _column_norms(atoms)
     finite = np.isfinite(norms)
     zero = finite & (norms == 0)
     keep = finite & ~zero
-    n_zero, n_bad, k = int(zero.sum()), int((~finite).sum()), D.shape[1]
+    n_zero, n_bad, k = int(zero.sum()), int((~finite).sum()), atoms.shape[1]
     if not keep.any():
         if n_bad == 0:
             raise InputError(f"dictionary {where}: every atom is zero ({k} atoms); it cannot represent any patch")
@@ -91,10 +91,10 @@ def prepare_dictionary(D: np.ndarray, where: str) -> np.ndarray:
                                                f"{n_bad} non-finite (NaN or Inf)" if n_bad else "") if part)
         warnings.warn(f"dictionary {where}: dropped {what} of its {k} atoms; reconstructing with the other "
                       f"{int(keep.sum())}", UserWarning, stacklevel=2)
-        D, norms = D[:, keep], norms[keep]
+        atoms, norms = atoms[:, keep], norms[keep]
     if np.abs(norms - 1.0).max() > UNIT_NORM_TOL:
-        return np.ascontiguousarray(D.astype(np.float64) / norms[None, :], dtype=np.float32)
-    return D if D.dtype == np.float32 else D.astype(np.float32)
+        return np.ascontiguousarray(atoms.astype(np.float64) / norms[None, :], dtype=np.float32)
+    return atoms if atoms.dtype == np.float32 else atoms.astype(np.float32)
 
 
 def _dct_1d(n: int, atoms: int) -> np.ndarray:
@@ -160,7 +160,7 @@ def training_patches(
     -------
     X : ndarray of shape (samples, frames * patch**2), float32
     """
-    rng = np.random.default_rng(rng)
+    gen = np.random.default_rng(rng)
     usable = [v for v in videos if v.shape[0] >= frames and min(v.shape[1:]) >= patch]
     if not usable:
         raise InputError(f"training: no video has >= {frames} frames and {patch}x{patch} pixels")
@@ -172,28 +172,28 @@ def training_patches(
             continue
         f, h, w = v.shape
         cand = 3 * count
-        t0 = rng.integers(0, f - frames + 1, cand)
-        y0 = rng.integers(0, h - patch + 1, cand)
-        x0 = rng.integers(0, w - patch + 1, cand)
+        t0 = gen.integers(0, f - frames + 1, cand)
+        y0 = gen.integers(0, h - patch + 1, cand)
+        x0 = gen.integers(0, w - patch + 1, cand)
         tt = t0[:, None, None, None] + np.arange(frames)[None, :, None, None]
         yy = y0[:, None, None, None] + np.arange(patch)[None, None, :, None]
         xx = x0[:, None, None, None] + np.arange(patch)[None, None, None, :]
         blocks = v[tt, yy, xx].astype(np.float32)  # (cand, frames, M, M)
         contrast = blocks.reshape(cand, -1).std(1) + 1.0
         half = count // 2
-        pick_u = rng.choice(cand, count - half, replace=False)
-        pick_c = rng.choice(cand, half, replace=False, p=contrast / contrast.sum())
+        pick_u = gen.choice(cand, count - half, replace=False)
+        pick_c = gen.choice(cand, half, replace=False, p=contrast / contrast.sum())
         blocks = blocks[np.concatenate([pick_u, pick_c])]
         if augment:
-            orient = rng.integers(0, DIHEDRAL, blocks.shape[0])
-            backward = rng.random(blocks.shape[0]) < 0.5
+            orient = gen.integers(0, DIHEDRAL, blocks.shape[0])
+            backward = gen.random(blocks.shape[0]) < 0.5
             for k in range(DIHEDRAL):
                 sel = orient == k
                 blocks[sel] = _dihedral(blocks[sel], k)
             blocks[backward] = blocks[backward][:, ::-1]
         out.append(blocks.reshape(blocks.shape[0], -1))
     X = np.concatenate(out)
-    return X[rng.permutation(X.shape[0])]
+    return X[gen.permutation(X.shape[0])]
 
 
 def _initial_dictionary(X: np.ndarray, frames: int, atoms: int, patch: int, rng: np.random.Generator) -> np.ndarray:

@@ -68,38 +68,38 @@ def ksvd(
     D : ndarray of shape (n_features, K), float32, unit-norm columns
     history : KsvdHistory
     """
-    rng = np.random.default_rng(rng)
-    X = np.ascontiguousarray(X, dtype=np.float32)
+    gen = np.random.default_rng(rng)
+    X32 = np.ascontiguousarray(X, dtype=np.float32)
     D = np.array(D0, dtype=np.float32)
-    D = _normalise_or_replace(D, X, rng)
+    D = _normalise_or_replace(D, X32, gen)
     K = D.shape[1]
     # atoms as rows: the compiled update reads and writes an atom contiguously; D is a view of it
     Dt = np.ascontiguousarray(D.T)
     D = Dt.T
     hist = KsvdHistory()
-    E = np.empty_like(X)
-    err = np.empty(X.shape[0])  # ||E[p]||^2, kept up to date with E (it picks the replacements)
+    E = np.empty_like(X32)
+    err = np.empty(X32.shape[0])  # ||E[p]||^2, kept up to date with E (it picks the replacements)
     for it in range(iterations):
-        codes = batch_omp(X, D, max_atoms=sparsity, tol=tol)
+        codes = batch_omp(X32, D, max_atoms=sparsity, tol=tol)
         coef = codes.coef  # updated with the atoms
-        subtract_codes(X, codes.index, coef, codes.count, Dt, E, err)  # E = X - codes D^T
+        subtract_codes(X32, codes.index, coef, codes.count, Dt, E, err)  # E = X - codes D^T
         S = codes.index.shape[1]
         valid = np.arange(S)[None, :] < codes.count[:, None]
         flat_atom = np.where(valid, codes.index, -1).ravel()
         order = np.argsort(flat_atom, kind="stable")  # flat positions p * S + s, grouped by atom
         bounds = np.searchsorted(flat_atom[order], np.arange(K + 1))
         replaced = 0
-        perm = rng.permutation(K)
+        perm = gen.permutation(K)
         # the atoms in turn: runs of used atoms compiled, an unused one replaced where its turn comes
         start = 0
         for i in np.flatnonzero(bounds[perm + 1] == bounds[perm]):
             if i > start:
                 update_atoms(E, err, Dt, coef, perm[start:i], order, bounds, power_steps)
-            replaced += _replace_atom(D, perm[i], E, err, rng)
+            replaced += _replace_atom(D, perm[i], E, err, gen)
             start = i + 1
         if start < K:
             update_atoms(E, err, Dt, coef, perm[start:], order, bounds, power_steps)
-        replaced += _replace_duplicates(D, E, err, rng)
+        replaced += _replace_duplicates(D, E, err, gen)
         rmse = float(np.sqrt(err.sum() / E.size))
         hist.rmse.append(rmse)
         hist.mean_atoms.append(float(codes.count.mean()))

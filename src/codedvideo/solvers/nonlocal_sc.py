@@ -541,19 +541,19 @@ def joint_omp(y: np.ndarray, S: np.ndarray, D: np.ndarray, *, max_atoms: int, to
     measurement (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`); a group of one is
     the default OMP.  Returns the members' estimates ``D alpha_p``, shape (k, N*m).
     """
-    y = np.ascontiguousarray(y, np.float32)
+    y32 = np.ascontiguousarray(y, np.float32)
     k, n, m = S.shape
     patterns, which = pixel_patterns(np.moveaxis(np.asarray(S), 1, 0))  # (N, k, m) -> which (k, m)
     table = TableOMP(patterns, D, m)
     kmax = int(min(max_atoms, m))
-    tol = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, np.float64), (k,)))
+    tols = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, np.float64), (k,)))
     index = np.zeros((1, k, kmax), np.int32)
     coef = np.zeros((1, k, kmax), np.float32)
     count = np.zeros((1, k), np.int32)
     res2 = np.zeros((1, k), np.float32)
     dep = np.zeros((1, k), np.bool_)
-    somp_kernel(y, np.ascontiguousarray(which, np.int32), np.arange(k, dtype=np.int64)[None], np.array([k], np.int64),
-                table.B, table.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count,
+    somp_kernel(y32, np.ascontiguousarray(which, np.int32), np.arange(k, dtype=np.int64)[None], np.array([k], np.int64),
+                table.B, table.floor, tols, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef, count,
                 res2, dep, float(consensus))
     return synthesize(OmpResult(index=index[0], coef=coef[0], count=count[0], residual=res2[0], dependent=dep[0]), D)
 

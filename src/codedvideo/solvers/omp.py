@@ -81,11 +81,11 @@ def _safe_inverse(norms: np.ndarray, atom_norms: np.ndarray | None = None) -> np
     themselves (broadcast against ``norms``), when it keeps less than
     :data:`MIN_VISIBLE` of its atom's norm.
     """
-    norms = np.asarray(norms, dtype=np.float32)
-    good = norms > _TINY * float(norms.max(initial=0.0))
+    col_norms = np.asarray(norms, dtype=np.float32)
+    good = col_norms > _TINY * float(col_norms.max(initial=0.0))
     if atom_norms is not None:
-        good &= norms > MIN_VISIBLE * np.asarray(atom_norms, dtype=np.float32)
-    return np.where(good, 1.0 / np.where(good, norms, 1.0), 0.0).astype(np.float32)
+        good &= col_norms > MIN_VISIBLE * np.asarray(atom_norms, dtype=np.float32)
+    return np.where(good, 1.0 / np.where(good, col_norms, 1.0), 0.0).astype(np.float32)
 
 
 @dataclass
@@ -331,9 +331,7 @@ class GroupedOperator:
     def __init__(self, S: np.ndarray, D: np.ndarray, groups=None):
         P, N, m = S.shape
         D3 = np.asarray(D, dtype=np.float32).reshape(N, m, -1)
-        if groups is None:
-            groups = patch_code_groups(S)
-        first, self.inv = groups
+        first, self.inv = groups if groups is not None else patch_code_groups(S)
         # contiguous: einsum may return a strided layout, and BLAS needs unit strides
         self.A = np.ascontiguousarray(np.einsum("unm,nmk->umk", S[first].astype(np.float32), D3, optimize=True))  # (U, m, K)
         self.At = np.ascontiguousarray(self.A.transpose(0, 2, 1))  # (U, K, m)
@@ -469,23 +467,23 @@ def omp(
     -------
     OmpResult
     """
-    y = np.ascontiguousarray(y, dtype=np.float32)
-    P, m = y.shape
+    y32 = np.ascontiguousarray(y, dtype=np.float32)
+    P, m = y32.shape
     kmax = int(min(max_atoms, m))
-    tol = np.broadcast_to(np.asarray(tol, dtype=np.float32), (P,))
+    tols = np.broadcast_to(np.asarray(tol, dtype=np.float32), (P,))
     order = op.order
     if order is not None:  # the operator's preferred order; undone at the end
-        y, tol = y[order], tol[order]
+        y32, tols = y32[order], tols[order]
     index = np.zeros((P, kmax), np.int32)
     count = np.zeros(P, np.int32)
     R = np.zeros((P, kmax, kmax), np.float32)
     qy = np.zeros((P, kmax), np.float32)
     dependent = np.zeros(P, bool)
-    res2 = np.einsum("pm,pm->p", y, y)
+    res2 = np.einsum("pm,pm->p", y32, y32)
     # working arrays hold the active patches only, compacted as patches finish
-    rows = np.flatnonzero(res2 > tol)
+    rows = np.flatnonzero(res2 > tols)
     view = op.view(rows)
-    r = y[rows]
+    r = y32[rows]
     Q = np.zeros((rows.size, kmax, m), np.float32)
     for k in range(kmax):
         if rows.size == 0:
@@ -514,7 +512,7 @@ def omp(
         index[done, k] = j[ok]
         count[done] = k + 1
         res2[done] = rr[ok]
-        keep = ok & (rr > tol[rows])
+        keep = ok & (rr > tols[rows])
         if keep.all():
             r = r_new
         else:
@@ -546,23 +544,23 @@ def omp_reference(A: np.ndarray, y: np.ndarray, *, max_atoms: int, tol: float = 
     Normalised selection, least squares by ``numpy.linalg.lstsq`` each step.
     Returns the dense coefficient vector of shape (K,), float64.
     """
-    A = np.asarray(A, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    norms = np.linalg.norm(A, axis=0)
+    A64 = np.asarray(A, dtype=np.float64)
+    y64 = np.asarray(y, dtype=np.float64)
+    norms = np.linalg.norm(A64, axis=0)
     usable = norms > _TINY * norms.max(initial=0.0)
     sel: list[int] = []
     coef = np.zeros(0)
-    r = y.copy()
-    while len(sel) < min(max_atoms, A.shape[0]) and r @ r > tol:
-        score = np.where(usable, (A.T @ r) / np.where(usable, norms, 1.0), 0.0).astype(np.float32)
+    r = y64.copy()
+    while len(sel) < min(max_atoms, A64.shape[0]) and r @ r > tol:
+        score = np.where(usable, (A64.T @ r) / np.where(usable, norms, 1.0), 0.0).astype(np.float32)
         score[sel] = 0.0
         jj, best = _select(score[None])
         j = int(jj[0])
         if best[0] <= 0:
             break
         sel.append(j)
-        coef, *_ = np.linalg.lstsq(A[:, sel], y, rcond=None)
-        r = y - A[:, sel] @ coef
-    out = np.zeros(A.shape[1])
+        coef, *_ = np.linalg.lstsq(A64[:, sel], y64, rcond=None)
+        r = y64 - A64[:, sel] @ coef
+    out = np.zeros(A64.shape[1])
     out[sel] = coef
     return out

@@ -103,11 +103,11 @@ def build_table(patterns: np.ndarray, D: np.ndarray, patch_pixels: int) -> np.nd
     with many patterns (Bernoulli at N = 8: 256 patterns, 25 MB) spent a tenth
     of a tile's time there.
     """
-    patterns = np.ascontiguousarray(patterns, dtype=np.float32)
-    n = patterns.shape[1]
+    pats = np.ascontiguousarray(patterns, dtype=np.float32)
+    n = pats.shape[1]
     D3 = np.ascontiguousarray(np.asarray(D, dtype=np.float32).reshape(n, patch_pixels, -1))
-    B = np.empty((patch_pixels, patterns.shape[0], D3.shape[2]), np.float32)
-    _fill_table(patterns, D3, B)
+    B = np.empty((patch_pixels, pats.shape[0], D3.shape[2]), np.float32)
+    _fill_table(pats, D3, B)
     return B
 
 
@@ -357,17 +357,17 @@ def shared_table(patterns: np.ndarray, D: np.ndarray, patch_pixels: int) -> np.n
     another dictionary or code; the last :data:`TABLES_KEPT` are kept.  One
     builder at a time: a tile that asks while another builds the same table waits for it.
     """
-    patterns = np.ascontiguousarray(patterns, dtype=np.float32)
-    D = np.ascontiguousarray(D, dtype=np.float32)
+    pats = np.ascontiguousarray(patterns, dtype=np.float32)
+    D32 = np.ascontiguousarray(D, dtype=np.float32)
     h = hashlib.blake2b(digest_size=16)
-    h.update(np.array([patch_pixels, *patterns.shape, *D.shape], np.int64).tobytes())
-    h.update(patterns.data)
-    h.update(D.data)
+    h.update(np.array([patch_pixels, *pats.shape, *D32.shape], np.int64).tobytes())
+    h.update(pats.data)
+    h.update(D32.data)
     key = h.digest()
     with _tables_lock:
         B = _tables.get(key)
         if B is None:
-            B = build_table(patterns, D, patch_pixels)
+            B = build_table(pats, D32, patch_pixels)
             _tables[key] = B
             while len(_tables) > TABLES_KEPT:
                 _tables.popitem(last=False)
@@ -388,23 +388,23 @@ class TableOMP:
     """
 
     def __init__(self, patterns: np.ndarray, D: np.ndarray, patch_pixels: int):
-        D = np.asarray(D, dtype=np.float32)
-        self.B = shared_table(patterns, D, patch_pixels)
-        self.floor = _visibility_floor(D)
+        D32 = np.asarray(D, dtype=np.float32)
+        self.B = shared_table(patterns, D32, patch_pixels)
+        self.floor = _visibility_floor(D32)
 
     def solve(self, y: np.ndarray, pat: np.ndarray, *, max_atoms: int, tol) -> OmpResult:
         """OMP of patches ``y`` (P, m) whose pixels have patterns ``pat`` (P, m)."""
-        y = np.ascontiguousarray(y, dtype=np.float32)
-        pat = np.ascontiguousarray(pat, dtype=np.int32)
-        P, m = y.shape
+        y32 = np.ascontiguousarray(y, dtype=np.float32)
+        pat32 = np.ascontiguousarray(pat, dtype=np.int32)
+        P, m = y32.shape
         kmax = int(min(max_atoms, m))
-        tol = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, dtype=np.float64), (P,)))
+        tols = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, dtype=np.float64), (P,)))
         index = np.zeros((P, kmax), np.int32)
         coef = np.zeros((P, kmax), np.float32)
         count = np.zeros(P, np.int32)
         res2 = np.zeros(P, np.float32)
         dependent = np.zeros(P, np.bool_)
-        _omp_kernel(y, pat, self.B, self.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS,
+        _omp_kernel(y32, pat32, self.B, self.floor, tols, kmax, DEPENDENCE_TOL, SELECT_BITS,
                     _TINY, index, coef, count, res2, dependent)
         return OmpResult(index=index, coef=coef, count=count, residual=res2, dependent=dependent)
 
@@ -428,27 +428,27 @@ class WeightsOMP:
     """
 
     def __init__(self, D: np.ndarray, patch_pixels: int):
-        D = np.asarray(D, dtype=np.float32)
+        D32 = np.asarray(D, dtype=np.float32)
         self.m = patch_pixels
-        self.n = D.shape[0] // patch_pixels
-        self.D3 = np.ascontiguousarray(D.reshape(self.n, patch_pixels, D.shape[1]))
-        self.floor = _visibility_floor(D)
+        self.n = D32.shape[0] // patch_pixels
+        self.D3 = np.ascontiguousarray(D32.reshape(self.n, patch_pixels, D32.shape[1]))
+        self.floor = _visibility_floor(D32)
 
     def solve(self, y: np.ndarray, S: np.ndarray, *, max_atoms: int, tol) -> OmpResult:
         """OMP of patches ``y`` (P, m) whose pixels have weights ``S`` (P, N, m)."""
-        y = np.ascontiguousarray(y, dtype=np.float32)
-        S = np.ascontiguousarray(S, dtype=np.float32)
-        P, m = y.shape
-        if S.shape != (P, self.n, m):
-            raise ValueError(f"weights of shape {S.shape}, expected {(P, self.n, m)}")
+        y32 = np.ascontiguousarray(y, dtype=np.float32)
+        S32 = np.ascontiguousarray(S, dtype=np.float32)
+        P, m = y32.shape
+        if S32.shape != (P, self.n, m):
+            raise ValueError(f"weights of shape {S32.shape}, expected {(P, self.n, m)}")
         kmax = int(min(max_atoms, m))
-        tol = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, dtype=np.float64), (P,)))
+        tols = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, dtype=np.float64), (P,)))
         index = np.zeros((P, kmax), np.int32)
         coef = np.zeros((P, kmax), np.float32)
         count = np.zeros(P, np.int32)
         res2 = np.zeros(P, np.float32)
         dependent = np.zeros(P, np.bool_)
-        _omp_weights_kernel(y, S, self.D3, self.floor, tol, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef,
+        _omp_weights_kernel(y32, S32, self.D3, self.floor, tols, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef,
                             count, res2, dependent)
         return OmpResult(index=index, coef=coef, count=count, residual=res2, dependent=dependent)
 
@@ -598,28 +598,28 @@ def batch_omp(X: np.ndarray, D: np.ndarray, *, max_atoms: int, tol=0.0, chunk: i
         ``index``, ``coef`` (coefficients of the atoms of ``D`` as given) of shape
         (P, min(max_atoms, m)); ``count``; ``residual`` (squared, float32); ``dependent``.
     """
-    X = np.ascontiguousarray(X, dtype=np.float32)
-    D = np.ascontiguousarray(D, dtype=np.float32)
-    P, m = X.shape
-    if D.shape[0] != m:
-        raise ValueError(f"dictionary has {D.shape[0]} rows, signals have {m} entries")
+    X32 = np.ascontiguousarray(X, dtype=np.float32)
+    D32 = np.ascontiguousarray(D, dtype=np.float32)
+    P, m = X32.shape
+    if D32.shape[0] != m:
+        raise ValueError(f"dictionary has {D32.shape[0]} rows, signals have {m} entries")
     kmax = int(min(max_atoms, m))
-    D64 = D.astype(np.float64)
+    D64 = D32.astype(np.float64)
     G = D64.T @ D64
     # the same inverse norms as PlainOperator, so that the rounded scores are the same numbers
     inv = _safe_inverse(np.sqrt((D64**2).sum(0)).astype(np.float32))
-    tol = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, dtype=np.float64), (P,)))
+    tols = np.ascontiguousarray(np.broadcast_to(np.asarray(tol, dtype=np.float64), (P,)))
     index = np.zeros((P, kmax), np.int32)
     coef64 = np.zeros((P, kmax), np.float64)
     count = np.zeros(P, np.int32)
     res2 = np.zeros(P, np.float64)
     dependent = np.zeros(P, np.bool_)
-    Dp = D64 if np.dtype(precision) == np.float64 else D
-    Dt = np.ascontiguousarray(D.T)
+    Dp = D64 if np.dtype(precision) == np.float64 else D32
+    Dt = np.ascontiguousarray(D32.T)
     for a in range(0, P, chunk):
         b = min(P, a + chunk)
-        alpha0 = X[a:b].astype(Dp.dtype, copy=False) @ Dp
-        _batch_omp_kernel(X[a:b], Dt, alpha0, G, inv, tol[a:b], kmax, DEPENDENCE_TOL, SELECT_BITS, index[a:b],
+        alpha0 = X32[a:b].astype(Dp.dtype, copy=False) @ Dp
+        _batch_omp_kernel(X32[a:b], Dt, alpha0, G, inv, tols[a:b], kmax, DEPENDENCE_TOL, SELECT_BITS, index[a:b],
                           coef64[a:b], count[a:b], res2[a:b], dependent[a:b])
     return OmpResult(index=index, coef=coef64.astype(np.float32), count=count, residual=res2.astype(np.float32),
                      dependent=dependent)

@@ -111,13 +111,13 @@ def match(x: np.ndarray, refs: np.ndarray, *, chunk: int | None = None) -> list[
     """The groups of the references ``refs`` on the estimate ``x`` (N, H, W) float32, in chunks of ``chunk``
     references (None: :data:`CHUNK`): each ``(groups, where, order, bounds)``, its members' corners flat and
     their order frame by frame for :func:`denoise`."""
-    chunk = CHUNK if chunk is None else chunk
+    per_chunk = CHUNK if chunk is None else chunk
     n, h, w = x.shape
     groups = np.empty((refs.size, GROUP), np.int64)
     match_frame_patches(x, refs, SIDE, WINDOW, min(FRAMES, n - 1), GROUP, groups)
     chunks = []
-    for start in range(0, refs.size, chunk):
-        part = np.ascontiguousarray(groups[start:start + chunk])
+    for start in range(0, refs.size, per_chunk):
+        part = np.ascontiguousarray(groups[start:start + per_chunk])
         where = part.ravel()
         frames = where // (h * w)
         order = np.argsort(frames, kind="stable")
@@ -189,11 +189,11 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     """
     t0 = time.perf_counter()
     y = np.asarray(coded, np.float32)
-    mask = np.asarray(mask)
-    n, h, w = mask.shape
+    mask_arr = np.asarray(mask)
+    n, h, w = mask_arr.shape
     if h < SIDE or w < SIDE or iterations < 1:
         return np.asarray(start, np.float32).copy(), dict(iterations=0, seconds=time.perf_counter() - t0)
-    open2 = physics.forward(mask, mask)
+    open2 = physics.forward(mask_arr, mask_arr)
     inv = relaxed(open2, 0.0, 1.0)  # (exact: 1 / open2)
     x0 = np.ascontiguousarray(start, np.float32)
     x = x0.copy()
@@ -202,13 +202,13 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     accumulated = None if noisy else y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
     for i, sigma in enumerate(levels):
-        to_measurements(x, mask, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
+        to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
         if i % REGROUP == 0:
             chunks = match(x, refs)
         x = denoise(x, chunks, float(sigma))
         if tick is not None:
             tick()
-    to_measurements(x, mask, y, relaxed(open2, noise_sigma, levels[-1]) if noisy else inv)
+    to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, levels[-1]) if noisy else inv)
     x *= np.float32(1.0 - blend)
     x += np.float32(blend) * x0
     info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
