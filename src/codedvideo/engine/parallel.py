@@ -187,7 +187,7 @@ def _groups_task(store_path: str, block: Tile, firsts: list, D: np.ndarray, sett
     """Stage 2: the groups of the references whose corners lie in ``block.core``, solved over
     ``block.halo`` (what their candidates cover): (region, summed, weight, seconds), or None where the
     code's patterns do not fit a table (the tile then keeps its first estimate)."""
-    from codedvideo.solvers.nonlocal_sc import nonlocal_region
+    from codedvideo.solvers.nonlocal_sc import NonlocalOptions, nonlocal_region
 
     t0 = time.perf_counter()
     ey0, ey1, ex0, ex1 = region = block.halo
@@ -198,9 +198,9 @@ def _groups_task(store_path: str, block: Tile, firsts: list, D: np.ndarray, sett
     for core, volume, _ in firsts:
         _paste(region, core, volume, first)
     try:
-        out = nonlocal_region(coded, mask, D, first, settings, patch=patch, origin=(ey0, ex0),
-                              image_shape=store.array("coded").shape, sums=True,
-                              refs=(by0 - ey0, by1 - ey0, bx0 - ex0, bx1 - ex0), still=still.astype(bool))
+        place = NonlocalOptions(patch=patch, origin=(ey0, ex0), image_shape=store.array("coded").shape, sums=True,
+                                refs=(by0 - ey0, by1 - ey0, bx0 - ex0, bx1 - ex0))
+        out = nonlocal_region(coded, mask, D, first, settings, place, still=still.astype(bool))
     except Exception as exc:
         raise RuntimeError(f"block rows {by0}:{by1}, cols {bx0}:{bx1} of {store_path}: {exc}") from exc
     if out is None:

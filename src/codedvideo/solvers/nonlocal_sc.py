@@ -84,17 +84,10 @@ def group_atoms(max_atoms: int, m: int = P.PATCH * P.PATCH) -> int:
 
 
 def nonlocal_region(
-    coded: np.ndarray, mask: np.ndarray, D: np.ndarray, first: np.ndarray, settings: OmpSettings, *,
-    group: int = GROUP, window: int = WINDOW, iterations: int = ITERATIONS, step: int | None = None,
-    atoms: int | None = None, consensus: float = 0.0, similarity: float | None = None,
-    aggregate: str = "all", max_distance: float | None = None, project: bool | None = None,
-    patch: int = P.PATCH, origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None,
-    refs: tuple[int, int, int, int] | None = None, sums: bool = False, still: np.ndarray | None = None,
+    coded: np.ndarray, mask: np.ndarray, D: np.ndarray, first: np.ndarray, settings: OmpSettings,
+    options: NonlocalOptions | None = None, *, still: np.ndarray | None = None, **choices,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct a region by simultaneous sparse coding of groups of similar patches.
-
-    The keyword arguments but ``still`` are the fields of a :class:`NonlocalOptions`, checked and resolved
-    (:func:`_options`) before any work.
 
     Parameters
     ----------
@@ -109,6 +102,71 @@ def nonlocal_region(
         ``max_atoms``, ``tol_rms`` (per member), ``static_atoms`` (still test of
         the reference patches), ``stride`` (reference patches, as the default's),
         ``weighting`` ("fit": an estimate counts ``1 / (1 + e**2 / tol_rms**2)``).
+    options : NonlocalOptions, optional
+        The groups, the passes and the region's place (None: the defaults); checked and resolved
+        (:func:`_options`) before any work.
+    choices
+        Fields of :class:`NonlocalOptions` given one by one (``group=8, window=3``), over ``options``.
+    still : ndarray of shape (h, w) bool, optional
+        Pixels known to be still across captures (:mod:`codedvideo.model.sequence`).
+        A patch wholly inside them takes the still answer (``coded / open
+        count`` in every sub-frame) and is neither solved nor a member of any
+        group, and pixels that only such patches cover keep the still answer
+        exactly (:func:`keep_still`), as the default's tiles do.
+
+    Returns
+    -------
+    volume : ndarray of shape (N, h, w), float32
+    stats : ndarray of shape (len(STAT_NAMES),), float64
+    """
+    t_start = time.perf_counter()
+    opts = _options(replace(options or NonlocalOptions(), **choices), settings, mask.shape, D)
+    patch, group, window, sums = opts.patch, opts.group, opts.window, opts.sums
+    first32 = np.asarray(first, dtype=np.float32)
+    binary = is_binary(mask)
+    weights = mask if binary else np.asarray(mask, dtype=np.float32)
+    stats = np.zeros(len(STAT_NAMES))
+    hp, wp = P.grid_shape(mask.shape[1:], patch)
+    stats[0] = hp * wp
+    patterns, which = pixel_patterns(weights)
+    if not table_fits(len(patterns), D, patch * patch):
+        stats[8] = 1.0
+        stats[7] = time.perf_counter() - t_start
+        return None if sums else (first32.copy(), stats)
+    coded32 = np.asarray(coded, dtype=np.float32)
+    region = _region(coded32, weights, binary, D, patterns, which, settings.tol_rms, still, patch)
+    chosen = _references(region, settings, opts, stats)
+    k = min(group, (2 * window + 1) ** 2, hp * wp)
+    current = np.nan_to_num(first32, nan=0.0).astype(np.float32)
+    volume = first32.copy()
+    for _ in range(opts.iterations):
+        t0 = time.perf_counter()
+        idx, dist = _match(region, chosen, current, k, opts)
+        stats[5] += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        summed, weight, (n_groups, n_members, n_atoms) = _solve_pass(region, chosen, idx, dist, D, settings, opts)
+        stats[6] += time.perf_counter() - t0
+        stats[1] += n_groups
+        stats[2] = n_members / max(n_groups, 1)
+        stats[3] += n_atoms
+        if sums:
+            stats[7] = time.perf_counter() - t_start
+            return summed, weight, stats
+        volume = finish(summed, weight, coded32, weights, project=opts.project)
+        if region.calm.any():
+            keep_still(volume, coded32, weights, still, patch)
+        current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
+    stats[7] = time.perf_counter() - t_start
+    return volume, stats
+
+
+@dataclass(frozen=True)
+class NonlocalOptions:
+    """The choices of :func:`nonlocal_region`, with ``step``, ``atoms`` and ``project`` resolved from None by
+    :func:`_options`.
+
+    Parameters
+    ----------
     group : int
         Patches per group, the reference included (1: the default reconstruction).
     window : int
@@ -148,65 +206,7 @@ def nonlocal_region(
         Return ``(summed, weight, stats)`` of the (single) pass: every
         estimate added at its place and the weight each pixel got, not yet
         divided or projected (:func:`finish`); the fallback returns None.
-    still : ndarray of shape (h, w) bool, optional
-        Pixels known to be still across captures (:mod:`codedvideo.model.sequence`).
-        A patch wholly inside them takes the still answer (``coded / open
-        count`` in every sub-frame) and is neither solved nor a member of any
-        group, and pixels that only such patches cover keep the still answer
-        exactly (:func:`keep_still`), as the default's tiles do.
-
-    Returns
-    -------
-    volume : ndarray of shape (N, h, w), float32
-    stats : ndarray of shape (len(STAT_NAMES),), float64
     """
-    t_start = time.perf_counter()
-    opts = _options(NonlocalOptions(
-        group=group, window=window, iterations=iterations, step=step, atoms=atoms, consensus=consensus,
-        similarity=similarity, aggregate=aggregate, max_distance=max_distance, project=project, patch=patch,
-        origin=origin, image_shape=image_shape, refs=refs, sums=sums), settings, mask.shape, D)
-    first32 = np.asarray(first, dtype=np.float32)
-    binary = is_binary(mask)
-    weights = mask if binary else np.asarray(mask, dtype=np.float32)
-    stats = np.zeros(len(STAT_NAMES))
-    hp, wp = P.grid_shape(mask.shape[1:], patch)
-    stats[0] = hp * wp
-    patterns, which = pixel_patterns(weights)
-    if not table_fits(len(patterns), D, patch * patch):
-        stats[8] = 1.0
-        stats[7] = time.perf_counter() - t_start
-        return None if sums else (first32.copy(), stats)
-    coded32 = np.asarray(coded, dtype=np.float32)
-    region = _region(coded32, weights, binary, D, patterns, which, settings.tol_rms, still, patch)
-    chosen = _references(region, settings, opts, stats)
-    k = min(group, (2 * window + 1) ** 2, hp * wp)
-    current = np.nan_to_num(first32, nan=0.0).astype(np.float32)
-    volume = first32.copy()
-    for _ in range(iterations):
-        t0 = time.perf_counter()
-        idx, dist = _match(region, chosen, current, k, opts)
-        stats[5] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        summed, weight, (n_groups, n_members, n_atoms) = _solve_pass(region, chosen, idx, dist, D, settings, opts)
-        stats[6] += time.perf_counter() - t0
-        stats[1] += n_groups
-        stats[2] = n_members / max(n_groups, 1)
-        stats[3] += n_atoms
-        if sums:
-            stats[7] = time.perf_counter() - t_start
-            return summed, weight, stats
-        volume = finish(summed, weight, coded32, weights, project=opts.project)
-        if region.calm.any():
-            keep_still(volume, coded32, weights, still, patch)
-        current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
-    stats[7] = time.perf_counter() - t_start
-    return volume, stats
-
-
-@dataclass(frozen=True)
-class NonlocalOptions:
-    """The choices of :func:`nonlocal_region` (its keyword arguments of the same names and defaults), with
-    ``step``, ``atoms`` and ``project`` resolved from None by :func:`_options`."""
 
     group: int = GROUP
     window: int = WINDOW
