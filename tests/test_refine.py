@@ -270,3 +270,27 @@ def test_on_equal_patches_every_sub_frame_is_covered_alike(kind):
             covered[t, r:r + R.SIDE, c:c + R.SIDE] = True
     uncovered = 1 - covered.reshape(n, -1).mean(1)
     assert uncovered.max() < 0.12, uncovered
+
+
+def test_with_a_truth_the_record_gives_the_psnr_along_the_refinements_iterations():
+    """Error against time inside a run: the estimate before the refinement and every WATCH_EVERY iterations,
+    scored against the truth, with the seconds to each; the last point is the result's own PSNR, and watching
+    changes no bit of the result."""
+    import codedvideo as cv
+    from codedvideo.solvers.refine import WATCH_EVERY
+
+    video = cv.synthetic_scene("default", frames=8, size=(48, 48)) / 255
+    mask = cv.make_code("hitomi", (48, 48), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask, noise_sigma=0.01, seed=1)
+    iterations = 2 * WATCH_EVERY + 3
+    scored = cv.reconstruct(coded, mask, refine=iterations, noise_sigma=0.01, truth=video, full_output=True)
+    plain = cv.reconstruct(coded, mask, refine=iterations, noise_sigma=0.01)
+    assert np.array_equal(scored.frames, plain)
+    trace = scored.record["reconstruction"]["refine_trace"]
+    assert [p["iterations"] for p in trace] == [0, WATCH_EVERY, 2 * WATCH_EVERY, iterations]
+    seconds = [p["seconds"] for p in trace]
+    assert seconds == sorted(seconds) and seconds[0] >= 0
+    assert abs(trace[-1]["psnr"] - scored.record["quality"]["psnr"]) < 1e-9
+    assert trace[-1]["psnr"] > trace[0]["psnr"]  # the refinement gains on this scene
+    assert "refine_trace" not in cv.reconstruct(coded, mask, noise_sigma=0.01, truth=video,
+                                                full_output=True).record["reconstruction"]

@@ -25,7 +25,7 @@ from codedvideo.engine.windows import cache_room
 from codedvideo.engine.config import omp_settings
 from codedvideo.formats.volumes import check_coded, check_mask
 from codedvideo.model.errors import InputError
-from codedvideo.model.metrics import evaluate, mean_psnr
+from codedvideo.model.metrics import evaluate, mean_psnr, volume_psnr
 from codedvideo.model.patches import PATCH
 from codedvideo.model.units import capture_units, tolerance_warning
 
@@ -270,6 +270,7 @@ class ReconstructionJob:
         self.seconds_prepared = time.perf_counter() - t0
         #: Seconds spent scoring the results against the truth (part of each result's time).
         self.seconds_scored = 0.0
+        self._traces: dict[int, list[dict]] = {}
 
     def _warn_before_work(self) -> None:
         r, job = self.r, self.captures
@@ -292,7 +293,19 @@ class ReconstructionJob:
                                white_level=self.white, where=self.captures.source, tile=r.rc.tile, cache=cache,
                                scheduler=r.rc.scheduler, workers=r.rc.workers, progress=r.progress, adapt=r.rc.adapt,
                                adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine, noise_sigma=r.noise.sigma,
-                               cache_budget=r.rc.cache_budget)
+                               cache_budget=r.rc.cache_budget,
+                               trace=self._trace if self.captures.truths is not None and r.rc.refine else None)
+
+    def _trace(self, i: int, iterations: int, volume: np.ndarray, seconds: float) -> None:
+        """Capture ``i``'s estimate after ``iterations`` of the refinement (working units), scored against its
+        truth: a point of its error against time (``refine_trace`` in its record)."""
+        t0 = time.perf_counter()
+        frames = volume / np.float32(self.units.scale)
+        truth = np.asarray(self.captures.truth(i)).reshape(frames.shape)
+        point = dict(iterations=int(iterations), seconds=float(seconds),
+                     psnr=volume_psnr(frames, truth, self.units.value))
+        self._traces.setdefault(i, []).append(point)
+        self.seconds_scored += time.perf_counter() - t0
 
     def recipe(self) -> dict:
         """What this job's results depend on beside its inputs, its OMP settings and its dictionary (the
@@ -330,6 +343,8 @@ class ReconstructionJob:
 
     def _entry(self, i: int, volume, info: dict) -> dict:
         job = self.captures
+        if i in self._traces:  # the PSNR along the refinement's iterations, and the seconds to each
+            info["refine_trace"] = self._traces.pop(i)
         entry = dict(job.labels[i], reconstruction=info)
         if self.raw:
             entry["raw"] = self.raw[i]

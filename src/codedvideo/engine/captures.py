@@ -79,6 +79,10 @@ class CaptureSettings:
         Bytes the cache's working stores may take (:class:`codedvideo.engine.cache.CacheBudget`): the least recently
         used are removed as the job's windows finish (with ``adapt``, the first passes' stores only after the
         job).  None: no limit.
+    trace : callable, optional
+        With ``refine``: ``trace(i, iterations, volume, seconds)`` with capture ``i``'s estimate (working units)
+        before the refinement (``iterations`` 0) and every few of its iterations
+        (:data:`codedvideo.solvers.refine.WATCH_EVERY`), and the capture's seconds so far (error against time).
     """
 
     method: str
@@ -99,6 +103,7 @@ class CaptureSettings:
     refine: int = 0
     noise_sigma: float = 0.0
     cache_budget: int | None = None
+    trace: object = None
 
 
 class _Inputs:
@@ -310,7 +315,9 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
     if o.refine and moving and info.get("method") != "static":
         volume, info = _refined(coded_used, mask_used, volume, info, o.refine, still=still, where=o.where,
                                 noise_sigma=float(o.noise_sigma) * float(inputs.scale), progress=o.progress,
-                                label=f"{i + 1}/{inputs.count}")
+                                label=f"{i + 1}/{inputs.count}",
+                                trace=None if o.trace is None else functools.partial(o.trace, i),
+                                spent=_seconds_so_far(job, i, info))
     if measured is not None:  # still answers averaged over captures: the residual of this capture's own
         residual = physics.forward(volume, mask_used) - measured
         info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
@@ -330,6 +337,13 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
             info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(inputs.scale)
     info["saturated_pixels"] = saturated
     return i, volume, info
+
+
+def _seconds_so_far(job: _Job, i: int, info: dict) -> float:
+    """Capture ``i``'s seconds before its refinement: its passes, and its first pass and adaptation."""
+    earlier = job.records.get(i)
+    first = earlier["first_pass"]["seconds"] + earlier["seconds"] if earlier else 0.0
+    return float(first + sum(v for v in info.get("seconds", {}).values() if isinstance(v, (int, float))))
 
 
 def _sparse_info(job: _Job, i: int, solved_info: dict, mask_used) -> dict:
@@ -353,19 +367,29 @@ def _sparse_info(job: _Job, i: int, solved_info: dict, mask_used) -> dict:
 
 
 def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict, iterations: int, *,
-             still: np.ndarray | None, where: str, noise_sigma: float, progress: bool,
-             label: str) -> tuple[np.ndarray, dict]:
+             still: np.ndarray | None, where: str, noise_sigma: float, progress: bool, label: str,
+             trace=None, spent: float = 0.0) -> tuple[np.ndarray, dict]:
     """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units, the
     read noise ``noise_sigma`` too), its info with what the refinement did; the pixels that only still patches
-    cover keep their values."""
+    cover keep their values.  ``trace(iterations, estimate, seconds)``: the estimates along the way
+    (:class:`CaptureSettings`), ``spent`` the capture's seconds before the refinement."""
+    inner = None if still is None else erode_to_patches(still, PATCH)
+
+    def kept(estimate: np.ndarray) -> np.ndarray:  # (in place) the still pixels' values kept
+        if inner is not None:
+            estimate[:, inner] = volume[:, inner]
+        return estimate
+
+    watch = None
+    if trace is not None:
+        trace(0, volume, spent)
+        watch = lambda done, estimate, seconds: trace(done, kept(estimate.copy()), spent + seconds)  # noqa: E731
     with progress_bar(iterations, f"refine {label}") if progress else contextlib.nullcontext() as bar:
         refined, record = refinement.refine(coded, mask, volume, iterations=iterations, noise_sigma=noise_sigma,
-                                            tick=None if bar is None else (lambda: bar.update(1)))
+                                            tick=None if bar is None else (lambda: bar.update(1)), watch=watch)
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
         raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
-    if still is not None:
-        inner = erode_to_patches(still, PATCH)
-        refined[:, inner] = volume[:, inner]
+    kept(refined)
     seconds = dict(info.get("seconds", {}), refine=record["seconds"])
     return refined, dict(info, refine=record, seconds=seconds)
 

@@ -65,8 +65,7 @@ def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
         if not np.isfinite(recon_part).all():
             raise InputError("evaluate: the reconstruction contains NaN or Inf")
         for r, t in zip(recon_part, np.asarray(ref[part], dtype=np.float64)):
-            mse = float(np.mean((r - t) ** 2))
-            psnr.append(float("inf") if mse == 0 else float(10 * np.log10(float(data_range) ** 2 / mse)))
+            psnr.append(frame_psnr(r, t, data_range))
             ssim.append(float(structural_similarity(t, r, data_range=data_range, win_size=max(win, 3)))
                         if win >= 3 else float("nan"))
     return dict(
@@ -77,6 +76,18 @@ def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
         ssim_per_frame=ssim,
         data_range=float(data_range),
     )
+
+
+def frame_psnr(recon: np.ndarray, truth: np.ndarray, data_range: float) -> float:
+    """The PSNR of one frame (float64), infinite where it is exact."""
+    mse = float(np.mean((np.asarray(recon, np.float64) - np.asarray(truth, np.float64)) ** 2))
+    return float("inf") if mse == 0 else float(10 * np.log10(float(data_range) ** 2 / mse))
+
+
+def volume_psnr(recon: np.ndarray, truth: np.ndarray, data_range: float) -> float:
+    """The PSNR of a volume (N, H, W) as :func:`evaluate` gives it (the mean of its frames', :func:`mean_psnr`),
+    without the SSIM."""
+    return mean_psnr([frame_psnr(r, t, data_range) for r, t in zip(recon, truth)])
 
 
 def json_safe(obj):

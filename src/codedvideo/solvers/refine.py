@@ -175,17 +175,24 @@ def to_measurements(x: np.ndarray, mask: np.ndarray, coded: np.ndarray, inv: np.
         x[:, band] += s * ((target - predicted) * inv[band])[None]
 
 
+#: Iterations between two estimates shown to a ``watch`` of :func:`refine` (and after the last).
+WATCH_EVERY = 8
+
+
 def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
            sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
-           noise_sigma: float = 0.0, tick=None) -> tuple[np.ndarray, dict]:
+           noise_sigma: float = 0.0, tick=None, watch=None) -> tuple[np.ndarray, dict]:
     """``iterations`` of GAP with the group prior from ``start`` (N, H, W), in working units.
 
     ``coded`` (H, W) and ``mask`` (N, H, W) are the measurements the result keeps (a pixel never open is not
     held to any).  ``noise_sigma``: the capture's read noise; above 0 the measurements are not held exactly:
     plain GAP (no accumulated residual), each step (and the last projection) relaxed by ``RELAX noise_sigma^2 /
     sigma^2`` at the iteration's noise level ``sigma`` (:func:`to_measurements`).  0: accelerated GAP, exact
-    steps.  ``tick``: called once per iteration (a progress bar).  Returns the video (N, H, W) float32 and what
-    was done: iterations, the noise levels, the groups, seconds.
+    steps.  ``tick``: called once per iteration (a progress bar).  ``watch``: called as ``watch(i, estimate,
+    seconds)`` after every :data:`WATCH_EVERY` iterations and after the last, with the result the run would
+    give if it ended there (projected and blended as the last is; after the last, the result itself) and the
+    seconds so far, its own calls left out.  Returns the video (N, H, W) float32 and what was done: iterations,
+    the noise levels, the groups, seconds.
     """
     t0 = time.perf_counter()
     y = np.asarray(coded, np.float32)
@@ -201,6 +208,14 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     noisy = noise_sigma > 0
     accumulated = None if noisy else y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
+
+    def settle(v: np.ndarray, sigma: float) -> np.ndarray:  # (in place) the result a run ending here gives
+        to_measurements(v, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv)
+        np.multiply(v, np.float32(1.0 - blend), out=v)
+        np.add(v, np.float32(blend) * x0, out=v)
+        return v
+
+    watched = 0.0  # seconds in the watch's calls, left out of the refinement's
     for i, sigma in enumerate(levels):
         to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
         if i % REGROUP == 0:
@@ -208,10 +223,14 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
         x = denoise(x, chunks, float(sigma))
         if tick is not None:
             tick()
-    to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, levels[-1]) if noisy else inv)
-    x *= np.float32(1.0 - blend)
-    x += np.float32(blend) * x0
+        if watch is not None and (i + 1) % WATCH_EVERY == 0 and i + 1 < len(levels):
+            t_watch = time.perf_counter()
+            watch(i + 1, settle(x.copy(), float(sigma)), t_watch - t0 - watched)
+            watched += time.perf_counter() - t_watch
+    x = settle(x, levels[-1])
+    seconds = time.perf_counter() - t0 - watched
+    if watch is not None:
+        watch(len(levels), x, seconds)
     info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
-                blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size),
-                seconds=time.perf_counter() - t0)
+                blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size), seconds=seconds)
     return x, info
