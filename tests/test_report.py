@@ -257,3 +257,21 @@ def test_the_report_dictionaries_ignore_the_pipeline_init_and_augment(tmp_path):
     assert dc.init is None and dc.augment is True
     D, meta = runner.dictionary(8, 128)
     assert D.shape[1] == 128 and meta["init"] == "dct3d+samples" and meta["augment"] is True
+
+
+def test_best_is_drawn_along_its_refinement_ending_at_its_point(mini):
+    """The error-against-time figure has best's PSNR along its refinement: from before it (lower) to its own
+    point (the same PSNR and wall time as the preset's point)."""
+    from codedvideo.app.report import Runner, run_experiments, summarise
+
+    root, _, _ = mini
+    cfg = load_config(root / "mini.yaml")
+    runner = Runner(cfg)
+    results = run_experiments(runner)
+    best = [r for r in results["speed"] if r["label"] == "preset best"]
+    assert best and all(r["refine_trace"][0]["iterations"] == 0 for r in best)
+    point = summarise(results, cfg)["speed"]["preset best"]
+    curve = point["refine_trace"]
+    assert len(curve) >= 2 and curve[-1][0] == pytest.approx(point["seconds"])
+    assert curve[-1][1] == pytest.approx(point["psnr"], abs=1e-9)
+    assert [t for t, _ in curve] == sorted(t for t, _ in curve)
