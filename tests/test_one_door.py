@@ -163,5 +163,9 @@ def test_a_presets_record_is_the_same_from_pipeline_yaml_and_the_command_line(tm
                       "--output", folder / "r.npy", "--cache", folder / "cache")
     assert rc == 0, err
     cli_record = json.loads((folder / "r.metrics.json").read_text())["preset"]
-    assert yaml_record == cli_record
-    assert yaml_record["given"] == ["adapt", "refine"] and list(yaml_record["left_out"]) == ["adapt_rounds"]
+    assert {k: v for k, v in yaml_record.items() if k != "left_out"} == {k: v for k, v in cli_record.items()
+                                                                         if k != "left_out"}
+    assert yaml_record["given"] == ["adapt", "refine"] and list(yaml_record["left_out"]) == list(cli_record["left_out"])
+    # each reason in its door's terms: pipeline.yaml's keys, the command line's options
+    assert yaml_record["left_out"]["adapt_rounds"] == "applies with reconstruct.adapt only"
+    assert cli_record["left_out"]["adapt_rounds"] == "applies with --adapt only"

@@ -139,7 +139,7 @@ def _resolve(s: ReconstructSettings, door: str) -> Resolved:
     names = _names(door)
     given = {k: getattr(s, k) for k in PRESET_KEYS if getattr(s, k) is not None}
     options, left_out = resolve_preset(s.preset, given, bayer=s.bayer)  # (an option given and refused: an error)
-    preset = preset_record(s.preset, options, given, left_out)
+    preset = preset_record(s.preset, options, given, {k: in_terms(why, door) for k, why in left_out.items()})
     method = options["method"]
     if s.dictionary is not None and method not in WITH_DICTIONARY:
         shown = s.dictionary if isinstance(s.dictionary, (str, Path)) else "(an array)"
@@ -173,7 +173,8 @@ def for_noise(r: Resolved, noise: float) -> Resolved:
     if left_out.keys() == r.preset["left_out"].keys():
         return r
     rc = r.rc.model_copy(update={k: options[k] for k in PRESET_KEYS if k != "method"})
-    record = preset_record(s.preset, options, given, left_out, said=r.preset["left_out"])
+    record = preset_record(s.preset, options, given, {k: in_terms(why, r.door) for k, why in left_out.items()},
+                           said=r.preset["left_out"])
     return dataclasses.replace(r, rc=rc, method=options["method"], preset=record)
 
 
