@@ -6,7 +6,7 @@ CLI    := $(BIN)/codedvideo
 STAMP  := $(VENV)/.installed
 CONFIG ?= pipeline.yaml
 
-.PHONY: help setup run test wheel-check docs bench report train train-config simulate reconstruct submit clean
+.PHONY: help setup run test wheel-check lower-bounds docs bench report train train-config simulate reconstruct submit clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -39,6 +39,9 @@ docs: $(DOCS_STAMP)  ## the documentation with its API reference, from the docst
 
 wheel-check:  ## build the wheel, install it into a fresh venv, run the CLI and the API from an empty folder
 	tasks/check_wheel.sh $(PYTHON)
+
+lower-bounds:  ## install every dependency at its lower bound in pyproject.toml (a fresh venv) and run the core tests
+	tasks/check_lower_bounds.sh $(PYTHON)
 
 bench: $(STAMP)  ## time reconstruction against GAP-TV and a matrix multiply (CASES=sequence,footage: some cases)
 	$(BIN)/python tasks/bench.py $(if $(CASES),--cases $(CASES))

@@ -30,6 +30,7 @@ import sys
 import threading
 import time
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -45,6 +46,10 @@ from codedvideo.formats.store import WorkStore, write_tiles
 from codedvideo.model.patches import PATCH
 
 log = logging.getLogger("codedvideo")
+
+#: The local pool: dask's, which carries the submitting thread's context variables into its threads (dask 2025
+#: and later); before it, the standard pool (the same on the Pythons whose warnings do not live in contextvars).
+THREAD_POOL = getattr(dask.threaded, "ContextAwareThreadPoolExecutor", ThreadPoolExecutor)
 
 #: Rounds of computing the tiles that fail their check before giving up.
 MAX_ATTEMPTS = 3
@@ -500,7 +505,7 @@ class GraphRunner:
         else:
             self.limits.enter_context(_single_threaded_blas(self.scheduler != "sync"))  # one core per worker thread
             if self.scheduler != "sync":
-                self.pool = dask.threaded.ContextAwareThreadPoolExecutor(self.workers)
+                self.pool = THREAD_POOL(self.workers)
         return self
 
     def __exit__(self, *exc) -> None:
