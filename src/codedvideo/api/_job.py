@@ -203,7 +203,7 @@ def job_dictionary(r: Resolved, frames: int) -> tuple[np.ndarray | None, str, st
     """(D, its key, its name) of the job's method: the dictionary given (an array or a store's path) or the one
     shipped for N; (None, "", "") for a method without one."""
     from codedvideo.data import shipped
-    from codedvideo.data.shipped import check_dictionary
+    from codedvideo.formats.store import check_dictionary
     from codedvideo.formats.store import load_dictionary
 
     if r.method not in WITH_DICTIONARY:

@@ -24,9 +24,8 @@ import numpy as np
 
 from codedvideo.data import manifest
 from codedvideo.model.errors import ConfigError, InputError
-from codedvideo.model.patches import PATCH
 from codedvideo.formats.atomic import atomic_output
-from codedvideo.formats.store import load_dictionary
+from codedvideo.formats.store import check_dictionary, load_dictionary
 from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
 #: The folder of the shipped dictionaries (this package's own folder, installed as package data).
@@ -132,14 +131,6 @@ def shipped_rows(root: Path) -> list[str]:
                                 "max speed 4, seed 0)",
                                 "as its training photographs (split train)"]))
     return rows
-
-
-def check_dictionary(meta: dict, frames: int, path) -> None:
-    """Refuse a dictionary (its stored ``meta``) made for another patch size or another N, naming ``path``."""
-    if meta.get("patch") != PATCH:
-        raise InputError(f"dictionary {path}: patch size {meta.get('patch')} != {PATCH}")
-    if meta.get("frames") != frames:
-        raise InputError(f"dictionary {path}: built for N = {meta.get('frames')} sub-frames, the mask has N = {frames}")
 
 
 def init_dictionary(init: str, frames: int) -> tuple[np.ndarray, dict]:

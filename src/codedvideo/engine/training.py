@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo.data.scenes import training_videos
-from codedvideo.data.shipped import check_dictionary, init_dictionary
+from codedvideo.data.shipped import init_dictionary
+from codedvideo.formats.store import check_dictionary
 from codedvideo.engine.cache import dictionary_entry, dictionary_key
 from codedvideo.engine.config import PipelineConfig
 from codedvideo.engine.parallel import progress_bar

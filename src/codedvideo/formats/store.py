@@ -44,6 +44,7 @@ from codedvideo.formats.atomic import atomic_output
 from codedvideo.formats.atomic import discard as _discard
 from codedvideo.formats.atomic import remove_dead_temporaries, replace_dir, temporaries_of, temporary_name
 from codedvideo.model.errors import InputError, OutputError
+from codedvideo.model.patches import PATCH
 
 log = logging.getLogger("codedvideo")
 
@@ -193,6 +194,14 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
         _discard(tmp)
         raise
     return target
+
+
+def check_dictionary(meta: dict, frames: int, path) -> None:
+    """Refuse a dictionary (its stored ``meta``) made for another patch size or another N, naming ``path``."""
+    if meta.get("patch") != PATCH:
+        raise InputError(f"dictionary {path}: patch size {meta.get('patch')} != {PATCH}")
+    if meta.get("frames") != frames:
+        raise InputError(f"dictionary {path}: built for N = {meta.get('frames')} sub-frames, the mask has N = {frames}")
 
 
 def load_dictionary(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
