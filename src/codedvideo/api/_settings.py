@@ -135,9 +135,14 @@ def resolve(settings: ReconstructSettings, *, door: str = "api") -> Resolved:
         raise type(exc)(in_terms(str(exc), door)) from exc
 
 
+def _given(s: ReconstructSettings) -> dict:
+    """The settings a preset may set that were given beside it."""
+    return {k: getattr(s, k) for k in PRESET_KEYS if getattr(s, k) is not None}
+
+
 def _resolve(s: ReconstructSettings, door: str) -> Resolved:
     names = _names(door)
-    given = {k: getattr(s, k) for k in PRESET_KEYS if getattr(s, k) is not None}
+    given = _given(s)
     options, left_out = resolve_preset(s.preset, given, bayer=s.bayer)  # (an option given and refused: an error)
     preset = preset_record(s.preset, options, given, {k: in_terms(why, door) for k, why in left_out.items()})
     method = options["method"]
@@ -150,8 +155,9 @@ def _resolve(s: ReconstructSettings, door: str) -> Resolved:
     rc = validated(ReconstructConfig, dict(
         {k: v for k, v in chosen.items() if v is not None}, tol_rms="auto" if s.tol_rms is None else s.tol_rms,
         scheduler=s.scheduler, **{k: options[k] for k in PRESET_KEYS if k != "method"}), names)
-    if rc.cache_budget is None and budget_of(s.cache, None) is not None:  # the default folder: its budget
-        rc = rc.model_copy(update=dict(cache_budget=budget_of(s.cache, None)))
+    budget = budget_of(s.cache, rc.cache_budget)  # (the default folder's when none is given)
+    if budget != rc.cache_budget:
+        rc = rc.model_copy(update=dict(cache_budget=budget))
     noise = validated(NoiseConfig, dict(sigma=s.noise_sigma, white_level=s.white_level, bits=s.bits,
                                         black_level=s.black_level), names)
     data_range = validated(OutputConfig, dict(data_range=s.data_range), names).data_range
@@ -168,7 +174,7 @@ def for_noise(r: Resolved, noise: float) -> Resolved:
     s = r.settings
     if s.preset is None:
         return r
-    given = {k: getattr(s, k) for k in PRESET_KEYS if getattr(s, k) is not None}
+    given = _given(s)
     options, left_out = resolve_preset(s.preset, given, bayer=s.bayer, noise=noise)
     if left_out.keys() == r.preset["left_out"].keys():
         return r
