@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationIn
 
 from codedvideo.engine.methods import ADAPTIVE, WITH_DICTIONARY
 from codedvideo.model.errors import ConfigError
+from codedvideo.model.patches import PATCH
 from codedvideo.model.physics import SensorModel
 from codedvideo.model.units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX
 from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
@@ -74,7 +75,7 @@ class SceneConfig(_Strict):
     #: ``synth:NAME`` for a generated scene, or a path to a video / frame sequence.
     video: str = "synth:default"
     #: The centre crop taken; None: a synthetic scene or footage clip 256x256, a video file its whole frame.
-    size: tuple[Annotated[int, Field(ge=7, le=65536)], Annotated[int, Field(ge=7, le=65536)]] | None = None
+    size: tuple[Annotated[int, Field(ge=PATCH, le=65536)], Annotated[int, Field(ge=PATCH, le=65536)]] | None = None
     #: First frame taken from a video file.
     start: int = Field(0, ge=0, le=2**31 - 1)
 
@@ -155,7 +156,7 @@ class DictionaryConfig(_Strict):
     atoms: int = Field(KSVD_ATOMS, ge=1, le=16384)
     samples: int = Field(KSVD_SAMPLES, ge=100, le=10_000_000)
     iterations: int = Field(KSVD_ITERATIONS, ge=0, le=1000)
-    sparsity: int = Field(KSVD_SPARSITY, ge=1, le=49)
+    sparsity: int = Field(KSVD_SPARSITY, ge=1, le=PATCH * PATCH)
     #: ``synth:train`` (synthetic motion of the training photographs) or video paths.
     training: list[str] = ["synth:train"]
     clips: int = Field(144, ge=1, le=100_000)
@@ -212,13 +213,13 @@ PRESET_KEYS = {"method": "--method", "adapt": "--adapt", "adapt_rounds": "--adap
 class ReconstructConfig(_Strict):
     #: Named settings (:data:`PRESETS`): the keys it sets unless given here (null: none).
     preset: PresetName | None = None
-    max_atoms: int = Field(8, ge=1, le=49)
+    max_atoms: int = Field(8, ge=1, le=PATCH * PATCH)
     #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
     tol_rms: Annotated[float, Field(ge=0, le=LEVEL_MAX)] | Literal["auto"] = "auto"  # (also within 1e6 data ranges)
     #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
-    static_atoms: int = Field(8, ge=0, le=49)
+    static_atoms: int = Field(8, ge=0, le=PATCH * PATCH)
     #: Patch stride: 1 solves every overlapping patch (the paper); s solves 1 in s**2 (faster).
-    stride: int = Field(1, ge=1, le=7)
+    stride: int = Field(1, ge=1, le=PATCH)
     #: Average of overlapping estimates: "uniform" (the paper) or "fit" (weighted by misfit).
     weighting: Literal["uniform", "fit"] = "uniform"
     #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved together.
@@ -359,7 +360,7 @@ class ReportConfig(_Strict):
     speed_tol_rms: list[float] = [1.0, 2.0, 4.0, 8.0]
     speed_atoms: list[int] = [128, 256]
     speed_codes: list[Literal["hitomi", "hitomi-tiled"]] = ["hitomi", "hitomi-tiled"]
-    speed_strides: list[Annotated[int, Field(ge=1, le=7)]] = [1, 2, 3]
+    speed_strides: list[Annotated[int, Field(ge=1, le=PATCH)]] = [1, 2, 3]
     #: Speed study: the sparse methods besides the configured one, each a point with its default settings.
     speed_methods: list[DictionaryMethod] = list(WITH_DICTIONARY)
     #: Speed study: the sparse methods also timed with their dictionary adapted to each capture (``--adapt``).
@@ -402,16 +403,16 @@ class ReportConfig(_Strict):
     @field_validator("size")
     @classmethod
     def _patch_size(cls, v: tuple[int, int]) -> tuple[int, int]:
-        if min(v) < 7:
-            raise ValueError(f"size {v}: at least one 7x7 patch is needed")
+        if min(v) < PATCH:
+            raise ValueError(f"size {v}: at least one {PATCH}x{PATCH} patch is needed")
         return v
 
     @model_validator(mode="after")
     def _bumps_fit(self) -> "ReportConfig":
         if max(self.table_bumps) > self.frames or self.bump > self.frames:
             raise ValueError(f"bump lengths must be <= frames = {self.frames} (table_bumps {self.table_bumps}, bump {self.bump})")
-        if max(self.fig7_frames) > 64 or self.bump * 49 < max(self.fig7_frames):
-            raise ValueError(f"fig7_frames {self.fig7_frames}: need N <= 64 and N <= 49 * bump")
+        if max(self.fig7_frames) > 64 or self.bump * PATCH * PATCH < max(self.fig7_frames):
+            raise ValueError(f"fig7_frames {self.fig7_frames}: need N <= 64 and N <= {PATCH * PATCH} * bump")
         if min(self.fig7_frames) < self.bump:
             raise ValueError(f"fig7_frames {self.fig7_frames}: every N must be >= bump = {self.bump}")
         if self.frames not in self.fig7_frames:  # its Fig. 7 runs give the video, the strips and the speed baselines
@@ -465,18 +466,18 @@ class PipelineConfig(_Strict):
     @model_validator(mode="after")
     def _atoms_from_samples(self) -> "PipelineConfig":
         d = self.dictionary
-        beyond = d.atoms - self.frames * 49  # K-SVD starts from the DCT atoms, then draws the rest among the samples
+        beyond = d.atoms - self.frames * PATCH * PATCH  # K-SVD starts from the DCT atoms, then draws the rest among the samples
         if d.kind == "learned" and d.path is None and d.init is None and beyond > d.samples:
             raise ValueError(f"dictionary.atoms {d.atoms} with dictionary.samples {d.samples}: K-SVD starts from the "
-                             f"{self.frames * 49} DCT atoms and draws the other {beyond} among the training samples; "
+                             f"{self.frames * PATCH * PATCH} DCT atoms and draws the other {beyond} among the training samples; "
                              f"give at least {beyond} samples or fewer atoms")
         r = self.report  # its dictionaries: the main one at every N it sweeps, and one per size of the speed study
         samples, main = r.dictionary.samples or d.samples, r.dictionary.atoms or d.atoms
         for frames, atoms, key in ([(n, main, "report.dictionary.atoms") for n in (*r.fig7_frames, r.frames)]
                                    + [(r.frames, a, "report.speed_atoms") for a in r.speed_atoms]):
-            if atoms - frames * 49 > samples:
-                raise ValueError(f"{key}: {atoms} atoms at N = {frames} start from {frames * 49} DCT atoms and draw "
-                                 f"the other {atoms - frames * 49} among the {samples} training samples "
+            if atoms - frames * PATCH * PATCH > samples:
+                raise ValueError(f"{key}: {atoms} atoms at N = {frames} start from {frames * PATCH * PATCH} DCT atoms and draw "
+                                 f"the other {atoms - frames * PATCH * PATCH} among the {samples} training samples "
                                  "(report.dictionary.samples); give more samples or fewer atoms")
         return self
 
