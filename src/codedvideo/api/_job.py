@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from codedvideo.api._settings import Resolved, for_noise
+from codedvideo.api._settings import Resolved, for_noise, setting_name
+from codedvideo.engine.bayer import check_even, reconstruct_bayer, static_estimate
 from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, result_recipe, trivial_estimate
 from codedvideo.engine.methods import SPARSE, WITH_DICTIONARY
 from codedvideo.engine.windows import cache_room
@@ -58,8 +59,6 @@ class Captures:
         if self.kind not in KINDS:
             raise InputError(f"captures: kind {self.kind!r}; one of {', '.join(KINDS)}")
         if self.kind == "bayer":  # whole 2x2 cells of the mosaic
-            from codedvideo.engine.bayer import check_even
-
             check_even(self.codeds[0].shape, self.source)
         if self.labels is None:
             count = len(self.codeds)
@@ -203,8 +202,7 @@ def job_dictionary(r: Resolved, frames: int) -> tuple[np.ndarray | None, str, st
     """(D, its key, its name) of the job's method: the dictionary given (an array or a store's path) or the one
     shipped for N; (None, "", "") for a method without one."""
     from codedvideo.data import shipped
-    from codedvideo.formats.store import check_dictionary
-    from codedvideo.formats.store import load_dictionary
+    from codedvideo.formats.store import check_dictionary, load_dictionary
 
     if r.method not in WITH_DICTIONARY:
         return None, "", ""
@@ -243,8 +241,6 @@ class ReconstructionJob:
         noise, rc = resolved.noise, resolved.rc
         self.white = None if resolved.trust_saturated or self.raw else noise.white_level
         door = resolved.door
-        from codedvideo.api._settings import setting_name
-
         self.units = capture_units(
             captures.codeds, captures.mask, dtype=captures.dtype, given=resolved.data_range, noise_sigma=noise.sigma,
             white_level=self.white, where=captures.source,
@@ -319,8 +315,6 @@ class ReconstructionJob:
         r, job = self.r, self.captures
         options = self.capture_settings(cache)
         if job.kind == "bayer":  # one mosaic -> its colour video (3, N, H, W); evaluated as 3N frames
-            from codedvideo.engine.bayer import reconstruct_bayer
-
             return iter([(0, *reconstruct_bayer(options, job.codeds[0], job.mask(0), pattern=r.bayer))])
         stream = job.kind in ("captures", "measurements") and self.count > 1 and not r.independent_captures
         if stream:
@@ -368,8 +362,6 @@ class ReconstructionJob:
     def _trivial_of(self, i: int) -> np.ndarray:
         job = self.captures
         if job.kind == "bayer":
-            from codedvideo.engine.bayer import static_estimate
-
             return static_estimate(job.codeds[i], job.mask(i), self.r.bayer)
         return trivial_estimate(job.codeds[i], job.mask(i))
 
