@@ -294,3 +294,40 @@ def test_with_a_truth_the_record_gives_the_psnr_along_the_refinements_iterations
     assert trace[-1]["psnr"] > trace[0]["psnr"]  # the refinement gains on this scene
     assert "refine_trace" not in cv.reconstruct(coded, mask, noise_sigma=0.01, truth=video,
                                                 full_output=True).record["reconstruction"]
+
+
+@pytest.mark.parametrize("kind", ["spread", "clustered", "low-rank"])
+def test_the_kept_eigenpairs_are_lapacks(kind):
+    """``kept_eigenpairs`` (the shrinkage's selective eigensolver) gives the eigenvalues above the cut and an
+    orthonormal basis of their eigenvectors that LAPACK's whole decomposition gives: on spread spectra, on
+    clusters of equal eigenvalues and on Gram matrices of fewer members than their size; more than
+    ``SELECT_MAX`` above the cut: -1 (the caller decomposes whole)."""
+    from codedvideo.solvers.refine_kernel import SELECT_MAX, kept_eigenpairs
+
+    rng = np.random.default_rng({"spread": 0, "clustered": 1, "low-rank": 2}[kind])
+    k = R.GROUP
+    for trial in range(40):
+        if kind == "spread":
+            A = rng.normal(0, 1, (k, 64)) * np.geomspace(50, 0.1, 64)
+            C = A @ A.T
+        elif kind == "clustered":  # three eigenvalues equal, two more equal, the rest small
+            Q, _ = np.linalg.qr(rng.normal(size=(k, k)))
+            C = (Q * np.r_[[900.0] * 3, [400.0] * 2, rng.uniform(0, 10, k - 5)]) @ Q.T
+        else:
+            A = rng.normal(0, 1, (k, 3)) @ rng.normal(0, 5, (3, 64))
+            C = A @ A.T
+        lam_ref, U_ref = np.linalg.eigh(C)
+        kept = 1 + trial % SELECT_MAX
+        cut = 0.5 * (lam_ref[k - kept] + lam_ref[k - kept - 1])
+        if not lam_ref[k - kept] - lam_ref[k - kept - 1] > 1e-6 * lam_ref[-1]:
+            continue  # (a cut inside a cluster: which side is a matter of rounding)
+        lam, U = np.empty(k), np.empty((k, k))
+        m = kept_eigenpairs(C, cut, lam, U)
+        assert m == kept
+        np.testing.assert_allclose(lam[:m], lam_ref[::-1][:m], rtol=0, atol=1e-9 * lam_ref[-1])
+        np.testing.assert_allclose(U[:, :m].T @ U[:, :m], np.eye(m), atol=1e-8)
+        # the same invariant subspace (the projector onto it), whatever basis a cluster is given
+        np.testing.assert_allclose(U[:, :m] @ U[:, :m].T, U_ref[:, k - m:] @ U_ref[:, k - m:].T, atol=1e-6)
+    many = np.diag(np.arange(1.0, k + 1))
+    assert kept_eigenpairs(many, 0.5, np.empty(k), np.empty((k, k))) == -1
+    assert kept_eigenpairs(many, k + 1.0, np.empty(k), np.empty((k, k))) == 0

@@ -126,16 +126,30 @@ def match(x: np.ndarray, refs: np.ndarray, *, chunk: int | None = None) -> list[
     return chunks
 
 
-def denoise(x: np.ndarray, chunks: list[tuple], sigma: float) -> np.ndarray:
+def denoise(x: np.ndarray, chunks: list[tuple], sigma: float, weight: np.ndarray | None = None) -> np.ndarray:
     """The estimate ``x`` (N, H, W) float32 with every group of ``chunks`` (:func:`match`) shrunk
     (:func:`shrinkage`) and the members' estimates averaged at their places; pixels no member covers keep
-    their value."""
+    their value.  ``weight``: :func:`coverage` of ``chunks`` if counted already (the same for every estimate of
+    the same groups); None: counted here."""
     summed = np.zeros_like(x)
-    weight = np.zeros_like(x)
     for part, where, order, bounds in chunks:
         est = np.empty((where.size, SIDE * SIDE), np.float32)
         shrink_frame_groups(x, part, SIDE, float(sigma) ** 2, SHRINK, est)
-        scatter_frame_patches(est, where, order, bounds, SIDE, summed, weight)
+        scatter_frame_patches(est, where, order, bounds, SIDE, summed, False)
+    return _averaged(x, summed, coverage(x.shape, chunks) if weight is None else weight)
+
+
+def coverage(shape: tuple, chunks: list[tuple]) -> np.ndarray:
+    """How many members of the groups of ``chunks`` (:func:`match`) cover each voxel of a volume of ``shape``."""
+    covers = np.zeros(shape, np.float32)
+    nothing = np.empty((0, SIDE * SIDE), np.float32)
+    for _, where, order, bounds in chunks:
+        scatter_frame_patches(nothing, where, order, bounds, SIDE, covers, True)
+    return covers
+
+
+def _averaged(x: np.ndarray, summed: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """(In place in ``summed``) the sums divided by their count, ``x`` where nothing covers a voxel."""
     covered = weight > 0
     np.divide(summed, weight, out=summed, where=covered)
     summed[~covered] = x[~covered]
@@ -220,7 +234,8 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
         to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
         if i % REGROUP == 0:
             chunks = match(x, refs)
-        x = denoise(x, chunks, float(sigma))
+            weight = coverage(x.shape, chunks)
+        x = denoise(x, chunks, float(sigma), weight)
         if tick is not None:
             tick()
         if watch is not None and (i + 1) % WATCH_EVERY == 0 and i + 1 < len(levels):
