@@ -331,3 +331,28 @@ def test_the_kept_eigenpairs_are_lapacks(kind):
     many = np.diag(np.arange(1.0, k + 1))
     assert kept_eigenpairs(many, 0.5, np.empty(k), np.empty((k, k))) == -1
     assert kept_eigenpairs(many, k + 1.0, np.empty(k), np.empty((k, k))) == 0
+
+
+def test_known_pixels_are_left_out_of_the_groups(carphone):
+    """``known`` (a stream's still answers, kept by the caller): no group is referenced where a patch holds only
+    known pixels, so a capture known everywhere costs no group, and one known on its left half costs the groups
+    of its right half, with the same answer there as when every reference is solved (within 0.05 dB)."""
+    video, cap, start = carphone
+    n, h, w = start.shape
+    refs = R.reference_grid(n, h, w)
+    everywhere = np.ones((h, w), bool)
+    assert R.moving_references(refs, everywhere, start.shape).size == 0
+    out, info = R.refine(cap["coded"], cap["mask"], start, iterations=4, known=everywhere)
+    assert info["groups"] == 0 and np.isfinite(out).all()
+    left = np.zeros((h, w), bool)
+    left[:, :32] = True
+    kept = R.moving_references(refs, left, start.shape)
+    cols = kept % w
+    assert (cols + R.SIDE > 32).all() and 0 < kept.size < refs.size  # every patch kept reaches the right half
+    assert ((refs % w) + R.SIDE > 32).sum() == kept.size
+    whole, _ = R.refine(cap["coded"], cap["mask"], start, iterations=8)
+    half, info = R.refine(cap["coded"], cap["mask"], start, iterations=8, known=left)
+    assert info["groups"] == kept.size
+    right = np.s_[:, :, 40:]  # (beyond the reach of the left half's groups)
+    gap = evaluate(half[right], video[right])["psnr"] - evaluate(whole[right], video[right])["psnr"]
+    assert abs(gap) < 0.05, gap

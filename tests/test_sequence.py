@@ -213,6 +213,23 @@ def test_a_partly_still_sequence_leaves_the_still_part_out_and_gains(tmp_path, c
     assert psnr[0] > psnr[1]
 
 
+
+def test_the_refinement_of_a_partly_still_sequence_works_on_what_moved(tmp_path, capsys):
+    """``--refine`` on a stream: no group of the refinement is referenced where a patch holds only still pixels
+    (their still answers are kept), so the 70 %-still scene's captures solve far fewer groups than the whole
+    grid's, and the still pixels keep their still answers."""
+    from codedvideo.solvers.refine import reference_grid
+
+    cap = tmp_path / "cap"
+    _run(capsys, "simulate", "synth:default-static70", "--frames", N, "--size", 64, 96, "--captures", T, "--output", cap)
+    out = tmp_path / "r.npy"
+    _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--truth", cap / "truth.npy",
+         "--method", "dct", "--refine", 4, "--output", out, "--cache", tmp_path / "cache")
+    metrics = json.loads(out.with_name(out.stem + ".metrics.json").read_text())
+    whole = reference_grid(N, 64, 96).size
+    groups = [e["reconstruction"]["refine"]["groups"] for e in metrics["captures"]]
+    assert all(0 < g < 0.6 * whole for g in groups), (groups, whole)
+
 def test_a_tile_equal_to_one_already_solved_reuses_its_result(tmp_path):
     """Captures that differ in one corner only: the unchanged tiles are solved once for all captures (one task per
     distinct tile content), and every capture equals its reconstruction on its own, bit for bit."""

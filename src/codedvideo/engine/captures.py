@@ -386,7 +386,8 @@ def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict
         watch = lambda done, estimate, seconds: trace(done, kept(estimate.copy()), spent + seconds)  # noqa: E731
     with progress_bar(iterations, f"refine {label}") if progress else contextlib.nullcontext() as bar:
         refined, record = refinement.refine(coded, mask, volume, iterations=iterations, noise_sigma=noise_sigma,
-                                            tick=None if bar is None else (lambda: bar.update(1)), watch=watch)
+                                            known=inner, tick=None if bar is None else (lambda: bar.update(1)),
+                                            watch=watch)
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
         raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
     kept(refined)

@@ -92,6 +92,20 @@ def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE) -
     return np.concatenate(grids).astype(np.int64)
 
 
+def moving_references(refs: np.ndarray, known: np.ndarray | None, shape: tuple) -> np.ndarray:
+    """The references of ``refs`` (flat corners in a volume of ``shape``) whose patch holds at least one pixel
+    not in ``known`` (H, W) bool, the pixels whose values are kept whatever the refinement does (a stream's still
+    answers); None: all of them."""
+    if known is None or not known.any():
+        return refs
+    n, h, w = shape
+    # how many known pixels each SIDE x SIDE patch holds, at its corner (a box sum of the map)
+    box = np.pad(np.asarray(known, np.int32), ((1, 0), (1, 0))).cumsum(0).cumsum(1)
+    full = box[SIDE:, SIDE:] - box[:-SIDE, SIDE:] - box[SIDE:, :-SIDE] + box[:-SIDE, :-SIDE] == SIDE * SIDE
+    corner = refs % (h * w)
+    return refs[~full[corner // w, corner % w]]
+
+
 def shrinkage(gram: np.ndarray, d: int, sigma: float, c: float = SHRINK) -> np.ndarray:
     """Each group's weighted-nuclear-norm shrinkage in its members' space, ``(G, k, k)`` from the Gram
     matrices ``(G, k, k)`` of its centred members (``d`` entries each): ``U diag(f) U^T`` with
@@ -195,7 +209,8 @@ WATCH_EVERY = 8
 
 def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
            sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
-           noise_sigma: float = 0.0, tick=None, watch=None) -> tuple[np.ndarray, dict]:
+           noise_sigma: float = 0.0, known: np.ndarray | None = None, tick=None,
+           watch=None) -> tuple[np.ndarray, dict]:
     """``iterations`` of GAP with the group prior from ``start`` (N, H, W), in working units.
 
     ``coded`` (H, W) and ``mask`` (N, H, W) are the measurements the result keeps (a pixel never open is not
@@ -205,8 +220,10 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     steps.  ``tick``: called once per iteration (a progress bar).  ``watch``: called as ``watch(i, estimate,
     seconds)`` after every :data:`WATCH_EVERY` iterations and after the last, with the result the run would
     give if it ended there (projected and blended as the last is; after the last, the result itself) and the
-    seconds so far, its own calls left out.  Returns the video (N, H, W) float32 and what was done: iterations,
-    the noise levels, the groups, seconds.
+    seconds so far, its own calls left out.  ``known`` (H, W) bool: pixels whose values the caller keeps (a
+    stream's still answers): no group is referenced where a patch holds only those (its groups would change
+    nothing that is kept; a still scene costs the steps to the measurements only).  Returns the video (N, H, W)
+    float32 and what was done: iterations, the noise levels, the groups, seconds.
     """
     t0 = time.perf_counter()
     y = np.asarray(coded, np.float32)
@@ -218,7 +235,7 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     inv = relaxed(open2, 0.0, 1.0)  # (exact: 1 / open2)
     x0 = np.ascontiguousarray(start, np.float32)
     x = x0.copy()
-    refs = reference_grid(n, h, w)
+    refs = moving_references(reference_grid(n, h, w), known, (n, h, w))
     noisy = noise_sigma > 0
     accumulated = None if noisy else y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
