@@ -26,7 +26,7 @@ from codedvideo.engine.windows import cache_room
 from codedvideo.engine.config import omp_settings
 from codedvideo.formats.volumes import check_coded, check_mask
 from codedvideo.model.errors import InputError
-from codedvideo.model.metrics import evaluate, mean_psnr, volume_psnr
+from codedvideo.model.metrics import evaluate, mean_psnr, mse_psnr
 from codedvideo.model.patches import PATCH
 from codedvideo.model.units import capture_units, tolerance_warning
 
@@ -267,6 +267,7 @@ class ReconstructionJob:
         #: Seconds spent scoring the results against the truth (part of each result's time).
         self.seconds_scored = 0.0
         self._traces: dict[int, list[dict]] = {}
+        self._partial: dict[tuple, dict] = {}  # (capture, iterations) -> the bands' squared errors so far
 
     def _warn_before_work(self) -> None:
         r, job = self.r, self.captures
@@ -292,15 +293,23 @@ class ReconstructionJob:
                                cache_budget=r.rc.cache_budget,
                                trace=self._trace if self.captures.truths is not None and r.rc.refine else None)
 
-    def _trace(self, i: int, iterations: int, volume: np.ndarray, seconds: float) -> None:
-        """Capture ``i``'s estimate after ``iterations`` of the refinement (working units), scored against its
-        truth: a point of its error against time (``refine_trace`` in its record)."""
+    def _trace(self, i: int, iterations: int, volume: np.ndarray, seconds: float, rows: slice) -> None:
+        """The rows ``rows`` of capture ``i``'s estimate after ``iterations`` of the refinement (working units),
+        scored against its truth; once every row of the capture is scored (a refinement in bands shows each
+        band's), a point of its error against time (``refine_trace`` in its record), the bands' seconds added."""
         t0 = time.perf_counter()
-        frames = volume / np.float32(self.units.scale)
-        truth = np.asarray(self.captures.truth(i)).reshape(frames.shape)
-        point = dict(iterations=int(iterations), seconds=float(seconds),
-                     psnr=volume_psnr(frames, truth, self.units.value))
-        self._traces.setdefault(i, []).append(point)
+        frames = np.asarray(volume / np.float32(self.units.scale), np.float64)
+        truth = np.asarray(self.captures.truth(i))
+        truth = truth.reshape((frames.shape[0], -1, truth.shape[-1]))
+        part = self._partial.setdefault((i, iterations), dict(sse=np.zeros(frames.shape[0]), rows=0, seconds=0.0))
+        part["sse"] += [np.sum((f - np.asarray(t, np.float64)) ** 2) for f, t in zip(frames, truth[:, rows])]
+        part["rows"] += frames.shape[1]
+        part["seconds"] += float(seconds)
+        if part["rows"] == truth.shape[1]:
+            del self._partial[(i, iterations)]
+            psnr = mean_psnr([mse_psnr(e / truth[0].size, self.units.value) for e in part["sse"]])
+            self._traces.setdefault(i, []).append(dict(iterations=int(iterations), seconds=part["seconds"],
+                                                       psnr=psnr))
         self.seconds_scored += time.perf_counter() - t0
 
     def recipe(self) -> dict:

@@ -375,16 +375,19 @@ def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict
     (:class:`CaptureSettings`), ``spent`` the capture's seconds before the refinement."""
     inner = None if still is None else erode_to_patches(still, PATCH)
 
-    def kept(estimate: np.ndarray) -> np.ndarray:  # (in place) the still pixels' values kept
+    def kept(estimate: np.ndarray, rows: slice = slice(None)) -> np.ndarray:  # (in place) still pixels kept
         if inner is not None:
-            estimate[:, inner] = volume[:, inner]
+            estimate[:, inner[rows]] = volume[:, rows][:, inner[rows]]
         return estimate
 
     watch = None
     if trace is not None:
-        trace(0, volume, spent)
-        watch = lambda done, estimate, seconds: trace(done, kept(estimate.copy()), spent + seconds)  # noqa: E731
-    with progress_bar(iterations, f"refine {label}") if progress else contextlib.nullcontext() as bar:
+        trace(0, volume, spent, slice(0, volume.shape[1]))
+        share = lambda rows: (rows.stop - rows.start) / volume.shape[1]  # noqa: E731  (a band's part of `spent`)
+        watch = lambda done, estimate, seconds, rows: trace(  # noqa: E731
+            done, kept(estimate.copy(), rows), spent * share(rows) + seconds, rows)
+    steps = iterations * len(refinement.bands(volume.shape))
+    with progress_bar(steps, f"refine {label}") if progress else contextlib.nullcontext() as bar:
         refined, record = refinement.refine(coded, mask, volume, iterations=iterations, noise_sigma=noise_sigma,
                                             known=inner, tick=None if bar is None else (lambda: bar.update(1)),
                                             watch=watch)

@@ -80,8 +80,12 @@ def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
 
 def frame_psnr(recon: np.ndarray, truth: np.ndarray, data_range: float) -> float:
     """The PSNR of one frame (float64), infinite where it is exact."""
-    mse = float(np.mean((np.asarray(recon, np.float64) - np.asarray(truth, np.float64)) ** 2))
-    return float("inf") if mse == 0 else float(10 * np.log10(float(data_range) ** 2 / mse))
+    return mse_psnr(float(np.mean((np.asarray(recon, np.float64) - np.asarray(truth, np.float64)) ** 2)), data_range)
+
+
+def mse_psnr(mse: float, data_range: float) -> float:
+    """The PSNR of a mean squared error, infinite where it is 0."""
+    return float("inf") if mse == 0 else float(10 * np.log10(float(data_range) ** 2 / float(mse)))
 
 
 def volume_psnr(recon: np.ndarray, truth: np.ndarray, data_range: float) -> float:

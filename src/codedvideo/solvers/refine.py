@@ -207,6 +207,24 @@ def to_measurements(x: np.ndarray, mask: np.ndarray, coded: np.ndarray, inv: np.
 WATCH_EVERY = 8
 
 
+#: Voxels of a volume refined whole; a larger one is refined a band of rows at a time (each band's volumes
+#: about this size: 64 MB in float32), so that the memory of the refinement is bounded at any image size.
+BAND_VOXELS = 1 << 24
+#: Rows a band reads beyond its own on either side (its results there are left to the neighbouring band): the
+#: groups of a band's edge see this many rows of the image beyond it.
+HALO = 32
+
+
+def bands(shape: tuple) -> list[tuple[int, int]]:
+    """The bands of rows ``(first, end)`` a volume of ``shape`` (N, H, W) is refined in: the whole image when it
+    holds at most :data:`BAND_VOXELS` voxels, else bands of about that many with their halos."""
+    n, h, w = shape
+    if n * h * w <= BAND_VOXELS:
+        return [(0, h)]
+    rows = max(4 * HALO, BAND_VOXELS // max(n * w, 1) - 2 * HALO)
+    return [(r, min(r + rows, h)) for r in range(0, h, rows)]
+
+
 def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
            sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
            noise_sigma: float = 0.0, known: np.ndarray | None = None, tick=None,
@@ -217,14 +235,46 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     held to any).  ``noise_sigma``: the capture's read noise; above 0 the measurements are not held exactly:
     plain GAP (no accumulated residual), each step (and the last projection) relaxed by ``RELAX noise_sigma^2 /
     sigma^2`` at the iteration's noise level ``sigma`` (:func:`to_measurements`).  0: accelerated GAP, exact
-    steps.  ``tick``: called once per iteration (a progress bar).  ``watch``: called as ``watch(i, estimate,
-    seconds)`` after every :data:`WATCH_EVERY` iterations and after the last, with the result the run would
-    give if it ended there (projected and blended as the last is; after the last, the result itself) and the
-    seconds so far, its own calls left out.  ``known`` (H, W) bool: pixels whose values the caller keeps (a
-    stream's still answers): no group is referenced where a patch holds only those (its groups would change
-    nothing that is kept; a still scene costs the steps to the measurements only).  Returns the video (N, H, W)
+    steps.  ``known`` (H, W) bool: pixels whose values the caller keeps (a stream's still answers): no group is
+    referenced where a patch holds only those (its groups would change nothing that is kept; a still scene costs
+    the steps to the measurements only).
+
+    A volume of more than :data:`BAND_VOXELS` voxels is refined a band of rows at a time (:func:`bands`), each
+    with :data:`HALO` rows of the image on either side, and its own rows kept: the memory is that of one band's
+    volumes beside the start and the result.  ``tick``: called once per iteration of each band (a progress bar of
+    ``iterations * len(bands(shape))``).  ``watch``: called as ``watch(i, estimate, seconds, rows)`` after every
+    :data:`WATCH_EVERY` iterations and after the last, with the rows ``rows`` (a slice; every row unless banded)
+    of the result the run would give if it ended there (projected and blended as the last is; after the last,
+    the result itself) and the band's seconds so far, its own calls left out.  Returns the video (N, H, W)
     float32 and what was done: iterations, the noise levels, the groups, seconds.
     """
+    t0 = time.perf_counter()
+    shape = np.shape(mask)
+    parts = bands(shape)
+    if len(parts) == 1 or shape[2] < SIDE:
+        return _refine_whole(coded, mask, start, iterations=iterations, sigma_start=sigma_start,
+                             sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma, known=known, tick=tick,
+                             watch=watch, rows=slice(0, shape[1]))
+    out = np.empty(shape, np.float32)
+    groups = 0
+    for first, end in parts:
+        lo, hi = max(0, first - HALO), min(shape[1], end + HALO)
+        band_watch = None if watch is None else \
+            (lambda i, v, seconds, rows, cut=slice(first - lo, end - lo): watch(i, v[:, cut], seconds, rows))
+        v, info = _refine_whole(coded[lo:hi], mask[:, lo:hi], start[:, lo:hi], iterations=iterations,
+                                sigma_start=sigma_start, sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma,
+                                known=None if known is None else known[lo:hi], tick=tick, watch=band_watch,
+                                rows=slice(first, end))
+        out[:, first:end] = v[:, first - lo:end - lo]
+        groups += info.get("groups", 0)
+        del v
+    return out, dict(info, groups=groups, bands=len(parts), halo=HALO, seconds=time.perf_counter() - t0)
+
+
+def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int, sigma_start: float,
+                  sigma_end: float, blend: float, noise_sigma: float, known: np.ndarray | None, tick, watch,
+                  rows: slice) -> tuple[np.ndarray, dict]:
+    """:func:`refine` of one image (or band): the estimates shown to ``watch`` are said to be ``rows``."""
     t0 = time.perf_counter()
     y = np.asarray(coded, np.float32)
     mask_arr = np.asarray(mask)
@@ -257,12 +307,12 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
             tick()
         if watch is not None and (i + 1) % WATCH_EVERY == 0 and i + 1 < len(levels):
             t_watch = time.perf_counter()
-            watch(i + 1, settle(x.copy(), float(sigma)), t_watch - t0 - watched)
+            watch(i + 1, settle(x.copy(), float(sigma)), t_watch - t0 - watched, rows)
             watched += time.perf_counter() - t_watch
     x = settle(x, levels[-1])
     seconds = time.perf_counter() - t0 - watched
     if watch is not None:
-        watch(len(levels), x, seconds)
+        watch(len(levels), x, seconds, rows)
     info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
                 blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size), seconds=seconds)
     return x, info
