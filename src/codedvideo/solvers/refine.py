@@ -74,22 +74,32 @@ def recipe() -> dict:
                 regroup=REGROUP, shrink=SHRINK, sigma_start=SIGMA_START, sigma_end=SIGMA_END, blend=BLEND, relax=RELAX)
 
 
-def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE) -> np.ndarray:
+def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE, *, blocks: int = 1) -> np.ndarray:
     """Flat corners (t * h * w + row * w + col) of every ``step``-th patch in each direction of every sub-frame,
     the first and last row and column of patches included; sub-frame ``t``'s grid starts ``t * step // n``
-    pixels in (both directions), so the sub-frames' references fall on different places."""
+    pixels in (both directions), so the sub-frames' references fall on different places.  ``blocks``: the ``n``
+    sub-frames are that many videos of ``n / blocks`` each (a colour video's channels, stacked), each block's
+    grids laid as one video's are (its ``t`` counted from its own first sub-frame)."""
     def axis(m: int, offset: int) -> np.ndarray:
         s = np.arange(offset, m, step)
         if s.size == 0 or s[0] != 0:
             s = np.concatenate([[0], s])
         return s if s[-1] == m - 1 else np.append(s, m - 1)
 
+    per_block = _block_frames(n, blocks)
     grids = []
     for t in range(n):
-        offset = (t * step // n) % step
+        offset = ((t % per_block) * step // per_block) % step
         rows, cols = axis(h - side + 1, offset), axis(w - side + 1, offset)
         grids.append((t * h * w + rows[:, None] * w + cols[None, :]).ravel())
     return np.concatenate(grids).astype(np.int64)
+
+
+def _block_frames(n: int, blocks: int) -> int:
+    """The sub-frames of each of ``blocks`` equal blocks of ``n`` (ValueError unless they divide it)."""
+    if blocks < 1 or n % blocks:
+        raise ValueError(f"{n} sub-frames are not {blocks} equal blocks")
+    return n // blocks
 
 
 def shrinkage(gram: np.ndarray, d: int, sigma: float, c: float = SHRINK) -> np.ndarray:
@@ -107,14 +117,22 @@ def shrinkage(gram: np.ndarray, d: int, sigma: float, c: float = SHRINK) -> np.n
     return np.einsum("giq,gq,gjq->gij", U, f, U)
 
 
-def match(x: np.ndarray, refs: np.ndarray, *, chunk: int | None = None) -> list[tuple]:
+def match(x: np.ndarray, refs: np.ndarray, *, chunk: int | None = None, blocks: int = 1) -> list[tuple]:
     """The groups of the references ``refs`` on the estimate ``x`` (N, H, W) float32, in chunks of ``chunk``
     references (None: :data:`CHUNK`): each ``(groups, where, order, bounds)``, its members' corners flat and
-    their order frame by frame for :func:`denoise`."""
+    their order frame by frame for :func:`denoise`.  ``blocks``: the sub-frames are that many videos stacked
+    (:func:`reference_grid`); a reference's members are sought in its own block's sub-frames only."""
     per_chunk = CHUNK if chunk is None else chunk
     n, h, w = x.shape
+    per_block = _block_frames(n, blocks)
     groups = np.empty((refs.size, GROUP), np.int64)
-    match_frame_patches(x, refs, SIDE, WINDOW, min(FRAMES, n - 1), GROUP, groups)
+    volume = per_block * h * w  # (each block matched as a video of its own, its corners shifted back)
+    for b in range(blocks):
+        mine = np.flatnonzero(refs // volume == b)
+        found = np.empty((mine.size, GROUP), np.int64)
+        match_frame_patches(x[b * per_block:(b + 1) * per_block], refs[mine] - b * volume, SIDE, WINDOW,
+                            min(FRAMES, per_block - 1), GROUP, found)
+        groups[mine] = found + b * volume
     chunks = []
     for start in range(0, refs.size, per_chunk):
         part = np.ascontiguousarray(groups[start:start + per_chunk])
@@ -195,17 +213,20 @@ WATCH_EVERY = 8
 
 def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
            sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
-           noise_sigma: float = 0.0, tick=None, watch=None) -> tuple[np.ndarray, dict]:
+           noise_sigma: float = 0.0, blocks: int = 1, tick=None, watch=None) -> tuple[np.ndarray, dict]:
     """``iterations`` of GAP with the group prior from ``start`` (N, H, W), in working units.
 
     ``coded`` (H, W) and ``mask`` (N, H, W) are the measurements the result keeps (a pixel never open is not
     held to any).  ``noise_sigma``: the capture's read noise; above 0 the measurements are not held exactly:
     plain GAP (no accumulated residual), each step (and the last projection) relaxed by ``RELAX noise_sigma^2 /
     sigma^2`` at the iteration's noise level ``sigma`` (:func:`to_measurements`).  0: accelerated GAP, exact
-    steps.  ``tick``: called once per iteration (a progress bar).  ``watch``: called as ``watch(i, estimate,
-    seconds)`` after every :data:`WATCH_EVERY` iterations and after the last, with the result the run would
-    give if it ended there (projected and blended as the last is; after the last, the result itself) and the
-    seconds so far, its own calls left out.  Returns the video (N, H, W) float32 and what was done: iterations,
+    steps.  ``blocks``: the N frames are that many videos of N / blocks sub-frames stacked (a colour video's
+    channels under its colour mask, :func:`codedvideo.engine.bayer.color_mask`): the steps to the measurements
+    take the whole stack, but a group's members and the references' grids stay within one block
+    (:func:`reference_grid`, :func:`match`); 1: one video.  ``tick``: called once per iteration (a progress
+    bar).  ``watch``: called as ``watch(i, estimate, seconds)`` after every :data:`WATCH_EVERY` iterations and
+    after the last, with the result the run would give if it ended there (projected and blended as the last is;
+    after the last, the result itself) and the seconds so far, its own calls left out.  Returns the video (N, H, W) float32 and what was done: iterations,
     the noise levels, the groups, seconds.
     """
     t0 = time.perf_counter()
@@ -218,7 +239,7 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     inv = relaxed(open2, 0.0, 1.0)  # (exact: 1 / open2)
     x0 = np.ascontiguousarray(start, np.float32)
     x = x0.copy()
-    refs = reference_grid(n, h, w)
+    refs = reference_grid(n, h, w, blocks=blocks)
     noisy = noise_sigma > 0
     accumulated = None if noisy else y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
@@ -233,7 +254,7 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     for i, sigma in enumerate(levels):
         to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
         if i % REGROUP == 0:
-            chunks = match(x, refs)
+            chunks = match(x, refs, blocks=blocks)
             weight = coverage(x.shape, chunks)
         x = denoise(x, chunks, float(sigma), weight)
         if tick is not None:
@@ -247,5 +268,6 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     if watch is not None:
         watch(len(levels), x, seconds)
     info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
-                blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size), seconds=seconds)
+                blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size),
+                **(dict(blocks=int(blocks)) if blocks != 1 else {}), seconds=seconds)
     return x, info
