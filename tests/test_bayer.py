@@ -119,6 +119,36 @@ def test_a_global_shutter_gives_the_demosaicked_static_estimate(capture, capsys)
     assert (vol == vol[:, :1]).all()  # no invented motion
 
 
+@pytest.mark.parametrize("sigma", [0.0, 4.0])
+def test_a_refined_bayer_capture_keeps_its_measurements_and_gains_on_real_footage(sigma):
+    """``refine`` with a Bayer mosaic (a 64x64 crop of colour footage, hitomi L = 2): the joint stack refined under
+    the colour mask, each group within one channel's sub-frames (``blocks`` 3), then corrected; its coded image
+    nearer the measured one than the unrefined result's, and its PSNR above it (measured +0.49 dB).  Under read
+    noise the steps are relaxed and the static correction left out (it would put the noise back)."""
+    import codedvideo as cv
+    from codedvideo.model.metrics import volume_psnr
+
+    truth = bayer.color_footage("carphone", frames=8, size=(64, 64))
+    cap = bayer.simulate_bayer(truth, "RGGB", code="hitomi", bump=2, sigma=sigma, seed=0)
+    stack_mask = bayer.color_mask(cap["mask"], "RGGB")
+    results = {refine: cv.reconstruct(cap["coded"], cap["mask"], bayer="RGGB", refine=refine, noise_sigma=sigma,
+                                      data_range=255.0, full_output=True) for refine in (0, 12)}
+    psnr, residual = {}, {}
+    for refine, result in results.items():
+        frames = result.frames.reshape(24, 64, 64)
+        assert result.frames.shape == (3, 8, 64, 64) and np.isfinite(frames).all()
+        psnr[refine] = volume_psnr(frames, truth.reshape(24, 64, 64), 255.0)
+        residual[refine] = np.sqrt(np.mean(((frames * stack_mask).sum(0) - cap["coded"]) ** 2))
+    record = results[12].info[0]
+    assert record["refine"]["iterations"] == 12 and record["refine"]["blocks"] == 3
+    assert "refine" not in results[0].info[0]
+    assert psnr[12] > psnr[0] + 0.2, psnr
+    if sigma:
+        assert record["bayer"]["correction_rms"] is None
+    else:
+        assert record["bayer"]["correction_rms"] > 0 and residual[12] < residual[0], residual
+
+
 # ----------------------------------------------------------------------------- bad input: one line, exit 2, nothing written
 
 

@@ -100,6 +100,46 @@ def test_the_result_does_not_depend_on_the_threads_or_the_chunks(carphone, monke
     np.testing.assert_array_equal(R.refine(cap["coded"], cap["mask"], start, iterations=5)[0], ref)
 
 
+def test_one_block_is_the_kernels_matching_on_the_whole_video(carphone):
+    """A grey capture (one block, the default): the references and the groups the kernel matches on the whole
+    video, as before blocks existed, and the same refinement as ``blocks=1`` bit for bit."""
+    _, cap, start = carphone
+    x = np.ascontiguousarray(start, np.float32)
+    refs = R.reference_grid(8, 64, 64)
+    np.testing.assert_array_equal(refs, R.reference_grid(8, 64, 64, blocks=1))
+    direct = np.empty((refs.size, R.GROUP), np.int64)
+    match_frame_patches(x, refs, R.SIDE, R.WINDOW, R.FRAMES, R.GROUP, direct)
+    np.testing.assert_array_equal(np.concatenate([part for part, *_ in R.match(x, refs)]), direct)
+    one, info = R.refine(cap["coded"], cap["mask"], start, iterations=3)
+    np.testing.assert_array_equal(one, R.refine(cap["coded"], cap["mask"], start, iterations=3, blocks=1)[0])
+    assert "blocks" not in info
+
+
+def test_a_stack_of_blocks_is_grouped_and_denoised_each_block_as_a_video_alone():
+    """Three videos of 4 sub-frames stacked (a colour video's channels): every group's members lie in its
+    reference's block, even where the next block's first sub-frame repeats this one's last exactly (one block:
+    the groups cross there), and the stack is denoised block by block as each video alone is, bit for bit."""
+    rng = np.random.default_rng(5)
+    blocks, n, h, w = 3, 4, 30, 34
+    x = rng.normal(120, 25, (blocks * n, h, w)).astype(np.float32)
+    x[n] = x[n - 1]  # block 1's first sub-frame: block 0's last
+    x[2 * n] = x[2 * n - 1] + 0.5
+    refs = R.reference_grid(blocks * n, h, w, blocks=blocks)
+    alone = R.reference_grid(n, h, w)
+    np.testing.assert_array_equal(refs, np.concatenate([alone + b * n * h * w for b in range(blocks)]))
+    chunks = R.match(x, refs, blocks=blocks)
+    groups = np.concatenate([part for part, *_ in chunks])
+    assert (groups // (n * h * w) == refs[:, None] // (n * h * w)).all()
+    crossing = np.concatenate([part for part, *_ in R.match(x, refs)])
+    assert (crossing // (n * h * w) != refs[:, None] // (n * h * w)).any()  # (the test can see a crossing)
+    stacked = R.denoise(x, chunks, 4.0)
+    for b in range(blocks):
+        video = np.ascontiguousarray(x[b * n:(b + 1) * n])
+        np.testing.assert_array_equal(stacked[b * n:(b + 1) * n], R.denoise(video, R.match(video, alone), 4.0))
+    with pytest.raises(ValueError, match="not 5 equal blocks"):
+        R.reference_grid(blocks * n, h, w, blocks=5)
+
+
 @pytest.mark.parametrize("value", [0.0, 255.0])
 def test_flat_scenes_stay_exactly_flat(value):
     """All dark, all white: nothing to shrink, every group its mean; the measurements hold the same value."""

@@ -71,6 +71,10 @@ class CaptureSettings:
         Iterations of GAP with a low-rank prior on groups after each capture's result (0: none;
         :func:`codedvideo.solvers.refine.refine`, ``--preset best``), in the process, not cached; pixels that
         only still patches cover keep their still answer.
+    blocks : int
+        With ``refine``: the frames of a capture are that many videos stacked, each of its own sub-frames (a
+        Bayer capture's colour channels, :func:`codedvideo.engine.bayer.reconstruct_bayer`); the refinement's
+        groups stay within one (:func:`codedvideo.solvers.refine.refine`).  1: one video.
     noise_sigma : float
         The captures' read noise (capture units, ``--noise-sigma``): with ``refine``, a noisy capture's steps to
         its measurements are relaxed by it (:func:`codedvideo.solvers.refine.refine`); a stream's still
@@ -101,6 +105,7 @@ class CaptureSettings:
     adapt: bool = False
     adapt_rounds: int = 1
     refine: int = 0
+    blocks: int = 1
     noise_sigma: float = 0.0
     cache_budget: int | None = None
     trace: object = None
@@ -314,8 +319,8 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
         volume, info = solved, solved_info
     if o.refine and moving and info.get("method") != "static":
         volume, info = _refined(coded_used, mask_used, volume, info, o.refine, still=still, where=o.where,
-                                noise_sigma=float(o.noise_sigma) * float(inputs.scale), progress=o.progress,
-                                label=f"{i + 1}/{inputs.count}",
+                                noise_sigma=float(o.noise_sigma) * float(inputs.scale), blocks=o.blocks,
+                                progress=o.progress, label=f"{i + 1}/{inputs.count}",
                                 trace=None if o.trace is None else functools.partial(o.trace, i),
                                 spent=_seconds_so_far(job, i, info))
     if measured is not None:  # still answers averaged over captures: the residual of this capture's own
@@ -368,11 +373,12 @@ def _sparse_info(job: _Job, i: int, solved_info: dict, mask_used) -> dict:
 
 def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict, iterations: int, *,
              still: np.ndarray | None, where: str, noise_sigma: float, progress: bool, label: str,
-             trace=None, spent: float = 0.0) -> tuple[np.ndarray, dict]:
+             blocks: int = 1, trace=None, spent: float = 0.0) -> tuple[np.ndarray, dict]:
     """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units, the
-    read noise ``noise_sigma`` too), its info with what the refinement did; the pixels that only still patches
-    cover keep their values.  ``trace(iterations, estimate, seconds)``: the estimates along the way
-    (:class:`CaptureSettings`), ``spent`` the capture's seconds before the refinement."""
+    read noise ``noise_sigma`` too; ``blocks``, the videos stacked in its frames), its info with what the
+    refinement did; the pixels that only still patches cover keep their values.  ``trace(iterations, estimate,
+    seconds)``: the estimates along the way (:class:`CaptureSettings`), ``spent`` the capture's seconds before
+    the refinement."""
     inner = None if still is None else erode_to_patches(still, PATCH)
 
     def kept(estimate: np.ndarray, rows: slice = slice(None)) -> np.ndarray:  # (in place) still pixels kept
@@ -389,7 +395,8 @@ def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict
     steps = iterations * len(refinement.bands(volume.shape))
     with progress_bar(steps, f"refine {label}") if progress else contextlib.nullcontext() as bar:
         refined, record = refinement.refine(coded, mask, volume, iterations=iterations, noise_sigma=noise_sigma,
-                                            known=inner, tick=None if bar is None else (lambda: bar.update(1)),
+                                            known=inner, blocks=blocks,
+                                            tick=None if bar is None else (lambda: bar.update(1)),
                                             watch=watch)
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
         raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")

@@ -496,13 +496,10 @@ def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
                        stride=rc.stride, weighting=rc.weighting, method=rc.method)
 
 
-def _refusal(key: str, options: dict, bayer: str | None) -> str | None:
+def _refusal(key: str, options: dict) -> str | None:
     """Why the value of ``key`` in ``options`` cannot be used in a run (None: it can): ``adapt`` needs a method
-    with a dictionary, ``adapt_rounds`` other than 1 needs ``adapt``, ``refine`` no Bayer mosaic."""
+    with a dictionary, ``adapt_rounds`` other than 1 needs ``adapt``."""
     method = options["method"]
-    if key == "refine" and options["refine"] and bayer:
-        return (f"not available with --bayer {bayer} (measured on a colour mosaic: no gain, 5x the time of the "
-                "passes before it)")
     if key == "adapt_rounds" and options["adapt_rounds"] != 1 and not options["adapt"]:
         return "applies with --adapt only"
     if key == "adapt" and options["adapt"] and method not in ADAPTIVE:
@@ -540,8 +537,9 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
 
     An option given that the run cannot take raises :class:`ConfigError` naming it, with or without a
     preset.  One the preset set is left out instead (its default taken): ``--preset best --method gaptv`` gives
-    GAP-TV without ``adapt``, which it cannot take, and ``best`` with ``--bayer`` leaves out ``refine``, rather
-    than failing.
+    GAP-TV without ``adapt``, which it cannot take, rather than failing.  ``bayer``: the run's Bayer pattern
+    (None: a grey capture); a Bayer mosaic takes every key a grey capture takes (``refine`` too: its groups
+    within each colour channel, docs/quality.md, "Bayer mosaics").
 
     Returns
     -------
@@ -560,7 +558,7 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
     options = {**defaults, **(PRESETS[name] if name else {}), **given}
     left_out = {}
     for key in PRESET_KEYS:  # method before adapt: adapt may be refused with the method left
-        problem = _refusal(key, options, bayer)
+        problem = _refusal(key, options)
         if problem is None:
             continue
         if key in given:

@@ -74,19 +74,22 @@ def recipe() -> dict:
                 regroup=REGROUP, shrink=SHRINK, sigma_start=SIGMA_START, sigma_end=SIGMA_END, blend=BLEND, relax=RELAX)
 
 
-def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE) -> np.ndarray:
+def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE, *, blocks: int = 1) -> np.ndarray:
     """Flat corners (t * h * w + row * w + col) of every ``step``-th patch in each direction of every sub-frame,
     the first and last row and column of patches included; sub-frame ``t``'s grid starts ``t * step // n``
-    pixels in (both directions), so the sub-frames' references fall on different places."""
+    pixels in (both directions), so the sub-frames' references fall on different places.  ``blocks``: the ``n``
+    sub-frames are that many videos of ``n / blocks`` each (a colour video's channels, stacked), each block's
+    grids laid as one video's are (its ``t`` counted from its own first sub-frame)."""
     def axis(m: int, offset: int) -> np.ndarray:
         s = np.arange(offset, m, step)
         if s.size == 0 or s[0] != 0:
             s = np.concatenate([[0], s])
         return s if s[-1] == m - 1 else np.append(s, m - 1)
 
+    per_block = _block_frames(n, blocks)
     grids = []
     for t in range(n):
-        offset = (t * step // n) % step
+        offset = ((t % per_block) * step // per_block) % step
         rows, cols = axis(h - side + 1, offset), axis(w - side + 1, offset)
         grids.append((t * h * w + rows[:, None] * w + cols[None, :]).ravel())
     return np.concatenate(grids).astype(np.int64)
@@ -106,6 +109,13 @@ def moving_references(refs: np.ndarray, known: np.ndarray | None, shape: tuple) 
     return refs[~full[corner // w, corner % w]]
 
 
+def _block_frames(n: int, blocks: int) -> int:
+    """The sub-frames of each of ``blocks`` equal blocks of ``n`` (ValueError unless they divide it)."""
+    if blocks < 1 or n % blocks:
+        raise ValueError(f"{n} sub-frames are not {blocks} equal blocks")
+    return n // blocks
+
+
 def shrinkage(gram: np.ndarray, d: int, sigma: float, c: float = SHRINK) -> np.ndarray:
     """Each group's weighted-nuclear-norm shrinkage in its members' space, ``(G, k, k)`` from the Gram
     matrices ``(G, k, k)`` of its centred members (``d`` entries each): ``U diag(f) U^T`` with
@@ -121,14 +131,22 @@ def shrinkage(gram: np.ndarray, d: int, sigma: float, c: float = SHRINK) -> np.n
     return np.einsum("giq,gq,gjq->gij", U, f, U)
 
 
-def match(x: np.ndarray, refs: np.ndarray, *, chunk: int | None = None) -> list[tuple]:
+def match(x: np.ndarray, refs: np.ndarray, *, chunk: int | None = None, blocks: int = 1) -> list[tuple]:
     """The groups of the references ``refs`` on the estimate ``x`` (N, H, W) float32, in chunks of ``chunk``
     references (None: :data:`CHUNK`): each ``(groups, where, order, bounds)``, its members' corners flat and
-    their order frame by frame for :func:`denoise`."""
+    their order frame by frame for :func:`denoise`.  ``blocks``: the sub-frames are that many videos stacked
+    (:func:`reference_grid`); a reference's members are sought in its own block's sub-frames only."""
     per_chunk = CHUNK if chunk is None else chunk
     n, h, w = x.shape
+    per_block = _block_frames(n, blocks)
     groups = np.empty((refs.size, GROUP), np.int64)
-    match_frame_patches(x, refs, SIDE, WINDOW, min(FRAMES, n - 1), GROUP, groups)
+    volume = per_block * h * w  # (each block matched as a video of its own, its corners shifted back)
+    for b in range(blocks):
+        mine = np.flatnonzero(refs // volume == b)
+        found = np.empty((mine.size, GROUP), np.int64)
+        match_frame_patches(x[b * per_block:(b + 1) * per_block], refs[mine] - b * volume, SIDE, WINDOW,
+                            min(FRAMES, per_block - 1), GROUP, found)
+        groups[mine] = found + b * volume
     chunks = []
     for start in range(0, refs.size, per_chunk):
         part = np.ascontiguousarray(groups[start:start + per_chunk])
@@ -227,7 +245,7 @@ def bands(shape: tuple) -> list[tuple[int, int]]:
 
 def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
            sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
-           noise_sigma: float = 0.0, known: np.ndarray | None = None, tick=None,
+           noise_sigma: float = 0.0, known: np.ndarray | None = None, blocks: int = 1, tick=None,
            watch=None) -> tuple[np.ndarray, dict]:
     """``iterations`` of GAP with the group prior from ``start`` (N, H, W), in working units.
 
@@ -237,7 +255,10 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     sigma^2`` at the iteration's noise level ``sigma`` (:func:`to_measurements`).  0: accelerated GAP, exact
     steps.  ``known`` (H, W) bool: pixels whose values the caller keeps (a stream's still answers): no group is
     referenced where a patch holds only those (its groups would change nothing that is kept; a still scene costs
-    the steps to the measurements only).
+    the steps to the measurements only).  ``blocks``: the N frames are that many videos of N / blocks sub-frames
+    stacked (a colour video's channels under its colour mask, :func:`codedvideo.engine.bayer.color_mask`): the
+    steps to the measurements take the whole stack, but a group's members and the references' grids stay within
+    one block (:func:`reference_grid`, :func:`match`); 1: one video.
 
     A volume of more than :data:`BAND_VOXELS` voxels is refined a band of rows at a time (:func:`bands`), each
     with :data:`HALO` rows of the image on either side, and its own rows kept: the memory is that of one band's
@@ -253,8 +274,8 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     parts = bands(shape)
     if len(parts) == 1 or shape[2] < SIDE:
         return _refine_whole(coded, mask, start, iterations=iterations, sigma_start=sigma_start,
-                             sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma, known=known, tick=tick,
-                             watch=watch, rows=slice(0, shape[1]))
+                             sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma, known=known, blocks=blocks,
+                             tick=tick, watch=watch, rows=slice(0, shape[1]))
     out = np.empty(shape, np.float32)
     groups = 0
     for first, end in parts:
@@ -263,8 +284,8 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
             (lambda i, v, seconds, rows, cut=slice(first - lo, end - lo): watch(i, v[:, cut], seconds, rows))
         v, info = _refine_whole(coded[lo:hi], mask[:, lo:hi], start[:, lo:hi], iterations=iterations,
                                 sigma_start=sigma_start, sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma,
-                                known=None if known is None else known[lo:hi], tick=tick, watch=band_watch,
-                                rows=slice(first, end))
+                                known=None if known is None else known[lo:hi], blocks=blocks, tick=tick,
+                                watch=band_watch, rows=slice(first, end))
         out[:, first:end] = v[:, first - lo:end - lo]
         groups += info.get("groups", 0)
         del v
@@ -272,8 +293,8 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
 
 
 def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int, sigma_start: float,
-                  sigma_end: float, blend: float, noise_sigma: float, known: np.ndarray | None, tick, watch,
-                  rows: slice) -> tuple[np.ndarray, dict]:
+                  sigma_end: float, blend: float, noise_sigma: float, known: np.ndarray | None, blocks: int,
+                  tick, watch, rows: slice) -> tuple[np.ndarray, dict]:
     """:func:`refine` of one image (or band): the estimates shown to ``watch`` are said to be ``rows``."""
     t0 = time.perf_counter()
     y = np.asarray(coded, np.float32)
@@ -285,7 +306,7 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     inv = relaxed(open2, 0.0, 1.0)  # (exact: 1 / open2)
     x0 = np.ascontiguousarray(start, np.float32)
     x = x0.copy()
-    refs = moving_references(reference_grid(n, h, w), known, (n, h, w))
+    refs = moving_references(reference_grid(n, h, w, blocks=blocks), known, (n, h, w))
     noisy = noise_sigma > 0
     accumulated = None if noisy else y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
@@ -300,7 +321,7 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     for i, sigma in enumerate(levels):
         to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
         if i % REGROUP == 0:
-            chunks = match(x, refs)
+            chunks = match(x, refs, blocks=blocks)
             weight = coverage(x.shape, chunks)
         x = denoise(x, chunks, float(sigma), weight)
         if tick is not None:
@@ -314,5 +335,6 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     if watch is not None:
         watch(len(levels), x, seconds, rows)
     info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
-                blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size), seconds=seconds)
+                blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size),
+                **(dict(blocks=int(blocks)) if blocks != 1 else {}), seconds=seconds)
     return x, info
