@@ -421,6 +421,11 @@ def test_a_large_volume_is_refined_in_bands_with_the_same_quality(carphone, monk
     assert np.sqrt(np.mean(residual ** 2)) <= 0.5 * np.sqrt(np.mean(start_residual ** 2)) + 0.01
     gap = evaluate(banded, video)["psnr"] - evaluate(whole, video)["psnr"]
     assert abs(gap) < 0.05, gap
+    # in place (the memory of one band beside the start): the same bits, written into the start itself
+    own = start.astype(np.float32).copy()
+    inplace, _ = R.refine(cap["coded"], cap["mask"], own, iterations=8, overwrite=True)
+    assert inplace is own
+    np.testing.assert_array_equal(inplace, banded)
 
 
 def test_the_error_against_time_of_a_banded_refinement_adds_up_its_bands(monkeypatch):

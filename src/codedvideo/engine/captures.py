@@ -379,28 +379,21 @@ def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict
     refinement did; the pixels that only still patches cover keep their values.  ``trace(iterations, estimate,
     seconds)``: the estimates along the way (:class:`CaptureSettings`), ``spent`` the capture's seconds before
     the refinement."""
-    inner = None if still is None else erode_to_patches(still, PATCH)
-
-    def kept(estimate: np.ndarray, rows: slice = slice(None)) -> np.ndarray:  # (in place) still pixels kept
-        if inner is not None:
-            estimate[:, inner[rows]] = volume[:, rows][:, inner[rows]]
-        return estimate
-
+    inner = None if still is None else erode_to_patches(still, PATCH)  # (the refinement keeps their values)
     watch = None
     if trace is not None:
         trace(0, volume, spent, slice(0, volume.shape[1]))
         share = lambda rows: (rows.stop - rows.start) / volume.shape[1]  # noqa: E731  (a band's part of `spent`)
         watch = lambda done, estimate, seconds, rows: trace(  # noqa: E731
-            done, kept(estimate.copy(), rows), spent * share(rows) + seconds, rows)
+            done, estimate, spent * share(rows) + seconds, rows)
     steps = iterations * len(refinement.bands(volume.shape))
     with progress_bar(steps, f"refine {label}") if progress else contextlib.nullcontext() as bar:
         refined, record = refinement.refine(coded, mask, volume, iterations=iterations, noise_sigma=noise_sigma,
                                             known=inner, blocks=blocks,
                                             tick=None if bar is None else (lambda: bar.update(1)),
-                                            watch=watch)
+                                            watch=watch, overwrite=True)
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
         raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
-    kept(refined)
     seconds = dict(info.get("seconds", {}), refine=record["seconds"])
     return refined, dict(info, refine=record, seconds=seconds)
 

@@ -246,23 +246,24 @@ def bands(shape: tuple) -> list[tuple[int, int]]:
 def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
            sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
            noise_sigma: float = 0.0, known: np.ndarray | None = None, blocks: int = 1, tick=None,
-           watch=None) -> tuple[np.ndarray, dict]:
+           watch=None, overwrite: bool = False) -> tuple[np.ndarray, dict]:
     """``iterations`` of GAP with the group prior from ``start`` (N, H, W), in working units.
 
     ``coded`` (H, W) and ``mask`` (N, H, W) are the measurements the result keeps (a pixel never open is not
     held to any).  ``noise_sigma``: the capture's read noise; above 0 the measurements are not held exactly:
     plain GAP (no accumulated residual), each step (and the last projection) relaxed by ``RELAX noise_sigma^2 /
     sigma^2`` at the iteration's noise level ``sigma`` (:func:`to_measurements`).  0: accelerated GAP, exact
-    steps.  ``known`` (H, W) bool: pixels whose values the caller keeps (a stream's still answers): no group is
-    referenced where a patch holds only those (its groups would change nothing that is kept; a still scene costs
-    the steps to the measurements only).  ``blocks``: the N frames are that many videos of N / blocks sub-frames
+    steps.  ``known`` (H, W) bool: pixels whose values are known (a stream's still answers): they keep their
+    values of ``start`` in every estimate, and no group is referenced where a patch holds only those (a still
+    scene costs the steps to the measurements only).  ``blocks``: the N frames are that many videos of N / blocks sub-frames
     stacked (a colour video's channels under its colour mask, :func:`codedvideo.engine.bayer.color_mask`): the
     steps to the measurements take the whole stack, but a group's members and the references' grids stay within
     one block (:func:`reference_grid`, :func:`match`); 1: one video.
 
     A volume of more than :data:`BAND_VOXELS` voxels is refined a band of rows at a time (:func:`bands`), each
     with :data:`HALO` rows of the image on either side, and its own rows kept: the memory is that of one band's
-    volumes beside the start and the result.  ``tick``: called once per iteration of each band (a progress bar of
+    volumes beside the start and the result (with ``overwrite``, a float32 ``start`` takes the result: the
+    memory of one band beside it).  ``tick``: called once per iteration of each band (a progress bar of
     ``iterations * len(bands(shape))``).  ``watch``: called as ``watch(i, estimate, seconds, rows)`` after every
     :data:`WATCH_EVERY` iterations and after the last, with the rows ``rows`` (a slice; every row unless banded)
     of the result the run would give if it ended there (projected and blended as the last is; after the last,
@@ -276,13 +277,18 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
         return _refine_whole(coded, mask, start, iterations=iterations, sigma_start=sigma_start,
                              sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma, known=known, blocks=blocks,
                              tick=tick, watch=watch, rows=slice(0, shape[1]))
-    out = np.empty(shape, np.float32)
+    in_place = overwrite and isinstance(start, np.ndarray) and start.dtype == np.float32 and start.flags.writeable
+    out = start if in_place else np.empty(shape, np.float32)
     groups = 0
+    above = None  # in place: the start's rows above a band (its upper halo), before the band above wrote them
     for first, end in parts:
         lo, hi = max(0, first - HALO), min(shape[1], end + HALO)
         band_watch = None if watch is None else \
             (lambda i, v, seconds, rows, cut=slice(first - lo, end - lo): watch(i, v[:, cut], seconds, rows))
-        v, info = _refine_whole(coded[lo:hi], mask[:, lo:hi], start[:, lo:hi], iterations=iterations,
+        band = start[:, lo:hi] if above is None else np.concatenate([above, start[:, first:hi]], axis=1)
+        if in_place:
+            above = start[:, max(first, end - HALO):end].copy()
+        v, info = _refine_whole(coded[lo:hi], mask[:, lo:hi], band, iterations=iterations,
                                 sigma_start=sigma_start, sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma,
                                 known=None if known is None else known[lo:hi], blocks=blocks, tick=tick,
                                 watch=band_watch, rows=slice(first, end))
@@ -311,10 +317,14 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     accumulated = None if noisy else y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
 
+    still = None if known is None or not known.any() else np.asarray(known, bool)
+
     def settle(v: np.ndarray, sigma: float) -> np.ndarray:  # (in place) the result a run ending here gives
         to_measurements(v, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv)
         np.multiply(v, np.float32(1.0 - blend), out=v)
         np.add(v, np.float32(blend) * x0, out=v)
+        if still is not None:  # the known pixels keep their values
+            v[:, still] = x0[:, still]
         return v
 
     watched = 0.0  # seconds in the watch's calls, left out of the refinement's
