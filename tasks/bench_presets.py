@@ -16,13 +16,16 @@ under a hitomi L = 2 and a Bernoulli(0.5) code, without noise:
                  hitomi L = 2, L = 3 and Bernoulli(0.5), without noise and with read noise sigma 4 (given as
                  ``--noise-sigma 4``), 8-bit: each one's gain over GAP-TV by code and noise level, on all clips and
                  on the held-out ones (bikes-b, bunny)
+  --front        GAP-TV, ``--preset default`` and ``--preset best`` on 768x768 and 1024x1024 mosaics of the four
+                 clips (N = 8, hitomi L = 2 and Bernoulli(0.5)), 8-bit and [0, 1]: seconds, peak memory, PSNR, best's
+                 time against the default's (target at most 4x) and the default's against GAP-TV's (at most 1x)
   (default)      GAP-TV, ``--preset fast``, ``--preset default`` and ``--preset best``, each capture in
                  8-bit units and again as [0, 1] float32 files (capture and truth / 255): PSNR and SSIM
                  from the run's metrics JSON (``--truth``), and seconds
 
 Results go to bench/results/presets.json (each part kept when the other is run) and a table is printed.
 
-    python tasks/bench_presets.py [--candidates | --scaling | --issue-cases] [--repeats R] [--quick]
+    python tasks/bench_presets.py [--candidates | --scaling | --issue-cases | --front] [--repeats R] [--quick]
 """
 
 from __future__ import annotations
@@ -259,8 +262,75 @@ def scaling(work: Path, repeats: int, sides=SCALING_SIDES) -> dict:
     return dict(rows=rows, repeats=repeats)
 
 
+#: The error-against-time front (issue 39): mosaics of the held-out clips at these sides, under each of ``CODES``.
+FRONT_SIDES = (768, 1024)
+FRONT_RUNS = {label: PRESET_RUNS[label] for label in ("gaptv", "default", "best")}
+#: The targets: best's whole-process time at most this many times the default's, the default's at most GAP-TV's.
+FRONT_BEST_OF_DEFAULT, FRONT_DEFAULT_OF_GAPTV = 4.0, 1.0
+
+
+def mosaic_video(side: int, frames: int = 8) -> np.ndarray:
+    """A ``side`` x ``side`` mosaic (a multiple of 256) of the four held-out clips' 256x256 scenes, in turn, each
+    repeat of a clip mirrored (left-right, then upside down, then both), so that no two tiles are the same."""
+    from codedvideo.data.scenes import load_video
+
+    scenes = [load_video(scene, frames=frames, size=(256, 256)) for scene in SCENES]
+    k = side // 256
+    tiles = []
+    for i in range(k * k):
+        v, repeat = scenes[i % len(scenes)], i // len(scenes)
+        tiles.append(v[:, ::-1 if repeat // 2 % 2 else 1, ::-1 if repeat % 2 else 1])
+    return np.concatenate([np.concatenate(tiles[r * k:(r + 1) * k], axis=2) for r in range(k)], axis=1)
+
+
+def front(work: Path, sides=FRONT_SIDES, units_list=("8-bit", "[0, 1]")) -> dict:
+    """GAP-TV, the default and best on each side's mosaic under each code, one whole process each."""
+    from codedvideo.engine.simulation import simulate_capture
+
+    rows = []
+    for side in sides:
+        video = mosaic_video(side)
+        for code in CODES:
+            cap = simulate_capture(video, code=code, bump=2, sigma=0.0, seed=0)
+            folder = work / f"mosaic-{side}-{code}"
+            folder.mkdir()
+            np.save(folder / "mask.npy", cap["mask"])
+            for tag, scale in (("8", 1.0), ("01", 255.0)):
+                np.save(folder / f"coded{tag}.npy", (cap["coded"] / np.float32(scale)).astype(np.float32))
+                np.save(folder / f"truth{tag}.npy", (cap["truth"] / np.float32(scale)).astype(np.float32))
+            for units in units_list:
+                row = dict(side=side, code=code, units=units)
+                for label, options in FRONT_RUNS.items():
+                    row[label] = reconstruct(dict(folder=folder), options, units=units, work=work)
+                row["best_of_default"] = row["best"]["seconds"] / row["default"]["seconds"]
+                row["default_of_gaptv"] = row["default"]["seconds"] / row["gaptv"]["seconds"]
+                rows.append(row)
+                print(f"  {side} {code} ({units}): " + ", ".join(
+                    f"{k} {row[k]['psnr']:.2f} dB {row[k]['seconds']:.1f} s {row[k]['peak_rss_mb']:.0f} MB"
+                    for k in FRONT_RUNS), file=sys.stderr, flush=True)
+    return dict(rows=rows, targets=dict(best_of_default=FRONT_BEST_OF_DEFAULT,
+                                        default_of_gaptv=FRONT_DEFAULT_OF_GAPTV))
+
+
+def _front_table(f: dict) -> list[str]:
+    lines = ["the error-against-time front (mosaics of the held-out clips, N = 8; whole processes, one run each):",
+             f"  {'case':<24}" + "".join(f"{k + ' dB':>12}{'s':>7}{'MB':>6}" for k in FRONT_RUNS)
+             + f"{'best/def':>10}{'def/gaptv':>11}"]
+    for r in f["rows"]:
+        lines.append(f"  {str(r['side']) + ' ' + r['code'] + ' ' + r['units']:<24}" + "".join(
+            f"{r[k]['psnr']:>12.2f}{r[k]['seconds']:>7.1f}{r[k]['peak_rss_mb']:>6.0f}" for k in FRONT_RUNS)
+            + f"{r['best_of_default']:>10.2f}{r['default_of_gaptv']:>11.2f}")
+    t = f["targets"]
+    for key, label in (("best_of_default", "best / default"), ("default_of_gaptv", "default / GAP-TV")):
+        worst = max(r[key] for r in f["rows"])
+        lines.append(f"  {label}: at most {worst:.2f} (target {t[key]:g}: {'met' if worst <= t[key] else 'NOT met'})")
+    return lines
+
+
 def table(results: dict) -> str:
     lines = []
+    if results.get("front"):
+        lines += _front_table(results["front"])
     s = results.get("scaling")
     if s:
         lines.append(f"scaling (synth:default, N = 8, hitomi L = 2; median of {s['repeats']} whole processes):")
@@ -313,6 +383,8 @@ def main() -> int:
     ap.add_argument("--scaling", action="store_true", help="time default and best at 256, 512 and 1024 pixels square")
     ap.add_argument("--issue-cases", action="store_true",
                     help="GAP-TV, nonlocal --adapt and best on the issue's 24 cases (3 codes x 2 noise levels x 4 clips)")
+    ap.add_argument("--front", action="store_true",
+                    help="GAP-TV, default and best on 768x768 and 1024x1024 mosaics of the clips (issue 39's targets)")
     ap.add_argument("--repeats", type=int, default=3, help="runs of each candidate a case (the median is kept)")
     ap.add_argument("--quick", action="store_true", help="96x96 crops, one case (a smoke run; not saved)")
     a = ap.parse_args()
@@ -324,12 +396,15 @@ def main() -> int:
         work = Path(tmp)
         if a.issue_cases:
             cases = write_captures(work / "captures", size, ISSUE_CODES, ISSUE_SIGMAS)[: 1 if a.quick else None]
-        else:
+        elif not a.front:
             cases = write_captures(work / "captures", size)[: 1 if a.quick else None]
         warm_up(work)
         part = ("candidates" if a.candidates else "scaling" if a.scaling else "issue_cases" if a.issue_cases
-                else "presets")
-        if a.issue_cases:
+                else "front" if a.front else "presets")
+        if a.front:
+            result = front(work, sides=(256,) if a.quick else FRONT_SIDES,
+                           units_list=("8-bit",) if a.quick else ("8-bit", "[0, 1]"))
+        elif a.issue_cases:
             result = issue_cases(cases, work)
         elif a.scaling:
             result = scaling(work, a.repeats, sides=(64, 128) if a.quick else SCALING_SIDES)

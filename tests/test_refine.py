@@ -362,15 +362,16 @@ def test_the_kept_eigenpairs_are_lapacks(kind):
         if not lam_ref[k - kept] - lam_ref[k - kept - 1] > 1e-6 * lam_ref[-1]:
             continue  # (a cut inside a cluster: which side is a matter of rounding)
         lam, U = np.empty(k), np.empty((k, k))
-        m = kept_eigenpairs(C, cut, lam, U)
+        m = kept_eigenpairs(C, cut, lam, U, np.empty((2 * k + 11, k)))
         assert m == kept
         np.testing.assert_allclose(lam[:m], lam_ref[::-1][:m], rtol=0, atol=1e-9 * lam_ref[-1])
         np.testing.assert_allclose(U[:, :m].T @ U[:, :m], np.eye(m), atol=1e-8)
         # the same invariant subspace (the projector onto it), whatever basis a cluster is given
         np.testing.assert_allclose(U[:, :m] @ U[:, :m].T, U_ref[:, k - m:] @ U_ref[:, k - m:].T, atol=1e-6)
     many = np.diag(np.arange(1.0, k + 1))
-    assert kept_eigenpairs(many, 0.5, np.empty(k), np.empty((k, k))) == -1
-    assert kept_eigenpairs(many, k + 1.0, np.empty(k), np.empty((k, k))) == 0
+    work = np.empty((2 * k + 11, k))
+    assert kept_eigenpairs(many, 0.5, np.empty(k), np.empty((k, k)), work) == -1
+    assert kept_eigenpairs(many, k + 1.0, np.empty(k), np.empty((k, k)), work) == 0
 
 
 def test_known_pixels_are_left_out_of_the_groups(carphone):

@@ -73,11 +73,11 @@ SELECT_MAX = 10
 
 
 @njit(nogil=True, cache=True, fastmath=CONTRACT)
-def _tridiagonalize(A, V, a, b):
+def _tridiagonalize(A, V, a, b, p):
     """Householder reduction of the symmetric ``A`` (n x n float64, overwritten) to the tridiagonal ``(a, b)``:
-    ``A = Q T Q^T`` with ``Q = H_0 ... H_{n-3}``, ``H_j = I - 2 v v^T``, ``v = V[j]`` (a zero row: no reflection)."""
+    ``A = Q T Q^T`` with ``Q = H_0 ... H_{n-3}``, ``H_j = I - 2 v v^T``, ``v = V[j]`` (a zero row: no reflection);
+    ``p``: n floats of scratch."""
     n = A.shape[0]
-    p = np.empty(n)
     for j in range(n - 2):
         alpha2 = 0.0
         for i in range(j + 1, n):
@@ -140,16 +140,17 @@ def _below(a, b2, x):
 
 
 @njit(nogil=True, cache=True)
-def _inverse_iteration(a, b, mu, U, j, z):
+def _inverse_iteration(a, b, mu, U, j, z, lu):
     """``z``: the eigenvector of the tridiagonal ``(a, b)`` at the eigenvalue ``mu`` (to 1e-7 of the spectrum's
-    scale), by two solves with ``T - mu I`` (factored once, partial pivoting), each made orthogonal to the ``j``
-    vectors in ``U[:, :j]`` found before it (so a cluster's vectors stay apart), and normalised."""
+    scale), by two solves with ``T - mu I`` (factored once, partial pivoting, into the rows of ``lu`` (5, n)),
+    each made orthogonal to the ``j`` vectors in ``U[:, :j]`` found before it (so a cluster's vectors stay
+    apart), and normalised."""
     n = a.size
-    dd = a - mu
-    dl = np.empty(n)
-    du = np.empty(n)
-    du2 = np.zeros(n)
-    piv = np.zeros(n, np.bool_)
+    dd, dl, du, du2, piv = lu[0], lu[1], lu[2], lu[3], lu[4]
+    for i in range(n):
+        dd[i] = a[i] - mu
+        du2[i] = 0.0
+        piv[i] = 0.0
     dl[:n - 1] = b[:n - 1]
     du[:n - 1] = b[:n - 1]
     tiny = 1e-300 + 1e-300 * (abs(mu) + 1.0)
@@ -160,7 +161,7 @@ def _inverse_iteration(a, b, mu, U, j, z):
             f = dl[i] / dd[i]
             dd[i + 1] -= f * du[i]
         else:
-            piv[i] = True
+            piv[i] = 1.0
             f = dd[i] / dl[i]
             dd[i] = dl[i]
             t = dd[i + 1]
@@ -177,7 +178,7 @@ def _inverse_iteration(a, b, mu, U, j, z):
         z[i] = 1.0 + 0.001 * ((7 * i + 13 * j) % 11)  # (a fixed start, not orthogonal to any eigenvector)
     for _ in range(2):
         for i in range(n - 1):
-            if piv[i]:
+            if piv[i] != 0.0:
                 zi = z[i]
                 z[i] = z[i + 1]
                 z[i + 1] = zi - dl[i] * z[i + 1]
@@ -203,29 +204,31 @@ def _inverse_iteration(a, b, mu, U, j, z):
 
 
 @njit(nogil=True, cache=True)
-def kept_eigenpairs(C, floor, lam, U):
+def kept_eigenpairs(C, floor, lam, U, work):
     """The eigenpairs of the symmetric ``C`` (n x n float64) whose eigenvalues exceed ``floor``, the largest first:
     ``lam[:m]`` and the columns ``U[:, :m]``; returns ``m``, or -1 (nothing computed) when ``m`` exceeds
-    :data:`SELECT_MAX`.
+    :data:`SELECT_MAX`.  ``work``: ``(2 n + 11, n)`` float64 of scratch.
 
     Householder tridiagonalisation; the count above ``floor`` and each eigenvalue by bisection of the Sturm
     sequence (to 1e-7 of the spectrum's scale), its vector by inverse iteration, the eigenvalue then the
     vector's Rayleigh quotient; the vectors taken back through the reflections.  The few eigenpairs a group's
     shrinkage keeps cost a fraction of the whole decomposition."""
     n = C.shape[0]
-    A = C.copy()
-    V = np.empty((max(n - 2, 1), n))
-    a = np.empty(n)
-    b = np.zeros(max(n - 1, 1))
-    _tridiagonalize(A, V, a, b)
+    A, V = work[:n], work[n:2 * n]
+    a, b, an, b2, z, p = work[2 * n], work[2 * n + 1], work[2 * n + 2], work[2 * n + 3], work[2 * n + 4], work[2 * n + 5]
+    lu = work[2 * n + 6:2 * n + 11]
+    A[:, :] = C
+    b[:] = 0.0
+    _tridiagonalize(A, V, a, b, p)
     lo, hi = np.inf, -np.inf
     for i in range(n):  # Gershgorin bounds of the spectrum
         r = (abs(b[i - 1]) if i > 0 else 0.0) + (abs(b[i]) if i < n - 1 else 0.0)
         lo = min(lo, a[i] - r)
         hi = max(hi, a[i] + r)
     scale = max(abs(lo), abs(hi), 1e-300)
-    an = a / scale
-    b2 = (b / scale) * (b / scale)
+    for i in range(n):
+        an[i] = a[i] / scale
+        b2[i] = (b[i] / scale) * (b[i] / scale)
     bottom = max(floor, lo)
     if not bottom < hi:
         return 0
@@ -233,7 +236,6 @@ def kept_eigenpairs(C, floor, lam, U):
     if m > SELECT_MAX:
         return -1
     top = hi
-    z = np.empty(n)
     for j in range(m):
         index = n - 1 - j  # the ascending index of the j-th largest
         low, high = bottom, top
@@ -246,7 +248,7 @@ def kept_eigenpairs(C, floor, lam, U):
             if high - low <= 1e-7 * scale:
                 break
         top = high
-        _inverse_iteration(a, b, 0.5 * (low + high), U, j, z)
+        _inverse_iteration(a, b, 0.5 * (low + high), U, j, z, lu)
         rq = 0.0
         for i in range(n):
             t = a[i] * z[i]
@@ -314,7 +316,7 @@ def shrink_frame_groups(vol, groups, side, sigma2, c, est):
         # the eigenpairs above the cut only (most are shrunk to nothing), or all where many are kept
         lam = np.empty(k)
         U = np.empty((k, k))
-        count = kept_eigenpairs(C, cut, lam, U) if sigma2 > 0.0 else -1
+        count = kept_eigenpairs(C, cut, lam, U, np.empty((2 * k + 11, k))) if sigma2 > 0.0 else -1
         if count < 0:
             lam_all, U_all = np.linalg.eigh(C)
             lam[:] = lam_all
