@@ -164,6 +164,7 @@ _CASE_LINES = {
     "units": _lines_units,
     "adapt": _lines_adapt,
     "presets": _lines_presets,
+    "front": _lines_presets,
     "startup": _lines_startup,
     "calibrated": _lines_calibrated,
     "sequence": _lines_sequence,

@@ -23,6 +23,9 @@ Cases (issue "Fast reconstruction"):
            (8 cases, 8-bit and [0, 1] captures), and default and best at 256, 512 and 1024 pixels square
            (time against the pixel count), and GAP-TV, nonlocal --adapt and best on the issue's 24 cases (3
            codes x read noise 0 and 4 x 4 clips), whole CLI processes (tasks/bench_presets.py)
+  front    issue 39: GAP-TV, the default and best on 768x768 and 1024x1024 mosaics of the held-out clips
+           (hitomi L = 2 and Bernoulli, 8-bit and [0, 1]), whole CLI processes: best's time against the
+           default's and the default's against GAP-TV's (tasks/bench_presets.py --front)
   video    N = 18: 1280x720 with T = 30 captures and one 3840x2160 capture (whole CLI processes,
            peak resident memory)
   outputs  issue 29: peak resident memory per output format (npy, mp4, mkv, gif, zarr, tif, mat, frames),
@@ -732,6 +735,22 @@ def case_presets(quick: bool) -> dict:
                 sgemm_gflops=sgemm_gflops())
 
 
+def case_front(quick: bool) -> dict:
+    """Issue 39: GAP-TV, the default and best on 768x768 and 1024x1024 mosaics of the held-out clips, both codes,
+    8-bit and [0, 1], whole processes (tasks/bench_presets.py --front)."""
+    import tempfile
+
+    import bench_presets as bp
+
+    (ROOT / "cache").mkdir(exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache", prefix="bench-front-") as tmp:
+        work = Path(tmp)
+        bp.warm_up(work)
+        front = bp.front(work, sides=(256,) if quick else bp.FRONT_SIDES,
+                         units_list=("8-bit",) if quick else ("8-bit", "[0, 1]"))
+    return dict(case="front", frames=8, front=front, sgemm_gflops=sgemm_gflops())
+
+
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
              sequence=case_sequence, video=case_video, footage=case_footage, calibrated=case_calibrated, startup=case_startup, units=case_units)
 CASES["nonlocal"] = case_nonlocal  # a keyword: not a dict() argument
@@ -739,6 +758,7 @@ CASES["adapt"] = case_adapt
 CASES["outputs"] = case_outputs
 CASES["outputs4k"] = case_outputs4k
 CASES["presets"] = case_presets
+CASES["front"] = case_front
 
 
 def run_child(name: str, quick: bool) -> dict:

@@ -336,6 +336,28 @@ def test_with_a_truth_the_record_gives_the_psnr_along_the_refinements_iterations
                                                 full_output=True).record["reconstruction"]
 
 
+
+def test_with_a_truth_best_records_the_psnr_after_each_pass_before_its_refinement():
+    """``--preset best`` with a truth: ``stage_trace`` holds the PSNR after each pass of its adaptation (two
+    rounds: passes 1 and 2) at the capture's seconds to it, before ``refine_trace``'s first point (the third
+    pass's result); the last pass's PSNR is that first point's, and scoring changes no bit."""
+    import codedvideo as cv
+
+    video = load_video("footage:carphone", frames=8, size=(48, 48))
+    mask = cv.make_code("hitomi", (48, 48), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    scored = cv.reconstruct(coded, mask, preset="best", refine=8, data_range=255.0, truth=video, full_output=True)
+    assert np.array_equal(scored.frames, cv.reconstruct(coded, mask, preset="best", refine=8, data_range=255.0))
+    record = scored.record["reconstruction"]
+    stages, trace = record["stage_trace"], record["refine_trace"]
+    assert [p["stage"] for p in stages] == ["pass 1", "pass 2"]
+    seconds = [p["seconds"] for p in stages] + [p["seconds"] for p in trace]
+    assert seconds == sorted(seconds) and seconds[0] > 0
+    assert all(np.isfinite(p["psnr"]) and p["psnr"] > 20 for p in stages)
+    assert stages[0]["psnr"] < trace[0]["psnr"] < trace[-1]["psnr"], (stages, trace)
+    assert "stage_trace" not in cv.reconstruct(coded, mask, method="nonlocal", refine=4, data_range=255.0,
+                                               truth=video, full_output=True).record["reconstruction"]
+
 @pytest.mark.parametrize("kind", ["spread", "clustered", "low-rank"])
 def test_the_kept_eigenpairs_are_lapacks(kind):
     """``kept_eigenpairs`` (the shrinkage's selective eigensolver) gives the eigenvalues above the cut and an

@@ -4,6 +4,7 @@ import csv
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -270,8 +271,12 @@ def test_best_is_drawn_along_its_refinement_ending_at_its_point(mini):
     results = run_experiments(runner)
     best = [r for r in results["speed"] if r["label"] == "preset best"]
     assert best and all(r["refine_trace"][0]["iterations"] == 0 for r in best)
+    # the passes of its adaptation first (pass 1, pass 2), then the refinement's points
+    assert all([p["stage"] for p in r["stage_trace"]] == ["pass 1", "pass 2"] for r in best)
     point = summarise(results, cfg)["speed"]["preset best"]
     curve = point["refine_trace"]
+    assert len(curve) == 2 + min(len(r["refine_trace"]) for r in best)
+    assert curve[0][1] == pytest.approx(float(np.mean([r["stage_trace"][0]["psnr"] for r in best])))
     assert len(curve) >= 2 and curve[-1][0] == pytest.approx(point["seconds"])
     assert curve[-1][1] == pytest.approx(point["psnr"], abs=1e-9)
     assert [t for t, _ in curve] == sorted(t for t, _ in curve)

@@ -267,6 +267,7 @@ class ReconstructionJob:
         #: Seconds spent scoring the results against the truth (part of each result's time).
         self.seconds_scored = 0.0
         self._traces: dict[int, list[dict]] = {}
+        self._stages: dict[int, list[dict]] = {}  # capture -> the PSNR after each pass before the last
         self._partial: dict[tuple, dict] = {}  # (capture, iterations) -> the bands' squared errors so far
 
     def _warn_before_work(self) -> None:
@@ -293,10 +294,11 @@ class ReconstructionJob:
                                cache_budget=r.rc.cache_budget,
                                trace=self._trace if self.captures.truths is not None and r.rc.refine else None)
 
-    def _trace(self, i: int, iterations: int, volume: np.ndarray, seconds: float, rows: slice) -> None:
-        """The rows ``rows`` of capture ``i``'s estimate after ``iterations`` of the refinement (working units),
-        scored against its truth; once every row of the capture is scored (a refinement in bands shows each
-        band's), a point of its error against time (``refine_trace`` in its record), the bands' seconds added."""
+    def _trace(self, i: int, iterations: int | str, volume: np.ndarray, seconds: float, rows: slice) -> None:
+        """The rows ``rows`` of capture ``i``'s estimate after ``iterations`` of the refinement (working units), or
+        after the pass ``iterations`` names (``"pass 1"``: ``stage_trace``), scored against its truth; once every
+        row of the capture is scored (a refinement in bands shows each band's), a point of its error against
+        time (``refine_trace`` in its record), the bands' seconds added."""
         t0 = time.perf_counter()
         frames = np.asarray(volume / np.float32(self.units.scale), np.float64)
         truth = np.asarray(self.captures.truth(i))
@@ -308,8 +310,10 @@ class ReconstructionJob:
         if part["rows"] == truth.shape[1]:
             del self._partial[(i, iterations)]
             psnr = mean_psnr([mse_psnr(e / truth[0].size, self.units.value) for e in part["sse"]])
-            self._traces.setdefault(i, []).append(dict(iterations=int(iterations), seconds=part["seconds"],
-                                                       psnr=psnr))
+            stage = isinstance(iterations, str)
+            point = dict(stage=iterations) if stage else dict(iterations=int(iterations))
+            (self._stages if stage else self._traces).setdefault(i, []).append(
+                dict(point, seconds=part["seconds"], psnr=psnr))
         self.seconds_scored += time.perf_counter() - t0
 
     def recipe(self) -> dict:
@@ -346,6 +350,8 @@ class ReconstructionJob:
 
     def _entry(self, i: int, volume, info: dict) -> dict:
         job = self.captures
+        if i in self._stages:  # the PSNR after each pass of the adaptation, and the seconds to each
+            info["stage_trace"] = self._stages.pop(i)
         if i in self._traces:  # the PSNR along the refinement's iterations, and the seconds to each
             info["refine_trace"] = self._traces.pop(i)
         entry = dict(job.labels[i], reconstruction=info)

@@ -230,7 +230,7 @@ class Runner:
         record = dict(settings, key=key, psnr=q["psnr"], ssim=q["ssim"], seconds=seconds,
                       atoms_mean=info.get("atoms_mean"), patches=info.get("patches", 0))
         if info.get("refine_trace"):  # the PSNR along the refinement, for the error-against-time figure
-            record["refine_trace"] = info["refine_trace"]
+            record.update(refine_trace=info["refine_trace"], stage_trace=info.get("stage_trace", []))
         record.pop("defaults", None)
         if keep:
             cio.write_array(vol_path, volume.astype(np.float32))
@@ -335,12 +335,15 @@ def summarise(results: dict, cfg: PipelineConfig) -> dict:
 
 
 def refine_curve(records: list[dict]) -> list[tuple[float, float]]:
-    """The mean ``(seconds, PSNR)`` of records along their refinement, each record's points placed on its own wall
-    time (its last point at the record's ``seconds``: the start-up and the passes before as the run paid them)."""
+    """The mean ``(seconds, PSNR)`` of records after each pass of their adaptation (``stage_trace``, where every
+    record has one) and along their refinement, each record's points placed on its own wall time (its last point
+    at the record's ``seconds``: the start-up and the passes before as the run paid them)."""
+    stages = min(len(r.get("stage_trace") or []) for r in records)
+    curves = [r.get("stage_trace", [])[:stages] + r["refine_trace"] for r in records]
     points = []
-    for at in range(min(len(r["refine_trace"]) for r in records)):
-        seconds = [r["seconds"] - r["refine_trace"][-1]["seconds"] + r["refine_trace"][at]["seconds"] for r in records]
-        points.append((float(np.mean(seconds)), float(np.mean([r["refine_trace"][at]["psnr"] for r in records]))))
+    for at in range(min(len(c) for c in curves)):
+        seconds = [r["seconds"] - c[-1]["seconds"] + c[at]["seconds"] for r, c in zip(records, curves)]
+        points.append((float(np.mean(seconds)), float(np.mean([c[at]["psnr"] for c in curves]))))
     return points
 
 

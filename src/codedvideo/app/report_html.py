@@ -85,9 +85,9 @@ def fig_speed(summary: dict, folder: Path) -> str:
         for i, (label, v) in enumerate(items):
             marker = "o" if label.startswith("OMP") else "*" if label.startswith("preset") else "s"
             ax.plot(v["seconds"], v[metric], marker, color=colours(i % 20), label=label, ms=11 if marker == "*" else 6)
-        for label, v in items:  # a refined preset's PSNR along its refinement, from its start to its point
+        for label, v in items:  # a refined preset's PSNR after its passes and along its refinement, up to its point
             if metric == "psnr" and v.get("refine_trace"):
-                ax.plot(*zip(*v["refine_trace"]), ":", color="0.4", lw=1.2, label=f"{label}, along its refinement")
+                ax.plot(*zip(*v["refine_trace"]), ":", color="0.4", lw=1.2, label=f"{label}, along its passes and refinement")
         front = sorted((v["seconds"], v[metric]) for _, v in items if v[f"pareto_{metric}"])
         ax.step([t for t, _ in front], [q for _, q in front], "k--", where="post", lw=1, label="Pareto front")
         ax.set_xscale("log")

@@ -70,7 +70,7 @@ def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0) -> tup
 
 def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictionary_key: str, pass_settings, *,
                    matched: bool, nonlocal_problem, budget: CacheBudget | None,
-                   run) -> tuple[np.ndarray, str | None, dict | None]:
+                   run, stage=None) -> tuple[np.ndarray, str | None, dict | None]:
     """Capture ``i``'s passes before its last (``--adapt``), each a job of its own followed by an adaptation of
     the dictionary to its result (:func:`adapt_dictionary`), the next pass solved with that dictionary.
 
@@ -81,11 +81,13 @@ def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictio
     (where the code's groups can be solved: ``nonlocal_problem(mask)`` is None); ``run``:
     :func:`codedvideo.engine.windows.sparse_volumes`
     with the job's tiles, cache and scheduler.  Stops early where a result has nothing to learn from.
+    ``stage(label, volume, seconds)``: each pass's result (working units) and the capture's seconds to it (its
+    passes and adaptations so far), for its error against time.
 
     Returns the dictionary for the last pass (``dictionary`` itself if none was adapted), the working store the
     last pass is matched on (or None), and the record of the adaptations with the earlier jobs' seconds (or None).
     """
-    D_i, store, done = dictionary, None, []
+    D_i, store, done, spent = dictionary, None, [], 0.0
     for k, settings in enumerate(pass_settings):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -96,9 +98,13 @@ def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictio
             with contextlib.closing(pass_job):  # closed here: the graph's thread has ended
                 _, first, info = next(pass_job)
         learnt = first is not None and info.get("method") != "static"  # (one pattern for all pixels: no tiles)
+        spent += sum(v for v in (info or {}).get("seconds", {}).values() if isinstance(v, (int, float)))
+        if stage is not None and first is not None:
+            stage(f"pass {k + 1}", first, spent)
         if learnt:
             Da, record = adapt_dictionary(first, D_i)
             done.append((info, record))
+            spent += record["seconds"]
             learnt = record["adapted"]  # (a result with nothing to learn from keeps the dictionary)
         del first
         if learnt:

@@ -84,9 +84,10 @@ class CaptureSettings:
         used are removed as the job's windows finish (with ``adapt``, the first passes' stores only after the
         job).  None: no limit.
     trace : callable, optional
-        With ``refine``: ``trace(i, iterations, volume, seconds)`` with capture ``i``'s estimate (working units)
-        before the refinement (``iterations`` 0) and every few of its iterations
-        (:data:`codedvideo.solvers.refine.WATCH_EVERY`), and the capture's seconds so far (error against time).
+        With ``refine``: ``trace(i, iterations, volume, seconds, rows)`` with the rows ``rows`` of capture ``i``'s
+        estimate (working units) before the refinement (``iterations`` 0) and every few of its iterations
+        (:data:`codedvideo.solvers.refine.WATCH_EVERY`), and the capture's seconds so far (error against time);
+        with ``adapt`` also after each pass before the last, ``iterations`` then the pass's label (``"pass 1"``).
     """
 
     method: str
@@ -241,7 +242,8 @@ def _adapt(job: _Job) -> None:
     for i in range(job.inputs.count):
         D_i, store, record = adapt_capture(
             i, job.inputs.count, job.for_sparse, o.dictionary, o.dictionary_key, job.pass_settings[:o.adapt_rounds],
-            matched=job.survey, nonlocal_problem=job.nonlocal_problem, budget=job.budget, run=run)
+            matched=job.survey, nonlocal_problem=job.nonlocal_problem, budget=job.budget, run=run,
+            stage=None if o.trace is None else functools.partial(_stage, o.trace, i))
         if D_i is not o.dictionary:
             job.adapted[i] = D_i
         if store is not None:
@@ -249,6 +251,11 @@ def _adapt(job: _Job) -> None:
         if record is not None:
             job.records[i] = record
     job.inputs.forget()  # the warnings the first jobs swallowed are said by the second
+
+
+def _stage(trace, i: int, label: str, volume: np.ndarray, seconds: float) -> None:
+    """Capture ``i``'s result after the pass ``label`` of its adaptation, shown to the job's ``trace``."""
+    trace(i, label, volume, seconds, slice(0, volume.shape[1]))
 
 
 def _solved(job: _Job):
