@@ -300,12 +300,15 @@ class ReconstructionJob:
         row of the capture is scored (a refinement in bands shows each band's), a point of its error against
         time (``refine_trace`` in its record), the bands' seconds added."""
         t0 = time.perf_counter()
-        frames = np.asarray(volume / np.float32(self.units.scale), np.float64)
+        scale = np.float32(self.units.scale)
+        n = volume.shape[0]
         truth = np.asarray(self.captures.truth(i))
-        truth = truth.reshape((frames.shape[0], -1, truth.shape[-1]))
-        part = self._partial.setdefault((i, iterations), dict(sse=np.zeros(frames.shape[0]), rows=0, seconds=0.0))
-        part["sse"] += [np.sum((f - np.asarray(t, np.float64)) ** 2) for f, t in zip(frames, truth[:, rows])]
-        part["rows"] += frames.shape[1]
+        truth = truth.reshape((n, -1, truth.shape[-1]))
+        part = self._partial.setdefault((i, iterations), dict(sse=np.zeros(n), rows=0, seconds=0.0))
+        for t in range(n):  # a frame at a time in float64 (not the whole volume)
+            error = np.asarray(volume[t] / scale, np.float64) - np.asarray(truth[t, rows], np.float64)
+            part["sse"][t] += np.sum(error ** 2)
+        part["rows"] += volume.shape[1]
         part["seconds"] += float(seconds)
         if part["rows"] == truth.shape[1]:
             del self._partial[(i, iterations)]
