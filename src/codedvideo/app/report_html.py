@@ -87,7 +87,8 @@ def fig_speed(summary: dict, folder: Path) -> str:
             ax.plot(v["seconds"], v[metric], marker, color=colours(i % 20), label=label, ms=11 if marker == "*" else 6)
         for label, v in items:  # a refined preset's PSNR after its passes and along its refinement, up to its point
             if metric == "psnr" and v.get("refine_trace"):
-                ax.plot(*zip(*v["refine_trace"]), ":", color="0.4", lw=1.2, label=f"{label}, along its passes and refinement")
+                ax.plot(*zip(*v["refine_trace"]), ":", color="0.4", lw=1.2,
+                        label=f"{label}, along its passes and refinement")
         front = sorted((v["seconds"], v[metric]) for _, v in items if v[f"pareto_{metric}"])
         ax.step([t for t, _ in front], [q for _, q in front], "k--", where="post", lw=1, label="Pareto front")
         ax.set_xscale("log")

@@ -255,10 +255,11 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     sigma^2`` at the iteration's noise level ``sigma`` (:func:`to_measurements`).  0: accelerated GAP, exact
     steps.  ``known`` (H, W) bool: pixels whose values are known (a stream's still answers): they keep their
     values of ``start`` in every estimate, and no group is referenced where a patch holds only those (a still
-    scene costs the steps to the measurements only).  ``blocks``: the N frames are that many videos of N / blocks sub-frames
-    stacked (a colour video's channels under its colour mask, :func:`codedvideo.engine.bayer.color_mask`): the
-    steps to the measurements take the whole stack, but a group's members and the references' grids stay within
-    one block (:func:`reference_grid`, :func:`match`); 1: one video.
+    scene costs the steps to the measurements only).  ``blocks``: the N frames are that many videos of
+    N / blocks sub-frames stacked (a colour video's channels under its colour mask,
+    :func:`codedvideo.engine.bayer.color_mask`): the steps to the measurements take the whole stack, but a group's
+    members and the references' grids stay within one block (:func:`reference_grid`, :func:`match`); 1: one
+    video.
 
     A volume of more than :data:`BAND_VOXELS` voxels is refined a band of rows at a time (:func:`bands`), each
     with :data:`HALO` rows of the image on either side, and its own rows kept: the memory is that of one band's

@@ -215,8 +215,9 @@ def kept_eigenpairs(C, floor, lam, U, work):
     shrinkage keeps cost a fraction of the whole decomposition."""
     n = C.shape[0]
     A, V = work[:n], work[n:2 * n]
-    a, b, an, b2, z, p = work[2 * n], work[2 * n + 1], work[2 * n + 2], work[2 * n + 3], work[2 * n + 4], work[2 * n + 5]
-    lu = work[2 * n + 6:2 * n + 11]
+    q = 2 * n  # (the rows after A's and V's)
+    a, b, an, b2, z, p = work[q], work[q + 1], work[q + 2], work[q + 3], work[q + 4], work[q + 5]
+    lu = work[q + 6:q + 11]
     A[:, :] = C
     b[:] = 0.0
     _tridiagonalize(A, V, a, b, p)
