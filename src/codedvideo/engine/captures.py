@@ -384,8 +384,9 @@ def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict
     """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units, the
     read noise ``noise_sigma`` too; ``blocks``, the videos stacked in its frames), its info with what the
     refinement did; the pixels that only still patches cover keep their values.  ``trace(iterations, estimate,
-    seconds)``: the estimates along the way (:class:`CaptureSettings`), ``spent`` the capture's seconds before
-    the refinement."""
+    seconds, rows)``: the estimates along the way, a band of rows at a time where the refinement goes in bands
+    (:class:`CaptureSettings`), ``spent`` the capture's seconds before the refinement.  ``volume`` may be
+    overwritten by the result (a refinement in bands writes into it)."""
     inner = None if still is None else erode_to_patches(still, PATCH)  # (the refinement keeps their values)
     watch = None
     if trace is not None:
