@@ -31,6 +31,20 @@ def test_ksvd_replaces_degenerate_atoms(rng):
     assert G.max() < 0.995
 
 
+def test_ksvd_keeps_the_atoms_no_sample_uses_when_asked_and_replaces_them_otherwise(rng):
+    """Samples on 4 atoms of a basis of 16: with replace_unused=False the 12 others come out as they went in
+    (normalised: to float32 rounding; a basis keeps its span); by default they become badly represented samples."""
+    f = 16
+    D0 = np.linalg.qr(rng.normal(size=(f, f)))[0].astype(np.float32)
+    Y = (rng.normal(size=(300, 4)) @ D0[:, :4].T).astype(np.float32) + 0.01 * rng.normal(size=(300, f)).astype(
+        np.float32)
+    kept, _ = ksvd(Y, D0, sparsity=2, iterations=2, rng=0, replace_unused=False)
+    replaced, hist = ksvd(Y, D0, sparsity=2, iterations=2, rng=0)
+    np.testing.assert_allclose(kept[:, 4:], D0[:, 4:], atol=1e-6)
+    assert sum(hist.replaced) >= 12 and not np.allclose(replaced[:, 4:], D0[:, 4:], atol=1e-3)
+    assert np.abs(np.abs(np.sum(kept[:, :4] * D0[:, :4], 0)) - 1).max() < 0.05  # the used atoms still updated
+
+
 def test_dct_dictionary_is_orthonormal_and_overcomplete_variant_unit_norm():
     D = dct_dictionary(4)
     assert D.shape == (196, 196)

@@ -22,6 +22,17 @@ from codedvideo.solvers.dictionaries import learn_dictionary
 #: for one), 4 on 14000 patches 34.54 (0.73 s); sparsity 4 or 8 no better.  A dictionary adapted to one
 #: capture does not carry to the next (-1.3 to +1.4 dB a case, no gain on average): each gets its own.
 ADAPT_SAMPLES, ADAPT_ITERATIONS, ADAPT_SPARSITY = 7000, 4, 6
+#: An atom the capture's patches leave unused is kept in the adaptation of a complete orthonormal basis (the DCT of
+#: ``--method dct``, and its adaptations in later rounds), where replacing it with a badly represented patch, as
+#: K-SVD does, takes a direction out of the span the next pass needs; a learnt dictionary's is replaced.
+#: Measured, ``--adapt`` over no adaptation, hitomi L = 2, on synth:default, carphone, bikes-a and bunny: the DCT
+#: at N = 64, 64x64, -0.41 to -0.16 dB replaced, +0.35 to +0.85 kept; at N = 16, 48x48, -0.44 to +1.76
+#: replaced, +0.72 to +3.15 kept; at N = 8 and 16, 32x32, better kept on 7 of 8 (0.98 dB worse on
+#: synth:default at N = 8).  Learnt
+#: dictionaries lost with their atoms kept: best on the 8 held-out 256x256 cases with the shipped N = 8 one
+#: (bikes-a, bikes-b, carphone, bunny; hitomi L = 2 and Bernoulli) -0.08 dB on average; the shipped N = 16
+#: one (512 atoms, fewer than its 784 rows), ``--adapt`` at 64x64 and 128x128 -0.24 to +0.01.
+KEEP_UNUSED = "kept in an orthonormal basis"
 #: ``nonlocal --adapt``: the first pass solves the groups of every 7th reference patch (a survey, 0.2 of the
 #: groups of the non-local method's stride 3), the second pass the groups of every 4th from the survey's
 #: result, with no per-patch tiles (:attr:`codedvideo.engine.parallel.TileWork.first`).  Measured on the 24
@@ -39,8 +50,12 @@ ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP = 7, 4
 ADAPT_LAST_STEP = 3
 
 
-def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0) -> tuple[np.ndarray, dict]:
+def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0, keep_unused: bool | None = None
+                     ) -> tuple[np.ndarray, dict]:
     """``D`` adapted to one capture's first reconstruction ``volume`` (N, H, W), in working units.
+
+    ``keep_unused``: the atoms the capture leaves unused are kept (:data:`KEEP_UNUSED`); None: when ``D`` is an
+    orthonormal basis (:func:`is_basis`).  A later round passes the first round's answer.
 
     A volume with nothing to learn from (flat in space and time) keeps ``D``.
     Returns the dictionary and a record of the adaptation.
@@ -50,6 +65,7 @@ def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0) -> tup
     from codedvideo.solvers.dictionaries import prepare_dictionary
 
     t0 = time.perf_counter()
+    keep = is_basis(D) if keep_unused is None else keep_unused
     first = np.asarray(volume, np.float32)
     if not np.ptp(first) > 1e-3 * max(1.0, float(np.abs(first).max(initial=0.0))):
         return D, dict(adapted=False, reason="the first reconstruction is flat", seconds=time.perf_counter() - t0)
@@ -59,13 +75,25 @@ def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0) -> tup
         with threadpool_limits(limits=1, user_api="blas"):
             Da, meta = learn_dictionary([first], frames=first.shape[0], init=D, augment=False,
                                         iterations=ADAPT_ITERATIONS, samples=ADAPT_SAMPLES, sparsity=ADAPT_SPARSITY,
-                                        tol_rms=0.0, seed=seed)
+                                        tol_rms=0.0, seed=seed, replace_unused=not keep)
     except InputError:  # every patch drawn is flat (a dark frame with a few bright pixels): nothing to learn
         return D, dict(adapted=False, reason="no patch drawn from the first reconstruction has texture",
                        seconds=time.perf_counter() - t0)
     Da = prepare_dictionary(Da, "adapted to the capture")
     return Da, dict(adapted=True, samples=meta["samples"], iterations=ADAPT_ITERATIONS, final_rmse=meta["final_rmse"],
-                    seconds=time.perf_counter() - t0)
+                    unused_atoms="kept" if keep else "replaced", seconds=time.perf_counter() - t0)
+
+
+def is_basis(D: np.ndarray) -> bool:
+    """Whether the dictionary ``D`` (rows, atoms) is a complete orthonormal basis, the DCT of ``--method dct``: as
+    many atoms as rows, and ``D^T D v = v`` for a fixed random ``v`` (to float32 rounding); its adaptation keeps the
+    atoms a capture leaves unused (:data:`KEEP_UNUSED`)."""
+    rows, atoms = D.shape
+    if atoms != rows:
+        return False
+    v = np.random.default_rng(0).standard_normal(atoms)
+    D64 = np.asarray(D, np.float64)
+    return bool(np.linalg.norm(D64.T @ (D64 @ v) - v) <= 1e-4 * np.linalg.norm(v))
 
 
 def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictionary_key: str, pass_settings, *,
@@ -88,6 +116,7 @@ def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictio
     last pass is matched on (or None), and the record of the adaptations with the earlier jobs' seconds (or None).
     """
     D_i, store, done, spent = dictionary, None, [], 0.0
+    keep = is_basis(dictionary)  # (decided on the dictionary the first round starts from, for every round)
     for k, settings in enumerate(pass_settings):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -102,7 +131,7 @@ def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictio
         if stage is not None and first is not None:
             stage(f"pass {k + 1}", first, spent)
         if learnt:
-            Da, record = adapt_dictionary(first, D_i)
+            Da, record = adapt_dictionary(first, D_i, keep_unused=keep)
             done.append((info, record))
             spent += record["seconds"]
             learnt = record["adapted"]  # (a result with nothing to learn from keeps the dictionary)

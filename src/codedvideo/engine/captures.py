@@ -583,7 +583,7 @@ def result_recipe(method: str, *, adapt: bool = False, adapt_rounds: int = 1, re
     without them stand."""
     import inspect
 
-    from codedvideo.engine.adaptation import ADAPT_ITERATIONS, ADAPT_SAMPLES, ADAPT_SPARSITY
+    from codedvideo.engine.adaptation import ADAPT_ITERATIONS, ADAPT_SAMPLES, ADAPT_SPARSITY, KEEP_UNUSED
     from codedvideo.engine.cache import RECON_VERSION
     from codedvideo.solvers import baselines
 
@@ -592,6 +592,7 @@ def result_recipe(method: str, *, adapt: bool = False, adapt_rounds: int = 1, re
         recipe: dict = dict(version=RECON_VERSION)
         if adapt:
             recipe["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY,
+                                   unused=KEEP_UNUSED,
                                    **(dict(survey_step=ADAPT_SURVEY_STEP, refine_step=ADAPT_REFINE_STEP)
                                       if method == "nonlocal" else {}))
             if adapt_rounds != 1:

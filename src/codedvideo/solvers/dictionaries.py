@@ -227,6 +227,7 @@ def learn_dictionary(
     progress=None,
     init: np.ndarray | None = None,
     augment: bool = True,
+    replace_unused: bool = True,
 ) -> tuple[np.ndarray, dict]:
     """Learn a dictionary with K-SVD, initialised from the 3D DCT (or from ``init``).
 
@@ -236,6 +237,8 @@ def learn_dictionary(
     training videos, such as one scene's reconstruction.  ``tol_rms`` stops the
     coding of a sample once its RMS residual (grey levels per entry) is below it.
     ``augment``: rotations, flips and time reversal of the patches (off to fit a scene).
+    ``replace_unused``: an atom no patch's code uses becomes one of the worst represented patches (False: it is
+    kept, :func:`codedvideo.solvers.ksvd.ksvd`).
 
     Returns
     -------
@@ -259,7 +262,8 @@ def learn_dictionary(
     else:
         D0 = _initial_dictionary(X, frames, atoms, patch, rng)
     D, hist = ksvd(
-        X, D0, sparsity=sparsity, iterations=iterations, tol=n_feat * tol_rms**2, rng=rng, progress=progress
+        X, D0, sparsity=sparsity, iterations=iterations, tol=n_feat * tol_rms**2, rng=rng, progress=progress,
+        replace_unused=replace_unused,
     )
     meta = dict(
         patch=patch,

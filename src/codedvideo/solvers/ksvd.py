@@ -42,6 +42,7 @@ def ksvd(
     rng: np.random.Generator | int | None = 0,
     power_steps: int = 3,
     progress=None,
+    replace_unused: bool = True,
 ) -> tuple[np.ndarray, KsvdHistory]:
     """Learn a dictionary.
 
@@ -62,6 +63,9 @@ def ksvd(
         Power-iteration steps of each rank-1 update.
     progress : callable, optional
         Called as ``progress(iteration, rmse)`` after each iteration.
+    replace_unused : bool
+        An atom no sample's code uses is replaced by one of the worst represented samples (True), or kept as it
+        is (False: a basis adapted to few samples, whose unused atoms are directions its span needs).
 
     Returns
     -------
@@ -90,14 +94,19 @@ def ksvd(
         bounds = np.searchsorted(flat_atom[order], np.arange(K + 1))
         replaced = 0
         perm = gen.permutation(K)
-        # the atoms in turn: runs of used atoms compiled, an unused one replaced where its turn comes
+        # the atoms in turn: runs of used atoms compiled, an unused one replaced where its turn comes (or kept,
+        # the used ones then updated in one run, in the same order)
+        unused = np.flatnonzero(bounds[perm + 1] == bounds[perm])
+        if not replace_unused:
+            perm = np.delete(perm, unused)
+            unused = unused[:0]
         start = 0
-        for i in np.flatnonzero(bounds[perm + 1] == bounds[perm]):
+        for i in unused:
             if i > start:
                 update_atoms(E, err, Dt, coef, perm[start:i], order, bounds, power_steps)
             replaced += _replace_atom(D, perm[i], E, err, gen)
             start = i + 1
-        if start < K:
+        if start < perm.size:
             update_atoms(E, err, Dt, coef, perm[start:], order, bounds, power_steps)
         replaced += _replace_duplicates(D, E, err, gen)
         rmse = float(np.sqrt(err.sum() / E.size))
