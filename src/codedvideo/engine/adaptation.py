@@ -28,10 +28,10 @@ ADAPT_SAMPLES, ADAPT_ITERATIONS, ADAPT_SPARSITY = 7000, 4, 6
 #: Measured, ``--adapt`` over no adaptation, hitomi L = 2, on synth:default, carphone, bikes-a and bunny: the DCT
 #: at N = 64, 64x64, -0.41 to -0.16 dB replaced, +0.35 to +0.85 kept; at N = 16, 48x48, -0.44 to +1.76
 #: replaced, +0.72 to +3.15 kept; at N = 8 and 16, 32x32, better kept on 7 of 8 (0.98 dB worse on
-#: synth:default at N = 8).  Learnt
-#: dictionaries lost with their atoms kept: best on the 8 held-out 256x256 cases with the shipped N = 8 one
-#: (bikes-a, bikes-b, carphone, bunny; hitomi L = 2 and Bernoulli) -0.08 dB on average; the shipped N = 16
-#: one (512 atoms, fewer than its 784 rows), ``--adapt`` at 64x64 and 128x128 -0.24 to +0.01.
+#: synth:default at N = 8).  Learnt dictionaries lost with their atoms kept: best on the 8 held-out 256x256
+#: cases with the shipped N = 8 one (bikes-a, bikes-b, carphone, bunny; hitomi L = 2 and Bernoulli) -0.08 dB on
+#: average; the shipped N = 16 one (512 atoms, fewer than its 784 rows), ``--adapt`` at 64x64 and 128x128 -0.24
+#: to +0.01.
 KEEP_UNUSED = "kept in an orthonormal basis"
 #: ``nonlocal --adapt``: the first pass solves the groups of every 7th reference patch (a survey, 0.2 of the
 #: groups of the non-local method's stride 3), the second pass the groups of every 4th from the survey's
@@ -65,10 +65,10 @@ def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0, keep_u
     from codedvideo.solvers.dictionaries import prepare_dictionary
 
     t0 = time.perf_counter()
-    keep = is_basis(D) if keep_unused is None else keep_unused
     first = np.asarray(volume, np.float32)
     if not np.ptp(first) > 1e-3 * max(1.0, float(np.abs(first).max(initial=0.0))):
         return D, dict(adapted=False, reason="the first reconstruction is flat", seconds=time.perf_counter() - t0)
+    keep = is_basis(D) if keep_unused is None else keep_unused
     try:
         # one BLAS thread: the same bits whatever the cores (products round otherwise with other thread counts);
         # the caller runs no graph meanwhile, whose own limit would change it midway (adapt_capture)
