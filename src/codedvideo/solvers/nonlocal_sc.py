@@ -56,7 +56,7 @@ from codedvideo.model import patches as P
 from codedvideo.model.codes import is_binary
 from codedvideo.solvers.omp import _TINY, DEPENDENCE_TOL, SELECT_BITS, OmpResult, pixel_patterns
 from codedvideo.solvers.nonlocal_kernel import block_match, scatter_patches, somp_kernel
-from codedvideo.solvers.omp_kernel import TableOMP, synthesize, table_fits
+from codedvideo.solvers.omp_kernel import TableOMP, atom_rows, synthesize, synthesize_rows, table_fits
 from codedvideo.solvers.region import (WINDOW, OmpSettings, RegionPatches, region_patches, still_answers,
                                        still_patches, stride_grid)
 
@@ -367,6 +367,7 @@ def _solve_pass(region: _Region, chosen: _References, idx: np.ndarray, dist: np.
     solved = chosen.ref & ~chosen.still_ok  # references whose group is solved jointly
     n_groups = n_members = n_atoms = 0
     band = max(1, settings.batch // max(1, wp * (k if opts.aggregate == "all" else 1)))
+    atoms = atom_rows(D)  # (once: every band's estimates are synthesised from it)
     for r0 in range(0, hp, band):
         r1 = min(hp, r0 + band)
         band_refs = np.flatnonzero(solved[r0 * wp:r1 * wp]) + r0 * wp
@@ -375,9 +376,9 @@ def _solve_pass(region: _Region, chosen: _References, idx: np.ndarray, dist: np.
         n_members += int(groups.size.sum())
         n_atoms += int(groups.count.sum())
         if opts.aggregate == "reference" or k == 1:  # one estimate per patch: the default's fold
-            _fold_references(region, chosen, groups, D, settings, (r0, r1), summed, weight)
+            _fold_references(region, chosen, groups, atoms, settings, (r0, r1), summed, weight)
         else:
-            _scatter_members(region, chosen, groups, D, settings, opts.similarity, (r0, r1), summed, weight)
+            _scatter_members(region, chosen, groups, atoms, settings, opts.similarity, (r0, r1), summed, weight)
     return summed, weight, (n_groups, n_members, n_atoms)
 
 
@@ -422,10 +423,11 @@ def _solve_groups(region: _Region, refs: np.ndarray, members: np.ndarray, dist: 
     return _Groups(refs=refs, mem=mem, dmem=dmem, size=size, index=index, coef=coef, count=count, res2=res2, dep=dep)
 
 
-def _fold_references(region: _Region, chosen: _References, groups: _Groups, D: np.ndarray, settings: OmpSettings,
-                     band: tuple[int, int], summed: np.ndarray, weight: np.ndarray) -> None:
+def _fold_references(region: _Region, chosen: _References, groups: _Groups, atoms: np.ndarray,
+                     settings: OmpSettings, band: tuple[int, int], summed: np.ndarray, weight: np.ndarray) -> None:
     """``aggregate="reference"`` (or groups of one): each reference's own estimate (or its still answer) added
-    at its place, the rows ``band`` of patches (the default's fold)."""
+    at its place, the rows ``band`` of patches (the default's fold); ``atoms``: the dictionary's
+    :func:`~codedvideo.solvers.omp_kernel.atom_rows`."""
     n = region.shape[0]
     patches = region.patches
     m = patches.y.shape[1]
@@ -436,7 +438,7 @@ def _fold_references(region: _Region, chosen: _References, groups: _Groups, D: n
     wgt = chosen.ref[sl].astype(np.float32)
     res = OmpResult(index=groups.index[:, 0], coef=groups.coef[:, 0], count=groups.count[:, 0],
                     residual=groups.res2[:, 0], dependent=groups.dep[:, 0])
-    est[groups.refs - r0 * wp] = synthesize(res, D)
+    est[groups.refs - r0 * wp] = synthesize_rows(res, atoms)
     st = np.flatnonzero(chosen.still_ok[sl])
     est[st] = chosen.still_est[chosen.still_slot[st + r0 * wp]]
     if settings.weighting == "fit":
@@ -447,11 +449,12 @@ def _fold_references(region: _Region, chosen: _References, groups: _Groups, D: n
     P.fold_rows(wgt, weight[None], r0, patches.patch)
 
 
-def _scatter_members(region: _Region, chosen: _References, groups: _Groups, D: np.ndarray, settings: OmpSettings,
-                     similarity: float | None, band: tuple[int, int], summed: np.ndarray, weight: np.ndarray
-                     ) -> None:
+def _scatter_members(region: _Region, chosen: _References, groups: _Groups, atoms: np.ndarray,
+                     settings: OmpSettings, similarity: float | None, band: tuple[int, int], summed: np.ndarray,
+                     weight: np.ndarray) -> None:
     """``aggregate="all"``: every member's estimate added at its own place (weighted by ``similarity`` and the
-    ``fit`` weighting), then the still answers of the still references of the rows ``band``."""
+    ``fit`` weighting), then the still answers of the still references of the rows ``band``; ``atoms``: the
+    dictionary's :func:`~codedvideo.solvers.omp_kernel.atom_rows`."""
     n = region.shape[0]
     patches = region.patches
     m = patches.y.shape[1]
@@ -461,7 +464,7 @@ def _scatter_members(region: _Region, chosen: _References, groups: _Groups, D: n
     where = groups.mem[live]
     res = OmpResult(index=groups.index[live], coef=groups.coef[live], count=groups.count[live],
                     residual=groups.res2[live], dependent=groups.dep[live])
-    est = synthesize(res, D)
+    est = synthesize_rows(res, atoms)
     wgt = np.ones(where.size, np.float32)
     if similarity is not None:
         wgt = np.exp(-groups.dmem[live] / (n * m) / max(similarity, 1e-6) ** 2).astype(np.float32)

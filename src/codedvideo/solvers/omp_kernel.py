@@ -625,10 +625,20 @@ def batch_omp(X: np.ndarray, D: np.ndarray, *, max_atoms: int, tol=0.0, chunk: i
                      dependent=dependent)
 
 
+def atom_rows(D: np.ndarray) -> np.ndarray:
+    """The atoms of ``D`` (rows, K) as the rows of a contiguous float32 (K, rows) array: the form
+    :func:`synthesize_rows` reads, made once where many batches of results share one dictionary."""
+    return np.ascontiguousarray(np.asarray(D, dtype=np.float32).T)
+
+
 def synthesize(result: OmpResult, D: np.ndarray) -> np.ndarray:
     """Patch estimates ``E_p = D alpha_p``, shape (P, D.shape[0]) float32."""
+    return synthesize_rows(result, atom_rows(D))
+
+
+def synthesize_rows(result: OmpResult, Dt: np.ndarray) -> np.ndarray:
+    """:func:`synthesize` from the dictionary's :func:`atom_rows` ``Dt``."""
     # only the selected atoms are added: count * N*m multiply-adds a patch, not a dense product
-    Dt = np.ascontiguousarray(np.asarray(D, dtype=np.float32).T)
     out = np.empty((result.count.size, Dt.shape[1]), np.float32)
     synthesize_into(np.ascontiguousarray(result.index), np.ascontiguousarray(result.coef, dtype=np.float32),
                     np.ascontiguousarray(result.count), Dt, out)

@@ -17,7 +17,8 @@ import numpy as np
 from codedvideo.model import patches as P
 from codedvideo.model.codes import is_binary
 from codedvideo.solvers.omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, pixel_patterns
-from codedvideo.solvers.omp_kernel import MAX_TABLE_BYTES, TableOMP, WeightsOMP, still_kernel, synthesize, table_fits
+from codedvideo.solvers.omp_kernel import (MAX_TABLE_BYTES, TableOMP, WeightsOMP, atom_rows, still_kernel, synthesize_rows,
+                                           table_fits)
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 #: Search radius of the non-local method's block matching (:mod:`codedvideo.solvers.nonlocal_sc`), in pixels: a
@@ -418,13 +419,14 @@ def _fold_bands(patches: RegionPatches, valid: np.ndarray, still_rows, skip, D: 
     weight = np.zeros((1, h, w), np.float32)
     counts = _Counts()
     band = max(1, settings.batch // wp)  # whole rows of patches, folded as they finish
+    atoms = atom_rows(D)  # (once: every band's estimates are synthesised from it)
     for r0 in range(0, hp, band):
         r1 = min(hp, r0 + band)
         sl = slice(r0 * wp, r1 * wp)
         y, tol = patches.y[sl], patches.n_open[sl] * settings.tol_rms**2
         t0 = time.perf_counter()
         calm = None if still_rows is None else still_rows[sl]
-        est = _band_estimates(y, patches.n_pix[sl], tol, np.flatnonzero(valid[sl]), calm, sl, D, settings, solve,
+        est = _band_estimates(y, patches.n_pix[sl], tol, np.flatnonzero(valid[sl]), calm, sl, atoms, settings, solve,
                               counts, frames=n, patch=patch)
         counts.seconds += time.perf_counter() - t0
         wp_ = valid[sl].astype(np.float32)
@@ -439,10 +441,11 @@ def _fold_bands(patches: RegionPatches, valid: np.ndarray, still_rows, skip, D: 
 
 
 def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_rows: np.ndarray, calm: np.ndarray | None,
-                    sl: slice, D: np.ndarray, settings: OmpSettings, solve, counts: _Counts, *, frames: int,
+                    sl: slice, atoms: np.ndarray, settings: OmpSettings, solve, counts: _Counts, *, frames: int,
                     patch: int) -> np.ndarray:
     """The estimates (rows of ``frames * m``, zero but for ``valid_rows``) of a band's patches ``y``: the still answer
-    of the wholly still ones (``calm``), then the still test's, then OMP (``solve``) for the rest."""
+    of the wholly still ones (``calm``), then the still test's, then OMP (``solve``) for the rest, synthesised from
+    the dictionary's :func:`~codedvideo.solvers.omp_kernel.atom_rows` ``atoms``."""
     est = np.zeros((y.shape[0], frames * y.shape[1]), np.float32)
     rows = valid_rows  # those still to estimate
     if calm is not None and rows.size:
@@ -459,7 +462,7 @@ def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_row
         rows = rows[~ok]
     if rows.size:
         res = solve(y[rows], sl, rows, tol[rows])
-        est[rows] = synthesize(res, D)
+        est[rows] = synthesize_rows(res, atoms)
         dark = res.count == 0  # coded values within the tolerance: the still answer, not 0
         if dark.any():
             est[rows[dark]] = still_answers(y[rows[dark]], n_pix[rows[dark]], frames)
