@@ -17,8 +17,8 @@ import numpy as np
 from codedvideo.model import patches as P
 from codedvideo.model.codes import is_binary
 from codedvideo.solvers.omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, pixel_patterns
-from codedvideo.solvers.omp_kernel import (MAX_TABLE_BYTES, TableOMP, WeightsOMP, atom_rows, still_kernel, synthesize_rows,
-                                           table_fits)
+from codedvideo.solvers.omp_kernel import (MAX_TABLE_BYTES, TableOMP, WeightsOMP, atom_rows, still_kernel,
+                                           synthesize_rows, table_fits)
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 #: Search radius of the non-local method's block matching (:mod:`codedvideo.solvers.nonlocal_sc`), in pixels: a
