@@ -83,7 +83,26 @@ def test_refining_keeps_the_measurements_and_improves_held_out_footage(carphone)
     assert np.sqrt(np.mean(residual ** 2)) <= 0.5 * np.sqrt(np.mean(start_residual ** 2)) + 0.01
     gain = evaluate(refined, video)["psnr"] - evaluate(start, video)["psnr"]
     assert gain > 0.3, gain  # measured +0.9 dB here (from the default's result)
-    assert info["iterations"] == 12 and info["groups"] == R.reference_grid(8, 64, 64).size
+    matched = [R.reference_grid(8, 64, 64, matching=m).size for m in range(-(-12 // R.REGROUP))]
+    assert info["iterations"] == 12 and info["groups"] == round(np.mean(matched))  # groups shrunk an iteration
+
+
+def test_each_matching_puts_the_references_on_a_shifted_grid():
+    """The grids of successive matchings are shifted within the ``STEP x STEP`` cell (the first matching's
+    unshifted), spread so that a few matchings put references on many more places than one does; each grid
+    keeps the first and last patch of every row and column."""
+    assert R.grid_shift(0) == (0, 0)
+    shifts = [R.grid_shift(m) for m in range(8)]
+    assert len(set(shifts)) == 8 and all(0 <= a < R.STEP and 0 <= b < R.STEP for a, b in shifts)
+    assert len({a for a, _ in shifts}) >= 4 and len({b for _, b in shifts}) >= 4  # (spread along both axes)
+    n, h, w = 8, 64, 80
+    grids = [R.reference_grid(n, h, w, matching=m) for m in range(8)]
+    np.testing.assert_array_equal(grids[0], R.reference_grid(n, h, w))
+    assert len(set(np.concatenate(grids).tolist())) > 3 * grids[0].size
+    for g in grids:
+        corner = g % (h * w)
+        rows, cols = corner // w, corner % w
+        assert {0, h - R.SIDE} <= set(rows.tolist()) and {0, w - R.SIDE} <= set(cols.tolist())
 
 
 def test_the_result_does_not_depend_on_the_threads_or_the_chunks(carphone, monkeypatch):
@@ -296,20 +315,25 @@ def test_the_command_line_read_noise_reaches_the_refinement_in_working_units(tmp
 @pytest.mark.parametrize("kind", ["flat", "ramp"])
 def test_on_equal_patches_every_sub_frame_is_covered_alike(kind):
     """Where many patches are equal (a flat or a smooth region) the ties keep a group in and near its own
-    sub-frame: no sub-frame is left mostly outside every group (with ties to the earliest sub-frame the last one
-    was 23 % uncovered on a flat scene)."""
+    sub-frame: no matching leaves a sub-frame mostly outside every group (with ties to the earliest sub-frame the
+    last one was 23 % uncovered on a flat scene, at every matching), and the shifted grids of a run's matchings
+    together cover every voxel."""
     n, h, w = 8, 64, 64
     if kind == "flat":
         video = np.full((n, h, w), 100.0, np.float32)
     else:
         video = np.tile(np.linspace(0, 255, w, dtype=np.float32), (n, h, 1))
-    covered = np.zeros((n, h, w), bool)
-    for _, where, _, _ in R.match(video, R.reference_grid(n, h, w)):
-        for p in where:
-            t, r, c = p // (h * w), p % (h * w) // w, p % w
-            covered[t, r:r + R.SIDE, c:c + R.SIDE] = True
-    uncovered = 1 - covered.reshape(n, -1).mean(1)
-    assert uncovered.max() < 0.12, uncovered
+    union = np.zeros((n, h, w), bool)
+    for matching in range(32 // R.REGROUP):
+        covered = np.zeros((n, h, w), bool)
+        for _, where, _, _ in R.match(video, R.reference_grid(n, h, w, matching=matching)):
+            for p in where:
+                t, r, c = p // (h * w), p % (h * w) // w, p % w
+                covered[t, r:r + R.SIDE, c:c + R.SIDE] = True
+        uncovered = 1 - covered.reshape(n, -1).mean(1)
+        assert uncovered.max() < 0.25, (matching, uncovered)
+        union |= covered
+    assert union.all()
 
 
 def test_with_a_truth_the_record_gives_the_psnr_along_the_refinements_iterations():
@@ -415,7 +439,9 @@ def test_known_pixels_are_left_out_of_the_groups(carphone):
     assert ((refs % w) + R.SIDE > 32).sum() == kept.size
     whole, _ = R.refine(cap["coded"], cap["mask"], start, iterations=8)
     half, info = R.refine(cap["coded"], cap["mask"], start, iterations=8, known=left)
-    assert info["groups"] == kept.size
+    matched = [R.moving_references(R.reference_grid(n, h, w, matching=m), left, start.shape).size
+               for m in range(-(-8 // R.REGROUP))]
+    assert info["groups"] == round(np.mean(matched)) and matched[0] == kept.size
     right = np.s_[:, :, 40:]  # (beyond the reach of the left half's groups)
     gap = evaluate(half[right], video[right])["psnr"] - evaluate(whole[right], video[right])["psnr"]
     assert abs(gap) < 0.05, gap

@@ -12,7 +12,8 @@ measurements of one patch (or of one group, once).  The refinement alternates, f
    their references fall on different places), the :data:`GROUP` patches of the current estimate closest to
    it in the sub-frames up to :data:`FRAMES` away, corners within :data:`WINDOW` pixels
    (:func:`codedvideo.solvers.refine_kernel.match_frame_patches`), matched again every :data:`REGROUP`
-   iterations.  A group follows the motion from sub-frame to sub-frame, and its members were seen under
+   iterations on a grid shifted each time (:func:`grid_shift`), so that over the iterations every place of
+   a sub-frame is a reference's in turn.  A group follows the motion from sub-frame to sub-frame, and its members were seen under
    different shutter codes.  Each group less its mean is shrunk by weighted nuclear norm (the singular values
    of the members' matrix, from the eigendecomposition of their ``k x k`` Gram matrix, lowered by
    ``SHRINK sqrt(k) sigma^2 / s``, the rule of Gu et al., "Weighted nuclear norm minimization", CVPR 2014, that
@@ -46,13 +47,13 @@ SIDE = 8
 #: Patches a group holds, the reference first (at most ``SIDE**2``).
 GROUP = 20
 #: Stride of the reference patches in each direction of every sub-frame (the last row and column included).
-STEP = 10
+STEP = 11
 #: Sub-frames searched on each side of a reference's.
 FRAMES = 2
 #: Search radius of a group's members around its reference's corner, pixels.
 WINDOW = 6
-#: Iterations between two matchings of the groups on the current estimate.
-REGROUP = 6
+#: Iterations between two matchings of the groups on the current estimate (each on a shifted grid).
+REGROUP = 4
 #: The weighted-nuclear-norm constant ``c`` of the threshold ``c sqrt(k) sigma^2 / s``.
 SHRINK = 2.8
 #: The denoiser's noise level in the first and the last iteration, grey levels of an 8-bit capture.
@@ -71,15 +72,27 @@ BAND = 1 << 22
 def recipe() -> dict:
     """The refinement's settings but the iterations (what a record of its result is keyed by)."""
     return dict(prior="frame-patches", side=SIDE, group=GROUP, step=STEP, frames=FRAMES, window=WINDOW,
-                regroup=REGROUP, shrink=SHRINK, sigma_start=SIGMA_START, sigma_end=SIGMA_END, blend=BLEND, relax=RELAX)
+                regroup=REGROUP, grids="shifted", shrink=SHRINK, sigma_start=SIGMA_START, sigma_end=SIGMA_END,
+                blend=BLEND, relax=RELAX)
 
 
-def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE, *, blocks: int = 1) -> np.ndarray:
+def grid_shift(matching: int, step: int = STEP) -> tuple[int, int]:
+    """The shift (rows, columns) of the reference grids at the ``matching``-th matching of a refinement (0: none):
+    the points of the plastic-number sequence (Roberts' R2, a low-discrepancy sequence on the unit square) scaled
+    to ``step``, so that successive matchings put their references on places spread over the ``step x step``
+    cell, whatever the number of matchings."""
+    g = 1.324717957244746  # (the plastic number: x^3 = x + 1)
+    return int(step * ((matching / g) % 1.0)), int(step * ((matching / (g * g)) % 1.0))
+
+
+def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE, *, blocks: int = 1,
+                   matching: int = 0) -> np.ndarray:
     """Flat corners (t * h * w + row * w + col) of every ``step``-th patch in each direction of every sub-frame,
     the first and last row and column of patches included; sub-frame ``t``'s grid starts ``t * step // n``
-    pixels in (both directions), so the sub-frames' references fall on different places.  ``blocks``: the ``n``
-    sub-frames are that many videos of ``n / blocks`` each (a colour video's channels, stacked), each block's
-    grids laid as one video's are (its ``t`` counted from its own first sub-frame)."""
+    pixels in (both directions), so the sub-frames' references fall on different places, and the
+    ``matching``-th matching's grids further by :func:`grid_shift`.  ``blocks``: the ``n`` sub-frames are that
+    many videos of ``n / blocks`` each (a colour video's channels, stacked), each block's grids laid as one
+    video's are (its ``t`` counted from its own first sub-frame)."""
     def axis(m: int, offset: int) -> np.ndarray:
         s = np.arange(offset, m, step)
         if s.size == 0 or s[0] != 0:
@@ -87,10 +100,11 @@ def reference_grid(n: int, h: int, w: int, step: int = STEP, side: int = SIDE, *
         return s if s[-1] == m - 1 else np.append(s, m - 1)
 
     per_block = _block_frames(n, blocks)
+    down, across = grid_shift(matching, step)
     grids = []
     for t in range(n):
-        offset = ((t % per_block) * step // per_block) % step
-        rows, cols = axis(h - side + 1, offset), axis(w - side + 1, offset)
+        offset = (t % per_block) * step // per_block
+        rows, cols = axis(h - side + 1, (offset + down) % step), axis(w - side + 1, (offset + across) % step)
         grids.append((t * h * w + rows[:, None] * w + cols[None, :]).ravel())
     return np.concatenate(grids).astype(np.int64)
 
@@ -315,7 +329,6 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     inv = relaxed(open2, 0.0, 1.0)  # (exact: 1 / open2)
     x0 = np.ascontiguousarray(start, np.float32)
     x = x0.copy()
-    refs = moving_references(reference_grid(n, h, w, blocks=blocks), known, (n, h, w))
     noisy = noise_sigma > 0
     accumulated = None if noisy else y.copy()
     levels = sigmas(iterations, sigma_start, sigma_end)
@@ -331,11 +344,14 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
         return v
 
     watched = 0.0  # seconds in the watch's calls, left out of the refinement's
+    shrunk = 0  # groups shrunk, over the iterations
     for i, sigma in enumerate(levels):
         to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
-        if i % REGROUP == 0:
+        if i % REGROUP == 0:  # matched again, on the next shifted grid
+            refs = moving_references(reference_grid(n, h, w, blocks=blocks, matching=i // REGROUP), known, (n, h, w))
             chunks = match(x, refs, blocks=blocks)
             weight = coverage(x.shape, chunks)
+        shrunk += refs.size
         x = denoise(x, chunks, float(sigma), weight)
         if tick is not None:
             tick()
@@ -348,6 +364,7 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     if watch is not None:
         watch(len(levels), x, seconds, rows)
     info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
-                blend=float(blend), noise_sigma=float(noise_sigma), groups=int(refs.size),
+                blend=float(blend), noise_sigma=float(noise_sigma),
+                groups=int(round(shrunk / len(levels))),
                 **(dict(blocks=int(blocks)) if blocks != 1 else {}), seconds=seconds)
     return x, info
