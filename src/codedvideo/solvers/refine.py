@@ -13,11 +13,12 @@ measurements of one patch (or of one group, once).  The refinement alternates, f
    it in the sub-frames up to :data:`FRAMES` away, corners within :data:`WINDOW` pixels
    (:func:`codedvideo.solvers.refine_kernel.match_frame_patches`), matched again every :data:`REGROUP`
    iterations on a grid shifted each time (:func:`grid_shift`), so that over the iterations every place of
-   a sub-frame is a reference's in turn.  A group follows the motion from sub-frame to sub-frame, and its members were seen under
-   different shutter codes.  Each group less its mean is shrunk by weighted nuclear norm (the singular values
-   of the members' matrix, from the eigendecomposition of their ``k x k`` Gram matrix, lowered by
-   ``SHRINK sqrt(k) sigma^2 / s``, the rule of Gu et al., "Weighted nuclear norm minimization", CVPR 2014, that
-   DeSCI iterates under the measurement); every member's estimate averaged at its place.
+   a sub-frame is a reference's in turn.  A group follows the motion from sub-frame to sub-frame, and its
+   members were seen under different shutter codes.  Each group less its mean is shrunk by weighted nuclear
+   norm (the singular values of the members' matrix, from the eigendecomposition of their ``k x k`` Gram
+   matrix, lowered by ``SHRINK sqrt(k) sigma^2 / s``, the rule of Gu et al., "Weighted nuclear norm
+   minimization", CVPR 2014, that DeSCI iterates under the measurement); every member's estimate averaged at
+   its place.
 
 The last estimate is projected onto the measurements and averaged with ``x0`` (:data:`BLEND`): both
 reproduce the coded image (``x0`` to its method's tolerance).  The noise levels are fixed; a capture's read
@@ -285,7 +286,8 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     :data:`WATCH_EVERY` iterations and after the last, with the rows ``rows`` (a slice; every row unless banded)
     of the result the run would give if it ended there (projected and blended as the last is; after the last,
     the result itself) and the band's seconds so far, its own calls left out.  Returns the video (N, H, W)
-    float32 and what was done: iterations, the noise levels, the groups, seconds.
+    float32 and what was done: iterations, the noise levels, the groups shrunk an iteration (the mean over
+    its matchings; summed over the bands), seconds.
     """
     t0 = time.perf_counter()
     shape = np.shape(mask)
