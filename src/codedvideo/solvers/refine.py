@@ -349,7 +349,8 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     shrunk = 0  # groups shrunk, over the iterations
     for i, sigma in enumerate(levels):
         to_measurements(x, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv, accumulated)
-        if i % REGROUP == 0:  # matched again, on the next shifted grid
+        if i % REGROUP == 0:  # matched again, on the next shifted grid (the last matching's tables freed first)
+            chunks = weight = None
             refs = moving_references(reference_grid(n, h, w, blocks=blocks, matching=i // REGROUP), known, (n, h, w))
             chunks = match(x, refs, blocks=blocks)
             weight = coverage(x.shape, chunks)
