@@ -41,3 +41,41 @@ def _cli(*args, cwd) -> tuple[float, float]:
     if proc.returncode != 0:
         raise RuntimeError(proc.stderr.strip().splitlines()[-1])
     return seconds, float(proc.stderr.strip().splitlines()[-1]) / 1024.0
+
+
+def quality_captures(scenes, size):
+    """The quality cases' captures: each scene of ``scenes`` at ``size`` under each of :data:`QUALITY_CODES`,
+    without noise and with read noise sigma 4 (seed 0); yields ``(video, capture, row)``, ``row`` the case's
+    record (scene, kind, code, bump, sigma) that the bench fills with each method's figures."""
+    from codedvideo.data.scenes import load_video
+    from codedvideo.engine.simulation import simulate_capture
+
+    for scene in scenes:
+        video = load_video(scene, frames=8, size=size)
+        for code, bump in QUALITY_CODES:
+            for sigma in (0.0, 4.0):
+                cap = simulate_capture(video, code=code, bump=bump, sigma=sigma, seed=0)
+                yield video, cap, dict(scene=scene, kind="real" if scene.startswith("footage:") else "synthetic",
+                                       code=code, bump=bump, sigma=sigma)
+
+
+def default_and_dct(row: dict, video, cap, D, rc, cache: Path):
+    """The default (dictionary ``D``, ``rc``'s atoms) and the 3D DCT (the same OMP, up to 16 atoms) on one quality
+    capture through the tile graph, each in a fresh cache under ``cache``: seconds, PSNR and SSIM into ``row``
+    (``default``, ``dct``); returns the default's volume."""
+    import tempfile
+
+    from codedvideo.engine.config import omp_settings
+    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.model.metrics import evaluate
+    from codedvideo.solvers.dictionaries import dct_dictionary
+
+    first = None
+    for label, dic, atoms in (("default", D, rc.max_atoms), ("dct", dct_dictionary(8), 16)):
+        s = omp_settings(rc.model_copy(update=dict(max_atoms=atoms)), row["sigma"])
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:
+            t = time.perf_counter()
+            vol, _ = reconstruct_volume(cap["coded"], cap["mask"], dic, settings=s, cache=tmp, progress=False)
+            row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+        first = vol if first is None else first
+    return first

@@ -70,7 +70,7 @@ ROOT = Path(__file__).resolve().parents[1]
 REPEATS = 5
 RESULTS = ROOT / "bench" / "results"
 sys.path.insert(0, str(ROOT / "tasks"))
-from _bench_common import QUALITY_CODES, QUALITY_SCENES, _cli, _q, sgemm_gflops  # noqa: E402,F401
+from _bench_common import QUALITY_SCENES, _cli, _q, default_and_dct, quality_captures, sgemm_gflops  # noqa: E402
 from _bench_table import table  # noqa: E402  (the results as the table bench prints)
 
 
@@ -238,38 +238,20 @@ def case_static(quick: bool) -> dict:
 def case_quality(quick: bool) -> dict:
     """Issue "quality beyond the paper": default reconstruction against GAP-TV and the 3D DCT
     (same OMP, up to 16 atoms) on held-out real footage and synthetic test scenes, N = 8."""
-    import tempfile
-
     from codedvideo.solvers.baselines import gap_tv
-    from codedvideo.engine.config import PipelineConfig, omp_settings
-    from codedvideo.solvers.dictionaries import dct_dictionary
+    from codedvideo.engine.config import PipelineConfig
     from codedvideo.model.metrics import evaluate
-    from codedvideo.data.scenes import load_video
-    from codedvideo.engine.simulation import simulate_capture
-    from codedvideo.engine.windows import reconstruct_volume
 
     D, meta = dictionary_for(8)
-    Dd = dct_dictionary(8)
     rc = PipelineConfig().reconstruct
     size = (96, 96) if quick else (256, 256)
     rows = []
-    for scene in QUALITY_SCENES[:2] if quick else QUALITY_SCENES:
-        video = load_video(scene, frames=8, size=size)
-        for code, bump in QUALITY_CODES:
-            for sigma in (0.0, 4.0):
-                cap = simulate_capture(video, code=code, bump=bump, sigma=sigma, seed=0)
-                row = dict(scene=scene, kind="real" if scene.startswith("footage:") else "synthetic",
-                           code=code, bump=bump, sigma=sigma)
-                for label, dic, atoms in (("default", D, rc.max_atoms), ("dct", Dd, 16)):
-                    s = omp_settings(rc.model_copy(update=dict(max_atoms=atoms)), sigma)
-                    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
-                        t = time.perf_counter()
-                        vol, _ = reconstruct_volume(cap["coded"], cap["mask"], dic, settings=s, cache=tmp, progress=False)
-                        row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
-                t = time.perf_counter()
-                vol = gap_tv(cap["coded"], cap["mask"])
-                row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
-                rows.append(row)
+    for video, cap, row in quality_captures(QUALITY_SCENES[:2] if quick else QUALITY_SCENES, size):
+        default_and_dct(row, video, cap, D, rc, ROOT / "cache")
+        t = time.perf_counter()
+        vol = gap_tv(cap["coded"], cap["mask"])
+        row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+        rows.append(row)
     return dict(case="quality", size=list(size), frames=8, rows=rows, sgemm_gflops=sgemm_gflops())
 
 

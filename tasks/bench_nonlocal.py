@@ -20,7 +20,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tasks"))
-from _bench_common import QUALITY_CODES, QUALITY_SCENES, _q, sgemm_gflops  # noqa: E402
+from _bench_common import QUALITY_SCENES, _q, default_and_dct, quality_captures, sgemm_gflops  # noqa: E402
 
 RESULTS = ROOT / "bench" / "results"
 
@@ -35,7 +35,6 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     from codedvideo.data import shipped
     from codedvideo.solvers.baselines import gap_tv
     from codedvideo.engine.config import PipelineConfig, omp_settings
-    from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.model.metrics import evaluate
     from codedvideo.solvers.nonlocal_sc import nonlocal_region
     from codedvideo.solvers.omp_kernel import load_kernels
@@ -48,7 +47,6 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
 
     load_kernels()
     D, _ = load_dictionary(shipped.verified(8))
-    Dd = dct_dictionary(8)
     rc = PipelineConfig().reconstruct
     size = (96, 96) if quick else (256, 256)
     extra = options or {}
@@ -58,47 +56,32 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     cap = simulate_capture(warm, code="hitomi", bump=2, sigma=0.0, seed=0)
     nonlocal_region(cap["coded"], cap["mask"], D, warm, omp_settings(rc, 0.0))
     rows = []
-    for scene in scenes or (QUALITY_SCENES[:2] if quick else QUALITY_SCENES):
-        video = load_video(scene, frames=8, size=size)
-        for code, bump in QUALITY_CODES:
-            for sigma in (0.0, 4.0):
-                cap = simulate_capture(video, code=code, bump=bump, sigma=sigma, seed=0)
-                row = dict(scene=scene, kind="real" if scene.startswith("footage:") else "synthetic",
-                           code=code, bump=bump, sigma=sigma)
-                for label, dic, atoms in (("default", D, rc.max_atoms), ("dct", Dd, 16)):
-                    s = omp_settings(rc.model_copy(update=dict(max_atoms=atoms)), sigma)
-                    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
-                        t = time.perf_counter()
-                        vol, _ = reconstruct_volume(cap["coded"], cap["mask"], dic, settings=s, cache=tmp,
-                                                    progress=False)
-                        row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
-                    if label == "default":
-                        first = vol
-                if extra:  # parameters the pipeline does not take: the whole image in this thread
-                    t = time.perf_counter()
-                    vol, _ = nonlocal_region(cap["coded"], cap["mask"], D, first, omp_settings(rc, sigma),
-                                                 **extra)
-                    row["nonlocal"] = dict(seconds=row["default"]["seconds"] + time.perf_counter() - t,
-                                           **_q(evaluate(vol, video)))
-                else:  # as `--method nonlocal` runs: the default's tile graph with the groups in each tile
-                    s = omp_settings(rc.model_copy(update=dict(method="nonlocal")), sigma)
-                    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
-                        t = time.perf_counter()
-                        vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s, cache=tmp,
-                                                    progress=False)
-                        row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
-                    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # --adapt: both passes timed
-                        t = time.perf_counter()
-                        vol, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True,
-                                                                     data_range=infer_data_range(255.0), settings=s,
-                                                                     dictionary=D, cache=tmp, progress=False),
-                                                     cap["coded"], cap["mask"])
-                        row["adapt"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+    for video, cap, row in quality_captures(scenes or (QUALITY_SCENES[:2] if quick else QUALITY_SCENES), size):
+        sigma = row["sigma"]
+        first = default_and_dct(row, video, cap, D, rc, ROOT / "cache")
+        if extra:  # parameters the pipeline does not take: the whole image in this thread
+            t = time.perf_counter()
+            vol, _ = nonlocal_region(cap["coded"], cap["mask"], D, first, omp_settings(rc, sigma), **extra)
+            row["nonlocal"] = dict(seconds=row["default"]["seconds"] + time.perf_counter() - t,
+                                   **_q(evaluate(vol, video)))
+        else:  # as `--method nonlocal` runs: the default's tile graph with the groups in each tile
+            s = omp_settings(rc.model_copy(update=dict(method="nonlocal")), sigma)
+            with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
                 t = time.perf_counter()
-                vol = gap_tv(cap["coded"], cap["mask"])
-                row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
-                rows.append(row)
-                print("  ".join(table_row(row)), flush=True)
+                vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s, cache=tmp, progress=False)
+                row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+            with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # --adapt: both passes timed
+                t = time.perf_counter()
+                vol, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True,
+                                                             data_range=infer_data_range(255.0), settings=s,
+                                                             dictionary=D, cache=tmp, progress=False),
+                                             cap["coded"], cap["mask"])
+                row["adapt"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+        t = time.perf_counter()
+        vol = gap_tv(cap["coded"], cap["mask"])
+        row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+        rows.append(row)
+        print("  ".join(table_row(row)), flush=True)
     return dict(case="nonlocal", size=list(size), frames=8, options=extra, rows=rows,
                 sgemm_gflops=sgemm_gflops())
 
