@@ -118,3 +118,17 @@ def test_the_installed_command_keeps_its_exit_code_and_flushes_its_output(workdi
     proc = subprocess.run([str(script), "codes", "check", str(workdir / "missing.npy")], capture_output=True,
                           text=True, cwd=workdir, timeout=600)
     assert proc.returncode == 2 and "missing.npy" in proc.stderr
+
+
+@pytest.mark.parametrize("command", ["config", "evaluate"])
+def test_a_reader_that_goes_away_ends_the_command_with_sigpipes_status_and_no_traceback(tmp_path, command):
+    """`codedvideo config | head -1`: the reader closes its end before the command writes; the command ends with
+    the shell's status for SIGPIPE (141) and says nothing (no BrokenPipeError traceback)."""
+    video = np.linspace(0, 255, 8 * 16 * 16, dtype=np.float32).reshape(8, 16, 16)
+    np.save(tmp_path / "v.npy", video)
+    args = ["config"] if command == "config" else ["evaluate", "--recon", tmp_path / "v.npy", "--truth", tmp_path / "v.npy"]
+    proc = subprocess.Popen([*CLI, *map(str, args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # before the interpreter has even started: every write meets a closed pipe
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err

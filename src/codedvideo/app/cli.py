@@ -763,6 +763,9 @@ def guarded(fn) -> int:
     except KeyboardInterrupt:
         print("codedvideo: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of the output went away (`| head`): nothing more to say, no traceback
+        _silence_stdout()
+        return BROKEN_PIPE
     finally:
         warnings.formatwarning = previous
         if on_term is not None:
@@ -810,9 +813,25 @@ def console_main() -> None:
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
-        except (OSError, ValueError):  # a reader that went away, or a closed stream: nothing more to say
+        except BrokenPipeError:  # the reader went away before the last of the output: it was not all said
+            code = code or BROKEN_PIPE
+        except (OSError, ValueError):  # a closed stream: nothing more to say
             pass
     os._exit(code)
+
+
+#: The exit status when the reader of the standard output goes away before the output ends, a shell's for a
+#: command ended by SIGPIPE (128 + 13).
+BROKEN_PIPE = 128 + 13
+
+
+def _silence_stdout() -> None:
+    """Point the standard output at the null device, so that what is still buffered for a reader that went away
+    is not written (and raises nothing) when the streams are flushed."""
+    try:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # a stream with no descriptor (a test's capture): nothing to point
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover
