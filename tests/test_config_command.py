@@ -112,3 +112,16 @@ def test_the_reference_lists_every_option_and_every_key_and_is_the_generated_one
         assert row is not None, key
         assert not row.endswith("|  |"), f"{key}: no description (a comment in pipeline.yaml)"
     assert (ROOT / "docs" / "reference.md").read_text() == text, "docs/reference.md is stale: run make docs"
+
+
+@pytest.mark.parametrize("preset, given", [("fast", []), ("best", []), ("default", [])])
+def test_the_shipped_pipeline_yaml_with_only_a_preset_records_nothing_given_as_the_command_line_does(tmp_path, preset,
+                                                                                                     given):
+    """The shipped pipeline.yaml leaves every key a preset may set commented, so `preset: NAME` alone records the
+    same `given` as `reconstruct --preset NAME` (max_atoms set there was recorded as given)."""
+    text = default_config_path().read_text().replace("  preset: null ", f"  preset: {preset} ", 1)
+    assert f"preset: {preset}" in text
+    (tmp_path / "p.yaml").write_text(text)
+    record = load_config(tmp_path / "p.yaml").reconstruct.preset_used()
+    cli = api.resolve_settings(api.ReconstructSettings(preset=preset)).preset
+    assert record["given"] == given == (cli or {}).get("given", []), (record, cli)

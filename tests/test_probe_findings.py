@@ -2,6 +2,7 @@
 K-SVD defaults read from one place, and --adapt free of any quantity in data units (tests/test_one_door.py holds
 the empty code shapes and the NaN/Inf captures and masks; tests/test_owned_folders.py the in-place edits)."""
 import inspect
+import warnings
 
 import numpy as np
 import pytest
@@ -61,3 +62,56 @@ def test_adapt_works_in_working_units_a_power_of_two_scale_gives_the_same_bits(c
         scaled = dict(options, noise_sigma=options["noise_sigma"] * scale) if "noise_sigma" in options else options
         got = cv.reconstruct(coded * np.float32(scale), mask, data_range=255.0 * scale, **scaled)
         np.testing.assert_array_equal(got / np.float32(scale), base)
+
+
+@pytest.mark.parametrize("factor", [1 / 255, 257.0])
+def test_a_truth_in_other_units_than_the_capture_is_said_before_work_through_both_doors(tmp_path, factor):
+    """`reconstruct --truth` with the truth in [0, 1] (or 16-bit) against an 8-bit capture: every PSNR would mean
+    nothing (19 dB, -29 dB), so both doors warn, as `evaluate` does; a truth in the capture's units is not warned."""
+    video = cv.synthetic_scene("default", frames=N, size=(32, 32))
+    mask = cv.make_code("hitomi", (32, 32), frames=N, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    with pytest.warns(UserWarning, match="truth peaks at .* are they in the same units"):
+        cv.reconstruct(coded, mask, truth=video * np.float32(factor), full_output=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cv.reconstruct(coded, mask, truth=video, full_output=True)
+    for name, array in (("coded", coded), ("mask", mask), ("truth", video * np.float32(factor)), ("good", video)):
+        np.save(tmp_path / f"{name}.npy", array)
+    for truth, warned in (("truth", True), ("good", False)):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            rc = main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask",
+                       str(tmp_path / "mask.npy"), "--truth", str(tmp_path / f"{truth}.npy"), "--output",
+                       str(tmp_path / f"{truth}-out.npy")])
+        messages = [str(w.message) for w in said]
+        assert rc == 0 and any("are they in the same units" in m for m in messages) == warned, messages
+
+
+@pytest.mark.parametrize("planes", [2, 4, 5])
+def test_color_channels_refuses_an_npy_of_other_than_1_or_3_planes_before_any_work(tmp_path, capsys, planes):
+    """`--color channels` on a (5, H, W) .npy (a stream of captures) took it for 5 colour channels, ran the whole
+    reconstruction and failed only at the video writer; now it is refused first, naming the file."""
+    video = cv.synthetic_scene("default", frames=N, size=(SIZE, SIZE))
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    np.save(tmp_path / "coded.npy", np.stack([coded] * planes))
+    np.save(tmp_path / "mask.npy", mask)
+    cache = tmp_path / "cache"
+    capsys.readouterr()
+    rc = main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+               "--color", "channels", "--cache", str(cache), "--output", str(tmp_path / "out.mp4")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "coded.npy" in err and f"{planes} colour channels" in err, err
+    assert not (tmp_path / "out.mp4").exists() and not (cache.exists() and any(cache.iterdir()))
+
+
+def test_color_channels_refuses_a_stack_of_other_than_1_or_3_channels(tmp_path):
+    from codedvideo.formats.io import read_stack
+
+    np.save(tmp_path / "mask.npy", np.ones((5, N, SIZE, SIZE), np.float32))
+    with pytest.raises(cv.InputError, match="mask.npy: 5 colour channels"):
+        read_stack(tmp_path / "mask.npy", color="channels")
+    np.save(tmp_path / "rgb.npy", np.ones((3, N, SIZE, SIZE), np.float32))
+    assert read_stack(tmp_path / "rgb.npy", color="channels").shape == (3, N, SIZE, SIZE)

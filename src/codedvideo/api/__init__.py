@@ -363,20 +363,13 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
     return scores(recon, truth, data_range=data_range)
 
 
-def _peak(v) -> float:
-    """The largest value of a volume or a lazy stack, a block of frames at a time (never held whole)."""
-    from codedvideo.model.metrics import EVALUATE_BLOCK
-
-    return max((float(np.max(np.asarray(v[s:s + EVALUATE_BLOCK], np.float32), initial=0.0))
-                for s in range(0, v.shape[0], EVALUATE_BLOCK)), default=0.0)
-
-
 def truth_data_range(truth, *, data_range: float | None = None, where: str = "truth"):
     """The data range a reconstruction is scored against (:class:`codedvideo.model.units.DataRange`): the one
     given, or found from the truth's peak (so the same video scores the same in any float scale)."""
+    from codedvideo.model.metrics import volume_peak
     from codedvideo.model.units import truth_range
 
-    return truth_range(_peak(truth), given=data_range, where=f"evaluate: {where}")
+    return truth_range(volume_peak(truth), given=data_range, where=f"evaluate: {where}")
 
 
 def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, str] = ("reconstruction", "truth"),
@@ -384,7 +377,7 @@ def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, s
     """:func:`evaluate` on volumes or lazy stacks (anything with ``shape`` and slices of consecutive frames),
     compared a block of frames at a time; ``names``: what the two are called in messages (their files);
     ``extra``: more keys for the result.  Warns when the two do not look like the same units."""
-    from codedvideo.model.metrics import evaluate as _evaluate, json_safe
+    from codedvideo.model.metrics import evaluate as _evaluate, json_safe, other_units, volume_peak
 
     frames = recon if hasattr(recon, "shape") else np.asarray(recon, np.float32)
     reference = truth if hasattr(truth, "shape") else np.asarray(truth, np.float32)
@@ -392,10 +385,10 @@ def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, s
         raise InputError(f"evaluate: reconstruction {tuple(frames.shape)} and truth {tuple(reference.shape)} differ "
                          "in shape")
     units = truth_data_range(reference, data_range=data_range, where=names[1])
-    peak, recon_peak = units.peak, _peak(frames)
+    peak, recon_peak = units.peak, volume_peak(frames)
     # another unit: a score that means nothing; against the truth's own peak, not its range (a dark scene's
     # reconstruction peaks as far below 255 as its truth does)
-    if peak > 0 and not peak / 16 <= recon_peak <= 4 * peak:
+    if other_units(peak, recon_peak):
         warnings.warn(f"evaluate: {names[0]} peaks at {recon_peak:.4g} and {names[1]} at {peak:.4g} (data range "
                       f"{units.value:g}, {units.source}); are they in the same units? (a [0, 1] reconstruction "
                       "against 8-bit truth scores about 10 dB)", stacklevel=2)

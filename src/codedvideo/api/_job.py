@@ -26,7 +26,7 @@ from codedvideo.engine.windows import cache_room
 from codedvideo.engine.config import omp_settings
 from codedvideo.formats.volumes import check_coded, check_mask
 from codedvideo.model.errors import InputError
-from codedvideo.model.metrics import evaluate, mean_psnr, mse_psnr
+from codedvideo.model.metrics import evaluate, mean_psnr, mse_psnr, other_units, volume_peak
 from codedvideo.model.patches import PATCH
 from codedvideo.model.units import capture_units, tolerance_warning
 
@@ -272,6 +272,13 @@ class ReconstructionJob:
 
     def _warn_before_work(self) -> None:
         r, job = self.r, self.captures
+        if job.truths is not None:  # a truth in other units than the captures': every score would mean nothing
+            truth_peak = volume_peak(job.truths)
+            if other_units(self.units.peak, truth_peak):
+                warnings.warn(f"{job.source.rsplit(':', 1)[0]}: truth peaks at {truth_peak:.4g} and the coded "
+                              f"images' coded / open count at {self.units.peak:.4g}; are they in the same units? "
+                              f"(every PSNR is taken against the data range {self.units.value:g}, "
+                              f"{self.units.source})", stacklevel=2)
         if r.method in SPARSE:
             message = tolerance_warning(job.codeds[0] * np.float32(self.units.scale), self.omp.tol_rms)
             if message:

@@ -70,6 +70,14 @@ def _to_channels(arr: np.ndarray) -> np.ndarray:
     return np.moveaxis(pixels[..., :keep], -1, 0).astype(np.float32)
 
 
+def _check_channels(arr: np.ndarray, path, what: str, layout: str) -> None:
+    """A channels-first array read with ``color="channels"`` holds 1 or 3 channels (grey or colour, as the writers
+    take them); any other count is another layout (a (T, H, W) stream of captures), refused before any work."""
+    if arr.shape[0] not in (1, 3):
+        raise InputError(f"{what} {path}: {arr.shape[0]} colour channels in {layout} {arr.shape}; colour is 1 or 3 "
+                         "channels (a stack of captures is read without --color channels)")
+
+
 def _to_gray(arr: np.ndarray, path, color: str) -> np.ndarray:
     """(H, W, C) or (H, W) -> (H, W) float32 (``"luma"``, ``"error"``) or (C, H, W) (``"channels"``)."""
     if color == "channels":
@@ -254,6 +262,8 @@ def read_image(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
             arr = arr[None]
         if arr.ndim != (3 if color == "channels" else 2):
             raise InputError(f"image {file}: expected shape (H, W) or (H, W, C), got {arr.shape}")
+        if color == "channels":
+            _check_channels(arr, file, "image", "(C, H, W)")
         return _finite(arr.astype(np.float32), file)
     return _finite(_oiio_read_all(file, color, first_only=True)[0], file)
 
@@ -312,6 +322,8 @@ def read_stack(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
             arr = arr[None]
         if arr.ndim != (4 if color == "channels" else 3):
             raise InputError(f"stack {source}: expected shape (N, H, W), got {arr.shape}")
+        if color == "channels":
+            _check_channels(arr, source, "stack", "(C, N, H, W)")
         return _finite(arr.astype(np.float32), source, "stack")
     else:
         frames = _oiio_read_all(source, color, first_only=False)

@@ -19,6 +19,23 @@ from codedvideo.model.units import EIGHT_BIT
 EVALUATE_BLOCK = 16
 
 
+def volume_peak(v) -> float:
+    """The largest value of a volume or a lazy stack, :data:`EVALUATE_BLOCK` frames at a time (never held whole)."""
+    return max((float(np.max(np.asarray(v[s:s + EVALUATE_BLOCK], np.float32), initial=0.0))
+                for s in range(0, v.shape[0], EVALUATE_BLOCK)), default=0.0)
+
+
+#: A volume is taken for another unit than a reference when its peak lies below the reference's divided by
+#: the first or above it times the second (a [0, 1] video against 8-bit frames peaks 255 times lower).
+OTHER_UNITS_BELOW, OTHER_UNITS_ABOVE = 16.0, 4.0
+
+
+def other_units(reference_peak: float, peak: float) -> bool:
+    """Whether a volume peaking at ``peak`` looks to be in other units than a reference peaking at
+    ``reference_peak`` (never when the reference is dark throughout: nothing to compare with)."""
+    return reference_peak > 0 and not reference_peak / OTHER_UNITS_BELOW <= peak <= OTHER_UNITS_ABOVE * reference_peak
+
+
 def mean_psnr(per_frame) -> float:
     """The mean PSNR over frames, frames reconstructed exactly left out (their PSNR is infinite: with them the
     mean of a capture with one still, exact frame was infinite, reported as null, hiding every other frame's
