@@ -2,6 +2,7 @@
 K-SVD defaults read from one place, and --adapt free of any quantity in data units (tests/test_one_door.py holds
 the empty code shapes and the NaN/Inf captures and masks; tests/test_owned_folders.py the in-place edits)."""
 import inspect
+import re
 import warnings
 
 import numpy as np
@@ -115,3 +116,26 @@ def test_color_channels_refuses_a_stack_of_other_than_1_or_3_channels(tmp_path):
         read_stack(tmp_path / "mask.npy", color="channels")
     np.save(tmp_path / "rgb.npy", np.ones((3, N, SIZE, SIZE), np.float32))
     assert read_stack(tmp_path / "rgb.npy", color="channels").shape == (3, N, SIZE, SIZE)
+
+
+@pytest.mark.parametrize("call, said", [
+    (lambda: cv.simulate(np.ones((N, SIZE, SIZE)), cv.make_code("global", (SIZE, SIZE), frames=N), seed=-1),
+     "option seed -1"),
+    (lambda: cv.make_code("bernoulli", (SIZE, SIZE), frames=N, seed=-1), "option seed -1"),
+    (lambda: cv.make_code("bernoulli", (SIZE, SIZE), frames=N, seed=1.5), "option seed 1.5"),
+    (lambda: cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, p=0.3), "p: code 'hitomi' does not use it"),
+    (lambda: cv.make_code("bernoulli", (SIZE, SIZE), frames=N, bump=3), "bump: code 'bernoulli' does not use it"),
+])
+def test_the_apis_seed_and_code_options_are_checked_as_the_command_lines_are(call, said):
+    """A bad seed raised numpy's own error, and a code option the code does not use was taken silently; the command
+    line refuses both with one line naming the option."""
+    with pytest.raises(cv.ConfigError, match=re.escape(said)):
+        call()
+
+
+def test_a_command_quoted_in_an_api_message_keeps_its_options():
+    """The API's messages name its arguments, but a command they quote is run as written (`--frames`, not
+    `frames`)."""
+    with pytest.raises(cv.InputError) as raised:
+        cv.reconstruct(np.ones((SIZE, SIZE), np.float32), np.ones((1, SIZE, SIZE), np.uint8))
+    assert "`codedvideo train --frames 1 --output dict-N1.zarr`" in str(raised.value), str(raised.value)

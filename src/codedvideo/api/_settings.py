@@ -117,7 +117,10 @@ def in_terms(message: str, door: str = "api") -> str:
         field = match.group(1).replace("-", "_")
         return setting_name(field, door) if field in known else match.group(0)
 
-    return re.sub(r"(?<![\w-])--([a-z][a-z-]*)", swap, message)
+    # a command quoted in backticks (`codedvideo train --frames 1 ...`) keeps its options: it is run as written
+    parts = re.split(r"(`[^`]*`)", message)
+    return "".join(part if part.startswith("`") else re.sub(r"(?<![\w-])--([a-z][a-z-]*)", swap, part)
+                   for part in parts)
 
 
 def in_api_terms(message: str) -> str:
