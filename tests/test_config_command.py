@@ -125,3 +125,16 @@ def test_the_shipped_pipeline_yaml_with_only_a_preset_records_nothing_given_as_t
     record = load_config(tmp_path / "p.yaml").reconstruct.preset_used()
     cli = api.resolve_settings(api.ReconstructSettings(preset=preset)).preset
     assert record["given"] == given == (cli or {}).get("given", []), (record, cli)
+
+
+@pytest.mark.parametrize("extra, named", [("atoms: 100", "dictionary.atoms"), ("training: [/nowhere.npy]",
+                                                                               "dictionary.training"),
+                                          ("iterations: 3\n  augment: false", "dictionary.iterations, dictionary.augment")])
+def test_a_dct_dictionary_in_pipeline_yaml_refuses_training_settings_as_train_kind_dct_does(tmp_path, extra, named):
+    """`dictionary.kind: dct` beside training settings ran and ignored them (the record said atoms 100 where the
+    dictionary held 392); `codedvideo train --kind dct --atoms 100` refuses them, and so does the config now."""
+    (tmp_path / "p.yaml").write_text(f"dictionary:\n  kind: dct\n  {extra}\n")
+    with pytest.raises(api.ConfigError, match=f"dictionary.kind dct: {named} .*for learned dictionaries only"):
+        load_config(tmp_path / "p.yaml")
+    (tmp_path / "q.yaml").write_text("dictionary:\n  kind: dct\n")
+    assert load_config(tmp_path / "q.yaml").dictionary.kind == "dct"

@@ -176,6 +176,13 @@ class DictionaryConfig(_Strict):
         if self.init is not None and not report and (self.kind == "dct" or "atoms" in self._changed("atoms")):
             raise ValueError("dictionary.init starts K-SVD from a dictionary, with its atoms: dictionary.kind dct "
                              "and dictionary.atoms do not apply")
+        if self.kind == "dct" and self.path is None and not report:  # (as `train --kind dct` refuses them)
+            unused = self._changed("atoms", "samples", "iterations", "sparsity", "training", "clips", "max_speed",
+                                   "augment")
+            if unused:
+                raise ValueError(f"dictionary.kind dct: {', '.join('dictionary.' + k for k in unused)} "
+                                 f"{'is' if len(unused) == 1 else 'are'} for learned dictionaries only (a 3D DCT one "
+                                 "has N x 49 atoms and is not trained)")
         if self.path is not None and not report:
             unused = self._changed("kind", "atoms", "samples", "iterations", "sparsity", "training", "clips",
                                    "max_speed", "init", "augment")
