@@ -2,6 +2,7 @@
 K-SVD defaults read from one place, and --adapt free of any quantity in data units (tests/test_one_door.py holds
 the empty code shapes and the NaN/Inf captures and masks; tests/test_owned_folders.py the in-place edits)."""
 import inspect
+import json
 import re
 import warnings
 
@@ -139,3 +140,25 @@ def test_a_command_quoted_in_an_api_message_keeps_its_options():
     with pytest.raises(cv.InputError) as raised:
         cv.reconstruct(np.ones((SIZE, SIZE), np.float32), np.ones((1, SIZE, SIZE), np.uint8))
     assert "`codedvideo train --frames 1 --output dict-N1.zarr`" in str(raised.value), str(raised.value)
+
+
+def test_evaluate_scores_colour_volumes_alike_through_both_doors(tmp_path, capsys):
+    """`codedvideo evaluate` scored (3, N, H, W) colour volumes (every channel's frames) where `cv.evaluate` refused
+    them; colour against grey is scored as luma, with a warning, through both."""
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 255, (3, N, SIZE, SIZE)).astype(np.float32)
+    recon = np.clip(truth + rng.normal(0, 4, truth.shape), 0, 255).astype(np.float32)
+    np.save(tmp_path / "t.npy", truth)
+    np.save(tmp_path / "r.npy", recon)
+    api = cv.evaluate(recon, truth)
+    assert api["psnr"] == pytest.approx(cv.evaluate(recon.reshape(-1, SIZE, SIZE), truth.reshape(-1, SIZE, SIZE))["psnr"])
+    capsys.readouterr()
+    assert main(["-q", "evaluate", "--recon", str(tmp_path / "r.npy"), "--truth", str(tmp_path / "t.npy")]) == 0
+    assert json.loads(capsys.readouterr().out)["psnr"] == pytest.approx(api["psnr"])
+    grey = np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), truth, axes=([0], [0]))
+    with pytest.warns(UserWarning, match="is colour and .* grey; compared as luma"):
+        luma = cv.evaluate(recon, grey)
+    np.save(tmp_path / "g.npy", grey)
+    with pytest.warns(UserWarning, match="compared as luma"):
+        assert main(["-q", "evaluate", "--recon", str(tmp_path / "r.npy"), "--truth", str(tmp_path / "g.npy")]) == 0
+    assert json.loads(capsys.readouterr().out)["psnr"] == pytest.approx(luma["psnr"])

@@ -349,7 +349,8 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
 
     Parameters
     ----------
-    recon, truth : ndarrays of shape (N, H, W) (or (T*N, H, W)), in the same units
+    recon, truth : ndarrays of shape (N, H, W) (or (T*N, H, W)), in the same units; or colour (C, N, H, W), every
+        channel's frames scored (colour against grey: the colour one's luma, with a warning)
     data_range : the frames' peak value; None: found from the truth's values (1 for [0, 1] floats, 255 for
         8-bit, ...), so the same video scores the same in any units
 
@@ -362,7 +363,8 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
     >>> round(evaluate(v + 0.01, v)["psnr"], 1)
     40.0
     """
-    return scores(recon, truth, data_range=data_range)
+    frames, reference = (v if hasattr(v, "shape") else np.asarray(v, np.float32) for v in (recon, truth))
+    return scores(*as_scored(frames, reference), data_range=data_range)
 
 
 def truth_data_range(truth, *, data_range: float | None = None, where: str = "truth"):
@@ -372,6 +374,21 @@ def truth_data_range(truth, *, data_range: float | None = None, where: str = "tr
     from codedvideo.model.units import truth_range
 
     return truth_range(volume_peak(truth), given=data_range, where=f"evaluate: {where}")
+
+
+def as_scored(recon, truth, *, names: tuple[str, str] = ("reconstruction", "truth")):
+    """A reconstruction and its truth as frames to score: colour (C, N, H, W) against colour, every channel's
+    frames; colour against grey, the colour one's luma (warned, ``names`` the two); grey as it is."""
+    from codedvideo.formats.io import LUMA
+
+    if len(truth.shape) != len(recon.shape) and 4 in (len(truth.shape), len(recon.shape)):  # colour against grey
+        colour, grey = names if len(recon.shape) == 4 else names[::-1]
+        warnings.warn(f"evaluate: {colour} is colour and {grey} grey; compared as luma", stacklevel=3)
+        recon, truth = (np.tensordot(LUMA, np.asarray(v, np.float32), axes=([0], [0])) if len(v.shape) == 4 else v
+                        for v in (recon, truth))
+    if len(truth.shape) == 4 and tuple(recon.shape) == tuple(truth.shape):  # colour: every channel's frames
+        recon, truth = recon.reshape(-1, *recon.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])
+    return recon, truth
 
 
 def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, str] = ("reconstruction", "truth"),

@@ -564,14 +564,7 @@ def _cmd_evaluate(a) -> int:
             raise ConfigError(f"evaluate --output {a.output}: the scores are written as JSON; name it .json")
     recon = _scored_volume(a.recon, "reconstruction")
     truth = _scored_volume(a.truth, "truth")
-    if len(truth.shape) != len(recon.shape):  # colour against grey: their luma, said
-        from codedvideo.formats.io import LUMA
-
-        warnings.warn(f"evaluate: {a.truth if len(truth.shape) == 4 else a.recon} is colour and "
-                      f"{a.recon if len(truth.shape) == 4 else a.truth} grey; compared as luma")
-        recon, truth = (np.tensordot(LUMA, v, axes=([0], [0])) if len(v.shape) == 4 else v for v in (recon, truth))
-    if len(truth.shape) == 4 and recon.shape == truth.shape:  # colour (C, N, H, W): every channel's frames
-        recon, truth = recon.reshape(-1, *recon.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])
+    recon, truth = api.as_scored(recon, truth, names=(str(a.recon), str(a.truth)))
     extra = {}
     if Path(a.recon).suffix.lower() in VIDEO_SUFFIXES:  # 8-bit frames: 255 was the data range they were written with
         written = _written_range(a.recon) or api.truth_data_range(truth, data_range=out.data_range,
