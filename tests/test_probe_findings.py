@@ -162,3 +162,15 @@ def test_evaluate_scores_colour_volumes_alike_through_both_doors(tmp_path, capsy
     with pytest.warns(UserWarning, match="compared as luma"):
         assert main(["-q", "evaluate", "--recon", str(tmp_path / "r.npy"), "--truth", str(tmp_path / "g.npy")]) == 0
     assert json.loads(capsys.readouterr().out)["psnr"] == pytest.approx(luma["psnr"])
+
+
+def test_simulate_bits_with_a_white_level_spans_it_in_the_videos_units_as_documented():
+    """`bits=8, white_level=200`: the 256 levels of an ADC whose full scale is 200 grey levels (docs/api.md), so the
+    values are multiples of 200 / 255, not raw counts; they reconstruct as grey levels (no `bits`)."""
+    video = cv.synthetic_scene("default", frames=N, size=(SIZE, SIZE))
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    coded = cv.simulate(video, mask, bits=8, white_level=200.0)
+    levels = coded.astype(np.float64) / (200.0 / 255)
+    assert coded.max() <= 200 and np.allclose(levels, np.round(levels), atol=1e-3)
+    assert not np.allclose(coded, np.round(coded))  # not whole numbers: not raw counts
+    assert np.isfinite(cv.reconstruct(coded, mask, white_level=200.0)).all()

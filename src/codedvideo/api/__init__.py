@@ -114,6 +114,8 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
         The shot noise's sensor, with ``shot_noise`` (defaults of :class:`codedvideo.model.physics.SensorModel`).
     bits : int, optional
         Quantise the coded image to this many bits (values at ``2**bits - 1`` and above clipped); no noise added.
+        With ``white_level`` the ``2**bits`` levels span ``[0, white_level]`` in the video's units (an ADC of that
+        full scale), so the values are not raw counts.
     white_level : float, optional
         Clip the coded image at this level (saturation).
     black_level : float

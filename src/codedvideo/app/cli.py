@@ -125,7 +125,9 @@ def _parser() -> argparse.ArgumentParser:
                     help=f"full-well capacity, electrons, with --shot-noise (default: {PipelineConfig().noise.full_well:g})")
     ss.add_argument("--gain", type=float, default=None,
                     help=f"electrons per grey level, with --shot-noise (default: {PipelineConfig().noise.gain:g})")
-    ss.add_argument("--bits", type=int, default=None, help="quantise the coded image to this bit depth")
+    ss.add_argument("--bits", type=int, default=None,
+                    help="quantise the coded image to this bit depth (with --white-level W, the levels span [0, W] "
+                         "in the video's units: not raw counts)")
     ss.add_argument("--white-level", type=float, default=None, help="clip the coded image at this grey level (saturation)")
     ss.add_argument("--black-level", type=float, default=0.0,
                     help="raw output: add this offset once per read-out (then clipping and quantisation)")
