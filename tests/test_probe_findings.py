@@ -174,3 +174,49 @@ def test_simulate_bits_with_a_white_level_spans_it_in_the_videos_units_as_docume
     assert coded.max() <= 200 and np.allclose(levels, np.round(levels), atol=1e-3)
     assert not np.allclose(coded, np.round(coded))  # not whole numbers: not raw counts
     assert np.isfinite(cv.reconstruct(coded, mask, white_level=200.0)).all()
+
+
+@pytest.fixture()
+def capture_files(tmp_path):
+    video = cv.synthetic_scene("default", frames=N, size=(SIZE, SIZE))
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    np.save(tmp_path / "coded.npy", cv.simulate(video, mask))
+    np.save(tmp_path / "mask.npy", mask)
+    return ["--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy")]
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--trust-saturated"], "--trust-saturated: keeps the pixels --white-level or --bits marks saturated"),
+    (["--fps", "24"], "--fps 24 with --output"),
+])
+def test_reconstruct_refuses_a_flag_it_would_ignore_before_any_work(tmp_path, capsys, capture_files, extra, said):
+    """`--trust-saturated` without a white level or bit depth, and `--fps` with an array output, changed
+    nothing and were taken silently; refused as any ignored value is (docs/guarantees.md)."""
+    capsys.readouterr()
+    rc = main(["-q", "reconstruct", *capture_files, "--output", str(tmp_path / "out.npy"), *extra])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and said in err, err
+    assert not (tmp_path / "out.npy").exists()
+    assert main(["-q", "reconstruct", *capture_files, "--output", str(tmp_path / "out.mp4"), "--fps", "24"]) == 0
+
+
+def test_the_api_refuses_trust_saturated_without_a_white_level_in_its_own_terms(capture_files):
+    coded, mask = np.load(capture_files[1]), np.load(capture_files[3])
+    with pytest.raises(cv.ConfigError, match="option trust_saturated: keeps the pixels white_level or bits"):
+        cv.reconstruct(coded, mask, trust_saturated=True)
+
+
+def test_simulate_refuses_a_new_code_per_capture_for_one_capture(tmp_path, capsys):
+    capsys.readouterr()
+    rc = main(["-q", "simulate", "synth:default", "--frames", str(N), "--size", "16", "16", "--new-code-per-capture",
+               "--output", str(tmp_path / "cap")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--new-code-per-capture: one capture is made" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "cap").exists()
+
+
+def test_cache_verify_of_a_file_says_it_is_not_a_folder(tmp_path, capsys):
+    (tmp_path / "f").write_text("x")
+    capsys.readouterr()
+    assert main(["-q", "cache", "verify", str(tmp_path / "f")]) == 2
+    assert "not a folder" in capsys.readouterr().err

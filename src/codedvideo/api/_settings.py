@@ -163,6 +163,9 @@ def _resolve(s: ReconstructSettings, door: str) -> Resolved:
         rc = rc.model_copy(update=dict(cache_budget=budget))
     noise = validated(NoiseConfig, dict(sigma=s.noise_sigma, white_level=s.white_level, bits=s.bits,
                                         black_level=s.black_level), names)
+    if s.trust_saturated and noise.white_level is None and noise.bits is None:  # a setting the run would ignore
+        raise ConfigError(f"option {names['trust_saturated']}: keeps the pixels {names['white_level']} or "
+                          f"{names['bits']} marks saturated; neither is given, so it would change nothing")
     data_range = validated(OutputConfig, dict(data_range=s.data_range), names).data_range
     if s.cache is not None:
         check_cache(s.cache)

@@ -321,6 +321,9 @@ def _cmd_simulate(a) -> int:
         outputs.append(Output(Path(a.cacti_out), "file", "--cacti-out"))
     check_outputs(outputs, dict(video=a.video, code_file=a.code_file), overwrite=a.overwrite)  # before any work
     captures = api.captures_of(plan)
+    if a.new_code_per_capture and captures == 1:  # (a value the run would ignore)
+        raise ConfigError("option --new-code-per-capture: one capture is made (--captures 1), so there is one code; "
+                          "give --captures T or drop it")
     if plan.streamed and not a.cacti_out:
         paths = _simulate_video_file(a, plan, captures)
     else:
@@ -341,7 +344,7 @@ def _reconstruct_settings(a):
     """Reconstruct's options as the API's settings, checked (with the preset resolved) before any work, and the
     outputs checked: the :class:`codedvideo.api.Resolved` settings."""
     from codedvideo.data import shipped
-    from codedvideo.formats.io import gif_rate_problem
+    from codedvideo.formats.io import VIDEO_SUFFIXES, gif_rate_problem
     from codedvideo.formats.volumes import metrics_path, output_kind
 
     if not a.cacti and not (a.coded and a.mask):
@@ -363,6 +366,9 @@ def _reconstruct_settings(a):
     output = Path(a.output)
     if output.suffix.lower() == ".gif" and gif_rate_problem(fps):
         raise ConfigError(f"reconstruct --fps {fps} with --output {output}: {gif_rate_problem(fps)}")
+    if fps != OutputConfig.model_fields["fps"].default and output.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ConfigError(f"reconstruct --fps {fps} with --output {output}: the frame rate is a video's; "
+                          f"the output is not one ({', '.join(VIDEO_SUFFIXES)})")
     check_outputs([Output(output, output_kind(output)), Output(metrics_path(output), "file", "metrics")],
                   dict(coded=a.coded, mask=a.mask, truth=a.truth, dictionary=a.dictionary, cacti=a.cacti, cache=a.cache,
                        bad_pixels=a.bad_pixels, shipped_dictionaries=shipped.DATA),

@@ -308,7 +308,7 @@ def _scan(root: Path, remove) -> list[dict]:
     from codedvideo.formats.store import entry_lock
 
     if not root.is_dir():
-        raise InputError(f"cache {root}: no such folder")
+        raise InputError(f"cache {root}: {'not a folder' if root.exists() else 'no such folder'}")
     names: dict[str, dict] = {}  # "recon-KEY" -> {"entry": Path | None, "temps": [...], "lock": Path | None}
     for child in sorted(root.iterdir()):
         for pattern, slot in ((_ENTRY, "entry"), (_TEMP, "temps"), (_LOCK, "lock")):
