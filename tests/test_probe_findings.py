@@ -220,3 +220,22 @@ def test_cache_verify_of_a_file_says_it_is_not_a_folder(tmp_path, capsys):
     capsys.readouterr()
     assert main(["-q", "cache", "verify", str(tmp_path / "f")]) == 2
     assert "not a folder" in capsys.readouterr().err
+
+
+def test_the_api_takes_bad_pixels_as_an_array_and_gives_the_files_bits(tmp_path, capture_files):
+    """`bad_pixels=[[1, 1]]` raised a bare TypeError; an array of (y, x) rows (or a map) is now taken as the file
+    of the same rows is, through both doors; a row outside the image is the file's one-line error."""
+    coded, mask = np.load(capture_files[1]), np.load(capture_files[3])
+    rows = np.array([[1, 1], [5, 9]])
+    np.save(tmp_path / "bad.npy", rows)
+    from_array = cv.reconstruct(coded, mask, bad_pixels=rows.tolist(), full_output=True)
+    json.dumps(from_array.record, default=str)
+    np.testing.assert_array_equal(from_array.frames, cv.reconstruct(coded, mask, bad_pixels=str(tmp_path / "bad.npy")))
+    bad_map = np.zeros(coded.shape, bool)
+    bad_map[1, 1] = bad_map[5, 9] = True
+    np.testing.assert_array_equal(from_array.frames, cv.reconstruct(coded, mask, bad_pixels=bad_map))
+    assert main(["-q", "reconstruct", *capture_files, "--bad-pixels", str(tmp_path / "bad.npy"),
+                 "--output", str(tmp_path / "r.npy")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "r.npy"), from_array.frames)
+    with pytest.raises(cv.InputError, match="bad_pixels"):
+        cv.reconstruct(coded, mask, bad_pixels=[[1, 99]])

@@ -257,7 +257,8 @@ def reconstruct(coded, mask, settings: ReconstructSettings | None = None, *, tru
         ``default``, ``best``), ``adapt``, ``adapt_rounds``, ``refine``, ``dictionary`` (an (N*49, K) array or a
         store's path; None: the one shipped for N), ``noise_sigma`` (read noise in the input's units),
         ``data_range`` (the frames' peak value; None: found from the values as the command line finds it),
-        ``white_level``, ``black_level``, ``bits``, ``bad_pixels``, ``bayer``, ``workers``, ``progress``,
+        ``white_level``, ``black_level``, ``bits``, ``bad_pixels`` (a file as ``--bad-pixels`` reads, or an array of
+        (y, x) rows or a boolean map), ``bayer``, ``workers``, ``progress``,
         ``cache`` (None: a temporary folder, removed; a path: the resumable cache of the command line there) and
         ``independent_captures`` (reconstruct each capture of a stream on its own).
 

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import functools
 import hashlib
+import os
 import time
 import warnings
 from pathlib import Path
@@ -174,10 +175,12 @@ def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
     noise = r.noise
     if not (noise.black_level or noise.bits is not None or r.bad_pixels is not None or r.detect_bad_pixels):
         return None
-    from codedvideo.model.sensor import correct_raw as correct_frames, read_bad_pixels, vote_bad_pixels
+    from codedvideo.model.sensor import bad_pixel_array, correct_raw as correct_frames, read_bad_pixels, vote_bad_pixels
 
     count = len(job.labels)
-    listed = read_bad_pixels(r.bad_pixels, tuple(job.mask(0).shape[-2:])) if r.bad_pixels is not None else None
+    shape = tuple(job.mask(0).shape[-2:])
+    listed = None if r.bad_pixels is None else read_bad_pixels(r.bad_pixels, shape) \
+        if isinstance(r.bad_pixels, (str, os.PathLike)) else bad_pixel_array(r.bad_pixels, shape, "bad_pixels")
 
     def correct(coded, mask, i):  # (an error names the capture of a stack: one flash must not read as all)
         return correct_frames(coded, mask, black_level=noise.black_level, bits=noise.bits,

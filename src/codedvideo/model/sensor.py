@@ -265,6 +265,27 @@ def check_bad_rows(rows: np.ndarray, shape: tuple[int, int], *, where: str, line
     return yx
 
 
+def bad_pixel_array(arr: np.ndarray, shape: tuple[int, int], where: str) -> np.ndarray:
+    """The ``(y, x)`` rows (K, 2) int64 of a list of defective pixels given as an array: (K, 2) rows (``(0,)`` or
+    ``(0, 2)`` for none) or a boolean (or 0/1) map of the image's ``shape``; :class:`InputError` naming ``where``
+    otherwise (a pixel outside the image among them)."""
+    arr = np.asarray(arr)
+    if arr.size == 0:
+        return np.zeros((0, 2), np.int64)
+    is_map = arr.dtype == np.bool_ or (arr.ndim == 2 and arr.shape[1] != 2 and arr.dtype.kind in "iuf"
+                                        and np.isin(arr, (0, 1)).all())
+    if is_map:  # a map of the defects (bool, or 0 and 1)
+        if arr.shape != tuple(shape):
+            raise InputError(f"{where}: a map of {arr.shape[0]}x{arr.shape[1] if arr.ndim > 1 else 1} pixels, "
+                             f"the image has {shape[0]}x{shape[1]}")
+        return np.argwhere(arr).astype(np.int64)
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise InputError(f"{where}: expected an array of shape (K, 2) of (y, x) rows, got {arr.shape}")
+    if arr.dtype.kind not in "iuf":
+        raise InputError(f"{where}: expected integer (y, x) rows, got dtype {arr.dtype}")
+    return check_bad_rows(arr, shape, where=where)
+
+
 def read_bad_pixels(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """Read a list of defective pixels and check it against the image size.
 
@@ -301,20 +322,7 @@ def read_bad_pixels(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarr
             arr = np.load(p, allow_pickle=False)
         except (ValueError, OSError, EOFError) as exc:
             raise InputError(f"{where}: cannot read ({exc})") from None
-        if arr.size == 0:
-            return np.zeros((0, 2), np.int64)
-        is_map = arr.dtype == np.bool_ or (arr.ndim == 2 and arr.shape[1] != 2 and arr.dtype.kind in "iuf"
-                                            and np.isin(arr, (0, 1)).all())
-        if is_map:  # a map of the defects (bool, or 0 and 1)
-            if arr.shape != tuple(shape):
-                raise InputError(f"{where}: a map of {arr.shape[0]}x{arr.shape[1] if arr.ndim > 1 else 1} pixels, "
-                                 f"the image has {shape[0]}x{shape[1]}")
-            return np.argwhere(arr).astype(np.int64)
-        if arr.ndim != 2 or arr.shape[1] != 2:
-            raise InputError(f"{where}: expected an array of shape (K, 2) of (y, x) rows, got {arr.shape}")
-        if arr.dtype.kind not in "iuf":
-            raise InputError(f"{where}: expected integer (y, x) rows, got dtype {arr.dtype}")
-        return check_bad_rows(arr, shape, where=where)
+        return bad_pixel_array(arr, shape, where)
     try:
         with open(p, encoding="utf-8-sig") as fh:  # (a byte-order mark, as some editors write, is no row)
             text = fh.read()
