@@ -239,3 +239,24 @@ def test_the_api_takes_bad_pixels_as_an_array_and_gives_the_files_bits(tmp_path,
     np.testing.assert_array_equal(np.load(tmp_path / "r.npy"), from_array.frames)
     with pytest.raises(cv.InputError, match="bad_pixels"):
         cv.reconstruct(coded, mask, bad_pixels=[[1, 99]])
+
+
+@pytest.mark.parametrize("frames", [1, 4])
+def test_a_code_that_opens_every_pixel_alike_needs_no_dictionary_through_both_doors(tmp_path, capsys, frames):
+    """A global shutter (N = 1, or every pixel open in all 4 sub-frames) is solved by the static estimate,
+    coded / N (docs/guarantees.md), yet asked for a dictionary of N that is not shipped; it no longer does, and a
+    code that moves at that N still does."""
+    video = cv.synthetic_scene("default", frames=frames, size=(SIZE, SIZE))
+    mask = np.ones((frames, SIZE, SIZE), np.uint8)
+    coded = cv.simulate(video, mask)
+    frames_out = cv.reconstruct(coded, mask)
+    np.testing.assert_allclose(frames_out, np.broadcast_to(coded / frames, frames_out.shape), rtol=1e-6)
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                 "--output", str(tmp_path / "out.npy")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "out.npy"), frames_out)
+    if frames > 1:
+        moving = cv.make_code("hitomi", (SIZE, SIZE), frames=frames, bump=2, seed=0)
+        with pytest.raises(cv.InputError, match=f"no dictionary is shipped for N = {frames}"):
+            cv.reconstruct(cv.simulate(video, moving), moving)

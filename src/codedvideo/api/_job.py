@@ -201,15 +201,21 @@ def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
     return _Lazy(count, raw.counts)
 
 
-def job_dictionary(r: Resolved, frames: int) -> tuple[np.ndarray | None, str, str]:
+def job_dictionary(r: Resolved, frames: int, one_pattern=lambda: False) -> tuple[np.ndarray | None, str, str]:
     """(D, its key, its name) of the job's method: the dictionary given (an array or a store's path) or the one
-    shipped for N; (None, "", "") for a method without one."""
+    shipped for N; (None, "", "") for a method without one.  ``one_pattern()``: whether every capture's code opens
+    every pixel alike (a global shutter, N = 1), solved by the static estimate: with none shipped for N, no
+    dictionary is needed (the 3D DCT stands in, never used; no name)."""
     from codedvideo.data import shipped
     from codedvideo.formats.store import check_dictionary, load_dictionary
 
     if r.method not in WITH_DICTIONARY:
         return None, "", ""
     given = r.dictionary
+    if given is None and shipped.verified(frames) is None and one_pattern():
+        from codedvideo.solvers.dictionaries import dct_dictionary
+
+        return dct_dictionary(frames), "", ""
     if given is None or isinstance(given, (str, Path)):
         path = given or shipped.required(frames, "reconstruct", f"`{shipped.train_command(frames)}` and give "
                                          f"--dictionary dict-N{frames}.zarr")
@@ -238,7 +244,8 @@ class ReconstructionJob:
         self.captures, self.r = captures, resolved
         self.count, self.n = len(captures.labels), captures.mask(0).shape[0]
         self.raw = correct_raw(resolved, captures)  # black level, bit depth, bad pixels: before the data range
-        self.dictionary, self.dictionary_key, self.dictionary_name = job_dictionary(resolved, self.n)
+        self.dictionary, self.dictionary_key, self.dictionary_name = job_dictionary(
+            resolved, self.n, lambda: all((m == m[:, :1, :1]).all() for m in map(np.asarray, captures.masks)))
         if self.dictionary_name and self.dictionary_name != "array":
             captures.inputs["dictionary"] = self.dictionary_name
         noise, rc = resolved.noise, resolved.rc
