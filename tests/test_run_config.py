@@ -139,6 +139,26 @@ def test_simulating_again_keeps_the_last_reconstructions_record_and_says_it_is_s
     assert json.loads((out / "capture" / "metrics.json").read_text())["capture"]
 
 
+def test_training_alone_keeps_the_captures_and_the_reconstructions_records(tmp_path, capsys):
+    """Reported: `stages: [train]` replaced capture/metrics.json (the record of the capture in the folder, made with
+    another seed) with a record of the training; it now writes train.metrics.json and leaves both alone."""
+    from codedvideo.engine.config import load_config
+    from codedvideo.api import run_pipeline
+
+    out = tmp_path / "out"
+    cfg_text = (f"frames: 4\ncache: {tmp_path / 'cache'}\nscene: {{video: synth:default, size: [24, 24]}}\n"
+                f"dictionary: {{kind: dct}}\nreconstruct: {{tile: 32}}\noutput: {{dir: {out}, frames: none}}\n")
+    rc, err = run(tmp_path, capsys, cfg_text)
+    assert rc == 0, err
+    cfg = load_config(tmp_path / "p.yaml")
+    run_pipeline(cfg.model_copy(update=dict(stages=["simulate"], seed=5)), progress=False)
+    kept = {p: p.read_text() for p in (out / "recon.metrics.json", out / "capture" / "metrics.json")}
+    report = run_pipeline(cfg.model_copy(update=dict(stages=["train"])), progress=False)
+    assert {p: p.read_text() for p in kept} == kept
+    assert report["metrics_path"] == str(out / "train.metrics.json")
+    assert json.loads((out / "train.metrics.json").read_text())["dictionary"]
+
+
 @pytest.mark.parametrize("section, value", [
     ("code: {name: hitomi, p: 0.3}", lambda cfg: cfg.code.p == 0.3),
     ("dictionary: {path: mine.zarr, atoms: 1024, sparsity: 4}", lambda cfg: cfg.dictionary.sparsity == 4),

@@ -70,7 +70,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     report["seconds"]["total"] = sum(report["seconds"].values())
     # a run that reconstructs nothing (`make simulate`) keeps its record beside the capture: it replaced the last
     # reconstruction's record (and its PSNR), and says that reconstruction is not of this capture
-    mpath = metrics_path(out / cfg.output.video) if "reconstruct" in cfg.stages else out / "capture" / "metrics.json"
+    mpath = _metrics_of(cfg, out)
     if "simulate" in cfg.stages and "reconstruct" not in cfg.stages:
         earlier = [p for p in (out / cfg.output.video, out / "recon.npy") if p.exists()]
         if earlier:
@@ -79,6 +79,19 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     mark_written(write_json(mpath, report))
     report["metrics_path"] = str(mpath)
     return report
+
+
+#: The record of a run that only trains (beside the folder's captures and reconstructions, which it does not touch).
+TRAIN_METRICS = "train.metrics.json"
+
+
+def _metrics_of(cfg: PipelineConfig, out: Path) -> Path:
+    """Where the run's record goes: beside the reconstruction; a run that reconstructs nothing (`make simulate`)
+    beside its capture (the last reconstruction's record left alone); a run that only trains, a record of its
+    own (the capture's and the reconstruction's describe them, not it)."""
+    if "reconstruct" in cfg.stages:
+        return metrics_path(out / cfg.output.video)
+    return out / "capture" / "metrics.json" if "simulate" in cfg.stages else out / TRAIN_METRICS
 
 
 def _check_outputs(cfg: PipelineConfig, out: Path, config_path) -> None:
@@ -90,6 +103,7 @@ def _check_outputs(cfg: PipelineConfig, out: Path, config_path) -> None:
                Output(out / "recon.npy", "file"), Output(metrics_path(out / cfg.output.video), "file", "metrics"),
                Output(out / "capture", "place", "capture folder")]
     outputs += [Output(out / "capture" / name, "file") for name in (*CAPTURE_FILES, "metrics.json")]
+    outputs.append(Output(out / TRAIN_METRICS, "file"))
     if cfg.output.frames != "none":
         outputs.append(Output(out / "frames", "folder", "frames folder"))
     check_outputs(outputs, dict(config=config_path, scene=cfg.scene.video, code=cfg.code.path,
