@@ -260,3 +260,17 @@ def test_a_code_that_opens_every_pixel_alike_needs_no_dictionary_through_both_do
         moving = cv.make_code("hitomi", (SIZE, SIZE), frames=frames, bump=2, seed=0)
         with pytest.raises(cv.InputError, match=f"no dictionary is shipped for N = {frames}"):
             cv.reconstruct(cv.simulate(video, moving), moving)
+
+
+def test_evaluate_says_only_the_nan_and_checks_its_data_range_as_the_command_line():
+    """A NaN reconstruction was warned of as 'peaks at nan ... same units?' before its error; a data range of 0
+    raised InputError where reconstruct raises ConfigError."""
+    truth = np.linspace(0, 255, N * SIZE * SIZE, dtype=np.float32).reshape(N, SIZE, SIZE)
+    bad = truth.copy()
+    bad[0, 0, 0] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(cv.InputError, match="NaN"):
+            cv.evaluate(bad, truth)
+    with pytest.raises(cv.ConfigError, match="option data_range 0"):
+        cv.evaluate(truth, truth, data_range=0)

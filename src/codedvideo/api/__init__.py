@@ -366,6 +366,9 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
     >>> round(evaluate(v + 0.01, v)["psnr"], 1)
     40.0
     """
+    from codedvideo.engine.config import OutputConfig, validated
+
+    validated(OutputConfig, dict(data_range=data_range), {"data_range": "data_range"})  # as the command line checks it
     frames, reference = (v if hasattr(v, "shape") else np.asarray(v, np.float32) for v in (recon, truth))
     return scores(*as_scored(frames, reference), data_range=data_range)
 
