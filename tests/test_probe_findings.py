@@ -137,9 +137,10 @@ def test_the_apis_seed_and_code_options_are_checked_as_the_command_lines_are(cal
 def test_a_command_quoted_in_an_api_message_keeps_its_options():
     """The API's messages name its arguments, but a command they quote is run as written (`--frames`, not
     `frames`)."""
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=4, bump=2, seed=0)
     with pytest.raises(cv.InputError) as raised:
-        cv.reconstruct(np.ones((SIZE, SIZE), np.float32), np.ones((1, SIZE, SIZE), np.uint8))
-    assert "`codedvideo train --frames 1 --output dict-N1.zarr`" in str(raised.value), str(raised.value)
+        cv.reconstruct(np.ones((SIZE, SIZE), np.float32), mask)
+    assert "`codedvideo train --frames 4 --output dict-N4.zarr`" in str(raised.value), str(raised.value)
 
 
 def test_evaluate_scores_colour_volumes_alike_through_both_doors(tmp_path, capsys):
@@ -274,3 +275,22 @@ def test_evaluate_says_only_the_nan_and_checks_its_data_range_as_the_command_lin
             cv.evaluate(bad, truth)
     with pytest.raises(cv.ConfigError, match="option data_range 0"):
         cv.evaluate(truth, truth, data_range=0)
+
+
+def test_a_coded_stream_read_from_a_lossy_video_is_warned_of(tmp_path):
+    """An H.264 .mp4 was taken as the coded stream without a word, though its compression changes the values the
+    sensor recorded (the docs ask for a lossless video); FFV1 in .mkv is read as it is, silently."""
+    from codedvideo.formats.io import write_video
+    from codedvideo.formats.volumes import read_coded_stack
+
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    video = cv.synthetic_scene("default", frames=3 * N, size=(SIZE, SIZE))
+    coded = np.round(cv.simulate(video, np.stack([mask] * 3)) / 2).astype(np.float32)  # (3, H, W), within 8 bits
+    write_video(tmp_path / "c.mp4", coded)
+    write_video(tmp_path / "c.mkv", coded)
+    with pytest.warns(UserWarning, match="c.mp4: a h264 video, whose compression changes the values"):
+        read_coded_stack(tmp_path / "c.mp4")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        stack = read_coded_stack(tmp_path / "c.mkv")
+    np.testing.assert_array_equal(np.stack([stack[i] for i in range(len(stack))]), coded)

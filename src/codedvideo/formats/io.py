@@ -409,6 +409,25 @@ def _npy_colour_video(arr: np.ndarray, path: Path, color: str) -> np.ndarray:
     return np.tensordot(LUMA, channels, axes=([0], [0]))
 
 
+#: Video codecs that keep every value of the frames they hold (a GIF's palette keeps grey exactly).
+LOSSLESS_CODECS = ("ffv1", "rawvideo", "png", "huffyuv", "ffvhuff", "utvideo", "gif", "qtrle", "apng")
+
+
+def lossy_codec(path: str | os.PathLike) -> str | None:
+    """The codec of a video file's first video stream when it is not one of :data:`LOSSLESS_CODECS` (H.264, VP9,
+    MPEG-4: values changed by the compression), else None (or when the file cannot say: its reader will)."""
+    import av
+
+    try:
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                return None
+            name = container.streams.video[0].codec_context.name
+    except (av.error.FFmpegError, OSError):
+        return None
+    return None if name in LOSSLESS_CODECS else name
+
+
 def iter_video(path: str | os.PathLike, *, color: str = "luma", start: int = 0):
     """The frames of a video file one at a time (:func:`read_video`'s units), from frame ``start``.
 

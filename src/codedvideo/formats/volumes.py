@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -271,6 +272,10 @@ def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack | V
             raise InputError(f"coded image {source}: expected shape (H, W) or (T, H, W), got {arr.shape}")
         coded = arr.astype(np.float32).reshape((-1, *arr.shape[-2:]))
     elif suffix in VIDEO_SUFFIXES:  # a frame a capture: decoded capture by capture
+        codec = cio.lossy_codec(source)
+        if codec:
+            warnings.warn(f"coded image {source}: a {codec} video, whose compression changes the values the sensor "
+                          "recorded; give a lossless video (FFV1 in .mkv), image files or a .npy", stacklevel=2)
         stack = VideoStack(source)
         return stack if len(stack) > 1 else stack[0][None]
     else:
