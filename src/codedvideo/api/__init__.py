@@ -387,14 +387,15 @@ def as_scored(recon, truth, *, names: tuple[str, str] = ("reconstruction", "trut
     frames; colour against grey, the colour one's luma (warned, ``names`` the two); grey as it is."""
     from codedvideo.formats.io import LUMA
 
+    pair = (recon, truth)
     if len(truth.shape) != len(recon.shape) and 4 in (len(truth.shape), len(recon.shape)):  # colour against grey
         colour, grey = names if len(recon.shape) == 4 else names[::-1]
         warnings.warn(f"evaluate: {colour} is colour and {grey} grey; compared as luma", stacklevel=3)
-        recon, truth = (np.tensordot(LUMA, np.asarray(v, np.float32), axes=([0], [0])) if len(v.shape) == 4 else v
-                        for v in (recon, truth))
-    if len(truth.shape) == 4 and tuple(recon.shape) == tuple(truth.shape):  # colour: every channel's frames
-        recon, truth = recon.reshape(-1, *recon.shape[-2:]), truth.reshape(-1, *truth.shape[-2:])
-    return recon, truth
+        pair = tuple(np.tensordot(LUMA, np.asarray(v, np.float32), axes=([0], [0])) if len(v.shape) == 4 else v
+                     for v in pair)
+    if len(pair[1].shape) == 4 and tuple(pair[0].shape) == tuple(pair[1].shape):  # colour: every channel's frames
+        pair = tuple(v.reshape(-1, *v.shape[-2:]) for v in pair)
+    return pair
 
 
 def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, str] = ("reconstruction", "truth"),

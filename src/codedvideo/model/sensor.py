@@ -265,11 +265,11 @@ def check_bad_rows(rows: np.ndarray, shape: tuple[int, int], *, where: str, line
     return yx
 
 
-def bad_pixel_array(arr: np.ndarray, shape: tuple[int, int], where: str) -> np.ndarray:
+def bad_pixel_array(given, shape: tuple[int, int], where: str) -> np.ndarray:
     """The ``(y, x)`` rows (K, 2) int64 of a list of defective pixels given as an array: (K, 2) rows (``(0,)`` or
     ``(0, 2)`` for none) or a boolean (or 0/1) map of the image's ``shape``; :class:`InputError` naming ``where``
     otherwise (a pixel outside the image among them)."""
-    arr = np.asarray(arr)
+    arr = np.asarray(given)
     if arr.size == 0:
         return np.zeros((0, 2), np.int64)
     is_map = arr.dtype == np.bool_ or (arr.ndim == 2 and arr.shape[1] != 2 and arr.dtype.kind in "iuf"
