@@ -294,3 +294,51 @@ def test_a_coded_stream_read_from_a_lossy_video_is_warned_of(tmp_path):
         warnings.simplefilter("error")
         stack = read_coded_stack(tmp_path / "c.mkv")
     np.testing.assert_array_equal(np.stack([stack[i] for i in range(len(stack))]), coded)
+
+
+def test_a_dask_mosaic_under_bayer_gives_the_numpy_paths_colour_frames(tmp_path):
+    """`bayer=` with a dask mosaic gave a lazy (N, H, W) array whose computing failed ('coded (1, H, W); under
+    bayer= it is one mosaic (H, W)'); it now gives the numpy path's (3, N, H, W) frames."""
+    import dask.array as da
+
+    cap = tmp_path / "cap"
+    assert main(["-q", "simulate", "synth:color-default", "--frames", str(N), "--bump", "2", "--bayer", "rggb",
+                 "--size", "32", "32", "--output", str(cap)]) == 0
+    coded, mask = np.load(cap / "coded.npy"), np.load(cap / "mask.npy")
+    want = cv.reconstruct(coded, mask, bayer="RGGB")
+    lazy = cv.reconstruct(da.from_array(coded), mask, bayer="RGGB")
+    assert lazy.shape == want.shape == (3, N, 32, 32)
+    np.testing.assert_array_equal(lazy.compute(), want)
+
+
+def test_one_mask_as_a_stack_of_one_is_shared_by_a_stream_through_both_doors(tmp_path):
+    """The command line shares a (1, N, H, W) mask among T captures; the API refused it ('6 coded images, 1
+    masks'); both now share it, with the same bits as the (N, H, W) mask."""
+    import dask.array as da
+
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    video = cv.synthetic_scene("default", frames=3 * N, size=(SIZE, SIZE))
+    coded = cv.simulate(video, mask[None].repeat(3, 0))
+    want = cv.reconstruct(coded, mask)
+    np.testing.assert_array_equal(cv.reconstruct(coded, mask[None]), want)
+    np.testing.assert_array_equal(cv.reconstruct(da.from_array(coded, chunks=(1, SIZE, SIZE)), mask[None]).compute(),
+                                  want)
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask[None])
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                 "--output", str(tmp_path / "r.npy")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "r.npy"), want)
+
+
+def test_a_dask_inputs_warnings_name_the_apis_arguments():
+    """Warnings said while a dask input's graph is computed named the command line's options (--tol-rms)."""
+    import dask.array as da
+
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    coded = cv.simulate(cv.synthetic_scene("default", frames=N, size=(SIZE, SIZE)), mask)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        cv.reconstruct(da.from_array(coded), mask, data_range=65535).compute()
+    messages = [str(w.message) for w in said]
+    assert any("data_range" in m for m in messages), messages
+    assert not any("--" in m for m in messages), messages

@@ -318,8 +318,10 @@ def _is_dask(x) -> bool:
     return type(x).__module__.startswith("dask.")
 
 
+@_door
 def _stream_frames(stack: np.ndarray, mask: np.ndarray, settings) -> np.ndarray:
-    """A dask stream's frames, computed when the graph is: the numpy stack's, as one job."""
+    """A dask stream's frames, computed when the graph is: the numpy stack's, as one job (its warnings and errors
+    in the API's terms, as the numpy path's)."""
     return _reconstruct_arrays(stack, mask, settings)
 
 
@@ -338,8 +340,14 @@ def _reconstruct_lazy(coded, mask, settings):
         raise InputError(f"reconstruct: coded {tuple(coded.shape)} and mask {tuple(masks.shape)} do not fit: coded "
                          "is (H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
     count, n, (h, w) = stack.shape[0], masks.shape[-3], stack.shape[-2:]
-    if masks.ndim == 4 and masks.shape[0] != count:
+    if masks.ndim == 4 and masks.shape[0] not in (1, count):
         raise InputError(f"reconstruct: {count} coded images, {masks.shape[0]} masks")
+    if settings.bayer is not None:  # one mosaic: its colour video (3, N, H, W), one chunk
+        if coded.ndim != 2:
+            raise InputError(f"reconstruct: coded {tuple(coded.shape)}; under bayer= it is one single-channel "
+                             "mosaic (H, W)")
+        whole = dask.delayed(_stream_frames, pure=True)(coded, masks, settings)
+        return da.from_delayed(whole, shape=(3, n, h, w), dtype=np.float32, meta=np.empty((0, 0, 0, 0), np.float32))
     whole = dask.delayed(_stream_frames, pure=True)(stack, masks, settings)
     parts = [da.from_delayed(whole[i * n:(i + 1) * n], shape=(n, h, w), dtype=np.float32,
                              meta=np.empty((0, 0, 0), np.float32)) for i in range(count)]

@@ -93,7 +93,7 @@ def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
                          "(H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
     single = image.ndim == 2
     codeds = image[None] if single else image
-    if given.ndim == 4 and given.shape[0] != len(codeds):
+    if given.ndim == 4 and given.shape[0] not in (1, len(codeds)):  # (one (1, N, H, W) mask: shared, as read)
         raise InputError(f"{where}: {len(codeds)} coded images, {given.shape[0]} masks")
     masks = [check_mask(m, f"{where}: mask") for m in (given if given.ndim == 4 else [given])]
     truths = None
