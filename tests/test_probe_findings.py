@@ -342,3 +342,13 @@ def test_a_dask_inputs_warnings_name_the_apis_arguments():
     messages = [str(w.message) for w in said]
     assert any("data_range" in m for m in messages), messages
     assert not any("--" in m for m in messages), messages
+
+
+def test_a_black_truth_is_not_warned_of_as_other_units():
+    """A truth black throughout says nothing of its units: reconstruct warned 'truth peaks at 0 ... same units?'."""
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    video = cv.synthetic_scene("default", frames=N, size=(SIZE, SIZE))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        cv.reconstruct(cv.simulate(video, mask), mask, truth=np.zeros_like(video), full_output=True)
+    assert not any("same units" in str(w.message) for w in said), [str(w.message) for w in said]

@@ -32,10 +32,11 @@ OTHER_UNITS_BELOW, OTHER_UNITS_ABOVE = 16.0, 4.0
 
 def other_units(reference_peak: float, peak: float) -> bool:
     """Whether a volume peaking at ``peak`` looks to be in other units than a reference peaking at
-    ``reference_peak`` (never when the reference is dark throughout: nothing to compare with)."""
+    ``reference_peak`` (never when either is black throughout: a black volume says nothing of its units)."""
     if not (math.isfinite(reference_peak) and math.isfinite(peak)):  # (NaN or Inf: refused as such, not as units)
         return False
-    return reference_peak > 0 and not reference_peak / OTHER_UNITS_BELOW <= peak <= OTHER_UNITS_ABOVE * reference_peak
+    return reference_peak > 0 and peak > 0 and \
+        not reference_peak / OTHER_UNITS_BELOW <= peak <= OTHER_UNITS_ABOVE * reference_peak
 
 
 def mean_psnr(per_frame) -> float:
