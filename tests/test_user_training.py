@@ -66,6 +66,25 @@ def test_videos_too_short_or_small_are_named_and_left_out(tmp_path, capsys, vide
     assert not (tmp_path / "none.zarr").exists()
 
 
+def test_a_dictionary_reused_for_copies_records_this_runs_training_files(tmp_path, capsys, video8):
+    """Reported: training on a copy of a clip under another name reused the cached dictionary (the key holds the
+    contents) and recorded the first run's file; the record now names this run's, and no synthetic clips."""
+    d, v = video8
+    np.save(d / "clipA.npy", v)
+    np.save(d / "clipB.npy", v)
+    np.save(d / "short.npy", v[: N - 1])
+    with pytest.warns(UserWarning, match="short.npy"):
+        rc, first, err = train(tmp_path, capsys, d / "clipA.npy", d / "short.npy", output="a.zarr")
+    assert rc == 0, err
+    rc, second, err = train(tmp_path, capsys, d / "clipB.npy", d / "short.npy", output="b.zarr")
+    assert rc == 0 and second["reused"], (err, second)
+    _, meta = load_dictionary(tmp_path / "b.zarr")
+    assert meta["training_set"] == [str(d / "clipB.npy")] and "clips" not in meta, meta
+    D_a, _ = load_dictionary(tmp_path / "a.zarr")
+    D_b, _ = load_dictionary(tmp_path / "b.zarr")
+    np.testing.assert_array_equal(D_a, D_b)
+
+
 @pytest.mark.parametrize("layout", ["last", "first"])
 def test_a_colour_npy_video_trains_on_its_luma(tmp_path, capsys, video8, layout):
     d, v = video8

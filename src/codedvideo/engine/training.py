@@ -80,13 +80,16 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
                     if bar:
                         bar.close()
                     meta["training_set"] = used  # (videos too short or too small were left out, with a warning)
-                    meta["clips"] = dc.clips
+                    meta["training_given"] = list(dc.training)  # (a later run's names, when it reuses this one)
+                    if SYNTH_TRAIN in dc.training:
+                        meta["clips"] = dc.clips
                 meta["settings_key"] = key
                 save_dictionary(cached, D, meta)
                 D, meta = load_dictionary(cached)  # read back and checked against its sha256, under the lock
                 cached_ok = False
     if found is not None:
         (D, meta), cached_ok = found, True
+        meta = _named_for(meta, dc.training)
         log.info("dictionary: reusing %s", cached)
     result = cached
     if output is not None and Path(output) != result:
@@ -94,6 +97,22 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
         result = Path(output)
         _, meta = load_dictionary(result)
     return result, dict(meta, reused=cached_ok, seconds=time.perf_counter() - t0)
+
+
+#: The generated training clips' name among ``dictionary.training``.
+SYNTH_TRAIN = "synth:train"
+
+
+def _named_for(meta: dict, training: list[str]) -> dict:
+    """A reused dictionary's record with this run's names of its training videos: the cache key holds their
+    contents, not their names, so a run on copies under other names reuses it (the videos at the places the
+    first run used, by their order in ``dictionary.training``)."""
+    given = meta.get("training_given")
+    if "training_set" not in meta or given is None or len(given) != len(training):
+        return meta
+    used = set(meta["training_set"])
+    return dict(meta, training_set=[now for was, now in zip(given, training) if was in used],
+                training_given=list(training))
 
 
 def _cached_dictionary(cached: Path, key: str, *, warn: bool = False) -> tuple[np.ndarray, dict] | None:
