@@ -352,3 +352,16 @@ def test_a_black_truth_is_not_warned_of_as_other_units():
         warnings.simplefilter("always")
         cv.reconstruct(cv.simulate(video, mask), mask, truth=np.zeros_like(video), full_output=True)
     assert not any("same units" in str(w.message) for w in said), [str(w.message) for w in said]
+
+
+def test_dictionary_records_that_do_not_fit_are_named_plainly(tmp_path):
+    """A store whose record says frames '8' (a string) was refused as 'built for N = 8, the mask has N = 8'; one
+    whose atoms have the wrong rows was refused without its file; training's --init spoke of a mask."""
+    from codedvideo.formats.store import check_dictionary
+
+    with pytest.raises(cv.InputError, match=r"d.zarr: its record's frames '8' is not a whole number"):
+        check_dictionary(dict(patch=7, frames="8"), 8, tmp_path / "d.zarr")
+    with pytest.raises(cv.InputError, match=r"d.zarr: atoms of 300 rows; N = 8 needs N x 49 = 392"):
+        check_dictionary(dict(patch=7, frames=8), 8, tmp_path / "d.zarr", np.zeros((300, 4), np.float32))
+    with pytest.raises(cv.InputError, match=r"built for N = 16 sub-frames, training for N = 8"):
+        check_dictionary(dict(patch=7, frames=16), 8, tmp_path / "d.zarr", needs="training for")

@@ -220,7 +220,7 @@ def job_dictionary(r: Resolved, frames: int, one_pattern=lambda: False) -> tuple
         path = given or shipped.required(frames, "reconstruct", f"`{shipped.train_command(frames)}` and give "
                                          f"--dictionary dict-N{frames}.zarr")
         D, meta = load_dictionary(path)
-        check_dictionary(meta, frames, path)
+        check_dictionary(meta, frames, path, D)
         return D, meta.get("sha256", ""), str(path)
     D = np.ascontiguousarray(given, np.float32)
     if D.ndim != 2 or D.shape[0] != frames * PATCH * PATCH:

@@ -141,5 +141,5 @@ def init_dictionary(init: str, frames: int) -> tuple[np.ndarray, dict]:
         raise ConfigError(f"dictionary.init shipped (--init): no dictionary is shipped for N = {frames} "
                           f"(N = {', '.join(map(str, available()))} are)")
     D, meta = load_dictionary(path)
-    check_dictionary(meta, frames, path)
+    check_dictionary(meta, frames, path, D, needs="training for")
     return D, meta

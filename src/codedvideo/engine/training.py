@@ -34,7 +34,7 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
     dc = cfg.dictionary
     if dc.path:
         D, meta = load_dictionary(dc.path)
-        check_dictionary(meta, cfg.frames, dc.path)
+        check_dictionary(meta, cfg.frames, dc.path, D, needs="frames: asks for")
         return Path(dc.path), dict(meta, reused=True, seconds=0.0)
     key = dictionary_key(cfg)
     t0 = time.perf_counter()

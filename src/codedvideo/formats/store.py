@@ -196,12 +196,19 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
     return target
 
 
-def check_dictionary(meta: dict, frames: int, path) -> None:
-    """Refuse a dictionary (its stored ``meta``) made for another patch size or another N, naming ``path``."""
-    if meta.get("patch") != PATCH:
-        raise InputError(f"dictionary {path}: patch size {meta.get('patch')} != {PATCH}")
-    if meta.get("frames") != frames:
-        raise InputError(f"dictionary {path}: built for N = {meta.get('frames')} sub-frames, the mask has N = {frames}")
+def check_dictionary(meta: dict, frames: int, path, D: np.ndarray | None = None, *, needs: str = "the mask has") -> None:
+    """Refuse a dictionary (its stored ``meta``, and its atoms ``D`` when given) made for another patch size or
+    another N, naming ``path``; ``needs``: who asks for N sub-frames (``"--frames is"`` for training)."""
+    patch, built = meta.get("patch"), meta.get("frames")
+    if patch != PATCH:
+        raise InputError(f"dictionary {path}: patch size {patch!r} != {PATCH}")
+    if not isinstance(built, int) or isinstance(built, bool):
+        raise InputError(f"dictionary {path}: its record's frames {built!r} is not a whole number of sub-frames")
+    if built != frames:
+        raise InputError(f"dictionary {path}: built for N = {built} sub-frames, {needs} N = {frames}")
+    if D is not None and D.shape[0] != frames * PATCH * PATCH:
+        raise InputError(f"dictionary {path}: atoms of {D.shape[0]} rows; N = {frames} needs N x {PATCH * PATCH} = "
+                         f"{frames * PATCH * PATCH}")
 
 
 def load_dictionary(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
