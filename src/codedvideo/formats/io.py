@@ -605,7 +605,7 @@ def video_writer(path: str | os.PathLike, size: tuple[int, int], *, colour: bool
     in_fmt = "rgb24" if colour else "gray"
     with atomic_output(target) as tmp:
         try:
-            with av.open(str(tmp), mode="w") as container:
+            with av.open(str(tmp), mode="w", options={"fflags": "+bitexact"}) as container:
                 # the size before any padding, so read_video returns the frames as given
                 container.metadata["comment"] = f"{SIZE_TAG}{height}x{width}"
                 stream = container.add_stream(codec, rate=fps)
