@@ -283,7 +283,7 @@ class ReconstructionJob:
     def _warn_before_work(self) -> None:
         r, job = self.r, self.captures
         if job.truths is not None:  # a truth in other units than the captures': every score would mean nothing
-            truth_peak = volume_peak(job.truths)
+            truth_peak = volume_peak(job.truth(0))  # (the first capture's: a long stream's is not read twice)
             if other_units(self.units.peak, truth_peak):
                 warnings.warn(f"{job.source.rsplit(':', 1)[0]}: truth peaks at {truth_peak:.4g} and the coded "
                               f"images' coded / open count at {self.units.peak:.4g}; are they in the same units? "

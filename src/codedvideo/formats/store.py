@@ -198,7 +198,7 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
 
 def check_dictionary(meta: dict, frames: int, path, D: np.ndarray | None = None, *, needs: str = "the mask has") -> None:
     """Refuse a dictionary (its stored ``meta``, and its atoms ``D`` when given) made for another patch size or
-    another N, naming ``path``; ``needs``: who asks for N sub-frames (``"--frames is"`` for training)."""
+    another N, naming ``path``; ``needs``: who asks for N sub-frames (``"training for"`` a K-SVD's start)."""
     patch, built = meta.get("patch"), meta.get("frames")
     if patch != PATCH:
         raise InputError(f"dictionary {path}: patch size {patch!r} != {PATCH}")
