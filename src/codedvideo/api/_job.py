@@ -27,7 +27,8 @@ from codedvideo.engine.windows import cache_room
 from codedvideo.engine.config import omp_settings
 from codedvideo.formats.volumes import check_coded, check_mask
 from codedvideo.model.errors import InputError
-from codedvideo.model.metrics import evaluate, mean_psnr, mse_psnr, other_units, volume_peak
+from codedvideo.model.metrics import (IMPLAUSIBLE_SHARE, evaluate, mean_psnr, mse_psnr, other_units,
+                                     volume_extremes, volume_peak)
 from codedvideo.model.patches import PATCH
 from codedvideo.model.units import capture_units, tolerance_warning
 
@@ -279,6 +280,7 @@ class ReconstructionJob:
         self._traces: dict[int, list[dict]] = {}
         self._stages: dict[int, list[dict]] = {}  # capture -> the PSNR after each pass before the last
         self._partial: dict[tuple, dict] = {}  # (capture, iterations) -> the bands' squared errors so far
+        self._implausible_said = False
 
     def _warn_before_work(self) -> None:
         r, job = self.r, self.captures
@@ -368,6 +370,21 @@ class ReconstructionJob:
             for i, volume, info in results:
                 yield i, volume, self._entry(i, volume, info)
 
+    def _warn_implausible(self, i: int, volume) -> None:
+        """Say, once a job, a result far outside ``[0, data range]`` (:data:`IMPLAUSIBLE_SHARE`): values no
+        intensity takes, from a code whose patterns leave the motion nearly unobserved (long bumps)."""
+        if self._implausible_said:
+            return
+        lo, hi = volume_extremes(volume)
+        value = self.units.value
+        if lo < -IMPLAUSIBLE_SHARE * value or hi > (1 + IMPLAUSIBLE_SHARE) * value:
+            self._implausible_said = True
+            where = self.captures.source if self.count == 1 else f"{self.captures.source}, capture {i + 1}"
+            warnings.warn(f"{where}: the reconstruction holds values from {lo:.4g} to {hi:.4g}, far outside the data "
+                          f"range [0, {value:g}]: this code leaves the motion nearly unobserved for the method "
+                          f"{self.r.method} (long shutter bumps make it ill-conditioned); compare the trivial "
+                          "estimate in the record, or --method gaptv", stacklevel=2)
+
     def _entry(self, i: int, volume, info: dict) -> dict:
         job = self.captures
         if i in self._stages:  # the PSNR after each pass of the adaptation, and the seconds to each
@@ -377,6 +394,7 @@ class ReconstructionJob:
         entry = dict(job.labels[i], reconstruction=info)
         if self.raw:
             entry["raw"] = self.raw[i]
+        self._warn_implausible(i, volume)
         truth = job.truth(i)
         if truth is not None:
             t0 = time.perf_counter()

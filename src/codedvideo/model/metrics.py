@@ -25,6 +25,20 @@ def volume_peak(v) -> float:
                 for s in range(0, v.shape[0], EVALUATE_BLOCK)), default=0.0)
 
 
+def volume_extremes(v) -> tuple[float, float]:
+    """The smallest and the largest value of a volume or a lazy stack, :data:`EVALUATE_BLOCK` frames at a time."""
+    blocks = [np.asarray(v[s:s + EVALUATE_BLOCK], np.float32) for s in range(0, v.shape[0], EVALUATE_BLOCK)]
+    return (min((float(b.min(initial=np.inf)) for b in blocks), default=0.0),
+            max((float(b.max(initial=-np.inf)) for b in blocks), default=0.0))
+
+
+#: A reconstruction holding values further than this share of the data range below 0 or above the range is
+#: implausible (intensities are never negative, and a frame peaks at its range): the problem is ill-posed for
+#: the method (measured: a bump of 15 of 16 sub-frames gave -1059 to 1390 on 8-bit frames, 5.9 dB against the
+#: trivial estimate's 22.8), and the run says so.
+IMPLAUSIBLE_SHARE = 0.5
+
+
 #: A volume is taken for another unit than a reference when its peak lies below the reference's divided by
 #: the first or above it times the second (a [0, 1] video against 8-bit frames peaks 255 times lower).
 OTHER_UNITS_BELOW, OTHER_UNITS_ABOVE = 16.0, 4.0
