@@ -79,3 +79,7 @@ def default_and_dct(row: dict, video, cap, D, rc, cache: Path):
             row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
         first = vol if first is None else first
     return first
+
+
+if __name__ == "__main__":  # a helper module of the scripts beside it, not a script: it says what it is
+    print(__doc__)

@@ -219,3 +219,7 @@ def table(results: dict) -> str:
     if "b" in c and "b1" in c and "error" not in c["b"] and "error" not in c["b1"]:
         rows.append(f"two workers vs one on b: {c['b1']['omp']['seconds'] / c['b']['omp']['seconds']:.2f}x")
     return "\n".join(rows)
+
+
+if __name__ == "__main__":  # a helper module of the scripts beside it, not a script: it says what it is
+    print(__doc__)

@@ -29,3 +29,7 @@ def guarded(fn) -> int:
     from codedvideo.app.cli import guarded as as_command
 
     return as_command(fn)
+
+
+if __name__ == "__main__":  # a helper module of the scripts beside it, not a script: it says what it is
+    print(__doc__)

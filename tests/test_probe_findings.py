@@ -388,3 +388,14 @@ def test_a_result_far_outside_the_data_range_is_said_through_both_doors(tmp_path
         assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
                      "--output", str(tmp_path / "r.npy")]) == 0
     assert any("far outside the data range [0, 255]" in str(w.message) for w in said)
+
+
+def test_simulate_refuses_a_black_level_with_a_cacti_file(tmp_path, capsys):
+    """`--black-level 64 --cacti-out F.mat` wrote a meas 64 above the plain sum CACTI files hold, silently (17.9 dB
+    read back against 32.1); refused before any work."""
+    capsys.readouterr()
+    rc = main(["-q", "simulate", "synth:default", "--frames", str(N), "--size", "16", "16", "--black-level", "64",
+               "--output", str(tmp_path / "cap"), "--cacti-out", str(tmp_path / "c.mat")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--black-level 64" in err and "plain sum" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "cap").exists() and not (tmp_path / "c.mat").exists()

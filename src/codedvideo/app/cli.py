@@ -307,6 +307,9 @@ def _cmd_simulate(a) -> int:
 
     if a.cacti_out and a.new_code_per_capture:
         raise ConfigError("option --cacti-out: a CACTI file has one mask; it does not go with --new-code-per-capture")
+    if a.cacti_out and a.black_level:  # (a CACTI file's meas is the plain sum of the masked frames)
+        raise ConfigError(f"option --black-level {a.black_level:g}: a CACTI file's meas is the plain sum of the "
+                          "masked frames, with no offset; --cacti-out does not take a black level")
     if a.cacti_out and a.bayer:
         raise ConfigError(f"option --bayer {a.bayer}: makes one capture with a colour truth; --cacti-out (CACTI "
                           "files are grey) does not apply")
