@@ -55,6 +55,13 @@ def _door(fn):
     return called
 
 
+def _check_seed(seed) -> None:
+    """A seed as the command line's ``--seed`` takes it (pipeline.yaml's ``seed``), or a ConfigError naming it."""
+    from codedvideo.engine.config import PipelineConfig, validated
+
+    validated(PipelineConfig, dict(seed=seed), {"seed": "seed"})
+
+
 @_door
 def make_code(name: str, shape: tuple[int, int], *, frames: int, bump: int | None = None, p: float | None = None,
               seed: int = 0) -> np.ndarray:
@@ -83,13 +90,13 @@ def make_code(name: str, shape: tuple[int, int], *, frames: int, bump: int | Non
     >>> make_code("hitomi", (14, 14), frames=8, bump=2).sum(0).min()  # every pixel open for L sub-frames
     np.uint64(2)
     """
-    from codedvideo.engine.config import CodeConfig, PipelineConfig, validated
+    from codedvideo.engine.config import CodeConfig, validated
     from codedvideo.model.codes import CODE_NAMES, make_code as _make_code
 
     if name == "file":
         raise ConfigError("make_code: 'file' reads a mask file; load the mask with numpy instead")
     options = {k: v for k, v in dict(bump=bump, p=p).items() if v is not None}
-    validated(PipelineConfig, dict(seed=seed), {"seed": "seed"})
+    _check_seed(seed)
     if name in CODE_NAMES:  # (another name: the code's own message, naming the codes there are)
         validated(CodeConfig, dict(name=name, **options), {"bump": "bump", "p": "p"})  # the rules of --bump, --p
     return _make_code(name, tuple(shape), frames=frames, rng=seed, **options)
@@ -133,7 +140,7 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     >>> simulate(np.ones((2, 4, 4)), mask)[0, 0]
     np.float32(2.0)
     """
-    from codedvideo.engine.config import NoiseConfig, PipelineConfig, validated
+    from codedvideo.engine.config import NoiseConfig, validated
     from codedvideo.engine.simulation import sensor_model, simulate_stream
     from codedvideo.formats.volumes import check_coded, check_mask
 
@@ -151,7 +158,7 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     noise = validated(NoiseConfig, dict(sigma=noise_sigma, shot_noise=shot_noise, bits=bits, white_level=white_level,
                                         black_level=black_level, **given),
                       {"sigma": "noise_sigma", **{k: k for k in ("shot_noise", "full_well", "gain", "bits")}})
-    validated(PipelineConfig, dict(seed=seed), {"seed": "seed"})
+    _check_seed(seed)
     stream = simulate_stream((frames[i * n:(i + 1) * n] for i in range(count)), code="array", bump=0,
                              sigma=noise.sigma, seed=seed, sensor=sensor_model(noise), captures=count, codes=codes)
     coded = [one for one, _, _ in stream]
