@@ -122,6 +122,15 @@ def test_a_mask_tiff_of_0_and_1_is_refused_naming_its_full_scale(files, tmp_path
           root=tmp_path)
 
 
+def test_a_16_bit_mask_image_of_0_and_255_is_refused_naming_its_peak(files, tmp_path, capsys):
+    """An 8-bit binary mask saved into 16-bit images holds 0 and 255 of 65535: every shutter would read as open
+    0.4 %, and the result was noise (-35 dB) with no word."""
+    cio.write_multipage_tiff(files / "m255_16.tif", (np.load(files / "mask.npy") * 255).astype(np.uint16))
+    err = fails(capsys, reconstruct_args(files, tmp_path, mask=files / "m255_16.tif"), "m255_16.tif",
+                "reach only 255 of the image's full scale 65535", root=tmp_path)
+    assert "0 and 65535" in err
+
+
 def test_mask_never_open_anywhere(files, tmp_path, capsys):
     np.save(files / "zeros.npy", np.zeros((N, H, W), np.uint8))
     fails(capsys, reconstruct_args(files, tmp_path, mask=files / "zeros.npy"), "zeros.npy", "ever open", root=tmp_path)

@@ -243,6 +243,20 @@ def test_best_under_heavy_read_noise_leaves_out_its_non_local_passes_and_keeps_t
     assert resolve_preset("fast", {}, noise=2 * NOISY_BEST) == resolve_preset("fast", {})
 
 
+def test_best_under_the_heaviest_read_noise_is_the_default():
+    """From NOISIEST_BEST on the refinement lost to the default as well (-0.05 dB at sigma 100), so best leaves it
+    out too; a refinement given beside the preset stands."""
+    from codedvideo.engine.config import NOISIEST_BEST, resolve_preset
+
+    options, left_out = resolve_preset("best", {}, noise=NOISIEST_BEST)
+    assert options == resolve_preset("default", {})[0]
+    assert set(left_out) == {"method", "adapt", "adapt_rounds", "refine"} and "80 or more" in left_out["refine"]
+    below, left = resolve_preset("best", {}, noise=NOISIEST_BEST - 1)
+    assert below["refine"] == 32 and "refine" not in left
+    given, left = resolve_preset("best", {"refine": 16}, noise=NOISIEST_BEST)
+    assert given["refine"] == 16 and "refine" not in left
+
+
 @pytest.mark.parametrize("scale", [1.0, 1 / 255])
 def test_best_under_heavy_noise_is_the_refined_default_in_any_units_and_says_why(scale):
     """The rule reads the noise in working units: 40 grey levels of 8-bit frames, or 40/255 of [0, 1] frames."""

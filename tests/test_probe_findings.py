@@ -399,3 +399,108 @@ def test_simulate_refuses_a_black_level_with_a_cacti_file(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "--black-level 64" in err and "plain sum" in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "cap").exists() and not (tmp_path / "c.mat").exists()
+
+
+def test_a_data_range_far_above_the_captures_is_said_through_both_doors(tmp_path):
+    """camera.md's own `--data-range 4095`, given for 8-bit frames: no word, a PSNR of 51.1 dB that is 27.0 at 255,
+    and a tolerance 16 times too loose.  Both doors now warn before any work; the range that fits does not."""
+    video = cv.synthetic_scene("default", frames=8, size=(32, 32))
+    mask = cv.make_code("hitomi", (32, 32), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    for given, warned in ((4095.0, True), (255.0, False)):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            cv.reconstruct(coded, mask, data_range=given)
+        messages = [str(w.message) for w in said if "under 1/16 of the data range" in str(w.message)]
+        assert bool(messages) == warned, (given, [str(w.message) for w in said])
+        if warned:
+            assert "data range 4095 given (data_range)" in messages[0], messages
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                     "--data-range", "4095", "--output", str(tmp_path / "r.npy")]) == 0
+    said = [str(w.message) for w in said]
+    assert any("coded.npy" in m and "data range 4095 given (--data-range)" in m for m in said), said
+
+
+def test_a_tiff_of_separate_planes_read_as_one_capture_is_said(tmp_path):
+    """tifffile stores a (3, H, W) array as planar RGB: a stack of three captures saved so was read as one capture,
+    their luma, with no word.  It is now warned of; an interleaved colour TIFF is not."""
+    tifffile = pytest.importorskip("tifffile")
+    from codedvideo.formats import io as cio
+
+    stack = np.arange(3 * 8 * 8, dtype=np.uint16).reshape(3, 8, 8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # (tifffile's own, about this very layout)
+        tifffile.imwrite(tmp_path / "planes.tif", stack)
+    tifffile.imwrite(tmp_path / "rgb.tif", np.moveaxis(stack, 0, -1), photometric="rgb")
+    for name, warned in (("planes.tif", True), ("rgb.tif", False)):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            assert cio.read_image(tmp_path / name).shape == (8, 8)
+        messages = [str(w.message) for w in said if "separate planes" in str(w.message)]
+        assert bool(messages) == warned, name
+        if warned:
+            assert "planes.tif" in messages[0] and "3 channels" in messages[0], messages
+
+
+def test_float_tiffs_read_back_without_optional_codecs(tmp_path):
+    """The float TIFFs codedvideo writes used libtiff's floating-point predictor, which tifffile and scikit-image
+    decode only with the optional imagecodecs package; they are now plain deflate, read by both as written."""
+    tifffile = pytest.importorskip("tifffile")
+    from codedvideo.formats import io as cio
+
+    frames = np.random.default_rng(0).random((3, 8, 8)).astype(np.float32)
+    cio.write_stack(tmp_path / "s.tif", frames)
+    cio.write_image(tmp_path / "f.tif", frames[0])
+    with tifffile.TiffFile(tmp_path / "s.tif") as tif:
+        assert tif.pages[0].predictor == 1 and tif.pages[0].compression == 8  # none, deflate
+    assert np.array_equal(tifffile.imread(tmp_path / "s.tif"), frames)
+    assert np.array_equal(tifffile.imread(tmp_path / "f.tif"), frames[0])
+
+
+def test_a_block_of_missing_pixels_stays_within_sensible_values_with_the_non_local_method(tmp_path):
+    """An 8x8 square of bad pixels (or of saturated ones) ended `--preset best` and `nonlocal --adapt` with a
+    RuntimeError traceback (the survey's grid patch inside it is no reference, and no group reached the pixels
+    around it), and a 13x13 one gave values from -2031 to 2612 (groups' atoms fitted to the few measured pixels
+    of a corner).  Patches that see too few measurements are now in no group, and pixels no group reaches keep
+    the first estimate: every value within the default's spread, the rest of the frame better than the
+    default's."""
+    video = cv.synthetic_scene("default", frames=8, size=(64, 64))
+    mask = cv.make_code("hitomi", (64, 64), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    for y0, side in ((20, 8), (15, 13)):
+        bad = np.zeros((64, 64), bool)
+        bad[y0:y0 + side, y0:y0 + side] = True  # (the first holds the survey's grid patch at 21..27)
+        default = cv.reconstruct(coded, mask, bad_pixels=bad)
+        frames = cv.reconstruct(coded, mask, method="nonlocal", adapt=True, bad_pixels=bad)
+        assert np.isfinite(frames).all()
+        spread = default.max() - default.min()
+        assert default.min() - spread / 2 < frames.min() and frames.max() < default.max() + spread / 2, side
+        far = np.ones((64, 64), bool)
+        far[y0 - 6:y0 + side + 6, y0 - 6:y0 + side + 6] = False  # the square and the patches that reach into it
+        error = {name: float(np.mean((f[:, far] - video[:, far]) ** 2)) for name, f in (("adapt", frames),
+                                                                                     ("omp", default))}
+        assert error["adapt"] < error["omp"], (side, error)
+
+
+def test_a_folder_with_one_image_of_another_size_names_it(tmp_path, capsys):
+    """A mask folder with one odd-sized image said `frames differ in shape [(32, 32), (64, 64)]`, naming no file."""
+    from codedvideo.formats import io as cio
+
+    (tmp_path / "m").mkdir()
+    for i in range(3):
+        cio.write_image(tmp_path / "m" / f"m{i}.png", np.full((16, 16) if i == 2 else (32, 32), 255, np.uint8))
+    np.save(tmp_path / "coded.npy", np.ones((32, 32), np.float32))
+    assert main(["reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "m"),
+                 "--output", str(tmp_path / "r.npy")]) == 2
+    assert "m2.png is (16, 16), m0.png (32, 32)" in capsys.readouterr().err
+    assert not (tmp_path / "r.npy").exists()
+
+
+def test_quiet_after_the_command_says_where_it_goes(capsys):
+    """`codedvideo reconstruct -q ...` said only `unrecognized arguments: -q`."""
+    assert main(["reconstruct", "-q", "--coded", "c.npy", "--mask", "m.npy", "--output", "r.npy"]) == 2
+    assert "-q goes before the command" in capsys.readouterr().err

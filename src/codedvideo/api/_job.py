@@ -381,9 +381,10 @@ class ReconstructionJob:
             self._implausible_said = True
             where = self.captures.source if self.count == 1 else f"{self.captures.source}, capture {i + 1}"
             warnings.warn(f"{where}: the reconstruction holds values from {lo:.4g} to {hi:.4g}, far outside the data "
-                          f"range [0, {value:g}]: this code leaves the motion nearly unobserved for the method "
-                          f"{self.r.method} (long shutter bumps make it ill-conditioned); compare the trivial "
-                          "estimate in the record, or --method gaptv", stacklevel=2)
+                          f"range [0, {value:g}] ({self.units.source}): a data range or white level that does "
+                          f"not fit the captures, or a code that leaves the motion nearly unobserved for the "
+                          f"method {self.r.method} (long shutter bumps make it ill-conditioned); compare the "
+                          "trivial estimate in the record, or --method gaptv", stacklevel=2)
 
     def _entry(self, i: int, volume, info: dict) -> dict:
         job = self.captures

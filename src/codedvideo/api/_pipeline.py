@@ -65,6 +65,10 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
             mark_written(path)
         report["capture"] = {k: str(v) for k, v in capture_paths.items()}
         report["seconds"]["simulate"] += time.perf_counter() - t0
+        if "reconstruct" in cfg.stages:
+            # a simulate-only run's record beside the capture (checked as codedvideo's before any work) describes
+            # the capture just replaced; this run's record is beside its reconstruction
+            (out / "capture" / "metrics.json").unlink(missing_ok=True)
     if "reconstruct" in cfg.stages:
         _reconstruct(cfg, capture, dict_path, out, report, progress)
     report["seconds"]["total"] = sum(report["seconds"].values())
@@ -72,7 +76,7 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     # reconstruction's record (and its PSNR), and says that reconstruction is not of this capture
     mpath = _metrics_of(cfg, out)
     if "simulate" in cfg.stages and "reconstruct" not in cfg.stages:
-        earlier = [p for p in (out / cfg.output.video, out / "recon.npy") if p.exists()]
+        earlier = [p for p in (out / cfg.output.video, out / "recon.npy", out / "frames") if p.exists()]
         if earlier:
             warnings.warn(f"{', '.join(map(str, earlier))}: from an earlier run, not reconstructed from this capture "
                           "(run the reconstruct stage to replace them)", stacklevel=2)

@@ -64,7 +64,10 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         command = self.prog.removeprefix("codedvideo").strip()  # a subcommand's parser names it; the top one does not
-        self.exit(2, f"codedvideo: error: {command + ': ' if command else ''}{message}\n")
+        misplaced = message.startswith("unrecognized arguments:") and \
+            bool({"-q", "--quiet"} & set(message.split(":", 1)[1].split()))
+        hint = " (-q goes before the command: codedvideo -q COMMAND ...)" if misplaced else ""
+        self.exit(2, f"codedvideo: error: {command + ': ' if command else ''}{message}{hint}\n")
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -528,13 +528,18 @@ def preset_options(name: str) -> str:
 #: Read noise from which ``best`` leaves out its non-local passes and its adaptation (keeping the refinement):
 #: in working units (grey levels of a data range of 255).  Measured at 128x128, N = 8, hitomi L = 2, with
 #: ``--noise-sigma`` given, on synth:default and four real clips (carphone, bunny, bikes-a, bikes-b): at 25 grey
-#: levels best is above the default on all five and above the refined per-patch OMP on four; at 30 the two are
-#: even (best over the refined OMP: +0.01 to +0.26 dB on four, -0.49 on bunny, where best fell 0.30 dB below the
-#: default); at 40 the refined OMP is above best on every clip and above the default by 0.13 to 0.76 dB.  (Chosen
-#: after all five clips were seen: no held-out check.)
-NOISY_BEST = 30.0
+#: levels the refined per-patch OMP is above the default on all five (+0.27 to +1.30 dB) and the non-local recipe
+#: on four of them by 0.03 to 0.51 dB more; from 26 to 29 the non-local recipe fell below the default on bunny
+#: (29.01 against 29.20 dB at 28, where the refined OMP gave 29.45), so from 25 on best is the refined OMP, the
+#: step that never lost to the default there.  (Chosen after all five clips were seen: no held-out check.)
+NOISY_BEST = 25.0
 #: The keys of a preset the noise rule leaves out (their defaults taken).
 _NOISY_KEYS = ("method", "adapt", "adapt_rounds")
+#: Read noise from which ``best`` leaves out its refinement as well: the default itself.  The refinement's gain
+#: over the default falls with the noise (at 128x128, hitomi L = 2: +0.07 to +0.15 dB at 60, +0.01 to +0.13 at 70,
+#: -0.02 to +0.11 at 90 on synth:default, carphone and bunny; at 64x64 on synth:default -0.02 at 70 and -0.05 at
+#: 100), and past this it may lose.
+NOISIEST_BEST = 80.0
 
 
 def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
@@ -557,7 +562,8 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
 
     ``noise``: the capture's read noise in working units, once it is known; from :data:`NOISY_BEST` on, the
     preset's non-local method and adaptation are left out (measured: under such noise they lose to the per-patch
-    OMP, and the refinement alone gains on it); a method or adaptation given beside the preset stands.
+    OMP, and the refinement alone gains on it), and from :data:`NOISIEST_BEST` on its refinement too; an option
+    given beside the preset stands.
     """
     if name is not None and name not in PRESETS:
         raise ConfigError(f"preset {name!r}: unknown; choose one of {', '.join(PRESETS)}")
@@ -573,11 +579,14 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
         options[key] = defaults[key]
         left_out[key] = problem
     if name and noise is not None and noise >= NOISY_BEST:
-        for key in _NOISY_KEYS:
+        noisiest = noise >= NOISIEST_BEST
+        for key in _NOISY_KEYS + (("refine",) if noisiest else ()):
             if key in PRESETS[name] and key not in given and options[key] != defaults[key]:
                 options[key] = defaults[key]
-                left_out[key] = (f"read noise of {noise:.3g} grey levels (of a data range of 255) is {NOISY_BEST:g} or "
-                                 "more, where the per-patch OMP, refined, was measured better")
+                left_out[key] = (f"read noise of {noise:.3g} grey levels (of a data range of 255) is "
+                                 + (f"{NOISIEST_BEST:g} or more, where the default was measured as good as any step "
+                                    "beyond it" if noisiest else
+                                    f"{NOISY_BEST:g} or more, where the per-patch OMP, refined, was measured better"))
     return options, left_out
 
 

@@ -27,6 +27,7 @@ import contextlib
 import json
 import os
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -96,6 +97,14 @@ def _to_gray(arr: np.ndarray, path, color: str) -> np.ndarray:
     return np.tensordot(rgb.astype(np.float32), LUMA, axes=([-1], [0]))
 
 
+def _warn_planar(path: Path, channels: int) -> None:
+    """Say that a TIFF of separate colour planes is read as one colour image: what numpy writes for a stack of 3
+    or 4 frames saved as it is (tifffile stores a (3, H, W) or (4, H, W) array as planar RGB)."""
+    warnings.warn(f"image {path}: {channels} channels stored as separate planes, read as one colour image (its "
+                  f"luma); if it holds {channels} frames or captures, save one page each (tifffile: "
+                  "photometric='minisblack') or a .npy", stacklevel=4)
+
+
 def _oiio_read_all(path: Path, color: str, first_only: bool, *, page: int = 0) -> list[np.ndarray]:
     """The pages of an image file from ``page`` on (``first_only``: that page alone)."""
     import OpenImageIO as oiio
@@ -119,6 +128,9 @@ def _oiio_read_all(path: Path, color: str, first_only: bool, *, page: int = 0) -
                 break
             spec = inp.spec()
             native = spec.format
+            if sub == page and color == "luma" and spec.nchannels in (3, 4) and \
+                    spec.get_int_attribute("tiff:PlanarConfiguration") == 2:
+                _warn_planar(path, spec.nchannels)
             data = inp.read_image(native if str(native) in _NATIVE else "float")
             if data is None or inp.has_error:
                 raise InputError(f"image {path}: corrupt or truncated ({_one_line(inp.geterror() or oiio.geterror())})")
@@ -329,7 +341,10 @@ def read_stack(path: str | os.PathLike, *, color: str = "luma") -> np.ndarray:
         frames = _oiio_read_all(source, color, first_only=False)
     shapes = {f.shape for f in frames}
     if len(shapes) != 1:
-        raise InputError(f"stack {source}: frames differ in shape {sorted(shapes)}")
+        odd = next(i for i, f in enumerate(frames) if f.shape != frames[0].shape)
+        which = f"{files[odd].name} is {frames[odd].shape}, {files[0].name} {frames[0].shape}" if files is not None \
+            else f"page {odd + 1} is {frames[odd].shape}, page 1 {frames[0].shape}"
+        raise InputError(f"stack {source}: frames differ in shape ({which})")
     stack = np.stack(frames, axis=1 if color == "channels" else 0)
     return _finite(stack.astype(np.float32), source, "stack")
 
@@ -660,6 +675,10 @@ class _OiioPages:
             self.spec.attribute("DateTime", "")  # no time of writing: the same pixels give the same bytes
             if c in (2, 4):
                 self.spec.attribute("oiio:UnassociatedAlpha", 1)  # colour values are not premultiplied by alpha
+            if fmt == "float" and self.path.suffix.lower() in (".tif", ".tiff"):
+                # deflate alone: the floating-point predictor (libtiff's default here) is a codec that tifffile and
+                # scikit-image read only with the optional imagecodecs package
+                self.spec.attribute("tiff:Predictor", 1)
             if self.pages > 1:
                 if not self.out.supports("multiimage"):
                     raise OutputError(f"image {self.path}: the format cannot hold {self.pages} pages")

@@ -292,6 +292,12 @@ def read_masks(path: str | Path) -> np.ndarray:
     return read_mask(path)
 
 
+#: A mask image whose largest value lies below this fraction of its full scale is refused: no shutter opens that
+#: little at its brightest, and it is what a mask of fewer bits saved in a wider type reads as (0/1 in 8 bits,
+#: 0/255 or 0/4095 in 16).  A calibrated response that low belongs in a .npy of its own weights.
+MASK_PEAK_MIN = 1 / 8
+
+
 def read_mask(path: str | Path) -> np.ndarray:
     """A mask (N, H, W) from a .npy (its values as they are: 0/1, or weights in [0, 1]) or from images (a
     multi-page TIFF, a folder or pattern of frames), read as a fraction of the image's full scale, as
@@ -302,10 +308,10 @@ def read_mask(path: str | Path) -> np.ndarray:
         if full != 1.0:
             stack = stack / np.float32(full)
             top = float(stack.max(initial=0.0))
-            if 0 < top * full < 1.5:  # 0/1 saved as 8-bit: every shutter read as nearly closed
-                raise InputError(f"mask {path}: its values reach only 1 of the image's full scale {full:g}; mask "
-                                 f"images are read as a fraction of full scale, so a binary mask image holds 0 and "
-                                 f"{full:g} (a .npy mask holds 0 and 1)")
+            if 0 < top < MASK_PEAK_MIN:  # 0/1 saved as 8-bit, 0/255 as 16-bit: every shutter read as nearly closed
+                raise InputError(f"mask {path}: its values reach only {top * full:g} of the image's full scale "
+                                 f"{full:g}; mask images are read as a fraction of full scale, so a binary mask image "
+                                 f"holds 0 and {full:g} (a .npy mask holds 0 and 1)")
     return check_mask(stack, f"mask {path}")
 
 

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from codedvideo.model.errors import InputError
-from codedvideo.model.units import EIGHT_BIT
+from codedvideo.model.units import EIGHT_BIT, OTHER_UNITS_ABOVE, OTHER_UNITS_BELOW, other_units  # noqa: F401
 
 
 #: Frames compared at a time: a long video (or a lazy stack of one, :class:`codedvideo.formats.volumes.NpyStack`)
@@ -37,20 +37,6 @@ def volume_extremes(v) -> tuple[float, float]:
 #: the method (measured: a bump of 15 of 16 sub-frames gave -1059 to 1390 on 8-bit frames, 5.9 dB against the
 #: trivial estimate's 22.8), and the run says so.
 IMPLAUSIBLE_SHARE = 0.5
-
-
-#: A volume is taken for another unit than a reference when its peak lies below the reference's divided by
-#: the first or above it times the second (a [0, 1] video against 8-bit frames peaks 255 times lower).
-OTHER_UNITS_BELOW, OTHER_UNITS_ABOVE = 16.0, 4.0
-
-
-def other_units(reference_peak: float, peak: float) -> bool:
-    """Whether a volume peaking at ``peak`` looks to be in other units than a reference peaking at
-    ``reference_peak`` (never when either is black throughout: a black volume says nothing of its units)."""
-    if not (math.isfinite(reference_peak) and math.isfinite(peak)):  # (NaN or Inf: refused as such, not as units)
-        return False
-    return reference_peak > 0 and peak > 0 and \
-        not reference_peak / OTHER_UNITS_BELOW <= peak <= OTHER_UNITS_ABOVE * reference_peak
 
 
 def mean_psnr(per_frame) -> float:

@@ -297,6 +297,7 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
         static_quantile(codeds[i], mask_of(i), 1 - OUTLIER_SHARE, white_level=clip) for i in range(count)))
     if given is not None:
         units = DataRange(units.value, f"given ({labels['data_range']})", units.peak)
+        _warn_far_below(peak, given, labels["data_range"], where)
     check_range(units, levels or {}, where)
     level = units.value * NOISE_ROOM + noise_room(units.value, noise_sigma)
     if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
@@ -306,6 +307,34 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
                       f"just above 8-bit; if the frames are 8-bit with noise, give {labels['noise_sigma']} or "
                       f"{labels['data_range']} 255", stacklevel=2)
     return units
+
+
+#: A volume is taken for another unit than a reference when its peak lies below the reference's divided by
+#: the first or above it times the second (a [0, 1] video against 8-bit frames peaks 255 times lower).
+OTHER_UNITS_BELOW, OTHER_UNITS_ABOVE = 16.0, 4.0
+
+
+def other_units(reference_peak: float, peak: float) -> bool:
+    """Whether a volume peaking at ``peak`` looks to be in other units than a reference peaking at
+    ``reference_peak`` (never when either is black throughout: a black volume says nothing of its units)."""
+    if not (math.isfinite(reference_peak) and math.isfinite(peak)):  # (NaN or Inf: refused as such, not as units)
+        return False
+    return reference_peak > 0 and peak > 0 and \
+        not reference_peak / OTHER_UNITS_BELOW <= peak <= OTHER_UNITS_ABOVE * reference_peak
+
+
+def _warn_far_below(peak: float, given: float, label: str, where: str) -> None:
+    """Warn when the captures peak far below the data range given (8-bit frames with a 12-bit sensor's range):
+    the tolerance, the PSNR and the videos' full scale would all be taken against a range the values never
+    reach.  The bound is the one a truth in other units is told by (:data:`OTHER_UNITS_BELOW`); a dark capture
+    of the range's own sensor may lie below it too, so it is a warning."""
+    import warnings
+
+    if 0 < peak < given / OTHER_UNITS_BELOW:
+        warnings.warn(f"{where}: coded / open count peaks at {peak:.4g}, under 1/{OTHER_UNITS_BELOW:g} of the data "
+                      f"range {given:g} given ({label}); the tolerance, the PSNR and the videos' full scale are "
+                      f"taken against {given:g}: if the frames are in other units (8-bit: 255), give that range",
+                      stacklevel=4)
 
 
 def _above_range(codeds, mask_of, level: float, clip, peak: float, units: DataRange, where: str) -> str:
