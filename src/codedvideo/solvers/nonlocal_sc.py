@@ -75,14 +75,15 @@ GROUP_ATOMS_CAP = 24
 
 
 #: A patch with fewer pixels than this within a pixel of one ever open is neither a reference nor a member of any
-#: group: beside a block of missing pixels (saturated or defective) a group's shared atoms fitted to the few
-#: measured pixels of its corner put values of -3000 to 2600 into 8-bit frames (13x13 and 14x14 blocks, 64x64
-#: synth:default); its pixels take the estimates of the patches that see enough of them, or the first estimate's
-#: where none does (:func:`finish`).  Two thirds of the patch, chosen on blocks of 8 to 20 pixels in that scene
-#: (with it `best` came within 1.4 dB of the default inside them, above it in three of five, every value from -199
-#: to 295; a half left values up to 734, three quarters lost 4 dB in an 8x8 block).  Counted within a pixel of a
-#: measurement, so that a code's own scattered never-open pixels lose no patch (Bernoulli(0.1), N = 8, leaves
-#: 43 % of the pixels never open, and its results are the same bits).
+#: group: beside a block of missing pixels (saturated or defective), a group's shared atoms fitted to the few
+#: measured pixels of a corner give values far outside the data range (-3000 to 2600 in 8-bit frames with 13x13
+#: and 14x14 blocks, 64x64 synth:default, when such patches take part).  Its pixels take the estimates of the
+#: patches that see enough of them, or the first estimate's where none does (:func:`finish`).  Two thirds of the
+#: patch, chosen on blocks of 8 to 20 pixels in that scene: `best` within 1.4 dB of the default inside them,
+#: above it in three of five, every value from -199 to 295 (a half allows values up to 734; three quarters
+#: loses 4 dB in an 8x8 block).  Counted within a pixel of a measurement, so that a code's own scattered
+#: never-open pixels leave every patch in (Bernoulli(0.1), N = 8, leaves 43 % of the pixels never open, and no
+#: patch of it falls below the bound).
 MIN_OPEN = P.PATCH * P.PATCH * 2 // 3 + 1
 
 
