@@ -504,3 +504,18 @@ def test_quiet_after_the_command_says_where_it_goes(capsys):
     """`codedvideo reconstruct -q ...` said only `unrecognized arguments: -q`."""
     assert main(["reconstruct", "-q", "--coded", "c.npy", "--mask", "m.npy", "--output", "r.npy"]) == 2
     assert "-q goes before the command" in capsys.readouterr().err
+
+
+def test_the_fallback_of_the_non_local_method_says_the_dictionary_was_adapted():
+    """A calibrated mask of many pixel patterns gives the per-patch OMP in place of the groups; with `--adapt` its
+    dictionary is the adapted one, where the warning called it the default's answer."""
+    video = cv.synthetic_scene("default", frames=8, size=(32, 32))
+    mask = cv.make_code("hitomi", (32, 32), frames=8, bump=2, seed=0).astype(np.float32)
+    mask = np.clip(mask * 0.9 + np.random.default_rng(0).random(mask.shape).astype(np.float32) * 0.1, 0, 1)
+    coded = cv.simulate(video, mask)
+    for adapt in (True, False):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            cv.reconstruct(coded, mask, method="nonlocal", adapt=adapt)
+        fallback = [str(w.message) for w in said if "distinct pixel shutter patterns" in str(w.message)]
+        assert len(fallback) == 1 and ("with the adapted dictionary" in fallback[0]) == adapt, fallback

@@ -372,8 +372,9 @@ def _sparse_info(job: _Job, i: int, solved_info: dict, mask_used) -> dict:
     if problem:  # its tiles gave the default's answer: said, not hidden
         info.update(method="omp", nonlocal_unavailable=problem)
         if not job.warned_nonlocal:
-            warnings.warn(f"--method nonlocal ({o.where}): {problem}; the result is the default per-patch "
-                          "OMP's (for every capture with such a code: nonlocal_unavailable in the metrics)")
+            adapted = " with the adapted dictionary" if info.get("adapted") else ""
+            warnings.warn(f"--method nonlocal ({o.where}): {problem}; the result is the per-patch OMP's{adapted} "
+                          "(for every capture with such a code: nonlocal_unavailable in the metrics)")
             job.warned_nonlocal = True
     return info
 
