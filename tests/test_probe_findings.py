@@ -519,3 +519,20 @@ def test_the_fallback_of_the_non_local_method_says_the_dictionary_was_adapted():
             cv.reconstruct(coded, mask, method="nonlocal", adapt=adapt)
         fallback = [str(w.message) for w in said if "distinct pixel shutter patterns" in str(w.message)]
         assert len(fallback) == 1 and ("with the adapted dictionary" in fallback[0]) == adapt, fallback
+
+
+def test_a_nan_in_a_stream_names_its_capture_through_both_doors(tmp_path, capsys):
+    """The command line said `capture 3` of a stream's NaN; the API, numpy and dask alike, named none."""
+    da = pytest.importorskip("dask.array")
+    video = cv.synthetic_scene("default", frames=8, size=(32, 32))
+    mask = cv.make_code("hitomi", (32, 32), frames=8, bump=2, seed=0)
+    coded = np.stack([cv.simulate(video, mask)] * 3)
+    coded[2, 3, 3] = np.nan
+    for given in (coded, da.from_array(coded, chunks=(1, 32, 32))):
+        with pytest.raises(cv.InputError, match=r"contains NaN or Inf \(capture 3 of 3\)"):
+            out = cv.reconstruct(given, mask)
+            getattr(out, "compute", lambda: out)()
+    with pytest.raises(cv.InputError, match=r"truth: contains NaN or Inf \(frame 9 of 24\)"):
+        truth = np.concatenate([video] * 3)
+        truth[8, 0, 0] = np.inf
+        cv.reconstruct(np.nan_to_num(coded), mask, truth=truth)

@@ -144,7 +144,7 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     from codedvideo.engine.simulation import sensor_model, simulate_stream
     from codedvideo.formats.volumes import check_coded, check_mask
 
-    frames = check_coded(video, "simulate: video")
+    frames = check_coded(video, "simulate: video", unit="frame")
     masks = np.asarray(mask)
     n = masks.shape[-3] if masks.ndim in (3, 4) else 0
     if frames.ndim != 3 or not n or frames.shape[0] % n or frames.shape[1:] != masks.shape[-2:]:

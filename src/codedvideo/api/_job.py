@@ -99,7 +99,7 @@ def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
     masks = [check_mask(m, f"{where}: mask") for m in (given if given.ndim == 4 else [given])]
     truths = None
     if truth is not None:
-        truths = check_coded(truth, f"{where}: truth")
+        truths = check_coded(truth, f"{where}: truth", unit="frame")
         want = (len(codeds) * masks[0].shape[0], *codeds.shape[-2:])
         if truths.shape != want:
             raise InputError(f"{where}: truth {truths.shape} != (T*N, H, W) {want}")
@@ -118,7 +118,7 @@ def _bayer_captures(coded, mask, truth, pattern: str, where: str) -> Captures:
         raise InputError(f"{where}: coded {mosaic.shape} and mask {code.shape} do not fit: the mask is (N, H, W)")
     truths = None
     if truth is not None:
-        truths = check_coded(truth, f"{where}: truth")
+        truths = check_coded(truth, f"{where}: truth", unit="colour channel")
         if truths.shape != (3, *code.shape):
             raise InputError(f"{where}: truth {truths.shape} != (3, N, H, W) {(3, *code.shape)} (the colour video, "
                              "under bayer=)")

@@ -340,14 +340,18 @@ def check_mask(mask, where: str) -> np.ndarray:
     return arr.astype(np.uint8) if is_binary(arr) else arr.astype(np.float32)
 
 
-def check_coded(coded, where: str) -> np.ndarray:
+def check_coded(coded, where: str, *, unit: str = "capture") -> np.ndarray:
     """A coded image (or a stack) as both doors take it: numbers, finite; float32 (its stored type is the
-    caller's to record: 8-bit integers are 0..255 whatever they hold)."""
+    caller's to record: 8-bit integers are 0..255 whatever they hold).  In a stack the first ``unit`` (image of
+    the first axis) holding NaN or Inf is named, as the command line names a file's capture."""
     arr = np.asarray(coded)
     if arr.dtype.kind not in "biuf":
         raise InputError(f"{where}: values of type {arr.dtype}; a coded image holds numbers")
-    if not np.isfinite(arr).all():
-        raise InputError(f"{where}: contains NaN or Inf")
+    finite = np.isfinite(arr)
+    if not finite.all():
+        bad = f" ({unit} {int(np.argmin(finite.reshape(len(arr), -1).all(1))) + 1} of {len(arr)})" \
+            if arr.ndim >= 3 else ""
+        raise InputError(f"{where}: contains NaN or Inf{bad}")
     return arr.astype(np.float32, copy=False)
 
 
