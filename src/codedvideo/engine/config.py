@@ -529,7 +529,7 @@ def preset_options(name: str) -> str:
 #: in working units (grey levels of a data range of 255).  Measured at 128x128, N = 8, hitomi L = 2, with
 #: ``--noise-sigma`` given, on synth:default and four real clips (carphone, bunny, bikes-a, bikes-b): at 25 grey
 #: levels the refined per-patch OMP is above the default on all five (+0.27 to +1.30 dB) and the non-local recipe
-#: on four of them by 0.08 to 0.51 dB more; from 26 to 29 the non-local recipe fell below the default on bunny
+#: on four of them by 0.08 to 0.51 dB more; from 27 to 29 the non-local recipe fell below the default on bunny
 #: (29.01 against 29.20 dB at 28, where the refined OMP gave 29.45), so from 25 on best is the refined OMP, the
 #: step that never lost to the default there.  (Chosen after all five clips were seen: no held-out check.)
 NOISY_BEST = 25.0
