@@ -80,8 +80,8 @@ GROUP_ATOMS_CAP = 24
 #: and 14x14 blocks, 64x64 synth:default, when such patches take part).  Its pixels take the estimates of the
 #: patches that see enough of them, or the first estimate's where none does (:func:`finish`).  Two thirds of the
 #: patch, chosen on blocks of 8 to 20 pixels in that scene: `best` within 1.4 dB of the default inside them,
-#: above it in three of five, every value from -199 to 295 (a half allows values up to 734; three quarters
-#: loses 4 dB in an 8x8 block).  Counted within a pixel of a measurement, so that a code's own scattered
+#: above it in three of five, every value from -199 to 295 (a half allows values up to 734; 40 of 49
+#: loses 4 dB in both 8x8 blocks).  Counted within a pixel of a measurement, so that a code's own scattered
 #: never-open pixels leave every patch in (Bernoulli(0.1), N = 8, leaves 43 % of the pixels never open, and no
 #: patch of it falls below the bound).
 MIN_OPEN = P.PATCH * P.PATCH * 2 // 3 + 1
