@@ -536,3 +536,17 @@ def test_a_nan_in_a_stream_names_its_capture_through_both_doors(tmp_path, capsys
         truth = np.concatenate([video] * 3)
         truth[8, 0, 0] = np.inf
         cv.reconstruct(np.nan_to_num(coded), mask, truth=truth)
+
+
+def test_a_raw_value_beyond_the_bits_in_a_folder_names_its_file(tmp_path, capsys):
+    """`--bits 8` on a folder of 16-bit PNGs named the folder and the capture's number, not the file."""
+    from codedvideo.formats import io as cio
+
+    (tmp_path / "coded").mkdir()
+    for i in range(3):
+        cio.write_image(tmp_path / "coded" / f"c{i}.png", np.full((32, 32), 300 if i == 1 else 100, np.uint16),
+                        dtype="uint16")
+    np.save(tmp_path / "mask.npy", np.ones((8, 32, 32), np.uint8))
+    assert main(["reconstruct", "--coded", str(tmp_path / "coded"), "--mask", str(tmp_path / "mask.npy"),
+                 "--bits", "8", "--output", str(tmp_path / "r.npy")]) == 2
+    assert "capture 2 of 3 (c1.png): value 300 is above 255" in capsys.readouterr().err

@@ -183,10 +183,14 @@ def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
     listed = None if r.bad_pixels is None else read_bad_pixels(r.bad_pixels, shape) \
         if isinstance(r.bad_pixels, (str, os.PathLike)) else bad_pixel_array(r.bad_pixels, shape, "bad_pixels")
 
+    files = getattr(job.codeds, "files", None)  # (a folder of images: each capture its file)
+
     def correct(coded, mask, i):  # (an error names the capture of a stack: one flash must not read as all)
+        where = job.source if count == 1 else f"{job.source}, capture {i + 1} of {count}" + \
+            (f" ({Path(files[i]).name})" if files is not None and i < len(files) else "")
         return correct_frames(coded, mask, black_level=noise.black_level, bits=noise.bits,
                               white_level=noise.white_level, bad_pixels=listed, trust_saturated=r.trust_saturated,
-                              where=job.source if count == 1 else f"{job.source}, capture {i + 1} of {count}")
+                              where=where)
 
     codeds, masks = job.codeds, job.masks  # as read (job's own accessors are replaced below)
 
