@@ -139,19 +139,25 @@ def test_simulating_again_keeps_the_last_reconstructions_record_and_says_it_is_s
     assert json.loads((out / "capture" / "metrics.json").read_text())["capture"]
 
 
+def _small_run(tmp_path, capsys, output_extra: str = ""):
+    """A full run of a 24x24 capture with the DCT dictionary into tmp_path/out: (the folder, its config)."""
+    from codedvideo.engine.config import load_config
+
+    out = tmp_path / "out"
+    cfg_text = (f"frames: 4\ncache: {tmp_path / 'cache'}\nscene: {{video: synth:default, size: [24, 24]}}\n"
+                f"dictionary: {{kind: dct}}\nreconstruct: {{tile: 32}}\noutput: {{dir: {out}{output_extra}}}\n")
+    rc, err = run(tmp_path, capsys, cfg_text)
+    assert rc == 0, err
+    return out, load_config(tmp_path / "p.yaml")
+
+
 def test_a_full_run_after_simulating_leaves_no_record_of_the_replaced_capture(tmp_path, capsys):
     """Reported: after `stages: [simulate]` (seed 1) and a full run (seed 0), capture/metrics.json still held the
     seed-1 record beside the seed-0 capture; the simulate-only warning named the video and recon.npy, not the
     frames folder, stale as well."""
-    from codedvideo.engine.config import load_config
     from codedvideo.api import run_pipeline
 
-    out = tmp_path / "out"
-    cfg_text = (f"frames: 4\ncache: {tmp_path / 'cache'}\nscene: {{video: synth:default, size: [24, 24]}}\n"
-                f"dictionary: {{kind: dct}}\nreconstruct: {{tile: 32}}\noutput: {{dir: {out}}}\n")
-    rc, err = run(tmp_path, capsys, cfg_text)
-    assert rc == 0, err
-    cfg = load_config(tmp_path / "p.yaml")
+    out, cfg = _small_run(tmp_path, capsys)
     with pytest.warns(UserWarning, match="from an earlier run") as said:
         run_pipeline(cfg.model_copy(update=dict(stages=["simulate"], seed=1)), progress=False)
     assert any(str(out / "frames") in str(w.message) for w in said)
@@ -164,15 +170,9 @@ def test_a_full_run_after_simulating_leaves_no_record_of_the_replaced_capture(tm
 def test_training_alone_keeps_the_captures_and_the_reconstructions_records(tmp_path, capsys):
     """Reported: `stages: [train]` replaced capture/metrics.json (the record of the capture in the folder, made with
     another seed) with a record of the training; it now writes train.metrics.json and leaves both alone."""
-    from codedvideo.engine.config import load_config
     from codedvideo.api import run_pipeline
 
-    out = tmp_path / "out"
-    cfg_text = (f"frames: 4\ncache: {tmp_path / 'cache'}\nscene: {{video: synth:default, size: [24, 24]}}\n"
-                f"dictionary: {{kind: dct}}\nreconstruct: {{tile: 32}}\noutput: {{dir: {out}, frames: none}}\n")
-    rc, err = run(tmp_path, capsys, cfg_text)
-    assert rc == 0, err
-    cfg = load_config(tmp_path / "p.yaml")
+    out, cfg = _small_run(tmp_path, capsys, ", frames: none")
     run_pipeline(cfg.model_copy(update=dict(stages=["simulate"], seed=5)), progress=False)
     kept = {p: p.read_text() for p in (out / "recon.metrics.json", out / "capture" / "metrics.json")}
     report = run_pipeline(cfg.model_copy(update=dict(stages=["train"])), progress=False)
