@@ -159,8 +159,22 @@ def _lines_bayer(r: dict) -> list[str]:
     return rows
 
 
+def _lines_robust(r: dict) -> list[str]:
+    """The robust sweep's targets: the default's worst margin over the better simple answer, best's over the
+    default, frames beyond [-0.25, 1.25]."""
+    s = r["summary"]
+    lines = [f"  {s['cases']} cases: default - max(trivial, GAP-TV) worst {s['default_worst_margin']:+.2f} dB "
+             f"({s['default_below_floor_0_3']} more than 0.3 below); 8-bit against [0, 1] worst "
+             f"{s['default_8bit_worst_gap']:+.2f} dB; {s['out_of_range']} with frames beyond [-0.25, 1.25]"]
+    if "best_worst_lead" in s:
+        lines.append(f"  best - default worst {s['best_worst_lead']:+.2f} dB ({s['best_below_default_0_05']} "
+                     "more than 0.05 below)")
+    return lines
+
+
 #: The table's lines of each case that has its own.
 _CASE_LINES = {
+    "robust": _lines_robust,
     "units": _lines_units,
     "adapt": _lines_adapt,
     "presets": _lines_presets,

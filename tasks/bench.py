@@ -33,6 +33,9 @@ Cases (issue "Fast reconstruction"):
   outputs4k  issue 29 at 3840x2160 N = 18: one capture to .npy and .mp4, and streams of 2, 3 and 5 captures
            as one job (.npy: the join): peak resident memory per capture count against the 2 GB target,
            whole CLI processes, fresh caches (about 6 minutes a capture on 2 cores)
+  robust   the default and best against the still estimate and GAP-TV on every code a user can give: N = 8, 16
+           and 18, every hitomi bump length, Bernoulli p 0.1 to 0.9, the other families, read noise 0 to 40,
+           held-out clips at 64x64 (tasks/bench_robust.py; its own results file as well)
   footage  coded video of held-out real clips (bikes.mp4: 31 captures of 272x640; carphone: 15 of
            144x176; N = 8, read noise 2): simulated and reconstructed by the CLI as one job and
            capture by capture, PSNR, SSIM, boundary step and seconds; the job again in [0, 1] floats
@@ -733,6 +736,15 @@ def case_front(quick: bool) -> dict:
     return dict(case="front", frames=8, front=front, sgemm_gflops=sgemm_gflops())
 
 
+def case_robust(quick: bool) -> dict:
+    """Issue "never below the simple answers": the sweep of tasks/bench_robust.py, best included."""
+    import bench_robust as br
+
+    rows = br.sweep(48 if quick else 64, quick, best=True)
+    return dict(case="robust", size=48 if quick else 64, summary=br.summary(rows), rows=rows,
+                sgemm_gflops=sgemm_gflops())
+
+
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
              sequence=case_sequence, video=case_video, footage=case_footage, calibrated=case_calibrated, startup=case_startup, units=case_units)
 CASES["nonlocal"] = case_nonlocal  # a keyword: not a dict() argument
@@ -741,6 +753,7 @@ CASES["outputs"] = case_outputs
 CASES["outputs4k"] = case_outputs4k
 CASES["presets"] = case_presets
 CASES["front"] = case_front
+CASES["robust"] = case_robust
 
 
 def run_child(name: str, quick: bool) -> dict:

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo.api._settings import Resolved, for_noise, setting_name
+from codedvideo.solvers.guard import sparse_weight
 from codedvideo.engine.bayer import check_even, reconstruct_bayer, static_estimate
 from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, result_recipe, trivial_estimate
 from codedvideo.engine.methods import SPARSE, WITH_DICTIONARY
@@ -265,7 +266,9 @@ class ReconstructionJob:
                     setting_name("black_level", door): noise.black_level},
             names={k: setting_name(k, door) for k in ("noise_sigma", "data_range", "white_level")})
         # the read noise known in working units: heavy noise leaves out a preset's non-local passes
-        self.r = for_noise(resolved, noise.sigma * self.units.scale)
+        # and a code that leaves its patches blind (long bumps): they are left out as well
+        weight, blind = sparse_weight(np.asarray(captures.mask(0)))
+        self.r = for_noise(resolved, noise.sigma * self.units.scale, blind=blind if weight < 1 else "")
         self.omp = omp_settings(rc, noise.sigma, scale=self.units.scale)
         self._warn_before_work()
         h, w = captures.codeds[0].shape[-2:]

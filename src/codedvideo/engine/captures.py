@@ -30,7 +30,8 @@ from codedvideo.model import physics
 from codedvideo.model.errors import ConfigError, InputError, OutputError
 from codedvideo.model.patches import PATCH
 from codedvideo.model.sequence import erode_to_patches, normalised
-from codedvideo.model.units import DataRange
+from codedvideo.model.units import EIGHT_BIT, DataRange
+from codedvideo.solvers import guard
 from codedvideo.solvers import refine as refinement
 from codedvideo.solvers.region import OmpSettings
 
@@ -323,7 +324,7 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
     elif solved is None:
         volume, info = reconstruct_method(o.method, coded_used, mask_used)
     else:
-        volume, info = solved, solved_info
+        volume, info = _guarded(solved, solved_info, coded_used, mask_used, still)
     if o.refine and moving and info.get("method") != "static":
         volume, info = _refined(coded_used, mask_used, volume, info, o.refine, still=still, where=o.where,
                                 noise_sigma=float(o.noise_sigma) * float(inputs.scale), blocks=o.blocks,
@@ -349,6 +350,24 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
             info["measurement_residual_rms"] = float(info["measurement_residual_rms"]) / float(inputs.scale)
     info["saturated_pixels"] = saturated
     return i, volume, info
+
+
+def _guarded(volume: np.ndarray, info: dict, coded: np.ndarray, mask: np.ndarray,
+             still: np.ndarray | None) -> tuple[np.ndarray, dict]:
+    """A sparse-coded capture's result under the floor of :mod:`codedvideo.solvers.guard`: on a code whose
+    patches are blind to what they fit, blended with GAP-TV (working units; the pixels only still patches
+    cover keep their still answer), its weight and reason in the record (``guard``)."""
+    weight, reason = guard.sparse_weight(mask)
+    if weight >= 1.0 or info.get("method") == "static":
+        return volume, info
+    t0 = time.perf_counter()
+    kept = None if still is None else erode_to_patches(still, PATCH)
+    values = None if kept is None else volume[:, kept]
+    result = guard.blended(volume, coded, mask, weight, data_range=EIGHT_BIT)
+    if values is not None:
+        result[:, kept] = values
+    seconds = dict(info.get("seconds", {}), guard=time.perf_counter() - t0)
+    return result, dict(info, guard=dict(sparse_weight=round(weight, 4), reason=reason), seconds=seconds)
 
 
 def _seconds_so_far(job: _Job, i: int, info: dict) -> float:

@@ -543,7 +543,7 @@ NOISIEST_BEST = 80.0
 
 
 def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
-                   noise: float | None = None) -> tuple[dict, dict[str, str]]:
+                   noise: float | None = None, blind: str = "") -> tuple[dict, dict[str, str]]:
     """The values of :data:`PRESET_KEYS` for a run: those ``given`` beside the preset, then preset ``name``'s
     (None: no preset), then the defaults of ``reconstruct:``.
 
@@ -563,7 +563,10 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
     ``noise``: the capture's read noise in working units, once it is known; from :data:`NOISY_BEST` on, the
     preset's non-local method and adaptation are left out (measured: under such noise they lose to the per-patch
     OMP, and the refinement alone gains on it), and from :data:`NOISIEST_BEST` on its refinement too; an option
-    given beside the preset stands.
+    given beside the preset stands.  ``blind``: why the capture's code leaves its patches blind to what they fit
+    (:func:`codedvideo.solvers.guard.sparse_weight`; empty: it does not); the preset's non-local method and
+    adaptation are then left out as under heavy noise (measured: they fell up to 2 dB below the default there,
+    while the refinement gained on it).
     """
     if name is not None and name not in PRESETS:
         raise ConfigError(f"preset {name!r}: unknown; choose one of {', '.join(PRESETS)}")
@@ -587,6 +590,12 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
                                  + (f"{NOISIEST_BEST:g} or more, where the default was measured as good as any step "
                                     "beyond it" if noisiest else
                                     f"{NOISY_BEST:g} or more, where the per-patch OMP, refined, was measured better"))
+    if name and blind:
+        for key in _NOISY_KEYS:
+            if key in PRESETS[name] and key not in given and options[key] != defaults[key]:
+                options[key] = defaults[key]
+                left_out[key] = (f"the code has {blind}, where the per-patch OMP blended with GAP-TV, refined, "
+                                 "was measured better")
     return options, left_out
 
 

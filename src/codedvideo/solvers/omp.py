@@ -71,20 +71,31 @@ def _select(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 #: (e.g. temporal DCT atoms summed over a bump that is open all the time).
 MIN_VISIBLE = 0.05
 
+#: The coefficient prior of a guarded solve (:func:`codedvideo.solvers.region.reconstruct_region`): atoms are
+#: selected by ``|a_k^T r| / sqrt(||a_k||^2 + eps^2)`` with ``eps`` this fraction of the patch's largest coded
+#: column norm, instead of ``|a_k^T r| / ||a_k||``.  Under a Gaussian prior of one scale on every coefficient
+#: this is the atom's evidence: an atom the code barely sees must explain the residual with a coefficient of
+#: plausible size, or it is not chosen (docs/research.md, "Long shutter bumps").
+PRIOR = 0.25
 
-def _safe_inverse(norms: np.ndarray, atom_norms: np.ndarray | None = None) -> np.ndarray:
+
+def _safe_inverse(norms: np.ndarray, atom_norms: np.ndarray | None = None, prior: float = 0.0) -> np.ndarray:
     """1 / norm for usable columns, 0 for the others, which are never chosen.
 
     A column is unusable when it is (numerically) zero, below :data:`_TINY`
     times the largest of ``norms`` (relative, so that a dictionary scaled by any
     factor selects the same columns), or, given the norms of the atoms
     themselves (broadcast against ``norms``), when it keeps less than
-    :data:`MIN_VISIBLE` of its atom's norm.
+    :data:`MIN_VISIBLE` of its atom's norm.  ``prior`` > 0: ``1 / sqrt(norm**2 + eps**2)`` instead, ``eps``
+    that fraction of each row's largest norm (:data:`PRIOR`).
     """
     col_norms = np.asarray(norms, dtype=np.float32)
     good = col_norms > _TINY * float(col_norms.max(initial=0.0))
     if atom_norms is not None:
         good &= col_norms > MIN_VISIBLE * np.asarray(atom_norms, dtype=np.float32)
+    if prior > 0:
+        eps = np.float32(prior) * col_norms.max(axis=-1, keepdims=True, initial=0.0)
+        return np.where(good, 1.0 / np.sqrt(col_norms * col_norms + eps * eps), 0.0).astype(np.float32)
     return np.where(good, 1.0 / np.where(good, col_norms, 1.0), 0.0).astype(np.float32)
 
 
@@ -240,15 +251,18 @@ class MaskedOperator:
         Shutter code of every patch: binary, or the weights of a calibrated mask.
     D : ndarray of shape (N*m, K)
         Dictionary, rows ordered ``(t, i)``.
+    prior : float
+        The coefficient prior of the selection (:data:`PRIOR`; 0: plain OMP).
     """
 
     #: Above this many (pixel, pattern) pairs the one-hot product is not used.
     MAX_ONEHOT = 2048
     order = None
 
-    def __init__(self, S: np.ndarray, D: np.ndarray):
+    def __init__(self, S: np.ndarray, D: np.ndarray, prior: float = 0.0):
         P, N, m = S.shape
         self.N, self.m = N, m
+        self.prior = float(prior)
         self.S = np.ascontiguousarray(S, dtype=np.float32)
         self.D = np.ascontiguousarray(D, dtype=np.float32)
         self.K = self.D.shape[1]
@@ -292,7 +306,7 @@ class _MaskedView:
     def __init__(self, op: MaskedOperator, rows: np.ndarray):
         self.op = op
         self.S = op.S[rows]
-        self.inv = _safe_inverse(op._norms[rows], op.atom_norms[None, :])
+        self.inv = _safe_inverse(op._norms[rows], op.atom_norms[None, :], op.prior)
 
     def scores(self, r: np.ndarray) -> np.ndarray:
         # A_p^T r = D^T (Phi_p^T r): one matrix product for all active patches

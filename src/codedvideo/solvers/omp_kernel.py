@@ -112,7 +112,7 @@ def build_table(patterns: np.ndarray, D: np.ndarray, patch_pixels: int) -> np.nd
 
 
 @njit(nogil=True, cache=True, fastmath=CONTRACT)
-def _omp_kernel(y, pat, B, floor, tol, kmax, dep_tol, select_bits, tiny, index, coef, count, res2, dependent):
+def _omp_kernel(y, pat, B, floor, tol, kmax, dep_tol, select_bits, tiny, prior, index, coef, count, res2, dependent):
     P, m = y.shape
     K = B.shape[2]
     c = np.empty(K, np.float32)
@@ -140,9 +140,16 @@ def _omp_kernel(y, pat, B, floor, tol, kmax, dep_tol, select_bits, tiny, index, 
         for k in range(K):
             inv[k] = np.sqrt(max(c[k], np.float32(0.0)))
             big = max(big, inv[k])
+        eps2 = np.float32(prior * big) * np.float32(prior * big)  # the coefficient prior (0: plain OMP)
         for k in range(K):
             nk = inv[k]
-            inv[k] = np.float32(1.0) / nk if (nk > tiny * big and nk > floor[k]) else np.float32(0.0)
+            usable = nk > tiny * big and nk > floor[k]
+            if not usable:
+                inv[k] = np.float32(0.0)
+            elif prior > 0.0:
+                inv[k] = np.float32(1.0) / np.sqrt(nk * nk + eps2)
+            else:
+                inv[k] = np.float32(1.0) / nk
         n_sel = 0
         for it in range(kmax):
             _correlate(B, pat[p], r, c)
@@ -196,7 +203,8 @@ def _omp_kernel(y, pat, B, floor, tol, kmax, dep_tol, select_bits, tiny, index, 
 
 
 @njit(nogil=True, cache=True)
-def _omp_weights_kernel(y, S, D3, floor, tol, kmax, dep_tol, select_bits, tiny, index, coef, count, res2, dependent):
+def _omp_weights_kernel(y, S, D3, floor, tol, kmax, dep_tol, select_bits, tiny, prior, index, coef, count, res2,
+                        dependent):
     """:func:`_omp_kernel` for patches whose pixels each have their own weights (a calibrated mask).
 
     Every patch gets its own one-pattern table ``B[i, 0] = sum_t S[p, t, i] D[t, i]``,
@@ -235,7 +243,8 @@ def _omp_weights_kernel(y, S, D3, floor, tol, kmax, dep_tol, select_bits, tiny, 
         tol1[0] = tol[p]
         index1[:] = 0
         coef1[:] = 0.0
-        _omp_kernel(y1, pat, B, floor, tol1, kmax, dep_tol, select_bits, tiny, index1, coef1, count1, res1, dep1)
+        _omp_kernel(y1, pat, B, floor, tol1, kmax, dep_tol, select_bits, tiny, prior, index1, coef1, count1, res1,
+                    dep1)
         index[p, :] = index1[0]
         coef[p, :] = coef1[0]
         count[p] = count1[0]
@@ -392,8 +401,9 @@ class TableOMP:
         self.B = shared_table(patterns, D32, patch_pixels)
         self.floor = _visibility_floor(D32)
 
-    def solve(self, y: np.ndarray, pat: np.ndarray, *, max_atoms: int, tol) -> OmpResult:
-        """OMP of patches ``y`` (P, m) whose pixels have patterns ``pat`` (P, m)."""
+    def solve(self, y: np.ndarray, pat: np.ndarray, *, max_atoms: int, tol, prior: float = 0.0) -> OmpResult:
+        """OMP of patches ``y`` (P, m) whose pixels have patterns ``pat`` (P, m); ``prior``: the coefficient
+        prior of the selection (:data:`codedvideo.solvers.omp.PRIOR`; 0: plain OMP)."""
         y32 = np.ascontiguousarray(y, dtype=np.float32)
         pat32 = np.ascontiguousarray(pat, dtype=np.int32)
         P, m = y32.shape
@@ -405,7 +415,7 @@ class TableOMP:
         res2 = np.zeros(P, np.float32)
         dependent = np.zeros(P, np.bool_)
         _omp_kernel(y32, pat32, self.B, self.floor, tols, kmax, DEPENDENCE_TOL, SELECT_BITS,
-                    _TINY, index, coef, count, res2, dependent)
+                    _TINY, np.float32(prior), index, coef, count, res2, dependent)
         return OmpResult(index=index, coef=coef, count=count, residual=res2, dependent=dependent)
 
 
@@ -434,8 +444,8 @@ class WeightsOMP:
         self.D3 = np.ascontiguousarray(D32.reshape(self.n, patch_pixels, D32.shape[1]))
         self.floor = _visibility_floor(D32)
 
-    def solve(self, y: np.ndarray, S: np.ndarray, *, max_atoms: int, tol) -> OmpResult:
-        """OMP of patches ``y`` (P, m) whose pixels have weights ``S`` (P, N, m)."""
+    def solve(self, y: np.ndarray, S: np.ndarray, *, max_atoms: int, tol, prior: float = 0.0) -> OmpResult:
+        """OMP of patches ``y`` (P, m) whose pixels have weights ``S`` (P, N, m); ``prior`` as :meth:`TableOMP.solve`."""
         y32 = np.ascontiguousarray(y, dtype=np.float32)
         S32 = np.ascontiguousarray(S, dtype=np.float32)
         P, m = y32.shape
@@ -448,8 +458,8 @@ class WeightsOMP:
         count = np.zeros(P, np.int32)
         res2 = np.zeros(P, np.float32)
         dependent = np.zeros(P, np.bool_)
-        _omp_weights_kernel(y32, S32, self.D3, self.floor, tols, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY, index, coef,
-                            count, res2, dependent)
+        _omp_weights_kernel(y32, S32, self.D3, self.floor, tols, kmax, DEPENDENCE_TOL, SELECT_BITS, _TINY,
+                            np.float32(prior), index, coef, count, res2, dependent)
         return OmpResult(index=index, coef=coef, count=count, residual=res2, dependent=dependent)
 
 

@@ -16,7 +16,8 @@ import numpy as np
 
 from codedvideo.model import patches as P
 from codedvideo.model.codes import is_binary
-from codedvideo.solvers.omp import GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups, pixel_patterns
+from codedvideo.solvers.omp import (PRIOR, GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups,
+                                   pixel_patterns)
 from codedvideo.solvers.omp_kernel import (MAX_TABLE_BYTES, TableOMP, WeightsOMP, atom_rows, still_kernel,
                                            synthesize_rows, table_fits)
 
@@ -370,15 +371,20 @@ def _patch_solver(mask: np.ndarray, D: np.ndarray, binary: bool, operator: str, 
         patterns, which = pixel_patterns(mask)
         if table_fits(len(patterns), D, m):
             table, pat_all = TableOMP(patterns, D, m), P.extract(which, patch)
-            return lambda y, sl, rows, tol: table.solve(y, pat_all[sl][rows], max_atoms=max_atoms, tol=tol)
+            return lambda y, sl, rows, tol, prior=0.0: table.solve(y, pat_all[sl][rows], max_atoms=max_atoms,
+                                                                   tol=tol, prior=prior)
     # calibrated masks beyond a table: the compiled kernel with one table per patch
     if grouped is None and (operator == "patch" or (operator == "auto" and not binary)):
         weights = WeightsOMP(D, m)
-        return lambda y, sl, rows, tol: weights.solve(y, S_all()[sl][rows], max_atoms=max_atoms, tol=tol)
+        return lambda y, sl, rows, tol, prior=0.0: weights.solve(y, S_all()[sl][rows], max_atoms=max_atoms, tol=tol,
+                                                                 prior=prior)
 
-    def dense(y, sl, rows, tol):
-        # periodic codes share few patch operators; any other code has its own per patch
-        op = MaskedOperator(S_all()[sl][rows], D) if grouped is None else grouped.subset(sl.start + rows)
+    def dense(y, sl, rows, tol, prior=0.0):
+        # periodic codes share few patch operators; any other code has its own per patch (and a guarded solve)
+        if grouped is None or prior > 0:
+            op = MaskedOperator(S_all()[sl][rows], D, prior=prior)
+        else:
+            op = grouped.subset(sl.start + rows)
         return omp(y, op, max_atoms=max_atoms, tol=tol)
 
     return dense
@@ -469,4 +475,49 @@ def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_row
         counts.atoms += int(res.count.sum())
         counts.hit += int((res.count >= settings.max_atoms).sum())
         counts.dep += int(res.dependent.sum())
+        guard_estimates(est, rows, y, n_pix, tol, atoms, lambda bad: solve(y[bad], sl, bad, tol[bad], prior=PRIOR),
+                        frames=frames)
     return est
+
+
+#: A patch estimate whose energy on its measured pixels exceeds this many times the still answer's (with the
+#: noise the tolerance allows) is invented, not measured (:func:`guard_estimates`).  A sub-frame's values summed
+#: over a long shutter bump cancel, so the code barely sees how the sub-frames differ, and the fit's least-squares
+#: step can amplify whatever atoms lower the residual into values far outside the scene's (docs/research.md,
+#: "Long shutter bumps").
+BLOWUP = 2.0
+
+
+def _blown(est: np.ndarray, y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, frames: int) -> np.ndarray:
+    """Which patch estimates (rows of ``frames * m``) carry more than :data:`BLOWUP` times the energy of their
+    still answer on their measured pixels, the still answer's noise allowed for (``tol``: each patch's squared
+    residual tolerance, its ``n_open * tol_rms**2``); a pixel never open is left out of both."""
+    measured = n_pix > 0
+    e = np.einsum("pnm,pm->p", np.square(est.reshape(est.shape[0], frames, y.shape[1]), dtype=np.float64), measured)
+    inv = np.where(measured, 1.0 / np.maximum(n_pix, 1e-12), 0.0)
+    still = y * inv
+    tol_rms2 = tol / np.maximum(measured.sum(1), 1)
+    e_still = frames * (np.einsum("pm,pm->p", still, still) + tol_rms2 * np.einsum("pm,pm->p", inv, inv))
+    # the ratio to 10 significant bits, so that roundoff (another scale of the same capture) never flips a near-tie
+    ratio = e / np.maximum(e_still, np.finfo(np.float64).tiny)
+    mantissa, exponent = np.frexp(ratio)
+    return np.ldexp(np.round(mantissa * 1024) / 1024, exponent) > BLOWUP
+
+
+def guard_estimates(est: np.ndarray, rows: np.ndarray, y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray,
+                    atoms: np.ndarray, resolve, *, frames: int) -> int:
+    """The sparse estimates ``est[rows]`` that :func:`_blown` finds invented, solved again with the coefficient
+    prior (:data:`codedvideo.solvers.omp.PRIOR`: ``resolve(bad)`` -> the :class:`OmpResult` of the patches
+    ``bad``), and those still invented given their still answer (in place); returns how many were solved again.
+    On the paper's codes (N = 8, L = 2 or 3) a patch in a few hundred acts, or none."""
+    if not rows.size:
+        return 0
+    bad = rows[_blown(est[rows], y[rows], n_pix[rows], tol[rows], frames)]
+    if not bad.size:
+        return 0
+    res = resolve(bad)
+    est[bad] = synthesize_rows(res, atoms)
+    still = bad[(res.count == 0) | _blown(est[bad], y[bad], n_pix[bad], tol[bad], frames)]
+    if still.size:
+        est[still] = still_answers(y[still], n_pix[still], frames)
+    return int(bad.size)

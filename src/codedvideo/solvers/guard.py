@@ -1,0 +1,75 @@
+"""The floor under the dictionary methods: codes on which a patch cannot see what it fits.
+
+Per-patch sparse coding recovers what a 7x7 patch's code measures.  Two kinds of
+code leave it blind, and on both GAP-TV (:func:`codedvideo.solvers.baselines.gap_tv`)
+was measured above it on held-out footage (docs/research.md, "Long shutter bumps"):
+
+* windows that miss sub-frames: a 7x7 window that no pixel opens in some sub-frame
+  has nothing to fit there but the dictionary's guess (``thinout`` with ``N > 7``);
+* long single bumps: every pixel of a patch integrates most of the same sub-frames,
+  so their differences cancel in the sums, and the few the bump edges show are not
+  enough for a dictionary to pick its atoms by.
+
+There the result is a blend, ``w * sparse + (1 - w) * GAP-TV`` (:func:`sparse_weight`);
+on the paper's codes ``w`` is 1 and the sparse estimate is the result, unchanged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from codedvideo.model.codes import check_code, window_coverage
+from codedvideo.model.patches import PATCH
+
+#: Bump length times sub-frames up to which a fixed single-bump code is solved by the dictionary alone
+#: (N = 8 with L up to 3, the paper's codes; N = 16 or 18 with L up to 2; docs/research.md).
+BUMP_SPAN = 24
+#: Below this share of sub-frames seen by the average 7x7 window, the result is GAP-TV's alone.
+MIN_SEEN = 7 / 8
+#: From this share on, a few windows that miss a sub-frame (a sparse random code) leave the dictionary alone.
+MOST_SEEN = 0.95
+
+
+def seen_share(mask: np.ndarray, patch: int = PATCH) -> float:
+    """The mean share of the N sub-frames that a ``patch x patch`` window's pixels open in (1: every window sees
+    every sub-frame); a calibrated mask counts weights of at least half its largest as open."""
+    m = np.asarray(mask)
+    if m.shape[1] < patch or m.shape[2] < patch:
+        return 1.0
+    top = float(m.max(initial=0))
+    opened = m > 0 if top <= 1 and np.isin(m, (0, 1)).all() else m >= 0.5 * top
+    return float((window_coverage(opened, patch) > 0).mean())
+
+
+def sparse_weight(mask: np.ndarray, patch: int = PATCH) -> tuple[float, str]:
+    """The weight of the sparse estimate in a capture's result under ``mask`` (N, H, W), and why (empty: 1,
+    the sparse estimate alone).
+
+    * windows that see less than :data:`MIN_SEEN` of the sub-frames: 0 (GAP-TV alone);
+    * windows that miss some sub-frames (less than :data:`MOST_SEEN` seen): 1/2;
+    * a fixed single bump of length ``L`` with ``L * N`` above :data:`BUMP_SPAN`: ``min(1, 2 / L)``.
+    """
+    n = mask.shape[0]
+    if (mask == mask[:, :1, :1]).all():  # one pattern for every pixel (global, flutter): the still estimate's case
+        return 1.0, ""
+    seen = seen_share(mask, patch)
+    if seen < MIN_SEEN:
+        return 0.0, f"its 7x7 windows see {seen:.0%} of the {n} sub-frames"
+    if seen < MOST_SEEN:
+        return 0.5, f"some 7x7 windows miss sub-frames (they see {seen:.1%} of them)"
+    report = check_code(mask, patch)
+    bump = report.bump_length if report.fixed_bump else None
+    if bump is not None and bump * n > BUMP_SPAN and bump > 2:
+        return 2.0 / bump, f"shutter bumps of {bump} of {n} sub-frames"
+    return 1.0, ""
+
+
+def blended(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, weight: float, *,
+            data_range: float) -> np.ndarray:
+    """``weight * volume + (1 - weight) * GAP-TV`` of the capture (working units; ``volume`` overwritten)."""
+    from codedvideo.solvers.baselines import gap_tv
+
+    gap = gap_tv(coded, mask, data_range=data_range)
+    np.multiply(volume, np.float32(weight), out=volume)
+    np.add(volume, np.float32(1.0 - weight) * gap, out=volume)
+    return volume
