@@ -121,13 +121,13 @@ def test_raw_correction_of_a_stream_holds_one_capture_at_a_time():
     assert j.mask(2)[:, 3, 4].sum() == 0 and j.codeds[2][3, 4] == 0
 
 
-def test_a_warning_is_one_line_that_says_saturated_pixels_are_left_out(tmp_path, capsys):
-    """Saturated pixels dropped as measurements: one 'codedvideo: warning:' line that names them, not a
-    Python warning with a source path and line."""
+def test_a_warning_is_one_line_that_says_saturated_pixels_are_clipped(tmp_path, capsys):
+    """Saturated pixels of an 8-bit file, found without a flag: one 'codedvideo: warning:' line that names them,
+    not a Python warning with a source path and line."""
     rng = np.random.default_rng(1)
     mask = (rng.random((N, 24, 24)) < 0.5).astype(np.uint8)
     mask[0] = 1
-    coded = np.minimum((mask * rng.uniform(0, 120, (N, 24, 24))).sum(0), 255).astype(np.float32)
+    coded = np.minimum((mask * rng.uniform(0, 120, (N, 24, 24))).sum(0), 255).astype(np.uint8)
     coded[5:8, 5:8] = 255
     np.save(tmp_path / "coded.npy", coded)
     np.save(tmp_path / "mask.npy", mask)
@@ -136,12 +136,12 @@ def test_a_warning_is_one_line_that_says_saturated_pixels_are_left_out(tmp_path,
 
     proc = subprocess.run([sys.executable, "-m", "codedvideo.app.cli", "-q", "reconstruct", "--coded",
                            str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"), "--method", "dct",
-                           "--white-level", "255", "--output", str(tmp_path / "r.npy"), "--cache",
-                           str(tmp_path / "cache")], capture_output=True, text=True)
+                           "--output", str(tmp_path / "r.npy"), "--cache", str(tmp_path / "cache")],
+                          capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     err = [line for line in proc.stderr.splitlines() if line.strip()]
-    warned = [line for line in err if "never open" in line]
-    assert len(warned) == 1 and warned[0].startswith("codedvideo: warning: ") and "saturated" in warned[0]
+    warned = [line for line in err if "clipped by the sensor" in line]
+    assert len(warned) == 1 and warned[0].startswith("codedvideo: warning: ") and "255" in warned[0], err
     assert not any("UserWarning" in line or ".py:" in line for line in err)
 
 

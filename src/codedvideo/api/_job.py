@@ -207,6 +207,21 @@ def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
     return _Lazy(count, raw.counts)
 
 
+def _clipped_at_type_maximum(captures: Captures, door: str) -> float | None:
+    """The white level of integer captures clipped at their type's largest value (said in a warning), or None."""
+    from codedvideo.model.units import integer_clipping
+
+    found = integer_clipping(captures.codeds, captures.mask, captures.dtype)
+    if found is None:
+        return None
+    level, held, measured = found
+    warnings.warn(f"{captures.source}: {held} of {measured} measured pixels ({held / measured:.1%}) hold {level:g}, "
+                  f"the largest value of {np.dtype(captures.dtype).name}: clipped by the sensor; they are kept as "
+                  f"measurements of at least {level:g} ({setting_name('white_level', door)} sets another level, "
+                  f"{setting_name('trust_saturated', door)} takes them as exact)", stacklevel=2)
+    return level
+
+
 def job_dictionary(r: Resolved, frames: int, one_pattern=lambda: False) -> tuple[np.ndarray | None, str, str]:
     """(D, its key, its name) of the job's method: the dictionary given (an array or a store's path) or the one
     shipped for N; (None, "", "") for a method without one.  ``one_pattern()``: whether every capture's code opens
@@ -257,6 +272,8 @@ class ReconstructionJob:
         noise, rc = resolved.noise, resolved.rc
         self.white = None if resolved.trust_saturated or self.raw else noise.white_level
         door = resolved.door
+        if self.white is None and not (resolved.trust_saturated or self.raw):
+            self.white = _clipped_at_type_maximum(captures, door)
         self.units = capture_units(
             captures.codeds, captures.mask, dtype=captures.dtype, given=resolved.data_range, noise_sigma=noise.sigma,
             white_level=self.white, where=captures.source,

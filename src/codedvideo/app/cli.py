@@ -202,8 +202,10 @@ def _parser() -> argparse.ArgumentParser:
     rm.add_argument("--tol-rms", type=float, default=None, help="residual tolerance, RMS per pixel (default: from --noise-sigma)")
     rs.add_argument("--noise-sigma", type=float, default=0.0, help="read noise of the capture, grey levels")
     rs.add_argument("--white-level", type=float, default=None,
-                    help="saturation level of the coded image: pixels at or above it are treated as missing")
-    rs.add_argument("--trust-saturated", action="store_true", help="with --white-level: use saturated pixels anyway")
+                    help="saturation level of the coded image: pixels at or above it recorded at least it (kept as "
+                         "measurements, their frames raised to it)")
+    rs.add_argument("--trust-saturated", action="store_true", help="with --white-level: take saturated pixels as exact (no raise; "
+                    "with --bits or --black-level: keep them at all)")
     rs.add_argument("--black-level", type=float, default=0.0,
                     help="raw frames: the offset of every read-out, subtracted first (coded units)")
     rs.add_argument("--bits", type=int, default=None,

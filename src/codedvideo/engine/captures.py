@@ -54,7 +54,8 @@ class CaptureSettings:
         The dictionary of ``omp`` and ``nonlocal`` (:func:`sparse_method`), its cache key (empty: keyed by
         its contents) and its name in messages.
     white_level : float, optional
-        Pixels at or above it (capture units) are missing measurements.
+        Pixels at or above it (capture units) recorded at least it: kept as measurements at their clipped value,
+        and each result's frame sums there raised to it.
     where : str
         Names the captures in messages.
     tile, cache, scheduler, workers, progress
@@ -154,14 +155,19 @@ class _Inputs:
         return coded_used, mask_used, still, moving, saturated, measured
 
     def _unsaturated(self, i: int):
-        """Capture i (capture units) with its saturated pixels left out, its mask without them, and their count;
-        a capture of a stream saturated everywhere is taken with its clipped values (said once)."""
+        """Capture i (capture units), its mask, and its saturated pixels' count: a pixel at or above the white
+        level recorded at least it, so it stays a measurement at its clipped value and the result's frame sums
+        there are raised to the white level after the solve (:func:`codedvideo.model.physics.raise_to_white`);
+        leaving it out threw away what it says and let blocks of clipped highlights be guessed from their
+        neighbours (docs/research.md, "Clipped captures").  A capture of a stream saturated everywhere is taken
+        with its clipped values (said once)."""
         white_level, where, count = self.options.white_level, self.options.where, self.count
         coded, mask = self.codeds[i], self.mask_of(i)
         if white_level is None:
             return coded, mask, 0
-        coded_used, mask_used, saturated = drop_saturated(coded, mask, white_level)
-        if saturated and not mask_used.any():
+        opened = np.asarray(mask).any(0)
+        saturated = int(np.count_nonzero((np.asarray(coded) >= np.float32(white_level)) & opened))
+        if saturated and saturated == int(np.count_nonzero(opened)):
             if count == 1:
                 raise InputError(f"{where}: every measured pixel is at or above --white-level {white_level}; "
                                  "nothing is left to reconstruct (--trust-saturated uses them anyway)")
@@ -171,7 +177,7 @@ class _Inputs:
                 warnings.warn(f"{where}, capture {i + 1} of {count}: every measured pixel is at or above "
                               f"--white-level {white_level}; it is reconstructed from its clipped values")
             return coded, mask, 0
-        return coded_used, mask_used, saturated
+        return coded, mask, saturated
 
 
 @dataclasses.dataclass(eq=False)
@@ -489,18 +495,6 @@ def reconstruct_capture(options: CaptureSettings, coded: np.ndarray, mask: np.nd
 def trivial_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Every sub-frame = coded / open count: the baseline a method must beat."""
     return physics.static_estimate(coded, mask)
-
-
-def drop_saturated(coded: np.ndarray, mask: np.ndarray, white_level: float) -> tuple[np.ndarray, np.ndarray, int]:
-    """Saturated pixels as missing measurements (:func:`codedvideo.model.physics.saturated_as_missing`).
-
-    Returns the coded image with saturated pixels set to 0 (so that the
-    measurement residual ignores them), the mask without them, and their count.
-    """
-    mask_used, count = physics.saturated_as_missing(coded, mask, white_level)
-    if not count:
-        return coded, mask_used, count
-    return np.where(coded >= np.float32(white_level), np.float32(0), coded).astype(np.float32), mask_used, count
 
 
 def sparse_method(method: str, settings: OmpSettings, dictionary: np.ndarray | None, dictionary_key: str,

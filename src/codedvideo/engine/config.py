@@ -136,8 +136,8 @@ class NoiseConfig(_Strict):
     gain: float = Field(SensorModel.gain, ge=1e-6, le=1e12)  # (electrons / gain stays finite)
     #: Quantise the coded image to this many bits (null: no quantisation).
     bits: int | None = Field(None, ge=1, le=32)
-    #: Clip the coded image at this grey level; reconstruction then treats
-    #: pixels at or above it as missing (null: no saturation).
+    #: Clip the coded image at this grey level; reconstruction then takes
+    #: pixels at or above it as recording at least it (null: no saturation).
     white_level: float | None = Field(None, gt=0, le=LEVEL_MAX)
     #: Raw black level: an offset added once per read-out (before clipping and quantising).
     black_level: float = Field(0.0, ge=0, le=LEVEL_MAX)

@@ -128,6 +128,23 @@ def clipped_level(codeds, mask_of) -> float | None:
 CLIPPED_PIXELS = 4
 
 
+def integer_clipping(codeds, mask_of, dtype) -> tuple[float, int, int] | None:
+    """``(level, pixels, measured)`` when captures stored as integers hold pixels at their type's largest value
+    (255 for uint8, 65535 for uint16): a sum of frames that reached it was clipped there, whatever the code (a
+    single-bump code, every pixel open alike, gives :func:`clipped_level` nothing to compare).  ``pixels``: how
+    many ever-open pixels hold it over the captures, of ``measured``; None for float captures, fewer than
+    :data:`CLIPPED_PIXELS` such pixels, or captures clipped everywhere (nothing measured below the level)."""
+    if dtype is None or np.dtype(dtype).kind not in "iu":
+        return None
+    level = float(np.iinfo(np.dtype(dtype)).max)
+    held = measured = 0
+    for i in range(len(codeds)):
+        opened = np.asarray(mask_of(i)).any(0)
+        held += int(np.count_nonzero((np.asarray(codeds[i]) >= level) & opened))
+        measured += int(np.count_nonzero(opened))
+    return (level, held, measured) if CLIPPED_PIXELS <= held < measured else None
+
+
 #: Standard deviations of read noise (``noise``, the capture's units) also allowed above a range.
 NOISE_SIGMAS = 5.0
 #: A float capture whose values lie in [0, 1] but for a few (``OUTLIER_SHARE`` at most, up to
@@ -284,7 +301,7 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
         if clip is not None:
             warnings.warn(f"{where}: pixels of different open counts share the largest coded value {clip:.6g}: "
                           f"clipped by the sensor; left out of the data range (give {labels['white_level']} "
-                          f"{clip:.6g} to treat them as missing measurements)", stacklevel=2)
+                          f"{clip:.6g} to raise their frames to sum to at least it)", stacklevel=2)
     peak = max(static_peak(codeds[i], mask_of(i), clip) for i in range(count))
     if peak <= 0 and white_level is not None and max(static_peak(codeds[i], mask_of(i)) for i in range(count)) > 0:
         raise InputError(f"{where}: every pixel that is ever open is at or above the white level {white_level:g} "
