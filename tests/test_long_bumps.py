@@ -49,7 +49,7 @@ def test_the_record_says_when_the_guard_blends():
     video, mask, coded = _case(16, "hitomi", bump=12)
     result = cv.reconstruct(coded, mask, data_range=1.0, progress=False, full_output=True)
     entry = result.info[0]["guard"]
-    assert entry["sparse_weight"] == pytest.approx(2 / 12, abs=1e-4)
+    assert entry["sparse_weight"] == pytest.approx(1 / 24, abs=1e-4)
     assert "12 of 16" in entry["reason"]
 
 
@@ -60,14 +60,22 @@ def test_the_record_says_when_the_guard_blends():
     (16, "hitomi", dict(bump=2), 1.0),
     (8, "flutter", {}, 1.0),
     (16, "bernoulli", dict(p=0.1), 1.0),
-    (8, "hitomi", dict(bump=4), 0.5),
-    (16, "hitomi", dict(bump=12), 2 / 12),
-    (8, "thinout", {}, 0.5),
+    (16, "shifting", dict(p=0.5), 1.0),
+    (8, "hitomi", dict(bump=4), 1 / 8),
+    (16, "hitomi", dict(bump=3), 1 / 6),
+    (16, "hitomi", dict(bump=12), 1 / 24),
+    (8, "thinout", {}, 0.25),
     (16, "thinout", {}, 0.0),
 ])
 def test_sparse_weight_keeps_the_papers_codes(frames, code, kw, weight):
     mask = cv.make_code(code, (SIZE, SIZE), frames=frames, seed=0, **kw)
     assert guard.sparse_weight(mask)[0] == pytest.approx(weight)
+
+
+@pytest.mark.parametrize("p,low,high", [(0.7, 0.6, 0.9), (0.9, 0.15, 0.35)])
+def test_a_code_open_most_of_the_time_is_blended(p, low, high):
+    mask = cv.make_code("bernoulli", (SIZE, SIZE), frames=8, seed=0, p=p)
+    assert low < guard.sparse_weight(mask)[0] < high
 
 
 def test_home_ground_records_no_guard():

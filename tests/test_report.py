@@ -17,7 +17,7 @@ MINI = dict(
     frames=4,
     report=dict(
         scenes=["default"], size=[32, 32], frames=4, bump=2, table_bumps=[1, 2], table_sigmas=[0, 8],
-        fig7_frames=[4], speed_max_atoms=[4], speed_tol_rms=[4.0], speed_atoms=[32], speed_codes=["hitomi-tiled"],
+        fig7_frames=[4], table_frames=[6], speed_max_atoms=[4], speed_tol_rms=[4.0], speed_atoms=[32], speed_codes=["hitomi-tiled"],
         video_scene="default", dictionary=dict(atoms=64, samples=1000, iterations=1),
     ),
 )
@@ -55,14 +55,31 @@ def test_every_table_and_figure_is_produced(mini):
     assert first["computed"] > 0
 
 
+def test_table_1_at_other_n_stands_beside_the_simple_answers(mini):
+    """Table 1 again at N = 6 (the miniature's table_frames): the default, GAP-TV and the still estimate in each
+    cell, for the bumps of table_bumps and N / 2 and N - 2, in the page and the CSV."""
+    from codedvideo.app.report import table_bumps_at
+
+    root, first, _ = mini
+    assert table_bumps_at([1, 2], 6) == [1, 2, 3, 4]
+    page = (root / "out" / "report.html").read_text()
+    assert "Table 1 at other N" in page
+    for bump in (1, 2, 3, 4):
+        assert f"N = 6, L = {bump}" in page
+    rows = list(csv.DictReader(first["csv_text"].splitlines()))
+    means = [r for r in rows if r["experiment"] == "table1" and r["frames"] == "6" and r["scene"] == "mean"]
+    assert {r["method"] for r in means} == {"omp", "gaptv", "trivial"} and len(means) == 3 * 4 * 2
+    assert all(math.isfinite(float(r["psnr"])) for r in means)
+
+
 def test_every_csv_number_is_finite(mini):
     root, _, _ = mini
     with open(root / "out" / "report.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     experiments = {r["experiment"] for r in rows}
     assert experiments == {"table1", "fig7", "fig4", "speed"}
-    # Table 1: 2 bumps x 2 sigmas, one scene plus the mean
-    assert sum(r["experiment"] == "table1" and r["scene"] == "mean" for r in rows) == 4
+    # Table 1: 2 bumps x 2 sigmas, one scene plus the mean (at report.frames; other N: the test above)
+    assert sum(r["experiment"] == "table1" and r["scene"] == "mean" and r["frames"] == "4" for r in rows) == 4
     # the non-local method is a point of the error-against-time study, timed and scored like the others
     # and with its dictionary adapted to each capture (--adapt), a point of its own
     for adapted in (False, True):

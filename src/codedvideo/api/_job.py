@@ -281,7 +281,8 @@ class ReconstructionJob:
                     setting_name("tol_rms", door): rc.tol_rms if rc.tol_rms != "auto" else None,
                     setting_name("white_level", door): noise.white_level,
                     setting_name("black_level", door): noise.black_level},
-            names={k: setting_name(k, door) for k in ("noise_sigma", "data_range", "white_level")})
+            names={k: setting_name(k, door) for k in ("noise_sigma", "data_range", "white_level")},
+            black=f"{setting_name('black_level', door)} {noise.black_level:g}" if noise.black_level else "")
         # the read noise known in working units: heavy noise leaves out a preset's non-local passes
         # and a code that leaves its patches blind (long bumps): they are left out as well
         weight, blind = sparse_weight(np.asarray(captures.mask(0)))

@@ -48,11 +48,12 @@ from codedvideo.formats.store import load_dictionary
 from codedvideo.formats.volumes import write_json
 from codedvideo.model.errors import InputError
 from codedvideo.model.metrics import evaluate
+from codedvideo.model.physics import static_estimate
 from codedvideo.model.patches import PATCH
 from codedvideo.model.units import EIGHT_BIT
 
 #: Part of every experiment key: bump it when what an experiment records changes.
-REPORT_VERSION = "report-v1"
+REPORT_VERSION = "report-v2"  # v2: each record holds the still estimate's PSNR (trivial_psnr)
 
 #: Fig. 7 methods: (method, code, bump or None for "the report's bump", label).
 FIG7_METHODS = (
@@ -227,7 +228,8 @@ class Runner:
             self.computed += 1
             return existing
         q = evaluate(volume, cap["truth"])
-        record = dict(settings, key=key, psnr=q["psnr"], ssim=q["ssim"], seconds=seconds,
+        trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), cap["truth"])["psnr"]
+        record = dict(settings, key=key, psnr=q["psnr"], ssim=q["ssim"], trivial_psnr=trivial, seconds=seconds,
                       atoms_mean=info.get("atoms_mean"), patches=info.get("patches", 0))
         if info.get("refine_trace"):  # the PSNR along the refinement, for the error-against-time figure
             record.update(refine_trace=info["refine_trace"], stage_trace=info.get("stage_trace", []))
@@ -239,6 +241,23 @@ class Runner:
         return record
 
 
+def table_bumps_at(bumps: list[int], frames: int) -> list[int]:
+    """The bump lengths of Table 1 at N = ``frames``: ``bumps`` below N, and N / 2 and N - 2 (long bumps)."""
+    return sorted({b for b in bumps if b < frames} | {b for b in (frames // 2, frames - 2) if b >= 1})
+
+
+def frames_table(records: list[dict]) -> dict:
+    """Table 1 at other N: ``(N, L, sigma)`` -> the mean PSNR over the scenes of the default (``omp``), GAP-TV and
+    the still estimate (``trivial``)."""
+    cells: dict = {}
+    for r in records:
+        cell = cells.setdefault((r["frames"], r["bump"], r["sigma"]), dict(omp=[], gaptv=[], trivial=[]))
+        cell[r["method"]].append(r["psnr"])
+        if r["method"] == "omp":
+            cell["trivial"].append(r["trivial_psnr"])
+    return {k: {m: float(np.mean(v)) for m, v in cell.items()} for k, cell in sorted(cells.items())}
+
+
 def _mean(records: list[dict], key: str) -> float:
     return float(np.mean([r[key] for r in records]))
 
@@ -247,12 +266,19 @@ def run_experiments(runner: Runner) -> dict:
     """Every experiment of the report; returns the records grouped by experiment."""
     rc = runner.cfg.report
     n, L = rc.frames, rc.bump
-    out: dict = dict(table1=[], fig7=[], fig4=[], speed=[], strips=[])
+    out: dict = dict(table1=[], table1_frames=[], fig7=[], fig4=[], speed=[], strips=[])
     for bump in rc.table_bumps:
         for sigma in rc.table_sigmas:
             for scene in rc.scenes:
                 out["table1"].append(runner.run(scene=scene, frames=n, code="hitomi", bump=bump, sigma=sigma,
                                                 method="omp"))
+    for frames in rc.table_frames:  # Table 1 at other N, the simple answers beside the default
+        for bump in table_bumps_at(rc.table_bumps, frames):
+            for sigma in rc.table_sigmas:
+                for scene in rc.scenes:
+                    for method in ("omp", "gaptv"):
+                        out["table1_frames"].append(runner.run(scene=scene, frames=frames, code="hitomi", bump=bump,
+                                                               sigma=sigma, method=method))
     for frames in rc.fig7_frames:
         for method, code, bump, label in FIG7_METHODS:
             for scene in rc.scenes + ([rc.video_scene] if rc.video_scene not in rc.scenes else []):
@@ -331,6 +357,7 @@ def summarise(results: dict, cfg: PipelineConfig) -> dict:
         for (k, v), on in zip(speed.items(), front):
             v[f"pareto_{metric}"] = on
     return dict(table=table, best=best, fig7=fig7, fig4=fig4, speed=speed,
+                table_frames=frames_table(results.get("table1_frames", [])),
                 findings=findings(table, best, fig7, fig4, rc))
 
 

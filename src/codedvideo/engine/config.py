@@ -360,6 +360,9 @@ class ReportConfig(_Strict):
     #: Table 1: bump lengths (rows) and read-noise sigmas in grey levels (columns).
     table_bumps: list[int] = Field([1, 2, 3, 4, 5, 6], min_length=1)
     table_sigmas: list[float] = Field([0, 1, 4, 8, 15, 40], min_length=1)
+    #: Table 1 again at these N (none: left out), with GAP-TV and the still estimate (coded / open count) beside
+    #: the default; the bump lengths of ``table_bumps`` and N / 2 and N - 2.
+    table_frames: list[int] = [16, 18]
     #: Fig. 7: the N swept.
     fig7_frames: list[int] = Field([4, 8, 12], min_length=1)
     #: Speed study: OMP max_atoms and tol_rms values, dictionary sizes (atoms), codes.
@@ -386,6 +389,13 @@ class ReportConfig(_Strict):
             if name.startswith("train-") or name.startswith("synth:"):
                 raise ValueError(f"scene {name!r}: give a synth test scene name (e.g. default, coins-translate); "
                                  "training scenes are never used for evaluation")
+        return v
+
+    @field_validator("table_frames")
+    @classmethod
+    def _frames(cls, v: list[int]) -> list[int]:
+        if any(not 2 <= x <= 64 for x in v):
+            raise ValueError(f"every N must be 2 to 64, got {v}")
         return v
 
     @field_validator("table_bumps", "fig7_frames", "speed_max_atoms", "speed_atoms", "speed_strides")
@@ -480,7 +490,7 @@ class PipelineConfig(_Strict):
                              f"give at least {beyond} samples or fewer atoms")
         r = self.report  # its dictionaries: the main one at every N it sweeps, and one per size of the speed study
         samples, main = r.dictionary.samples or d.samples, r.dictionary.atoms or d.atoms
-        for frames, atoms, key in ([(n, main, "report.dictionary.atoms") for n in (*r.fig7_frames, r.frames)]
+        for frames, atoms, key in ([(n, main, "report.dictionary.atoms") for n in (*r.fig7_frames, *r.table_frames, r.frames)]
                                    + [(r.frames, a, "report.speed_atoms") for a in r.speed_atoms]):
             if atoms - frames * PATCH * PATCH > samples:
                 raise ValueError(f"{key}: {atoms} atoms at N = {frames} start from {frames * PATCH * PATCH} DCT atoms and draw "

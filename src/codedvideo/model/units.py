@@ -263,7 +263,7 @@ CLI_NAMES = {"noise_sigma": "--noise-sigma", "data_range": "--data-range", "whit
 
 def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, noise_sigma: float = 0.0,
                   white_level: float | None = None, levels: dict[str, float | None] | None = None,
-                  where: str = "coded image", names: dict[str, str] | None = None) -> DataRange:
+                  where: str = "coded image", names: dict[str, str] | None = None, black: str = "") -> DataRange:
     """The data range of a job's captures, found once, checked and warned about: the one inference that the
     command line, ``codedvideo run`` and the Python API all use.
 
@@ -281,6 +281,7 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     where : what the captures are called in messages (the file)
     names : what the caller calls ``noise_sigma``, ``data_range`` and ``white_level`` in messages
         (default :data:`CLI_NAMES`; the API names its arguments)
+    black : the black level subtracted from the captures as the caller names it (``--black-level 64``), or empty
 
     Raises :class:`codedvideo.model.errors.InputError` for a capture with nothing above 0 (and no range given) or
     values beyond float32's working bounds; warns (one line each) when values lie above the range found or
@@ -309,7 +310,7 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     # a sum of frames is never negative: the wrong file, or a black level taken off twice
     if peak <= 0 and given is None:
         raise InputError(f"{where}: no coded value above 0 where the code is open; nothing to reconstruct "
-                         "(check the file and the black level)")
+                         f"(check the file and {black or 'the black level'})")
     units = infer_data_range(peak, dtype=dtype, given=given, noise=noise_sigma, quantile=lambda: max(
         static_quantile(codeds[i], mask_of(i), 1 - OUTLIER_SHARE, white_level=clip) for i in range(count)))
     if given is not None:

@@ -10,6 +10,9 @@ was measured above it on held-out footage (docs/research.md, "Long shutter bumps
   so their differences cancel in the sums, and the few the bump edges show are not
   enough for a dictionary to pick its atoms by.
 
+* pixels open most of the time (a Bernoulli code of p 0.8 or 0.9): as with long bumps,
+  what the closed sub-frames show is too little to choose atoms by.
+
 There the result is a blend, ``w * sparse + (1 - w) * GAP-TV`` (:func:`sparse_weight`);
 on the paper's codes ``w`` is 1 and the sparse estimate is the result, unchanged.
 """
@@ -26,19 +29,25 @@ from codedvideo.model.patches import PATCH
 BUMP_SPAN = 24
 #: Below this share of sub-frames seen by the average 7x7 window, the result is GAP-TV's alone.
 MIN_SEEN = 7 / 8
+#: Above this share of open (sub-frame, pixel) entries, a code that is not a fixed single bump is blended too.
+MOSTLY_OPEN = 0.6
 #: From this share on, a few windows that miss a sub-frame (a sparse random code) leave the dictionary alone.
 MOST_SEEN = 0.95
+
+
+def _opened(mask: np.ndarray) -> np.ndarray:
+    """Which (sub-frame, pixel) entries a mask opens: a calibrated mask's weights of at least half its largest."""
+    m = np.asarray(mask)
+    top = float(m.max(initial=0))
+    return m > 0 if top <= 1 and np.isin(m, (0, 1)).all() else m >= 0.5 * top
 
 
 def seen_share(mask: np.ndarray, patch: int = PATCH) -> float:
     """The mean share of the N sub-frames that a ``patch x patch`` window's pixels open in (1: every window sees
     every sub-frame); a calibrated mask counts weights of at least half its largest as open."""
-    m = np.asarray(mask)
-    if m.shape[1] < patch or m.shape[2] < patch:
+    if mask.shape[1] < patch or mask.shape[2] < patch:
         return 1.0
-    top = float(m.max(initial=0))
-    opened = m > 0 if top <= 1 and np.isin(m, (0, 1)).all() else m >= 0.5 * top
-    return float((window_coverage(opened, patch) > 0).mean())
+    return float((window_coverage(_opened(mask), patch) > 0).mean())
 
 
 def sparse_weight(mask: np.ndarray, patch: int = PATCH) -> tuple[float, str]:
@@ -46,8 +55,10 @@ def sparse_weight(mask: np.ndarray, patch: int = PATCH) -> tuple[float, str]:
     the sparse estimate alone).
 
     * windows that see less than :data:`MIN_SEEN` of the sub-frames: 0 (GAP-TV alone);
-    * windows that miss some sub-frames (less than :data:`MOST_SEEN` seen): 1/2;
-    * a fixed single bump of length ``L`` with ``L * N`` above :data:`BUMP_SPAN`: ``min(1, 2 / L)``.
+    * windows that miss some sub-frames (less than :data:`MOST_SEEN` seen): 1/4;
+    * a fixed single bump of length ``L >= 3`` with ``L * N`` above :data:`BUMP_SPAN`: ``1 / (2 L)``;
+    * any other code open in a share ``f`` above :data:`MOSTLY_OPEN` of its (sub-frame, pixel) entries:
+      ``(1 - f) / (1 - MOSTLY_OPEN)``.
     """
     n = mask.shape[0]
     if (mask == mask[:, :1, :1]).all():  # one pattern for every pixel (global, flutter): the still estimate's case
@@ -56,11 +67,16 @@ def sparse_weight(mask: np.ndarray, patch: int = PATCH) -> tuple[float, str]:
     if seen < MIN_SEEN:
         return 0.0, f"its 7x7 windows see {seen:.0%} of the {n} sub-frames"
     if seen < MOST_SEEN:
-        return 0.5, f"some 7x7 windows miss sub-frames (they see {seen:.1%} of them)"
+        return 0.25, f"some 7x7 windows miss sub-frames (they see {seen:.1%} of them)"
     report = check_code(mask, patch)
     bump = report.bump_length if report.fixed_bump else None
-    if bump is not None and bump * n > BUMP_SPAN and bump > 2:
-        return 2.0 / bump, f"shutter bumps of {bump} of {n} sub-frames"
+    if bump is not None:
+        if bump >= 3 and bump * n > BUMP_SPAN:
+            return 0.5 / bump, f"shutter bumps of {bump} of {n} sub-frames"
+        return 1.0, ""
+    share = float(_opened(mask).mean())
+    if share > MOSTLY_OPEN:
+        return (1.0 - share) / (1.0 - MOSTLY_OPEN), f"pixels open in {share:.0%} of the sub-frames"
     return 1.0, ""
 
 
