@@ -105,3 +105,13 @@ def test_the_prior_prefers_an_atom_the_code_sees():
     table = TableOMP(patterns, D, m)
     guarded = table.solve(y, P.extract(which, 7), max_atoms=1, tol=0.0, prior=PRIOR)
     assert guarded.index[0, 0] == 1 and guarded.coef[0, 0] == pytest.approx(10, rel=1e-4)
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5, 7, 9])
+def test_the_share_of_sub_frames_a_window_sees_is_the_coverage_count(k):
+    """The guard's window test (shifted copies or-ed together) against the code checker's summed-area count."""
+    from codedvideo.model.codes import window_coverage
+
+    opened = np.random.default_rng(k).random((3, 20, 25)) < 0.1
+    seen = guard._window_any(guard._window_any(opened, k, 1), k, 2)
+    np.testing.assert_array_equal(seen, window_coverage(opened, k) > 0)

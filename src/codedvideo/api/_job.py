@@ -285,7 +285,7 @@ class ReconstructionJob:
             black=f"{setting_name('black_level', door)} {noise.black_level:g}" if noise.black_level else "")
         # the read noise known in working units: heavy noise leaves out a preset's non-local passes
         # and a code that leaves its patches blind (long bumps): they are left out as well
-        weight, blind = sparse_weight(np.asarray(captures.mask(0)))
+        weight, blind = sparse_weight(np.asarray(captures.mask(0))) if resolved.settings.preset else (1.0, "")
         self.r = for_noise(resolved, noise.sigma * self.units.scale, blind=blind if weight < 1 else "")
         self.omp = omp_settings(rc, noise.sigma, scale=self.units.scale)
         self._warn_before_work()

@@ -19,9 +19,13 @@ on the paper's codes ``w`` is 1 and the sparse estimate is the result, unchanged
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
+
 import numpy as np
 
-from codedvideo.model.codes import check_code, window_coverage
+from codedvideo.model.codes import is_binary
 from codedvideo.model.patches import PATCH
 
 #: Bump length times sub-frames up to which a fixed single-bump code is solved by the dictionary alone
@@ -39,7 +43,8 @@ def _opened(mask: np.ndarray) -> np.ndarray:
     """Which (sub-frame, pixel) entries a mask opens: a calibrated mask's weights of at least half its largest."""
     m = np.asarray(mask)
     top = float(m.max(initial=0))
-    return m > 0 if top <= 1 and np.isin(m, (0, 1)).all() else m >= 0.5 * top
+    binary = m.dtype.kind in "bu" and top <= 1 or top <= 1 and is_binary(m)
+    return m > 0 if binary else m >= 0.5 * top
 
 
 def seen_share(mask: np.ndarray, patch: int = PATCH) -> float:
@@ -47,12 +52,43 @@ def seen_share(mask: np.ndarray, patch: int = PATCH) -> float:
     every sub-frame); a calibrated mask counts weights of at least half its largest as open."""
     if mask.shape[1] < patch or mask.shape[2] < patch:
         return 1.0
-    return float((window_coverage(_opened(mask), patch) > 0).mean())
+    return _seen(_opened(mask), patch)
+
+
+def _window_any(a: np.ndarray, k: int, axis: int) -> np.ndarray:
+    """Whether any of ``k`` consecutive entries along ``axis`` of the boolean ``a`` is set, for every window
+    (length ``n - k + 1``): spans doubled by or-ing shifted copies, a few passes whatever ``k``."""
+    def part(x, start, stop):
+        return x[(slice(None),) * axis + (slice(start, stop),)]
+
+    out, span = a, 1
+    while 2 * span <= k:  # out[i]: any of [i, i + span)
+        out = part(out, 0, out.shape[axis] - span) | part(out, span, None)
+        span *= 2
+    rest = k - span  # (at most span: two spans overlapping cover k)
+    return out if rest == 0 else part(out, 0, out.shape[axis] - rest) | part(out, rest, None)
+
+
+def _seen(opened: np.ndarray, patch: int) -> float:
+    """:func:`seen_share` of the open entries ``opened`` (N, H, W)."""
+    return float(_window_any(_window_any(opened, patch, 1), patch, 2).mean())
+
+
+def _fixed_bump(opened: np.ndarray) -> int | None:
+    """The bump length when every pixel that opens does so for one run of the same length (None otherwise)."""
+    count = opened.sum(0, dtype=np.int32)
+    runs = opened[0].astype(np.int32) + (opened[1:] & ~opened[:-1]).sum(0, dtype=np.int32)
+    lengths = np.unique(count[count > 0])
+    return int(lengths[0]) if lengths.size == 1 and runs.max(initial=0) <= 1 else None
+
+
+_weights: OrderedDict = OrderedDict()
+_weights_lock = threading.Lock()
 
 
 def sparse_weight(mask: np.ndarray, patch: int = PATCH) -> tuple[float, str]:
     """The weight of the sparse estimate in a capture's result under ``mask`` (N, H, W), and why (empty: 1,
-    the sparse estimate alone).
+    the sparse estimate alone); kept for the masks last asked (a stream's captures share theirs).
 
     * windows that see less than :data:`MIN_SEEN` of the sub-frames: 0 (GAP-TV alone);
     * windows that miss some sub-frames (less than :data:`MOST_SEEN` seen): 1/4;
@@ -60,21 +96,37 @@ def sparse_weight(mask: np.ndarray, patch: int = PATCH) -> tuple[float, str]:
     * any other code open in a share ``f`` above :data:`MOSTLY_OPEN` of its (sub-frame, pixel) entries:
       ``(1 - f) / (1 - MOSTLY_OPEN)``.
     """
+    m = np.ascontiguousarray(mask)
+    key = hashlib.blake2b(m.data, digest_size=16).digest() + repr((m.shape, m.dtype.str, patch)).encode()
+    with _weights_lock:
+        if key in _weights:
+            _weights.move_to_end(key)
+            return _weights[key]
+    found = _sparse_weight(m, patch)
+    with _weights_lock:
+        _weights[key] = found
+        while len(_weights) > 4:
+            _weights.popitem(last=False)
+    return found
+
+
+def _sparse_weight(mask: np.ndarray, patch: int) -> tuple[float, str]:
+    """:func:`sparse_weight`, computed."""
     n = mask.shape[0]
     if (mask == mask[:, :1, :1]).all():  # one pattern for every pixel (global, flutter): the still estimate's case
         return 1.0, ""
-    seen = seen_share(mask, patch)
+    opened = _opened(mask)
+    seen = _seen(opened, patch) if min(mask.shape[1:]) >= patch else 1.0
     if seen < MIN_SEEN:
         return 0.0, f"its 7x7 windows see {seen:.0%} of the {n} sub-frames"
     if seen < MOST_SEEN:
         return 0.25, f"some 7x7 windows miss sub-frames (they see {seen:.1%} of them)"
-    report = check_code(mask, patch)
-    bump = report.bump_length if report.fixed_bump else None
+    bump = _fixed_bump(opened)
     if bump is not None:
         if bump >= 3 and bump * n > BUMP_SPAN:
             return 0.5 / bump, f"shutter bumps of {bump} of {n} sub-frames"
         return 1.0, ""
-    share = float(_opened(mask).mean())
+    share = float(opened.mean())
     if share > MOSTLY_OPEN:
         return (1.0 - share) / (1.0 - MOSTLY_OPEN), f"pixels open in {share:.0%} of the sub-frames"
     return 1.0, ""

@@ -57,8 +57,8 @@ from codedvideo.model.codes import is_binary
 from codedvideo.solvers.omp import _TINY, DEPENDENCE_TOL, PRIOR, SELECT_BITS, OmpResult, pixel_patterns
 from codedvideo.solvers.nonlocal_kernel import block_match, scatter_patches, somp_kernel
 from codedvideo.solvers.omp_kernel import TableOMP, atom_rows, synthesize, synthesize_rows, table_fits
-from codedvideo.solvers.region import (WINDOW, OmpSettings, RegionPatches, guard_estimates, region_patches,
-                                       still_answers, still_patches, stride_grid)
+from codedvideo.solvers.region import (WINDOW, OmpSettings, RegionPatches, estimate_energy, guard_estimates,
+                                       region_patches, still_answers, still_patches, stride_grid)
 
 #: Names of the statistics, in the order of the stats vector.
 STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_static", "seconds_match",
@@ -464,7 +464,7 @@ def _fold_references(region: _Region, chosen: _References, groups: _Groups, atom
                     residual=groups.res2[:, 0], dependent=groups.dep[:, 0])
     rows = groups.refs - r0 * wp
     est[rows] = synthesize_rows(res, atoms)
-    _guarded(region, est, rows, rows + r0 * wp, atoms, settings)
+    _guarded(region, est, rows, rows + r0 * wp, res, atoms, settings)
     st = np.flatnonzero(chosen.still_ok[sl])
     est[st] = chosen.still_est[chosen.still_slot[st + r0 * wp]]
     if settings.weighting == "fit":
@@ -491,7 +491,7 @@ def _scatter_members(region: _Region, chosen: _References, groups: _Groups, atom
     res = OmpResult(index=groups.index[live], coef=groups.coef[live], count=groups.count[live],
                     residual=groups.res2[live], dependent=groups.dep[live])
     est = synthesize_rows(res, atoms)
-    _guarded(region, est, np.arange(where.size), where, atoms, settings)
+    _guarded(region, est, np.arange(where.size), where, res, atoms, settings)
     wgt = np.ones(where.size, np.float32)
     if similarity is not None:
         wgt = np.exp(-groups.dmem[live] / (n * m) / max(similarity, 1e-6) ** 2).astype(np.float32)
@@ -506,15 +506,19 @@ def _scatter_members(region: _Region, chosen: _References, groups: _Groups, atom
                         patches.patch, summed, weight)
 
 
-def _guarded(region: _Region, est: np.ndarray, rows: np.ndarray, patches: np.ndarray, atoms: np.ndarray,
-             settings: OmpSettings) -> None:
+def _guarded(region: _Region, est: np.ndarray, rows: np.ndarray, patches: np.ndarray, res: OmpResult,
+             atoms: np.ndarray, settings: OmpSettings) -> None:
     """The default's guard (:func:`codedvideo.solvers.region.guard_estimates`) on the estimates ``est[rows]`` of the
-    region's patches ``patches`` (one each): an invented one is solved alone again with the coefficient prior."""
+    region's patches ``patches`` (one each, from the results ``res``): an invented one is solved alone again with
+    the coefficient prior."""
     p = region.patches
     y, n_pix, tol = p.y[patches], p.n_pix[patches], region.tol[patches]
-    guard_estimates(est, rows, y, n_pix, tol, atoms, lambda bad: region.table.solve(
-        y[bad], region.pat[patches[bad]], max_atoms=settings.max_atoms, tol=tol[bad], prior=PRIOR),
-        frames=region.shape[0])
+    frames = region.shape[0]
+    own = est[rows]  # (one row a patch of ``patches``)
+    if guard_estimates(own, np.arange(rows.size), y, n_pix, tol, atoms, lambda bad: region.table.solve(
+            y[bad], region.pat[patches[bad]], max_atoms=settings.max_atoms, tol=tol[bad], prior=PRIOR),
+            frames=frames, energy=estimate_energy(res, own, n_pix, atoms, frames)):
+        est[rows] = own
 
 
 def keep_still(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, still: np.ndarray | None, patch: int,

@@ -140,16 +140,16 @@ def _omp_kernel(y, pat, B, floor, tol, kmax, dep_tol, select_bits, tiny, prior, 
         for k in range(K):
             inv[k] = np.sqrt(max(c[k], np.float32(0.0)))
             big = max(big, inv[k])
-        eps2 = np.float32(prior * big) * np.float32(prior * big)  # the coefficient prior (0: plain OMP)
-        for k in range(K):
-            nk = inv[k]
-            usable = nk > tiny * big and nk > floor[k]
-            if not usable:
-                inv[k] = np.float32(0.0)
-            elif prior > 0.0:
-                inv[k] = np.float32(1.0) / np.sqrt(nk * nk + eps2)
-            else:
-                inv[k] = np.float32(1.0) / nk
+        if prior > 0.0:  # the coefficient prior (a loop of its own: plain OMP's stays vectorised)
+            eps2 = np.float32(prior * big) * np.float32(prior * big)
+            for k in range(K):
+                nk = inv[k]
+                inv[k] = np.float32(1.0) / np.sqrt(nk * nk + eps2) if (nk > tiny * big and nk > floor[k]) \
+                    else np.float32(0.0)
+        else:
+            for k in range(K):
+                nk = inv[k]
+                inv[k] = np.float32(1.0) / nk if (nk > tiny * big and nk > floor[k]) else np.float32(0.0)
         n_sel = 0
         for it in range(kmax):
             _correlate(B, pat[p], r, c)

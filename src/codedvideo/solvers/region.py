@@ -451,7 +451,8 @@ def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_row
                     patch: int) -> np.ndarray:
     """The estimates (rows of ``frames * m``, zero but for ``valid_rows``) of a band's patches ``y``: the still answer
     of the wholly still ones (``calm``), then the still test's, then OMP (``solve``) for the rest, synthesised from
-    the dictionary's :func:`~codedvideo.solvers.omp_kernel.atom_rows` ``atoms``."""
+    the dictionary's :func:`~codedvideo.solvers.omp_kernel.atom_rows` ``atoms``, invented ones guarded
+    (:func:`guard_estimates`)."""
     est = np.zeros((y.shape[0], frames * y.shape[1]), np.float32)
     rows = valid_rows  # those still to estimate
     if calm is not None and rows.size:
@@ -476,7 +477,7 @@ def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_row
         counts.hit += int((res.count >= settings.max_atoms).sum())
         counts.dep += int(res.dependent.sum())
         guard_estimates(est, rows, y, n_pix, tol, atoms, lambda bad: solve(y[bad], sl, bad, tol[bad], prior=PRIOR),
-                        frames=frames)
+                        frames=frames, energy=estimate_energy(res, est[rows], n_pix[rows], atoms, frames))
     return est
 
 
@@ -488,12 +489,33 @@ def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_row
 BLOWUP = 2.0
 
 
-def _blown(est: np.ndarray, y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, frames: int) -> np.ndarray:
-    """Which patch estimates (rows of ``frames * m``) carry more than :data:`BLOWUP` times the energy of their
-    still answer on their measured pixels, the still answer's noise allowed for (``tol``: each patch's squared
+def _energy(est: np.ndarray, n_pix: np.ndarray, frames: int) -> np.ndarray:
+    """The energy of patch estimates (rows of ``frames * m``) on their measured pixels."""
+    measured = n_pix > 0
+    return np.einsum("pnm,pm->p", np.square(est.reshape(est.shape[0], frames, n_pix.shape[1]), dtype=np.float64),
+                     measured)
+
+
+def estimate_energy(res, est: np.ndarray, n_pix: np.ndarray, atoms: np.ndarray, frames: int) -> np.ndarray:
+    """The energy of the patch estimates ``est`` (rows of ``frames * m``) synthesised from the OMP results ``res``
+    with the dictionary's :func:`~codedvideo.solvers.omp_kernel.atom_rows` ``atoms``: ``sum_i alpha_i**2
+    ||d_i||**2``, the estimate's own for orthogonal atoms and what an invented estimate's large coefficients show
+    whatever their overlap, at a few multiply-adds a patch where summing the estimate takes ``N m``; a patch with a
+    pixel never open: its estimate's on the measured pixels; a patch without atoms: 0."""
+    used = np.arange(res.index.shape[1])[None, :] < res.count[:, None]
+    c = np.where(used, res.coef, 0).astype(np.float64)
+    norms2 = np.einsum("km,km->k", atoms, atoms, dtype=np.float64)
+    energy = np.einsum("pi,pi->p", c * c, norms2[res.index])
+    holes = np.flatnonzero((n_pix == 0).any(1) & (res.count > 0))
+    energy[holes] = _energy(est[holes], n_pix[holes], frames)
+    return energy
+
+
+def _blown(e: np.ndarray, y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, frames: int) -> np.ndarray:
+    """Which patch estimates of energy ``e`` on their measured pixels carry more than :data:`BLOWUP` times the
+    energy of their still answer there, the still answer's noise allowed for (``tol``: each patch's squared
     residual tolerance, its ``n_open * tol_rms**2``); a pixel never open is left out of both."""
     measured = n_pix > 0
-    e = np.einsum("pnm,pm->p", np.square(est.reshape(est.shape[0], frames, y.shape[1]), dtype=np.float64), measured)
     inv = np.where(measured, 1.0 / np.maximum(n_pix, 1e-12), 0.0)
     still = y * inv
     tol_rms2 = tol / np.maximum(measured.sum(1), 1)
@@ -505,19 +527,23 @@ def _blown(est: np.ndarray, y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, f
 
 
 def guard_estimates(est: np.ndarray, rows: np.ndarray, y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray,
-                    atoms: np.ndarray, resolve, *, frames: int) -> int:
+                    atoms: np.ndarray, resolve, *, frames: int, energy: np.ndarray | None = None) -> int:
     """The sparse estimates ``est[rows]`` that :func:`_blown` finds invented, solved again with the coefficient
     prior (:data:`codedvideo.solvers.omp.PRIOR`: ``resolve(bad)`` -> the :class:`OmpResult` of the patches
     ``bad``), and those still invented given their still answer (in place); returns how many were solved again.
+    ``energy``: the energies of ``est[rows]`` when known (:func:`estimate_energy`; default: on their measured
+    pixels).
     On the paper's codes (N = 8, L = 2 or 3) a patch in a few hundred acts, or none."""
     if not rows.size:
         return 0
-    bad = rows[_blown(est[rows], y[rows], n_pix[rows], tol[rows], frames)]
+    e = _energy(est[rows], n_pix[rows], frames) if energy is None else energy
+    bad = rows[_blown(e, y[rows], n_pix[rows], tol[rows], frames)]
     if not bad.size:
         return 0
     res = resolve(bad)
     est[bad] = synthesize_rows(res, atoms)
-    still = bad[(res.count == 0) | _blown(est[bad], y[bad], n_pix[bad], tol[bad], frames)]
+    again = estimate_energy(res, est[bad], n_pix[bad], atoms, frames)
+    still = bad[(res.count == 0) | _blown(again, y[bad], n_pix[bad], tol[bad], frames)]
     if still.size:
         est[still] = still_answers(y[still], n_pix[still], frames)
     return int(bad.size)
