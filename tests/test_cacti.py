@@ -260,3 +260,44 @@ def test_frames_that_do_not_compress_are_kept_within_the_mat_limit(tmp_path, mon
         with cacti.mat_writer(tmp_path / "tight.mat", vol.shape) as write:
             write(vol)
     assert os.listdir(tmp_path) == []
+
+
+def test_a_benchmark_file_as_published_reconstructs_every_measurement_and_scores_the_first(tmp_path, dct, capsys):
+    """The field's test files: mask (H, W, N) with pixels never open, meas (H, W, 5) as uint16 and orig (H, W, N)
+    as uint8, the truth of the first measurement only.  Refused before ("orig has 8 frames = 1 measurements ...
+    but meas holds 5"), even with --measurement 1."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    q = 5
+    orig = np.stack([np.rint(128 + 90 * np.sin((xx + 1.5 * t) / 4.0) * np.cos((yy - t) / 5.0))
+                     for t in range(q * N)]).astype(np.float32)
+    mask = (np.random.default_rng(3).random((N, H, W)) < 0.5).astype(np.uint8)
+    assert not mask.any(0).all()  # pixels never open, as in the published masks
+    meas = np.stack([(mask * orig[k * N : (k + 1) * N]).sum(0) for k in range(q)])
+    scipy.io.savemat(tmp_path / "bench.mat", dict(mask=np.moveaxis(mask, 0, -1).astype(np.float64),
+                                                  meas=np.moveaxis(meas, 0, -1).astype(np.uint16),
+                                                  orig=np.moveaxis(orig[:N], 0, -1).astype(np.uint8)))
+    out = tmp_path / "recon.npy"
+    with pytest.warns(UserWarning, match=r"orig holds the truth of measurement 1 of 5; 1 of the 5 reconstructed"):
+        assert cli("reconstruct", "--cacti", tmp_path / "bench.mat", "--dictionary", dct, "--output", out,
+                   "--tile", 32, "--cache", tmp_path / "cache") == 0
+    metrics = json.loads((tmp_path / "recon.metrics.json").read_text())
+    assert np.load(out).shape == (q * N, H, W)
+    assert [m["measurement"] for m in metrics["measurements"]] == [1, 2, 3, 4, 5]
+    assert "quality" in metrics["measurements"][0] and all("quality" not in m for m in metrics["measurements"][1:])
+    assert metrics["quality"]["scored"] == [1] and len(metrics["quality"]["psnr_per_frame"]) == N
+    assert metrics["quality"]["psnr"] > metrics["trivial"]["psnr"]
+    # --measurement 1 is scored, --measurement 3 is reconstructed without a score (and says so)
+    assert cli("reconstruct", "--cacti", tmp_path / "bench.mat", "--measurement", 1, "--dictionary", dct,
+               "--output", tmp_path / "m1.npy", "--tile", 32, "--cache", tmp_path / "cache") == 0
+    assert "quality" in json.loads((tmp_path / "m1.metrics.json").read_text())
+    with pytest.warns(UserWarning, match="without a score"):
+        assert cli("reconstruct", "--cacti", tmp_path / "bench.mat", "--measurement", 3, "--dictionary", dct,
+                   "--output", tmp_path / "m3.npy", "--tile", 32, "--cache", tmp_path / "cache") == 0
+    assert "quality" not in json.loads((tmp_path / "m3.metrics.json").read_text())
+    # evaluate against the file scores the frames its orig covers
+    capsys.readouterr()
+    with pytest.warns(UserWarning, match="the first 4 are scored"):
+        assert cli("evaluate", "--recon", out, "--truth", tmp_path / "bench.mat") == 0
+    scored = json.loads(capsys.readouterr().out)
+    assert scored["scored_frames"] == N
+    assert scored["psnr"] == pytest.approx(metrics["quality"]["psnr"], abs=1e-6)

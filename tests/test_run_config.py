@@ -205,3 +205,21 @@ def test_values_report_uses_are_taken_by_report_and_still_refused_by_run(tmp_pat
         main(["-q", "report", str(cfg)])
     rc, err = run(tmp_path, capsys, cfg.read_text())
     assert rc == 2 and len(err.splitlines()) == 1 and section.split(":")[0] in err, err
+
+
+@pytest.mark.parametrize("section, said", [
+    ("output: {dir: ''}", "p.yaml: output.dir = '': name a folder"),
+    ("dictionary: {atoms: 2}", "p.yaml: dictionary.atoms = 2: below dictionary.sparsity 6"),
+    ("code: {bump: 20}", "p.yaml: code.bump = 20: a bump of 1 to 4 sub-frames"),
+])
+def test_config_values_a_run_trips_over_are_refused_naming_the_key(tmp_path, capsys, section, said):
+    """Before: output.dir '' wrote into the current folder, 2 atoms with sparsity 6 trained, and a bump of 20
+    failed when the code was made, without the config's key."""
+    rc, err = run(tmp_path, capsys, f"frames: 4\n{section}\n")
+    assert rc == 2 and len(err.splitlines()) == 1 and said in err, err
+
+
+def test_training_a_dictionary_for_one_sub_frame_is_refused(tmp_path, capsys):
+    """frames 1: every pixel opens alike and the still estimate needs no dictionary; training one took 10 s."""
+    rc, err = run(tmp_path, capsys, "frames: 1\nstages: [train]\n")
+    assert rc == 2 and "frames 1" in err and "leave train out" in err, err

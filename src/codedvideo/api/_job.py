@@ -72,12 +72,16 @@ class Captures:
         return self.masks[i % len(self.masks)]
 
     def truth(self, i: int):
+        """Capture ``i``'s truth, or None: none given, or a stream's truth that ends before it (a CACTI file's
+        ``orig`` covers its first measurements only)."""
         if self.truths is None:
             return None
         n = self.mask(i).shape[0]
         if self.kind == "bayer":  # one mosaic, its colour truth (3, N, H, W)
             return self.truths
-        return self.truths[i] if self.kind == "channels" else self.truths[i * n : (i + 1) * n]
+        if self.kind == "channels":
+            return self.truths[i]
+        return self.truths[i * n : (i + 1) * n] if len(self.truths) >= (i + 1) * n else None
 
 
 def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
@@ -343,6 +347,8 @@ class ReconstructionJob:
         after the pass ``iterations`` names (``"pass 1"``: ``stage_trace``), scored against its truth; once every
         row of the capture is scored (a refinement in bands shows each band's), a point of its error against
         time (``refine_trace`` in its record), the bands' seconds added."""
+        if self.captures.truth(i) is None:  # (a stream whose truth ends before this capture)
+            return
         t0 = time.perf_counter()
         scale = np.float32(self.units.scale)
         n = volume.shape[0]
@@ -507,11 +513,14 @@ class ReconstructionJob:
                 quality[f"{key}_per_channel"] = [float(np.mean(per_frame[key][c * n : (c + 1) * n])) for c in range(3)]
         elif kind != "single":
             name = kind[:-1]
-            quality.update({f"psnr_per_{name}": [e["quality"]["psnr"] for e in self.entries],
-                            f"ssim_per_{name}": [e["quality"]["ssim"] for e in self.entries]})
-            if kind in ("captures", "measurements") and self.count > 1:
+            scored = [e for e in self.entries if "quality" in e]  # (a stream's truth may end before its last)
+            quality.update({f"psnr_per_{name}": [e["quality"]["psnr"] for e in scored],
+                            f"ssim_per_{name}": [e["quality"]["ssim"] for e in scored]})
+            if len(scored) < len(self.entries):
+                quality["scored"] = [e.get(name, i + 1) for i, e in enumerate(scored)]
+            if kind in ("captures", "measurements") and len(scored) > 1:
                 pairs = [dict(last=per_frame["psnr"][(i + 1) * n - 1], first_next=per_frame["psnr"][(i + 1) * n])
-                         for i in range(len(self.entries) - 1)]  # flicker at the boundaries
+                         for i in range(len(scored) - 1)]  # flicker at the boundaries
                 quality["boundaries"] = dict(dict(pairs=pairs), **self._steps.summary())
         # of the volume as reconstructed (float32); a lossy output file holds it less exactly (evaluate the file)
         suffix = Path(str(output)).suffix.lower() if output is not None else ""

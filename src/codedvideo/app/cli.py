@@ -396,7 +396,13 @@ def _read_captures(a) -> api.Captures:
         if a.measurement is not None and not 1 <= a.measurement <= data.measurements:
             raise InputError(f"--measurement {a.measurement}: {a.cacti} holds measurements 1..{data.measurements}")
         chosen = range(data.measurements) if a.measurement is None else [a.measurement - 1]
-        truths = None if data.orig is None else np.concatenate([data.truth(q) for q in chosen])
+        covered = [data.truth(q) for q in chosen if data.truth(q) is not None]  # (the first of them)
+        truths = np.concatenate(covered) if covered else None
+        if data.orig is not None and len(covered) < len(chosen):
+            warnings.warn(f"CACTI file {a.cacti}: orig holds the truth of measurement"
+                          f"{'s 1 to ' if data.scored > 1 else ' '}{data.scored} of {data.measurements}; "
+                          + ("the one chosen is reconstructed without a score" if not covered else
+                             f"{len(covered)} of the {len(chosen)} reconstructed are scored (quality.scored)"))
         return api.Captures(
             codeds=[data.meas[q] for q in chosen], masks=[data.mask], truths=truths,
             labels=[dict(measurement=q + 1) for q in chosen], kind="measurements",
@@ -582,6 +588,13 @@ def _cmd_evaluate(a) -> int:
     truth = _scored_volume(a.truth, "truth")
     recon, truth = api.as_scored(recon, truth, names=(str(a.recon), str(a.truth)))
     extra = {}
+    if Path(a.truth).suffix.lower() == ".mat" and len(truth.shape) == len(recon.shape) == 3 \
+            and 0 < truth.shape[0] < recon.shape[0] and tuple(truth.shape[1:]) == tuple(recon.shape[1:]):
+        # a CACTI file's orig holds the truth of its first measurements only: those frames are scored
+        warnings.warn(f"evaluate: truth {a.truth} holds {truth.shape[0]} frames of the reconstruction's "
+                      f"{recon.shape[0]}; the first {truth.shape[0]} are scored", stacklevel=2)
+        recon = np.asarray(recon[: truth.shape[0]])
+        extra["scored_frames"] = int(truth.shape[0])
     if Path(a.recon).suffix.lower() in VIDEO_SUFFIXES:  # 8-bit frames: 255 was the data range they were written with
         written = _written_range(a.recon) or api.truth_data_range(truth, data_range=out.data_range,
                                                                   where=f"truth {a.truth}").value

@@ -195,6 +195,9 @@ class DictionaryConfig(_Strict):
                 raise ValueError(f"{' and '.join('dictionary.' + k for k in unused)} "
                                  f"{'describes' if len(unused) == 1 else 'describe'} the synthetic training clips, "
                                  "and dictionary.training names no synth:train")
+        if self.kind == "learned" and self.path is None and self.atoms < self.sparsity:
+            raise ValueError(f"dictionary.atoms = {self.atoms}: below dictionary.sparsity {self.sparsity}, the atoms K-SVD "
+                             "codes every training patch with; give at least as many atoms")
         return self
 
 
@@ -316,6 +319,13 @@ class OutputConfig(_Strict):
     data_range: float | None = Field(None, ge=DATA_RANGE_MIN, le=DATA_RANGE_MAX)
     #: Replace existing output files that codedvideo did not write (folders never).
     overwrite: bool = False
+
+    @field_validator("dir")
+    @classmethod
+    def _dir_named(cls, v: str) -> str:
+        if not v.strip():  # "" would write the run's files among those of the current folder
+            raise ValueError("name a folder for the outputs (for example out/run)")
+        return v
 
     @field_validator("video")
     @classmethod
@@ -479,6 +489,19 @@ class PipelineConfig(_Strict):
         if not v.strip():  # "" would put cache entries among the files of the current folder
             raise ValueError("cache '': name a folder for the cache (for example cache)")
         return v
+
+    @model_validator(mode="after")
+    def _fits_the_frames(self, info: ValidationInfo) -> "PipelineConfig":
+        """Rules between the sub-frames and other keys (each message starts with its key = value)."""
+        if _for_report(info):  # (the report's own N and codes: report.frames, report.bump)
+            return self
+        if self.frames == 1 and "train" in self.stages and self.dictionary.path is None:
+            raise ValueError(f"stages = {self.stages}: with frames 1 every pixel opens alike and the capture is its "
+                             "own still estimate, which needs no dictionary: leave train out of stages")
+        bump = self.code.bump
+        if "simulate" in self.stages and self.code.name in BUMP_CODES and not 1 <= bump <= self.frames:
+            raise ValueError(f"code.bump = {bump}: a bump of 1 to {self.frames} sub-frames (frames {self.frames})")
+        return self
 
     @model_validator(mode="after")
     def _atoms_from_samples(self) -> "PipelineConfig":
@@ -754,6 +777,8 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
         msg, err = _first_error(exc, PipelineConfig)
         # the location without pydantic's names of union branches ("constrained-float", ...)
         where = ".".join(str(p) for p in err["loc"] if isinstance(p, int) or str(p).isidentifier()) or "(top level)"
+        if re.match(r"[a-z_]+(\.[a-z_]+)* = ", msg.removeprefix("Value error, ")):
+            raise ConfigError(f"config {file}: {msg.removeprefix('Value error, ')}") from exc  # (it names its key)
         # (a rule between keys names them itself: the whole section it was given is no help on one line)
         value = "" if err["type"] == "extra_forbidden" or isinstance(err.get("input"), dict) \
             else f" = {err.get('input')!r}"

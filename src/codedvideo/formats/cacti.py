@@ -186,8 +186,9 @@ class CactiData:
     ----------
     mask : ndarray of shape (N, H, W), uint8 (0 or 1)
     meas : ndarray of shape (Q, H, W), float32
-    orig : ndarray of shape (Q*N, H, W), float32, or None
-        Frames beyond Q*N in the file (F not a multiple of N) are dropped.
+    orig : ndarray of shape (K*N, H, W), float32, or None
+        The truth of the first K <= Q measurements (the field's test files hold it for the first only); frames
+        beyond K*N in the file (F not a multiple of N) are dropped.
     path : Path or None
     """
 
@@ -206,9 +207,14 @@ class CactiData:
         """Q, the number of measurements."""
         return int(self.meas.shape[0])
 
+    @property
+    def scored(self) -> int:
+        """K, the measurements ``orig`` holds the truth of (the first K)."""
+        return 0 if self.orig is None else int(self.orig.shape[0]) // self.frames
+
     def truth(self, q: int) -> np.ndarray | None:
-        """The N frames of measurement ``q`` (0-based), (N, H, W) float32, or None without ``orig``."""
-        if self.orig is None:
+        """The N frames of measurement ``q`` (0-based), (N, H, W) float32, or None where ``orig`` does not cover it."""
+        if q >= self.scored:
             return None
         n = self.frames
         return self.orig[q * n : (q + 1) * n]
@@ -217,8 +223,8 @@ class CactiData:
 def check_cacti(mask: np.ndarray, meas: np.ndarray, orig: np.ndarray | None, *, where: str) -> tuple:
     """Validate time-first CACTI arrays; return (mask uint8, meas float32, orig float32 or None).
 
-    ``orig`` with F frames must give F // N == Q measurements; frames beyond
-    Q*N are dropped.
+    ``orig`` with F frames is the truth of the first F // N measurements, 1 to Q (the field's test files hold
+    it for the first only); frames beyond a whole number of measurements are dropped.
     """
     mask_arr, meas_arr = np.asarray(mask), np.asarray(meas)
     named = (("mask", mask_arr), ("meas", meas_arr)) + ((("orig", np.asarray(orig)),) if orig is not None else ())
@@ -243,10 +249,10 @@ def check_cacti(mask: np.ndarray, meas: np.ndarray, orig: np.ndarray | None, *, 
         f = orig_arr.shape[0]
         if orig_arr.shape[1:] != (h, w):
             raise InputError(f"{where}: orig is {orig_arr.shape[1]}x{orig_arr.shape[2]} pixels, mask is {h}x{w}")
-        if f // n != q:
+        if not 1 <= f // n <= q:
             raise InputError(f"{where}: orig has {f} frames = {f // n} measurements of N = {n} (the mask's frames), "
                              f"but meas holds {q}")
-        truth = np.ascontiguousarray(orig_arr[: q * n], dtype=np.float32)
+        truth = np.ascontiguousarray(orig_arr[: (f // n) * n], dtype=np.float32)
     return mask_arr.astype(np.uint8), np.ascontiguousarray(meas_arr, dtype=np.float32), truth
 
 
@@ -256,14 +262,14 @@ def read_cacti(path: str | os.PathLike) -> CactiData:
     Parameters
     ----------
     path : .mat holding ``mask`` (H, W, N), ``meas`` (H, W, Q) and optionally
-        ``orig`` (H, W, F) with F // N == Q.  A 2-D ``meas`` is one
+        ``orig`` (H, W, F), the truth of the first F // N (1 to Q) measurements.  A 2-D ``meas`` is one
         measurement.
 
     Returns
     -------
     CactiData
         ``mask`` (N, H, W) uint8, ``meas`` (Q, H, W) float32, ``orig``
-        (Q*N, H, W) float32 or None.
+        (K*N, H, W) float32 or None.
     """
     file = Path(path)
     arrays = read_mat_arrays(file, CACTI_KEYS)
