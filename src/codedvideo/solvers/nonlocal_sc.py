@@ -515,7 +515,7 @@ def _guarded(region: _Region, est: np.ndarray, rows: np.ndarray, patches: np.nda
     y, n_pix, tol = p.y[patches], p.n_pix[patches], region.tol[patches]
     frames = region.shape[0]
     own = est[rows]  # (one row a patch of ``patches``)
-    if guard_estimates(own, np.arange(rows.size), y, n_pix, tol, atoms, lambda bad: region.table.solve(
+    if guard_estimates(own, np.arange(rows.size), (y, n_pix, tol), atoms, lambda bad: region.table.solve(
             y[bad], region.pat[patches[bad]], max_atoms=settings.max_atoms, tol=tol[bad], prior=PRIOR),
             frames=frames, energy=estimate_energy(res, own, n_pix, atoms, frames)):
         est[rows] = own

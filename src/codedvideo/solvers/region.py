@@ -476,7 +476,7 @@ def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_row
         counts.atoms += int(res.count.sum())
         counts.hit += int((res.count >= settings.max_atoms).sum())
         counts.dep += int(res.dependent.sum())
-        guard_estimates(est, rows, y, n_pix, tol, atoms, lambda bad: solve(y[bad], sl, bad, tol[bad], prior=PRIOR),
+        guard_estimates(est, rows, (y, n_pix, tol), atoms, lambda bad: solve(y[bad], sl, bad, tol[bad], prior=PRIOR),
                         frames=frames, energy=estimate_energy(res, est[rows], n_pix[rows], atoms, frames))
     return est
 
@@ -526,14 +526,16 @@ def _blown(e: np.ndarray, y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, fra
     return np.ldexp(np.round(mantissa * 1024) / 1024, exponent) > BLOWUP
 
 
-def guard_estimates(est: np.ndarray, rows: np.ndarray, y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray,
-                    atoms: np.ndarray, resolve, *, frames: int, energy: np.ndarray | None = None) -> int:
+def guard_estimates(est: np.ndarray, rows: np.ndarray, measured: tuple, atoms: np.ndarray, resolve, *, frames: int,
+                    energy: np.ndarray | None = None) -> int:
     """The sparse estimates ``est[rows]`` that :func:`_blown` finds invented, solved again with the coefficient
     prior (:data:`codedvideo.solvers.omp.PRIOR`: ``resolve(bad)`` -> the :class:`OmpResult` of the patches
     ``bad``), and those still invented given their still answer (in place); returns how many were solved again.
-    ``energy``: the energies of ``est[rows]`` when known (:func:`estimate_energy`; default: on their measured
-    pixels).
-    On the paper's codes (N = 8, L = 2 or 3) a patch in a few hundred acts, or none."""
+    ``measured``: ``(y, n_pix, tol)`` of the patches of ``est``, their coded values, open counts and squared
+    residual tolerances.  ``energy``: the energies of ``est[rows]`` when known (:func:`estimate_energy`;
+    default: on their measured pixels).  On the paper's codes (N = 8, L = 2 or 3) a patch in a few hundred
+    acts, or none."""
+    y, n_pix, tol = measured
     if not rows.size:
         return 0
     e = _energy(est[rows], n_pix[rows], frames) if energy is None else energy
