@@ -244,3 +244,18 @@ def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(c
     for (_, a, info), (_, b, _) in zip(local, remote):
         assert info["adapted"]["adapted"] and len(info["adapted"].get("rounds", [None])) == rounds
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_scheduler_without_dask_distributed_installed_is_one_line(monkeypatch):
+    """dask.distributed is an extra (its releases pin one dask): without it a scheduler address is refused
+    before any work, naming the extra to install."""
+    import importlib.util
+
+    from codedvideo.engine.config import check_scheduler
+    from codedvideo.model.errors import ConfigError
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "distributed" else real(name, *a))
+    with pytest.raises(ConfigError, match=r"scheduler tcp://127.0.0.1:1: needs dask.distributed.*codedvideo\[distributed\]"):
+        check_scheduler("tcp://127.0.0.1:1")
+    check_scheduler("threads")  # the local schedulers need nothing more

@@ -817,7 +817,12 @@ def check_scheduler(address: str | None, timeout: float = 5.0) -> None:
     """Fail fast, with one line, when a dask.distributed scheduler address cannot be reached."""
     if not address or address in ("threads", "sync"):
         return
+    import importlib.util
     import socket
+
+    if importlib.util.find_spec("distributed") is None:
+        raise ConfigError(f"scheduler {address}: needs dask.distributed, which is not installed "
+                          "(pip install 'codedvideo[distributed]')")
 
     scheme, sep, rest = address.partition("://")
     if sep and scheme not in ("tcp", "tls"):
