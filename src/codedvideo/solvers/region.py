@@ -539,7 +539,13 @@ def guard_estimates(est: np.ndarray, rows: np.ndarray, measured: tuple, atoms: n
     if not rows.size:
         return 0
     e = _energy(est[rows], n_pix[rows], frames) if energy is None else energy
-    bad = rows[_blown(e, y[rows], n_pix[rows], tol[rows], frames)]
+    # the still answer's energy is at least frames ||y||^2 / max(n)^2: the patches under that bound by a margin are
+    # not invented, found without the per-pixel arrays of the exact test (their allocations cost as much as it)
+    low = frames * np.einsum("pm,pm->p", y, y, dtype=np.float64) / np.square(np.maximum(n_pix.max(1), 1e-12),
+                                                                              dtype=np.float64)
+    maybe = e > 0.99 * BLOWUP * low[rows]
+    near = rows[maybe]
+    bad = near[_blown(e[maybe], y[near], n_pix[near], tol[near], frames)]
     if not bad.size:
         return 0
     res = resolve(bad)
