@@ -47,14 +47,6 @@ def _opened(mask: np.ndarray) -> np.ndarray:
     return m > 0 if binary else m >= 0.5 * top
 
 
-def seen_share(mask: np.ndarray, patch: int = PATCH) -> float:
-    """The mean share of the N sub-frames that a ``patch x patch`` window's pixels open in (1: every window sees
-    every sub-frame); a calibrated mask counts weights of at least half its largest as open."""
-    if mask.shape[1] < patch or mask.shape[2] < patch:
-        return 1.0
-    return _seen(_opened(mask), patch)
-
-
 def _window_any(a: np.ndarray, k: int, axis: int) -> np.ndarray:
     """Whether any of ``k`` consecutive entries along ``axis`` of the boolean ``a`` is set, for every window
     (length ``n - k + 1``): spans doubled by or-ing shifted copies, a few passes whatever ``k``."""
@@ -70,7 +62,8 @@ def _window_any(a: np.ndarray, k: int, axis: int) -> np.ndarray:
 
 
 def _seen(opened: np.ndarray, patch: int) -> float:
-    """:func:`seen_share` of the open entries ``opened`` (N, H, W)."""
+    """The mean share of the N sub-frames that a ``patch x patch`` window of the open entries ``opened`` (N, H, W)
+    opens in (1: every window sees every sub-frame)."""
     return float(_window_any(_window_any(opened, patch, 1), patch, 2).mean())
 
 
