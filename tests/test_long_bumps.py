@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import codedvideo as cv
+from codedvideo.data.footage import footage_scene
 from codedvideo.model.metrics import evaluate
 from codedvideo.solvers import guard
 from codedvideo.solvers.baselines import gap_tv, static_estimate
@@ -45,6 +46,20 @@ def test_default_is_not_below_the_simple_answers(frames, code, kw):
     assert out.min() >= -0.25 and out.max() <= 1.25
 
 
+@pytest.mark.parametrize("frames,code,kw", [(8, "flutter", {}), (16, "rowwise", dict(bump=4))])
+def test_a_code_shared_along_an_axis_is_not_below_the_simple_answers_on_real_footage(frames, code, kw):
+    # held-out clips where a code shared by every pixel, or along every row, fell below GAP-TV: the still
+    # estimate by 0.40 dB (carphone), row-wise L = 4 by 0.31 dB (bikes-a)
+    video = (footage_scene("carphone" if code == "flutter" else "bikes-a", frames=frames, size=(SIZE, SIZE))
+             / 255).astype(np.float32)
+    mask = cv.make_code(code, (SIZE, SIZE), frames=frames, seed=0, **kw)
+    coded = cv.simulate(video, mask, seed=1)
+    floor = max(_score(static_estimate(coded, mask), video), _score(gap_tv(coded, mask, data_range=1.0), video))
+    result = cv.reconstruct(coded, mask, data_range=1.0, progress=False, full_output=True)
+    assert _score(result.frames, video) >= floor - 0.3
+    assert "one " in result.info[0]["guard"]["reason"]
+
+
 def test_the_record_says_when_the_guard_blends():
     video, mask, coded = _case(16, "hitomi", bump=12)
     result = cv.reconstruct(coded, mask, data_range=1.0, progress=False, full_output=True)
@@ -58,13 +73,15 @@ def test_the_record_says_when_the_guard_blends():
     (8, "hitomi", dict(bump=3), 1.0),
     (8, "bernoulli", dict(p=0.5), 1.0),
     (16, "hitomi", dict(bump=2), 1.0),
-    (8, "flutter", {}, 1.0),
+    (8, "flutter", {}, 0.5),
     (16, "bernoulli", dict(p=0.1), 1.0),
     (16, "shifting", dict(p=0.5), 1.0),
     (8, "hitomi", dict(bump=4), 1 / 8),
     (16, "hitomi", dict(bump=3), 1 / 6),
     (16, "hitomi", dict(bump=12), 1 / 24),
-    (8, "thinout", {}, 0.25),
+    (8, "thinout", {}, 0.125),
+    (8, "rowwise", dict(bump=2), 0.5),
+    (16, "rowwise", dict(bump=4), 1 / 16),
     (16, "thinout", {}, 0.0),
 ])
 def test_sparse_weight_keeps_the_papers_codes(frames, code, kw, weight):

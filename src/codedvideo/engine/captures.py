@@ -327,6 +327,8 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
     coded_used, mask_used, still, moving, saturated, measured = inputs.used(i)
     if not moving:  # nothing moves: no sparse coding at all
         volume, info = static_volume(coded_used, mask_used)
+        if guard.shared_by_all(mask_used):  # (where every capture looks still: the floor holds there too)
+            volume, info = _guarded(volume, info, coded_used, mask_used, None)
     elif solved is None:
         volume, info = reconstruct_method(o.method, coded_used, mask_used)
     else:
@@ -362,9 +364,10 @@ def _guarded(volume: np.ndarray, info: dict, coded: np.ndarray, mask: np.ndarray
              still: np.ndarray | None) -> tuple[np.ndarray, dict]:
     """A sparse-coded capture's result under the floor of :mod:`codedvideo.solvers.guard`: on a code whose
     patches are blind to what they fit, blended with GAP-TV (working units; the pixels only still patches
-    cover keep their still answer), its weight and reason in the record (``guard``)."""
+    cover keep their still answer), its weight and reason in the record (``guard``).  A still answer is kept
+    as it is, but under a code that every pixel shares (where any scene looks still)."""
     weight, reason = guard.sparse_weight(mask)
-    if weight >= 1.0 or info.get("method") == "static":
+    if weight >= 1.0 or info.get("method") == "static" and not guard.shared_by_all(mask):
         return volume, info
     t0 = time.perf_counter()
     kept = None if still is None else erode_to_patches(still, PATCH)

@@ -13,6 +13,10 @@ was measured above it on held-out footage (docs/research.md, "Long shutter bumps
 * pixels open most of the time (a Bernoulli code of p 0.8 or 0.9): as with long bumps,
   what the closed sub-frames show is too little to choose atoms by.
 
+A code that varies along one image axis only (``rowwise``, ``thinout``) or along none
+(``flutter``, ``global``) gives the 7x7 windows a few patterns to fit by instead of 49,
+and its sparse estimate's weight is halved again.
+
 There the result is a blend, ``w * sparse + (1 - w) * GAP-TV`` (:func:`sparse_weight`);
 on the paper's codes ``w`` is 1 and the sparse estimate is the result, unchanged.
 """
@@ -37,6 +41,8 @@ MIN_SEEN = 7 / 8
 MOSTLY_OPEN = 0.6
 #: From this share on, a few windows that miss a sub-frame (a sparse random code) leave the dictionary alone.
 MOST_SEEN = 0.95
+#: The factor on the weight of a code whose pixels share their pattern along a whole row or column (or both).
+ONE_AXIS = 0.5
 
 
 def _opened(mask: np.ndarray) -> np.ndarray:
@@ -87,7 +93,9 @@ def sparse_weight(mask: np.ndarray, patch: int = PATCH) -> tuple[float, str]:
     * windows that miss some sub-frames (less than :data:`MOST_SEEN` seen): 1/4;
     * a fixed single bump of length ``L >= 3`` with ``L * N`` above :data:`BUMP_SPAN`: ``1 / (2 L)``;
     * any other code open in a share ``f`` above :data:`MOSTLY_OPEN` of its (sub-frame, pixel) entries:
-      ``(1 - f) / (1 - MOSTLY_OPEN)``.
+      ``(1 - f) / (1 - MOSTLY_OPEN)``;
+
+    and times :data:`ONE_AXIS` where every row or every column of pixels shares one pattern.
     """
     m = np.ascontiguousarray(mask)
     key = hashlib.blake2b(m.data, digest_size=16).digest() + repr((m.shape, m.dtype.str, patch)).encode()
@@ -103,11 +111,29 @@ def sparse_weight(mask: np.ndarray, patch: int = PATCH) -> tuple[float, str]:
     return found
 
 
+def shared_by_all(mask: np.ndarray) -> bool:
+    """Whether every pixel of ``mask`` (N, H, W) opens in the same sub-frames (``global``, ``flutter``): a capture
+    under it agrees with a still scene whatever moved, so its still answer is no more certain than the rest."""
+    return bool((mask == mask[:, :1, :1]).all())
+
+
 def _sparse_weight(mask: np.ndarray, patch: int) -> tuple[float, str]:
     """:func:`sparse_weight`, computed."""
+    if shared_by_all(mask):  # (the sparse estimate is the still one; its windows are not weighed)
+        if _opened(mask).all():  # a global shutter: GAP-TV too gives coded / N, the answer
+            return 1.0, ""
+        return ONE_AXIS, "one shutter pattern for every pixel, which shows no motion"
+    rows, columns = bool((mask == mask[:, :, :1]).all()), bool((mask == mask[:, :1, :]).all())
+    weight, reason = _code_weight(mask, patch)
+    if weight == 0.0 or not (rows or columns):
+        return weight, reason
+    shared = f"one pattern along every {'row' if rows else 'column'}"
+    return ONE_AXIS * weight, f"{reason}; {shared}" if reason else shared
+
+
+def _code_weight(mask: np.ndarray, patch: int) -> tuple[float, str]:
+    """:func:`sparse_weight` of ``mask`` without the factor for codes shared along an axis."""
     n = mask.shape[0]
-    if (mask == mask[:, :1, :1]).all():  # one pattern for every pixel (global, flutter): the still estimate's case
-        return 1.0, ""
     opened = _opened(mask)
     seen = _seen(opened, patch) if min(mask.shape[1:]) >= patch else 1.0
     if seen < MIN_SEEN:
