@@ -191,7 +191,7 @@ def test_the_still_path_is_exact_for_a_still_scene(tmp_path, capsys, new_code):
         raise AssertionError(f"{name} is not JSON")
 
     printed = json.loads(capsys.readouterr().out, parse_constant=strict)  # exact frames: null, not Infinity
-    assert printed["psnr"] is None or printed["psnr"] > 60
+    assert printed["psnr"] > 49.9  # (every frame near exact: each counted at the 50 dB ceiling or just under)
     metrics = json.loads((tmp_path / "r.metrics.json").read_text())
     assert all(e["reconstruction"]["still_pixels"] == H * W for e in metrics["captures"])
     assert all(e["reconstruction"]["patches"] == 0 for e in metrics["captures"])

@@ -435,6 +435,11 @@ class ReconstructionJob:
             entry["quality"] = evaluate(frames.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=self.units.value)
             entry["trivial"] = evaluate(self._trivial_of(i).reshape(-1, h, w), truth.reshape(-1, h, w),
                                         data_range=self.units.value)
+            trace = info.get("refine_trace")
+            if trace and abs(trace[-1]["psnr"] - entry["quality"]["psnr"]) > 1e-6:
+                # the result after the refinement's last point: joined with its neighbours, raised to the white
+                # level: the trace ends at the capture's own PSNR
+                trace.append(dict(stage="result", seconds=trace[-1]["seconds"], psnr=entry["quality"]["psnr"]))
             for key in ("psnr", "ssim"):
                 self._frames[key] += entry["quality"][f"{key}_per_frame"]
                 self._trivial[key] += entry["trivial"][f"{key}_per_frame"]
@@ -482,13 +487,26 @@ class ReconstructionJob:
             metrics["quality"], metrics["trivial"] = self._quality(output)
         return metrics
 
+    def _share_solving(self) -> None:
+        """Each capture's ``seconds.reconstruct`` as its share of the stream's: the stream solves a window of
+        captures' tiles in one graph, so the first capture's wait held the others' work; the waits' sum is
+        shared in proportion to the seconds spent on each capture's own tiles in this run (none for tiles
+        reused from the cache)."""
+        infos = [e["reconstruction"] for e in self.entries]
+        work = [float(info.get("seconds_total", 0.0)) for info in infos]
+        if len(infos) < 2 or sum(work) <= 0:
+            return
+        waited = sum(info["seconds"].get("reconstruct", 0.0) for info in infos)
+        for info, w in zip(infos, work):
+            info["seconds"]["reconstruct"] = waited * w / sum(work)
+
     def _stream_totals(self, read: float, write: float, total: float | None) -> dict:
+        self._share_solving()
         entries = self.entries
         t_rec = sum(sum(e["reconstruction"]["seconds"].get(k, 0.0) for k in ("first_pass", "adapt", "reconstruct"))
                     for e in entries)
         # the patches of the tiles computed in this run (a rerun from the cache counted every patch: 1.3 M/s)
-        solved = sum(r["patches"] * r.get("tiles_computed", 0) / max(r.get("tiles", 1), 1)
-                     for r in (e["reconstruction"] for e in entries))
+        solved = sum(r.get("patches_computed", 0.0) for r in (e["reconstruction"] for e in entries))
         kind = self.captures.kind
         return {"layout": "(C, N, H, W)" if kind == "channels" else "(T*N, H, W)",
                 "reconstruction": dict(patches=sum(e["reconstruction"]["patches"] for e in entries),

@@ -505,11 +505,45 @@ def _cmd_reconstruct(a) -> int:
     t_write += time.perf_counter() - t1
     mark_written(a.output)
     metrics = job.record(output=a.output, read=t_read, write=t_write, started=t_all)
+    if metrics.get("quality") and kind in ("single", "captures", "measurements") and _quantised(a.output):
+        metrics["quality"]["output_file"] = _written_quality(a.output, job)
     _warn_replaced_record(metrics_path(a.output), a.output)
     mpath = write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
     print(json.dumps(_summary(metrics, mpath, kind), allow_nan=False))  # strict JSON: an exact PSNR is null
     return 0
+
+
+def _quantised(output) -> bool:
+    """Whether an output holds the reconstruction less exactly than float32: a video (8-bit, H.264 or a GIF's
+    palette) or a folder of 16-bit frames."""
+    from codedvideo.formats.io import VIDEO_SUFFIXES
+
+    return Path(output).suffix.lower() in (*VIDEO_SUFFIXES, "", ".d")
+
+
+def _written_quality(output, job) -> dict:
+    """PSNR/SSIM of the output file as written, decoded and read back in the run's units (a video's 8-bit frames
+    times the data range / 255), against the frames the truth covers."""
+    from codedvideo.formats.io import VIDEO_SUFFIXES
+    from codedvideo.model.metrics import evaluate
+
+    t0 = time.perf_counter()
+    written = _scored_volume(str(output), "reconstruction")
+    truths = []
+    for i in range(job.count):
+        truth = job.captures.truth(i)
+        if truth is None:  # (a benchmark file's truth covers its first measurements only)
+            break
+        truths.append(np.asarray(truth, np.float32).reshape(-1, *job.shape[-2:]))
+    truth = np.concatenate(truths)
+    frames = np.asarray(written[: truth.shape[0]], np.float32)
+    if Path(output).suffix.lower() in VIDEO_SUFFIXES:
+        frames *= np.float32(job.units.value / 255.0)
+    scored = evaluate(frames, truth, data_range=job.units.value)
+    return dict(psnr=scored["psnr"], ssim=scored["ssim"], psnr_per_frame=scored["psnr_per_frame"],
+                ssim_per_frame=scored["ssim_per_frame"], measured_on=f"{output} as written, decoded",
+                seconds=time.perf_counter() - t0)
 
 
 def _summary(metrics: dict, mpath, kind: str) -> dict:
@@ -518,6 +552,9 @@ def _summary(metrics: dict, mpath, kind: str) -> dict:
     quality = metrics.get("quality")
     if quality:
         summary.update(psnr=round(quality["psnr"], 2), ssim=round(quality["ssim"], 4))
+        if "output_file" in quality:  # (the reconstruction's figures above; the file's, quantised or lossy, here)
+            summary.update(output_file_psnr=round(quality["output_file"]["psnr"], 2),
+                           output_file_ssim=round(quality["output_file"]["ssim"], 4))
         if kind == "bayer":
             summary.update(trivial_psnr=round(metrics["trivial"]["psnr"], 2))
         elif kind != "single":

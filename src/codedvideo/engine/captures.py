@@ -395,7 +395,7 @@ def _sparse_info(job: _Job, i: int, solved_info: dict, mask_used) -> dict:
         record = info["adapted"] = job.records.pop(i)
         info["seconds"] = dict(first_pass=record["first_pass"]["seconds"], adapt=record["seconds"], **info["seconds"])
         work = record["first_pass"]["tile_seconds"] + record["seconds"] + info["seconds_total"]
-        info["patches_per_second"] = info["patches"] / max(work, 1e-9) * (info["tiles_computed"] > 0)
+        info["patches_per_second"] = info.get("patches_computed", 0.0) / max(work, 1e-9)
     problem = job.nonlocal_problem(mask_used) if o.method == "nonlocal" else None
     if problem:  # its tiles gave the default's answer: said, not hidden
         info.update(method="omp", nonlocal_unavailable=problem)

@@ -812,5 +812,11 @@ def _verified_volume(store: WorkStore, tiles: list[Tile], computed: set[int], D,
         raise RuntimeError(f"working store {store.path}: tiles {missing} did not finish or do not read back as "
                            f"written after {MAX_ATTEMPTS} attempts")
     totals = dict(zip(STAT_NAMES, stats.sum(0).tolist()))
+    now = np.zeros(len(tiles), bool)
+    now[sorted(computed)] = True
+    for k, name in enumerate(STAT_NAMES):  # seconds: this run's work only (a tile reused cost nothing now)
+        if name.startswith("seconds"):
+            totals[name] = float(stats[now, k].sum())
+    totals["patches_computed"] = float(stats[now, STAT_NAMES.index("patches")].sum())
     return volume, dict(tiles=len(tiles), tiles_computed=len(computed), tiles_reused=len(tiles) - len(computed),
                         seconds_verify=seconds_verify, **totals)

@@ -398,7 +398,7 @@ def _finish_sparse(volume: np.ndarray, summary: dict, coded: np.ndarray, mask: n
         filled_pixels=int(holes.sum()),
         atoms_mean=summary["atoms_total"] / max(summary["patches"] - summary["patches_static"], 1),
         static_fraction=summary["patches_static"] / max(summary["patches"], 1),
-        patches_per_second=summary["patches"] / max(summary["seconds_total"], 1e-9) * (summary["tiles_computed"] > 0),
+        patches_per_second=summary["patches_computed"] / max(summary["seconds_total"], 1e-9),
         measurement_residual_rms=float(np.sqrt(np.mean(residual.astype(np.float64) ** 2))),
         work_store=str(store_path),
         method="sparse",

@@ -39,13 +39,17 @@ def volume_extremes(v) -> tuple[float, float]:
 IMPLAUSIBLE_SHARE = 0.5
 
 
+#: The most a frame's PSNR counts in a mean (dB).  Rounding a frame to 8 bits costs at most half a grey level in
+#: every pixel, 58.9 dB of PSNR or more; below that, a frame reconstructed exactly counts the same whether it
+#: was written as floats (infinite PSNR), 16-bit frames or an 8-bit video, and so does the mean.
+PSNR_CEILING = 50.0
+
+
 def mean_psnr(per_frame) -> float:
-    """The mean PSNR over frames, frames reconstructed exactly left out (their PSNR is infinite: with them the
-    mean of a capture with one still, exact frame was infinite, reported as null, hiding every other frame's
-    error); infinite only when every frame is exact."""
-    values = np.asarray(per_frame, dtype=np.float64)
-    finite = values[np.isfinite(values)]
-    return float(np.mean(finite)) if finite.size else float("inf")
+    """The mean PSNR over frames, each frame's PSNR capped at :data:`PSNR_CEILING` (an exact frame's is infinite;
+    capped, it counts as any frame within 8-bit rounding of its truth would, whatever the output's format)."""
+    values = np.minimum(np.asarray(per_frame, dtype=np.float64), PSNR_CEILING)
+    return float(np.mean(values)) if values.size else float("nan")
 
 
 def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
@@ -61,9 +65,9 @@ def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
 
     Returns
     -------
-    dict with ``psnr``, ``ssim`` (means over frames; the PSNR's over the frames not
-    reconstructed exactly, :func:`mean_psnr`), ``exact_frames``, ``psnr_per_frame``,
-    ``ssim_per_frame`` and ``data_range``.
+    dict with ``psnr``, ``ssim`` (means over frames; the PSNR's with each frame's capped at
+    :data:`PSNR_CEILING`, :func:`mean_psnr`), ``exact_frames``, ``psnr_per_frame`` (uncapped:
+    infinite where a frame is exact), ``ssim_per_frame`` and ``data_range``.
     """
     rec = recon if hasattr(recon, "shape") else np.asarray(recon)
     ref = truth if hasattr(truth, "shape") else np.asarray(truth)
@@ -109,8 +113,8 @@ def mse_psnr(mse: float, data_range: float) -> float:
 
 
 def volume_psnr(recon: np.ndarray, truth: np.ndarray, data_range: float) -> float:
-    """The PSNR of a volume (N, H, W) as :func:`evaluate` gives it (the mean of its frames', :func:`mean_psnr`),
-    without the SSIM."""
+    """The PSNR of a volume (N, H, W) as :func:`evaluate` gives it (the mean of its frames', each capped,
+    :func:`mean_psnr`), without the SSIM."""
     return mean_psnr([frame_psnr(r, t, data_range) for r, t in zip(recon, truth)])
 
 
