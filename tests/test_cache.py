@@ -162,6 +162,19 @@ DAMAGE = {
 }
 
 
+def test_a_tile_whose_checksum_was_deleted_is_counted_as_damaged(scene, reference, tmp_path, caplog):
+    """Reported: recomputed without a word and not counted in tiles_damaged."""
+    coded, mask, D = scene
+    s = OmpSettings(**SETTINGS)
+    reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+    (_entry(tmp_path) / "digest/c/4/0").unlink()
+    with caplog.at_level("WARNING"):
+        again, info = reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+    np.testing.assert_array_equal(again, reference)
+    assert info["tiles_computed"] == 1 and info["tiles_damaged"] == 1
+    assert "tiles [4]" in caplog.text and "damaged" in caplog.text
+
+
 @pytest.mark.parametrize("damage", list(DAMAGE))
 def test_a_damaged_volume_chunk_is_recomputed_not_returned(scene, reference, tmp_path, damage):
     coded, mask, D = scene

@@ -388,6 +388,13 @@ def evaluate(recon, truth, *, data_range: float | None = None) -> dict:
     return scores(*as_scored(frames, reference), data_range=data_range)
 
 
+def shipped_frames() -> list[int]:
+    """The N for which a dictionary is shipped with the package."""
+    from codedvideo.data import shipped
+
+    return shipped.available()
+
+
 def truth_data_range(truth, *, data_range: float | None = None, where: str = "truth"):
     """The data range a reconstruction is scored against (:class:`codedvideo.model.units.DataRange`): the one
     given, or found from the truth's peak (so the same video scores the same in any float scale)."""

@@ -27,7 +27,7 @@ import numpy as np
 from codedvideo import __version__, api
 from codedvideo.api.config import (DEFAULT_CACHE, PRESETS, OutputConfig, PipelineConfig, default_config_path, load_config,
                                    preset_options, validated)
-from codedvideo.model.codes import CODE_NAMES
+from codedvideo.model.codes import CODE_NAMES, short_of
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.formats.outputs import Output, check_outputs, mark_written
 from codedvideo.model.metrics import json_safe
@@ -443,7 +443,11 @@ def _read_captures(a) -> api.Captures:
         want = (coded.shape[0], n, *coded.shape[-2:]) if color else (coded.shape[0] * n, *coded.shape[-2:])
         if truth.shape != want:
             what = "(channels, N, H, W)" if color else "(T*N, H, W) for T coded images of N sub-frames"
-            raise InputError(f"truth {a.truth}: shape {truth.shape} != {what} {want}")
+            given = truth.shape[1] if color else truth.shape[0] // coded.shape[0] * (truth.shape[0] % coded.shape[0] == 0)
+            ask = short_of(n, given)
+            raise InputError(f"truth {a.truth}: shape {truth.shape} != {what} {want}" + (
+                f"; mask {a.mask} has {n} sub-frames where the truth has {given} frames per coded image: {ask}"
+                if ask else ""))
         truths = truth
     labels = ([dict(channel=c) for c in range(coded.shape[0])] if color else
               [{}] if kind == "single" else [dict(capture=t + 1) for t in range(coded.shape[0])])
@@ -741,8 +745,16 @@ def _cmd_codes(a) -> int:
     from codedvideo.formats.volumes import read_masks
 
     masks = read_masks(a.mask)
+    n = masks.shape[-3]
+    shipped = api.shipped_frames()
+    if n not in shipped:  # (a mask folder missing an image reads as a code of fewer sub-frames)
+        near = min((k for k in shipped if 0 < k - n <= 2), default=0)
+        warnings.warn(f"mask {a.mask}: N = {n} sub-frames, for which no dictionary is shipped (shipped: N = "
+                      f"{', '.join(map(str, shipped))}); " + (f"if the code has {near}, {short_of(n, near)} Otherwise, "
+                                                              if near else "")
+                      + f"reconstructing it needs a dictionary trained for N = {n}", stacklevel=2)
     if masks.ndim == 3:
-        print(json.dumps(check_code(masks).as_dict()))
+        print(json.dumps(dict(check_code(masks).as_dict(), dictionary_shipped=n in shipped)))
         return 0
     # one code per capture (simulate --new-code-per-capture): each capture's report, and whether all meet each rule
     reports = [check_code(m).as_dict() for m in masks]
@@ -752,7 +764,7 @@ def _cmd_codes(a) -> int:
     met["bump_length"] = lengths.pop() if met["fixed_bump"] else None
     coverage = [r["window_coverage"] for r in reports]
     met["window_coverage"] = None if None in coverage else all(coverage)
-    print(json.dumps(dict(met, captures=len(reports), per_capture=reports)))
+    print(json.dumps(dict(met, frames=n, dictionary_shipped=n in shipped, captures=len(reports), per_capture=reports)))
     return 0
 
 

@@ -78,8 +78,13 @@ def required(frames: int, where: str, how: str) -> Path:
     arose, the N that are shipped and ``how`` to give a dictionary of one's own (besides training it)."""
     found = verified(frames)
     if found is None:
+        from codedvideo.model.codes import short_of
+
         have = ", ".join(map(str, available())) or "none"
-        raise InputError(f"{where}: no dictionary is shipped for N = {frames} (shipped: N = {have}); train one "
+        near = min((k for k in available() if 0 < k - frames <= 2), default=0)  # (a mask folder missing an image)
+        ask = f"the mask has {frames} sub-frames; if the code has {near}, {short_of(frames, near)} Otherwise, " \
+            if near else ""
+        raise InputError(f"{where}: no dictionary is shipped for N = {frames} (shipped: N = {have}); {ask}train one "
                          f"with {how}")
     return found
 

@@ -428,15 +428,15 @@ def _check_reconstruction(path: Path) -> tuple[str, str]:
     if inputs_digest(coded, mask, still) != attrs.get("inputs_digest"):
         return "broken", "inputs do not match their recorded digest"
     try:
-        ok, damaged, _, stats = store.read_verified(store.tiles())
-        # a tile whose results are written but whose digest is gone (deleted, or a run killed between the
-        # two writes) cannot be verified: damaged, not work left
-        unverifiable = ~store._rows("digest", 0).any(axis=1) & ~np.isnan(stats).all(axis=1)
+        ok, damaged, _, _ = store.read_verified(store.tiles())
+        # of the damaged, a tile whose results are written but whose digest is gone (deleted, or a run killed
+        # between the two writes) cannot be verified: said apart from one that fails its checksum
+        unverifiable = damaged & ~store._rows("digest", 0).any(axis=1)
     except Exception as exc:
         return "broken", f"tiles unreadable ({type(exc).__name__}: {exc})"
     n = len(ok)
-    if damaged.any():
-        bad = np.flatnonzero(damaged).tolist()
+    if (damaged & ~unverifiable).any():
+        bad = np.flatnonzero(damaged & ~unverifiable).tolist()
         return "broken", f"tiles {bad[:20]}{' ...' if len(bad) > 20 else ''} of {n} fail their checksum"
     if unverifiable.any():
         bad = np.flatnonzero(unverifiable).tolist()

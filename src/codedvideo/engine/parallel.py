@@ -751,7 +751,7 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
     else:
         ok, damaged, _, _ = store.read_verified(tiles, assemble=False)
         if damaged.any():
-            log.warning("cache entry %s: tiles %s failed their checksum (damaged); computing them again",
+            log.warning("cache entry %s: tiles %s failed their checksum or lost it (damaged); computing them again",
                         store.path, np.flatnonzero(damaged).tolist())
     todo = tuple(t for t in tiles if not ok[t.index])
     stride, reach = settings.stride, [None] * len(todo)

@@ -205,7 +205,10 @@ def check_dictionary(meta: dict, frames: int, path, D: np.ndarray | None = None,
     if not isinstance(built, int) or isinstance(built, bool):
         raise InputError(f"dictionary {path}: its record's frames {built!r} is not a whole number of sub-frames")
     if built != frames:
-        raise InputError(f"dictionary {path}: built for N = {built} sub-frames, {needs} N = {frames}")
+        from codedvideo.model.codes import short_of
+
+        raise InputError(f"dictionary {path}: built for N = {built} sub-frames, {needs} N = {frames}"
+                         + (f": {short_of(frames, built)}" if needs == "the mask has" and built > frames else ""))
     if D is not None and D.shape[0] != frames * PATCH * PATCH:
         raise InputError(f"dictionary {path}: atoms of {D.shape[0]} rows; N = {frames} needs N x {PATCH * PATCH} = "
                          f"{frames * PATCH * PATCH}")
@@ -582,7 +585,8 @@ class WorkStore:
         ok : bool array (n_tiles,)
             The tile was asked for and matches its digest.
         damaged : bool array (n_tiles,)
-            The tile has a digest but it does not match, or its chunk cannot be decoded.
+            The tile has a digest but it does not match, or its chunk cannot be decoded, or it was
+            written (its statistics row holds numbers) but has no digest.
         volume : ndarray (N, H, W) float32
         stats : ndarray (n_tiles, n_stats) float64
             The statistics rows as read (valid where ``ok``).
@@ -622,6 +626,9 @@ class WorkStore:
                 if assemble and not adopt:
                     assembled[:, y0:y1, x0:x1] = core
             else:
+                damaged[t.index] = True
+        for t in wanted:  # written (its statistics row is there) but its digest gone: deleted, or cut short
+            if not digests[t.index].any() and np.isfinite(stats[t.index]).any():
                 damaged[t.index] = True
         if adopt:  # never hand out a core that failed
             for t in wanted:

@@ -488,3 +488,13 @@ def check_code(mask: np.ndarray, patch: int = PATCH) -> CodeReport:
         weight_max=float(arr.max()) if arr.size else 0.0,
         open_threshold=threshold,
     )
+
+
+def short_of(frames: int, wanted: int) -> str:
+    """The question to add to a message when a mask of ``frames`` sub-frames meets an input (the truth, a
+    dictionary) made for ``wanted``: a mask folder missing an image reads as a code of fewer sub-frames, and the
+    mask is then the input to look at (empty where the mask has as many or more)."""
+    if wanted <= frames:
+        return ""
+    some = "a sub-frame" if wanted - frames == 1 else f"{wanted - frames} sub-frames"
+    return f"is {some} missing from the mask (a mask folder needs one image per sub-frame)?"
