@@ -21,13 +21,14 @@ from __future__ import annotations
 import contextlib
 import functools
 import tempfile
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from codedvideo.api._settings import ReconstructSettings, in_api_terms
+from codedvideo.model import doors
+from codedvideo.api._settings import ReconstructSettings
+from codedvideo.model.doors import through
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
@@ -36,21 +37,14 @@ __all__ = ["CodedVideoError", "ConfigError", "InputError", "Reconstruction", "Re
 
 
 def _door(fn):
-    """A public function of the API: what it warns is said at the caller's line, and its warnings and errors name
-    the API's arguments (``noise_sigma``), not the command line's options (``--noise-sigma``)."""
+    """A public function of the API: its warnings and errors name the API's arguments (``noise_sigma``), not the
+    command line's options (``--noise-sigma``), and each warning is said when it happens, at the caller's line
+    (:mod:`codedvideo.model.doors`)."""
 
     @functools.wraps(fn)
     def called(*args, **kwargs):
-        caught = []
-        try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                return fn(*args, **kwargs)
-        except CodedVideoError as exc:
-            raise type(exc)(in_api_terms(str(exc))) from exc
-        finally:
-            for said in caught:
-                warnings.warn(in_api_terms(str(said.message)), said.category, stacklevel=2)
+        with through("api"):
+            return fn(*args, **kwargs)
 
     return called
 
@@ -412,7 +406,7 @@ def as_scored(recon, truth, *, names: tuple[str, str] = ("reconstruction", "trut
     pair = (recon, truth)
     if len(truth.shape) != len(recon.shape) and 4 in (len(truth.shape), len(recon.shape)):  # colour against grey
         colour, grey = names if len(recon.shape) == 4 else names[::-1]
-        warnings.warn(f"evaluate: {colour} is colour and {grey} grey; compared as luma", stacklevel=3)
+        doors.warn(f"evaluate: {colour} is colour and {grey} grey; compared as luma")
         pair = tuple(np.tensordot(LUMA, np.asarray(v, np.float32), axes=([0], [0])) if len(v.shape) == 4 else v
                      for v in pair)
     if len(pair[1].shape) == 4 and tuple(pair[0].shape) == tuple(pair[1].shape):  # colour: every channel's frames
@@ -437,9 +431,9 @@ def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, s
     # another unit: a score that means nothing; against the truth's own peak, not its range (a dark scene's
     # reconstruction peaks as far below 255 as its truth does)
     if other_units(peak, recon_peak):
-        warnings.warn(f"evaluate: {names[0]} peaks at {recon_peak:.4g} and {names[1]} at {peak:.4g} (data range "
+        doors.warn(f"evaluate: {names[0]} peaks at {recon_peak:.4g} and {names[1]} at {peak:.4g} (data range "
                       f"{units.value:g}, {units.source}); are they in the same units? (a [0, 1] reconstruction "
-                      "against 8-bit truth scores about 10 dB)", stacklevel=2)
+                      "against 8-bit truth scores about 10 dB)")
     return json_safe(dict(_evaluate(frames, reference, data_range=units.value), data_range_source=units.source,
                           psnr_peak=dict(value=units.value, source=units.source), **extra))
 

@@ -14,11 +14,11 @@ import functools
 import hashlib
 import os
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.api._settings import Resolved, for_noise, setting_name
 from codedvideo.solvers.guard import sparse_weight
 from codedvideo.engine.bayer import check_even, reconstruct_bayer, static_estimate
@@ -224,10 +224,10 @@ def _clipped_at_type_maximum(captures: Captures, door: str) -> float | None:
     if found is None:
         return None
     level, held, measured = found
-    warnings.warn(f"{captures.source}: {held} of {measured} measured pixels ({held / measured:.1%}) hold {level:g}, "
+    doors.warn(f"{captures.source}: {held} of {measured} measured pixels ({held / measured:.1%}) hold {level:g}, "
                   f"the largest value of {np.dtype(captures.dtype).name}: clipped by the sensor; they are kept as "
                   f"measurements of at least {level:g} ({setting_name('white_level', door)} sets another level, "
-                  f"{setting_name('trust_saturated', door)} takes them as exact)", stacklevel=2)
+                  f"{setting_name('trust_saturated', door)} takes them as exact)")
     return level
 
 
@@ -248,7 +248,7 @@ def job_dictionary(r: Resolved, frames: int, one_pattern=lambda: False) -> tuple
         return dct_dictionary(frames), "", ""
     if given is None or isinstance(given, (str, Path)):
         path = given or shipped.required(frames, "reconstruct", f"`{shipped.train_command(frames)}` and give "
-                                         f"--dictionary dict-N{frames}.zarr")
+                                         f"{doors.name('dictionary')} dict-N{frames}.zarr")
         D, meta = load_dictionary(path)
         check_dictionary(meta, frames, path, D)
         return D, meta.get("sha256", ""), str(path)
@@ -321,20 +321,20 @@ class ReconstructionJob:
         if job.truths is not None:  # a truth in other units than the captures': every score would mean nothing
             truth_peak = volume_peak(job.truth(0))  # (the first capture's: a long stream's is not read twice)
             if other_units(self.units.peak, truth_peak):
-                warnings.warn(f"{job.source.rsplit(':', 1)[0]}: truth peaks at {truth_peak:.4g} and the coded "
+                doors.warn(f"{job.source.rsplit(':', 1)[0]}: truth peaks at {truth_peak:.4g} and the coded "
                               f"images' coded / open count at {self.units.peak:.4g}; are they in the same units? "
                               f"(every PSNR is taken against the data range {self.units.value:g}, "
-                              f"{self.units.source})", stacklevel=2)
+                              f"{self.units.source})")
         if r.method in SPARSE:
             message = tolerance_warning(job.codeds[0] * np.float32(self.units.scale), self.omp.tol_rms)
             if message:
-                warnings.warn(f"{message} (data range {self.units.value:g} from {self.units.source})", stacklevel=2)
+                doors.warn(f"{message} (data range {self.units.value:g} from {self.units.source})")
             if r.cache is not None:  # a working store a capture: said before any work when the disk may not hold them
                 n, (h, w) = self.n, job.codeds[0].shape[-2:]
                 problem = cache_room(r.cache, self.count, (3 * n if job.kind == "bayer" else n, h, w), tile=r.rc.tile,
                                      budget=r.rc.cache_budget, adapt=r.rc.adapt, adapt_rounds=r.rc.adapt_rounds)
                 if problem:
-                    warnings.warn(problem, stacklevel=2)
+                    doors.warn(problem)
 
     def capture_settings(self, cache) -> CaptureSettings:
         """The engine's settings of this job, working in ``cache``."""
@@ -416,11 +416,11 @@ class ReconstructionJob:
         if lo < -IMPLAUSIBLE_SHARE * value or hi > (1 + IMPLAUSIBLE_SHARE) * value:
             self._implausible_said = True
             where = self.captures.source if self.count == 1 else f"{self.captures.source}, capture {i + 1}"
-            warnings.warn(f"{where}: the reconstruction holds values from {lo:.4g} to {hi:.4g}, far outside the data "
+            doors.warn(f"{where}: the reconstruction holds values from {lo:.4g} to {hi:.4g}, far outside the data "
                           f"range [0, {value:g}] ({self.units.source}): a data range or white level that does "
                           f"not fit the captures, or a code that leaves the motion nearly unobserved for the "
                           f"method {self.r.method} (long shutter bumps make it ill-conditioned); compare the "
-                          "trivial estimate in the record, or --method gaptv", stacklevel=2)
+                          f"trivial estimate in the record, or {doors.name('method')} gaptv")
 
     def _entry(self, i: int, volume, info: dict) -> dict:
         job = self.captures

@@ -11,11 +11,12 @@ its output: seconds per stage, patches per second, atoms used, and PSNR/SSIM whe
 from __future__ import annotations
 
 import time
-import warnings
 from pathlib import Path
 
+from codedvideo.model import doors
 from codedvideo.api._job import Captures, ReconstructionJob
-from codedvideo.api._settings import ReconstructSettings, in_terms, resolve
+from codedvideo.api._settings import ReconstructSettings, resolve
+from codedvideo.model.doors import through
 from codedvideo.data.scenes import load_video
 from codedvideo.engine.config import PRESET_KEYS, PipelineConfig
 from codedvideo.engine.simulation import sensor_model, simulate_capture
@@ -29,8 +30,13 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
 
     Every output is checked before any work (:func:`codedvideo.formats.outputs.check_outputs`):
     none may touch the config file, the scene, the code file, the dictionary,
-    the training videos or the cache.
+    the training videos or the cache.  Its messages name the settings as pipeline.yaml does.
     """
+    with through("config"):
+        return _run_pipeline(cfg, progress=progress, config_path=config_path)
+
+
+def _run_pipeline(cfg: PipelineConfig, *, progress: bool, config_path: str | Path | None) -> dict:
     from codedvideo.formats.outputs import mark_written
 
     out = Path(cfg.output.dir)
@@ -78,8 +84,8 @@ def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str
     if "simulate" in cfg.stages and "reconstruct" not in cfg.stages:
         earlier = [p for p in (out / cfg.output.video, out / "recon.npy", out / "frames") if p.exists()]
         if earlier:
-            warnings.warn(f"{', '.join(map(str, earlier))}: from an earlier run, not reconstructed from this capture "
-                          "(run the reconstruct stage to replace them)", stacklevel=2)
+            doors.warn(f"{', '.join(map(str, earlier))}: from an earlier run, not reconstructed from this capture "
+                          "(run the reconstruct stage to replace them)")
     mark_written(write_json(mpath, report))
     report["metrics_path"] = str(mpath)
     return report
@@ -151,17 +157,10 @@ def _reconstruct(cfg: PipelineConfig, capture: dict, dict_path, out: Path, repor
     sensor = sensor_model(cfg.noise)
     # with shot noise / quantisation: the RMS noise at the mean coded level
     sigma = sensor.noise_sigma(float(capture["coded"].mean())) if sensor else cfg.noise.sigma
-    said: list = []
-    try:
-        with warnings.catch_warnings(record=True) as said:  # (said in pipeline.yaml's terms, below)
-            warnings.simplefilter("always")
-            resolved = resolve(run_settings(cfg, dict_path, sigma, progress), door="config")
-            job = ReconstructionJob(Captures(codeds=[capture["coded"]], masks=[capture["mask"]],
-                                             truths=capture["truth"] if "evaluate" in cfg.stages else None,
-                                             source="simulated capture"), resolved)
-    finally:  # (outside the catch, so that what is said again is not caught again)
-        for w in said:
-            warnings.warn(in_terms(str(w.message), "config"), w.category, stacklevel=3)
+    resolved = resolve(run_settings(cfg, dict_path, sigma, progress), door="config")
+    job = ReconstructionJob(Captures(codeds=[capture["coded"]], masks=[capture["mask"]],
+                                     truths=capture["truth"] if "evaluate" in cfg.stages else None,
+                                     source="simulated capture"), resolved)
     report["preset"] = job.r.preset
     report["data_range"] = job.units.as_dict()
     t0 = time.perf_counter()

@@ -6,7 +6,6 @@ calls it (``--noise-sigma`` on the command line, ``noise_sigma`` in Python)."""
 from __future__ import annotations
 
 import dataclasses
-import re
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -14,15 +13,8 @@ from codedvideo.engine.config import (PRESET_KEYS, NoiseConfig, OutputConfig, Re
                                       check_scheduler, preset_record, resolve_preset, validated)
 from codedvideo.engine.methods import WITH_DICTIONARY
 from codedvideo.formats.atomic import check_cache
-from codedvideo.model.errors import CodedVideoError, ConfigError
-
-#: The doors a setting can be named through: the command line, the Python API, pipeline.yaml.
-DOORS = ("cli", "api", "config")
-
-#: pipeline.yaml's keys of the settings it holds outside ``reconstruct:``.
-_CONFIG_KEYS = {"noise_sigma": "noise.sigma", "white_level": "noise.white_level", "black_level": "noise.black_level",
-                "bits": "noise.bits", "data_range": "output.data_range", "bayer": "bayer", "cache": "cache"}
-
+from codedvideo.model.doors import name as setting_name, through
+from codedvideo.model.errors import ConfigError
 
 @dataclass(frozen=True)
 class ReconstructSettings:
@@ -84,16 +76,6 @@ class Resolved:
         return getattr(self.settings, name)
 
 
-def setting_name(field: str, door: str) -> str:
-    """What ``door`` calls a setting: ``--noise-sigma`` on the command line, ``noise_sigma`` in Python,
-    ``noise.sigma`` in pipeline.yaml."""
-    if door == "cli":
-        return "--" + field.replace("_", "-")
-    if door == "config":
-        return _CONFIG_KEYS.get(field, f"reconstruct.{field}")
-    return field
-
-
 #: The settings whose config field is named otherwise.
 _FIELDS = {"sigma": "noise_sigma"}
 
@@ -105,37 +87,10 @@ def _names(door: str) -> dict[str, str]:
     return names
 
 
-def in_terms(message: str, door: str = "api") -> str:
-    """A message that names command-line options, with ``door``'s names in their place (``--noise-sigma`` ->
-    ``noise_sigma`` in Python, ``noise.sigma`` in pipeline.yaml): the options of reconstruct and simulate that
-    the door takes."""
-    if door == "cli":
-        return message
-    known = {f.name for f in fields(ReconstructSettings)} | {"shot_noise", "full_well", "gain", "seed", "frames"}
-
-    def swap(match: re.Match) -> str:
-        field = match.group(1).replace("-", "_")
-        return setting_name(field, door) if field in known else match.group(0)
-
-    # a command quoted in backticks (`codedvideo train --frames 1 ...`) keeps its options: it is run as written
-    parts = re.split(r"(`[^`]*`)", message)
-    return "".join(part if part.startswith("`") else re.sub(r"(?<![\w-])--([a-z][a-z-]*)", swap, part)
-                   for part in parts)
-
-
-def in_api_terms(message: str) -> str:
-    """:func:`in_terms` for the Python API."""
-    return in_terms(message, "api")
-
-
 def resolve(settings: ReconstructSettings, *, door: str = "api") -> Resolved:
     """Check ``settings`` before any work and resolve the preset; a bad value raises one line naming it."""
-    try:
+    with through(door):  # (its messages name the settings as ``door`` does)
         return _resolve(settings, door)
-    except CodedVideoError as exc:
-        if door == "cli":
-            raise
-        raise type(exc)(in_terms(str(exc), door)) from exc
 
 
 def _given(s: ReconstructSettings) -> dict:
@@ -147,7 +102,7 @@ def _resolve(s: ReconstructSettings, door: str) -> Resolved:
     names = _names(door)
     given = _given(s)
     options, left_out = resolve_preset(s.preset, given, bayer=s.bayer)  # (an option given and refused: an error)
-    preset = preset_record(s.preset, options, given, {k: in_terms(why, door) for k, why in left_out.items()})
+    preset = preset_record(s.preset, options, given, left_out)
     method = options["method"]
     if s.dictionary is not None and method not in WITH_DICTIONARY:
         shown = s.dictionary if isinstance(s.dictionary, (str, Path)) else "(an array)"
@@ -185,8 +140,7 @@ def for_noise(r: Resolved, noise: float, blind: str = "") -> Resolved:
     if left_out.keys() == r.preset["left_out"].keys():
         return r
     rc = r.rc.model_copy(update={k: options[k] for k in PRESET_KEYS if k != "method"})
-    record = preset_record(s.preset, options, given, {k: in_terms(why, r.door) for k, why in left_out.items()},
-                           said=r.preset["left_out"])
+    record = preset_record(s.preset, options, given, left_out, said=r.preset["left_out"])
     return dataclasses.replace(r, rc=rc, method=options["method"], preset=record)
 
 

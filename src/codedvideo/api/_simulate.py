@@ -4,9 +4,9 @@ whole (:func:`simulate_whole`) or, for a video file, one capture at a time (:fun
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
+from codedvideo.model import doors
 from codedvideo.api._settings import setting_name
 from codedvideo.engine.config import (BUMP_CODES, P_CODES, CodeConfig, NoiseConfig, PipelineConfig, SceneConfig,
                                       validated)
@@ -163,8 +163,8 @@ def captures_of(plan: SimulationPlan) -> int:
     if captures < 1:
         raise InputError(f"video {s.video}: fewer than N = {s.frames} frames from frame {s.start}")
     if left:
-        warnings.warn(f"video {s.video}: {total} frames from frame {s.start} make {captures} captures of N = "
-                      f"{s.frames}; its last {left} frames are left out", stacklevel=2)
+        doors.warn(f"video {s.video}: {total} frames from frame {s.start} make {captures} captures of N = "
+                      f"{s.frames}; its last {left} frames are left out")
     return captures
 
 

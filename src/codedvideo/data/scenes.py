@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import logging
-import warnings
 from pathlib import Path
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.formats import io as cio
 from codedvideo.data import manifest
 from codedvideo.data import synth
@@ -127,8 +127,8 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max
             limit = max(frames, TRAINING_PIXELS // max(video.shape[-2] * video.shape[-1], 1))
         if video.shape[0] > limit:
             video = video[:limit]
-            warnings.warn(f"training video {spec}: only its first {limit} frames are used (at most "
-                          f"{TRAINING_PIXELS // 2**20} M pixels a video)", stacklevel=2)
+            doors.warn(f"training video {spec}: only its first {limit} frames are used (at most "
+                          f"{TRAINING_PIXELS // 2**20} M pixels a video)")
         f, h, w = video.shape
         if f < frames or min(h, w) < patch:
             problems.append(f"{spec} ({f} frames of {h}x{w})")
@@ -140,7 +140,7 @@ def training_videos(specs: list[str], *, frames: int, clips: int, seed: int, max
         raise InputError(f"training: no video is usable, each needs {need}: " + "; ".join(problems)
                          if problems else "training: no training video given")
     if problems:
-        warnings.warn(f"training videos left out, each needs {need}: " + "; ".join(problems), stacklevel=2)
+        doors.warn(f"training videos left out, each needs {need}: " + "; ".join(problems))
     return videos, used
 
 

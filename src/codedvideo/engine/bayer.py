@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.engine.methods import SPARSE
 from codedvideo.engine.methods import method as method_named
 from codedvideo.model.errors import InputError
@@ -30,7 +31,7 @@ def check_pattern(pattern: str) -> str:
     """The pattern name (case-insensitive) upper-cased, or a one-line :class:`InputError`."""
     name = str(pattern).upper()
     if name not in PATTERNS:
-        raise InputError(f"--bayer {pattern}: unknown Bayer pattern (choose from {', '.join(PATTERNS)})")
+        raise InputError(f"{doors.name('bayer')} {pattern}: unknown Bayer pattern (choose from {', '.join(PATTERNS)})")
     return name
 
 
@@ -38,8 +39,8 @@ def check_even(shape: tuple, where: str) -> None:
     """Raise :class:`InputError` naming ``where`` unless H and W are even (whole 2 x 2 Bayer cells)."""
     h, w = shape[-2:]
     if h % 2 or w % 2:
-        raise InputError(f"{where}: {h}x{w} pixels is not a whole number of 2x2 Bayer cells under --bayer "
-                         "(rows and columns must be even)")
+        raise InputError(f"{where}: {h}x{w} pixels is not a whole number of 2x2 Bayer cells under "
+                         f"{doors.name('bayer')} (rows and columns must be even)")
 
 
 def cfa_index(pattern: str, shape: tuple) -> np.ndarray:
@@ -292,7 +293,7 @@ def color_dictionary(D: np.ndarray, frames: int, chroma_fraction: float = CHROMA
     """
     from codedvideo.solvers.dictionaries import prepare_dictionary
 
-    atoms = np.asarray(prepare_dictionary(np.asarray(D, np.float32), "for --bayer"), np.float64)
+    atoms = np.asarray(prepare_dictionary(np.asarray(D, np.float32), f"for {doors.name('bayer')}"), np.float64)
     k = atoms.shape[1]
     cube = atoms.reshape(frames, 7, 7, k)
     rough = (np.diff(cube, axis=1) ** 2).sum((0, 1, 2)) + (np.diff(cube, axis=2) ** 2).sum((0, 1, 2))
@@ -374,8 +375,8 @@ def reconstruct_bayer(options: CaptureSettings, coded: np.ndarray, mask: np.ndar
     measured = np.ones(mosaicked.shape, bool) if white_level is None else mosaicked < np.float32(white_level)
     if (codes == codes[:, :1, :1]).all():  # one shutter pattern everywhere: no temporal information
         if not measured.any():
-            raise InputError(f"{where}: every pixel is at or above --white-level "
-                             f"{white_level}; nothing is left to reconstruct (--trust-saturated uses them anyway)")
+            raise InputError(f"{where}: every pixel is at or above {doors.name('white_level')} {white_level}; nothing "
+                             f"is left to reconstruct ({doors.name('trust_saturated')} uses them anyway)")
         volume = static_estimate(mosaicked, codes, colours, measured)
         info = dict(method="static", patches=0, patches_per_second=0.0,
                     seconds=dict(reconstruct=time.perf_counter() - t0), saturated_pixels=int((~measured).sum()))

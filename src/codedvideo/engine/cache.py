@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.engine.config import parse_size
 from codedvideo.formats.atomic import discard, temporary_pattern
 from codedvideo.model.errors import InputError
@@ -288,8 +289,8 @@ def cache_room_problem(cache: str | os.PathLike, stores: int, frames: int, heigh
         return None
     if need <= free:
         return None
-    advice = ("give --cache-budget (reconstruct.cache_budget) below the free space" if budget is None else
-              "give a smaller --cache-budget")
+    option = doors.name("cache_budget")
+    advice = (f"give {option} below the free space" if budget is None else f"give a smaller {option}")
     return (f"cache {cache}: this job's working stores may take about {_human(need)} ({stores} "
             f"{'store' if stores == 1 else 'stores'} of about {_human(each)}), and its disk has "
             f"{_human(free)} free; {advice}, or a cache on a larger disk")

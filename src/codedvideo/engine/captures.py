@@ -14,12 +14,12 @@ import contextlib
 import dataclasses
 import functools
 import time
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.engine import methods
 from codedvideo.engine.adaptation import ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP, adapt_capture
 from codedvideo.engine.cache import CacheBudget, content_key
@@ -169,13 +169,14 @@ class _Inputs:
         saturated = int(np.count_nonzero((np.asarray(coded) >= np.float32(white_level)) & opened))
         if saturated and saturated == int(np.count_nonzero(opened)):
             if count == 1:
-                raise InputError(f"{where}: every measured pixel is at or above --white-level {white_level}; "
-                                 "nothing is left to reconstruct (--trust-saturated uses them anyway)")
+                raise InputError(f"{where}: every measured pixel is at or above {doors.name('white_level')} "
+                                 f"{white_level}; nothing is left to reconstruct ({doors.name('trust_saturated')} uses "
+                                 "them anyway)")
             # one blown-out capture of a stream (a flash, the sun): its clipped values, said, and the rest go on
             if i not in self.blown:
                 self.blown.add(i)
-                warnings.warn(f"{where}, capture {i + 1} of {count}: every measured pixel is at or above "
-                              f"--white-level {white_level}; it is reconstructed from its clipped values")
+                doors.warn(f"{where}, capture {i + 1} of {count}: every measured pixel is at or above "
+                           f"{doors.name('white_level')} {white_level}; it is reconstructed from its clipped values")
             return coded, mask, 0
         return coded, mask, saturated
 
@@ -224,7 +225,7 @@ def _prepare(options: CaptureSettings, codeds, mask_of, still_of) -> _Job:
                                                   frames=mask_of(0).shape[0])
         resolved = dataclasses.replace(options, settings=settings, dictionary=dictionary, dictionary_key=key)
     if options.adapt and not entry.adapts:
-        raise ConfigError(f"--adapt: method {options.method} has no dictionary to adapt "
+        raise ConfigError(f"{doors.name('adapt')}: method {options.method} has no dictionary to adapt "
                           f"({', '.join(methods.ADAPTIVE[:-1])} and {methods.ADAPTIVE[-1]} have)")
     # --adapt with the non-local method: a first pass on a sparser grid of groups (a survey: what K-SVD learns
     # from and the groups of the second pass are matched on), then the groups solved from it (no default tiles);
@@ -401,8 +402,8 @@ def _sparse_info(job: _Job, i: int, solved_info: dict, mask_used) -> dict:
         info.update(method="omp", nonlocal_unavailable=problem)
         if not job.warned_nonlocal:
             adapted = " with the adapted dictionary" if info.get("adapted") else ""
-            warnings.warn(f"--method nonlocal ({o.where}): {problem}; the result is the per-patch OMP's{adapted} "
-                          "(for every capture with such a code: nonlocal_unavailable in the metrics)")
+            doors.warn(f"{doors.name('method')} nonlocal ({o.where}): {problem}; the result is the per-patch "
+                       f"OMP's{adapted} (for every capture with such a code: nonlocal_unavailable in the metrics)")
             job.warned_nonlocal = True
     return info
 
@@ -430,7 +431,7 @@ def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict
                                             tick=None if bar is None else (lambda: bar.update(1)),
                                             watch=watch, overwrite=True)
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
-        raise OutputError(f"{where}: the refinement gave non-finite values; run without --refine")
+        raise OutputError(f"{where}: the refinement gave non-finite values; run without {doors.name('refine')}")
     seconds = dict(info.get("seconds", {}), refine=record["seconds"])
     return refined, dict(info, refine=record, seconds=seconds)
 
@@ -517,7 +518,7 @@ def sparse_method(method: str, settings: OmpSettings, dictionary: np.ndarray | N
     if not entry.dictionary:  # (dct: its own atoms)
         atoms, key = dct_dictionary(frames), ""
     elif dictionary is None:
-        raise InputError(f"method {method}: needs a dictionary (--dictionary DICT.zarr)")
+        raise InputError(f"method {method}: needs a dictionary ({doors.name('dictionary')} DICT.zarr)")
     else:
         atoms, key = dictionary, dictionary_key
     prepared = prepare_dictionary(atoms, dictionary_name or f"of method {method}")

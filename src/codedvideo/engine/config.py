@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import re
-import warnings
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -16,6 +15,7 @@ import platformdirs
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
+from codedvideo.model import doors
 from codedvideo.engine.methods import ADAPTIVE, WITH_DICTIONARY
 from codedvideo.model.errors import ConfigError
 from codedvideo.model.patches import PATCH
@@ -541,16 +541,17 @@ def _refusal(key: str, options: dict) -> str | None:
     with a dictionary, ``adapt_rounds`` other than 1 needs ``adapt``."""
     method = options["method"]
     if key == "adapt_rounds" and options["adapt_rounds"] != 1 and not options["adapt"]:
-        return "applies with --adapt only"
+        return f"applies with {doors.name('adapt')} only"
     if key == "adapt" and options["adapt"] and method not in ADAPTIVE:
-        return (f"adapts the dictionary of --method {', '.join(ADAPTIVE[:-1])} or {ADAPTIVE[-1]} (--method {method} "
+        option = doors.name("method")
+        return (f"adapts the dictionary of {option} {', '.join(ADAPTIVE[:-1])} or {ADAPTIVE[-1]} ({option} {method} "
                 "has none)")
     return None
 
 
 def as_option(key: str, value) -> str:
-    """A preset's key as the command line gives it: ``--adapt``, ``--method nonlocal``."""
-    return PRESET_KEYS[key] + ("" if value is True else f" {value}")
+    """A preset's key as the door of the call gives it: ``--adapt``, ``--method nonlocal`` on the command line."""
+    return doors.name(key) + ("" if value is True else f" {value}")
 
 
 def preset_options(name: str) -> str:
@@ -644,9 +645,9 @@ def preset_record(name: str | None, options: dict, given=(), left_out: dict | No
         if k not in said:
             by_reason.setdefault(why, []).append(as_option(k, PRESETS[name][k]))
     if by_reason:
-        warnings.warn(f"preset {name}: " + "; ".join(f"{', '.join(keys)} {'is' if len(keys) == 1 else 'are'} left out: "
+        doors.warn(f"preset {name}: " + "; ".join(f"{', '.join(keys)} {'is' if len(keys) == 1 else 'are'} left out: "
                                                      f"{why}" for why, keys in by_reason.items())
-                      + "; the defaults are taken in their place (preset.left_out in the metrics)", stacklevel=2)
+                      + "; the defaults are taken in their place (preset.left_out in the metrics)")
     return dict(name=name, options={k: options[k] for k in PRESET_KEYS}, given=sorted(given),
                 left_out=dict(left_out or {}))
 
@@ -787,9 +788,9 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
     beside = {k: v for k, v in section.items() if k in PRESETS.get(name, {}) and v != PRESETS[name][k]} \
         if name and isinstance(section, dict) else {}
     if beside:  # (a pipeline.yaml that lists every key at its default would leave the preset nothing to set)
-        warnings.warn(f"config {file}: " + ", ".join(f"reconstruct.{k} {v}" for k, v in beside.items())
+        doors.warn(f"config {file}: " + ", ".join(f"reconstruct.{k} {v}" for k, v in beside.items())
                       + f" given beside reconstruct.preset {name} {'wins' if len(beside) == 1 else 'win'} over the "
-                      + "preset's " + ", ".join(f"{PRESETS[name][k]}" for k in beside), stacklevel=2)
+                      + "preset's " + ", ".join(f"{PRESETS[name][k]}" for k in beside))
     return cfg
 
 
@@ -809,7 +810,7 @@ def validated(model: type[BaseModel], values: dict, options: dict[str, str] | No
                 msg = re.sub(rf"\b[a-z_]+\.{field}\b", option, msg)
             raise ConfigError(f"options: {msg.removeprefix('Value error, ')}") from exc
         field = str(err["loc"][0])
-        option = (options or {}).get(field, "--" + field.replace("_", "-"))
+        option = (options or {}).get(field, doors.name(field))
         raise ConfigError(f"option {option} {values.get(field)!r}: {msg.removeprefix('Value error, ')}") from exc
 
 

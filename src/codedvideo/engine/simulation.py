@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.formats.volumes import load_code_file
 from codedvideo.model import physics
 from codedvideo.model.codes import make_code
@@ -103,9 +103,11 @@ def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: 
         top = float(coded.max(initial=0.0))
         share = float(np.mean(coded >= top)) if sensed is not None and top > 0 else 0.0
         if share > 0.5 and not warned:  # the sensor's ceiling (full well / gain, white level, ADC) everywhere
-            warnings.warn(f"{share:.0%} of the pixels of capture {t + 1} are at the sensor's ceiling ({top:g}: the "
-                          "full well over the gain, --white-level or --bits): the capture is saturated; give the "
-                          "sensor settings in the video's units (a 16-bit video needs --gain, --full-well, --bits)")
+            name = doors.name
+            doors.warn(f"{share:.0%} of the pixels of capture {t + 1} are at the sensor's ceiling ({top:g}: the "
+                       f"full well over the gain, {name('white_level')} or {name('bits')}): the capture is saturated; "
+                       f"give the sensor settings in the video's units (a 16-bit video needs {name('gain')}, "
+                       f"{name('full_well')}, {name('bits')})")
             warned = True
         yield coded, mask, clip
 

@@ -11,12 +11,12 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
-import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.engine.cache import RECON_VERSION, CacheBudget, cache_room_problem, content_key, recon_entry, recon_key
 from codedvideo.engine.config import DEFAULT_CACHE, DEFAULT_TILE
 from codedvideo.engine.locks import Busy, EntryLocks
@@ -157,8 +157,8 @@ class _Planner:
             unopened, count = self.unopened, self.count
             where = "" if count == 1 else (f" in {len(unopened)} of {count} captures ({min(unopened)} to "
                                            f"{max(unopened)} each)")
-            warnings.warn(f"{sum(unopened)} pixels are never open{where} (or were left out as saturated or defective); "
-                          "they are filled from their neighbours", stacklevel=3)
+            doors.warn(f"{sum(unopened)} pixels are never open{where} (or were left out as saturated or defective); "
+                          "they are filled from their neighbours")
         tasks, needs = build_graph([plan.work for plan in window.plans],
                                    window.dictionaries if self.per_capture else self.D, self.settings, patch=PATCH)
         window.tile_tasks = len(tasks)
@@ -381,9 +381,9 @@ def _finish_sparse(volume: np.ndarray, summary: dict, coded: np.ndarray, mask: n
                    store_path) -> tuple[np.ndarray, dict]:
     """A capture's solved tiles -> its volume: pixels no patch covers filled from the nearest; the statistics."""
     if summary.get("dependent_stops"):
-        warnings.warn(f"{int(summary['dependent_stops'])} of {int(summary['patches'])} patches stopped early: their "
+        doors.warn(f"{int(summary['dependent_stops'])} of {int(summary['patches'])} patches stopped early: their "
                       "next atom was numerically dependent on the chosen ones (near-duplicate or degenerate "
-                      "dictionary atoms)", stacklevel=5)
+                      "dictionary atoms)")
     holes = P.uncovered_pixels(mask.astype(bool).any(0), PATCH, settings.stride)
     for frame in volume:  # one frame at a time: no copy of the whole volume
         if not np.isfinite(frame[~holes]).all():

@@ -27,11 +27,11 @@ import contextlib
 import json
 import os
 import re
-import warnings
 from pathlib import Path
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.formats.atomic import atomic_output, check_cache, check_writable  # noqa: F401 (the writers' API here)
 from codedvideo.formats.atomic import one_line as _one_line
 from codedvideo.model.errors import InputError, OutputError
@@ -100,9 +100,9 @@ def _to_gray(arr: np.ndarray, path, color: str) -> np.ndarray:
 def _warn_planar(path: Path, channels: int) -> None:
     """Say that a TIFF of separate colour planes is read as one colour image: what numpy writes for a stack of 3
     or 4 frames saved as it is (tifffile stores a (3, H, W) or (4, H, W) array as planar RGB)."""
-    warnings.warn(f"image {path}: {channels} channels stored as separate planes, read as one colour image (its "
+    doors.warn(f"image {path}: {channels} channels stored as separate planes, read as one colour image (its "
                   f"luma); if it holds {channels} frames or captures, save one page each (tifffile: "
-                  "photometric='minisblack') or a .npy", stacklevel=4)
+                  "photometric='minisblack') or a .npy")
 
 
 def _oiio_read_all(path: Path, color: str, first_only: bool, *, page: int = 0) -> list[np.ndarray]:

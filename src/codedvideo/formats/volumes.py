@@ -10,11 +10,11 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.formats import io as cio
 from codedvideo.model.errors import InputError
 from codedvideo.formats.io import VIDEO_SUFFIXES
@@ -274,8 +274,8 @@ def read_coded_stack(path: str | Path) -> np.ndarray | NpyStack | ImageStack | V
     elif suffix in VIDEO_SUFFIXES:  # a frame a capture: decoded capture by capture
         codec = cio.lossy_codec(source)
         if codec:
-            warnings.warn(f"coded image {source}: a {codec} video, whose compression changes the values the sensor "
-                          "recorded; give a lossless video (FFV1 in .mkv), image files or a .npy", stacklevel=2)
+            doors.warn(f"coded image {source}: a {codec} video, whose compression changes the values the sensor "
+                          "recorded; give a lossless video (FFV1 in .mkv), image files or a .npy")
         stack = VideoStack(source)
         return stack if len(stack) > 1 else stack[0][None]
     else:

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.model.errors import InputError
 from codedvideo.model.physics import check_pair
 
@@ -168,12 +169,12 @@ def correct_raw(
         peak = float(raw.max())
         if peak > top:
             raise InputError(f"{where}: value {peak:g} is above {top:g}, the largest {bits}-bit value "
-                             "(wrong --bits, or the frame was scaled after read-out)")
+                             f"(wrong {doors.name('bits')}, or the frame was scaled after read-out)")
         fraction = raw != np.round(raw) if white_level is None else np.zeros(raw.shape, bool)
         if fraction.any():  # e.g. [0, 1] floats: their white level is not 2**bits - 1 (a given one: its own scale)
             raise InputError(f"{where}: value {float(raw[fraction][0]):g} is not a whole number, as {bits}-bit raw "
-                             "counts are (the frame was scaled after read-out?); give --white-level in its units "
-                             "instead of --bits")
+                             f"counts are (the frame was scaled after read-out?); give {doors.name('white_level')} in "
+                             f"its units instead of {doors.name('bits')}")
     if white is not None and float(black.max()) >= white:
         raise InputError(f"{where}: black level {float(black.max()):g} is not below the white level {white:g}")
     saturated = raw >= np.float32(white) if white is not None else np.zeros(raw.shape, bool)

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.model.patches import PATCH
 
 #: The data range of 8-bit frames: the default of every writer and score that is not told another.
@@ -252,13 +253,15 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = PATCH) -> 
     share = float(np.mean(np.maximum(sums, 0) / patch**2 <= tol_rms**2))
     if share <= 0.5:
         return None
-    return (f"the residual tolerance (--tol-rms / --noise-sigma) is met before the first atom on {share:.0%} of "
-            "the patches: they take their still answer (coded / open count), with no motion recovered; check the "
-            "data range (--data-range) and the tolerance")
+    name = doors.name
+    return (f"the residual tolerance ({name('tol_rms')} / {name('noise_sigma')}) is met before the first atom on "
+            f"{share:.0%} of the patches: they take their still answer (coded / open count), with no motion "
+            f"recovered; check the data range ({name('data_range')}) and the tolerance")
 
 
-#: What the command line calls the settings a message about the data range names (the API passes its own).
-CLI_NAMES = {"noise_sigma": "--noise-sigma", "data_range": "--data-range", "white_level": "--white-level"}
+#: The settings a message about the data range names (each as the door of the call names it; a caller may pass
+#: its own names).
+RANGE_SETTINGS = ("noise_sigma", "data_range", "white_level")
 
 
 def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, noise_sigma: float = 0.0,
@@ -280,18 +283,16 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     levels : option name -> grey-level setting in the capture's units, refused when far above the range
     where : what the captures are called in messages (the file)
     names : what the caller calls ``noise_sigma``, ``data_range`` and ``white_level`` in messages
-        (default :data:`CLI_NAMES`; the API names its arguments)
+        (default: as the door of the call names them, :data:`RANGE_SETTINGS`)
     black : the black level subtracted from the captures as the caller names it (``--black-level 64``), or empty
 
     Raises :class:`codedvideo.model.errors.InputError` for a capture with nothing above 0 (and no range given) or
     values beyond float32's working bounds; warns (one line each) when values lie above the range found or
     given, and when a range just past 8 bits was found.
     """
-    import warnings
-
     from codedvideo.model.errors import InputError
 
-    labels = dict(CLI_NAMES, **(names or {}))
+    labels = dict({k: doors.name(k) for k in RANGE_SETTINGS}, **(names or {}))
     count = len(codeds)
     clip = white_level
     eight_bit = dtype is not None and np.dtype(dtype).kind in "iu" and np.dtype(dtype).itemsize == 1
@@ -300,9 +301,9 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
         if clip is not None and max(static_peak(codeds[i], mask_of(i), clip) for i in range(count)) <= 0:
             clip = None  # nothing but the clipped pixels: they are the scene
         if clip is not None:
-            warnings.warn(f"{where}: pixels of different open counts share the largest coded value {clip:.6g}: "
+            doors.warn(f"{where}: pixels of different open counts share the largest coded value {clip:.6g}: "
                           f"clipped by the sensor; left out of the data range (give {labels['white_level']} "
-                          f"{clip:.6g} to raise their frames to sum to at least it)", stacklevel=2)
+                          f"{clip:.6g} to raise their frames to sum to at least it)")
     peak = max(static_peak(codeds[i], mask_of(i), clip) for i in range(count))
     if peak <= 0 and white_level is not None and max(static_peak(codeds[i], mask_of(i)) for i in range(count)) > 0:
         raise InputError(f"{where}: every pixel that is ever open is at or above the white level {white_level:g} "
@@ -319,11 +320,11 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     check_range(units, levels or {}, where)
     level = units.value * NOISE_ROOM + noise_room(units.value, noise_sigma)
     if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
-        warnings.warn(_above_range(codeds, mask_of, level, clip, peak, units, where), stacklevel=2)
+        doors.warn(_above_range(codeds, mask_of, level, clip, peak, units, where))
     if given is None and units.value > 255 and peak <= 2 * 255:  # just past 8 bits: noise, or a dark frame?
-        warnings.warn(f"{where}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
+        doors.warn(f"{where}: data range {units.value:g} found from a peak of {peak:.4g} (coded / open count), "
                       f"just above 8-bit; if the frames are 8-bit with noise, give {labels['noise_sigma']} or "
-                      f"{labels['data_range']} 255", stacklevel=2)
+                      f"{labels['data_range']} 255")
     return units
 
 
@@ -346,13 +347,10 @@ def _warn_far_below(peak: float, given: float, label: str, where: str) -> None:
     the tolerance, the PSNR and the videos' full scale would all be taken against a range the values never
     reach.  The bound is the one a truth in other units is told by (:data:`OTHER_UNITS_BELOW`); a dark capture
     of the range's own sensor may lie below it too, so it is a warning."""
-    import warnings
-
     if 0 < peak < given / OTHER_UNITS_BELOW:
-        warnings.warn(f"{where}: coded / open count peaks at {peak:.4g}, under 1/{OTHER_UNITS_BELOW:g} of the data "
+        doors.warn(f"{where}: coded / open count peaks at {peak:.4g}, under 1/{OTHER_UNITS_BELOW:g} of the data "
                       f"range {given:g} given ({label}); the tolerance, the PSNR and the videos' full scale are "
-                      f"taken against {given:g}: if the frames are in other units (8-bit: 255), give that range",
-                      stacklevel=4)
+                      f"taken against {given:g}: if the frames are in other units (8-bit: 255), give that range")
 
 
 def _above_range(codeds, mask_of, level: float, clip, peak: float, units: DataRange, where: str) -> str:

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 
 import numpy as np
 
+from codedvideo.model import doors
 from codedvideo.model.errors import InputError
 from codedvideo.model.patches import PATCH
 from codedvideo.solvers.ksvd import ksvd
@@ -89,8 +89,8 @@ def prepare_dictionary(D: np.ndarray, where: str) -> np.ndarray:
     if n_zero or n_bad:
         what = " and ".join(part for part in (f"{n_zero} all-zero" if n_zero else "",
                                                f"{n_bad} non-finite (NaN or Inf)" if n_bad else "") if part)
-        warnings.warn(f"dictionary {where}: dropped {what} of its {k} atoms; reconstructing with the other "
-                      f"{int(keep.sum())}", UserWarning, stacklevel=2)
+        doors.warn(f"dictionary {where}: dropped {what} of its {k} atoms; reconstructing with the other "
+                      f"{int(keep.sum())}", UserWarning)
         atoms, norms = atoms[:, keep], norms[keep]
     if np.abs(norms - 1.0).max() > UNIT_NORM_TOL:
         return np.ascontiguousarray(atoms.astype(np.float64) / norms[None, :], dtype=np.float32)
