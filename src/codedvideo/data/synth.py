@@ -218,12 +218,3 @@ def training_videos(
         speed = float(np.exp(rng.uniform(np.log(MIN_SPEED), np.log(max_speed))))
         clips.append(_clip(name, motion, frames=clip_frames, size=size, rng=rng, speed=speed))
     return clips
-
-
-def test_scenes(*, frames: int, size=(256, 256), seed: int = 0) -> dict[str, np.ndarray]:
-    """Held-out scenes: every motion on test photographs (never used for training)."""
-    out = {}
-    for i, motion in enumerate(MOTIONS):
-        name = TEST_PHOTOS[i % len(TEST_PHOTOS)]
-        out[f"{name}-{motion}"] = _clip(name, motion, frames=frames, size=size, rng=np.random.default_rng(seed + i), speed=1.0)
-    return out

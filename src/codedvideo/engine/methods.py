@@ -14,11 +14,6 @@ from dataclasses import dataclass
 
 from codedvideo.model.errors import InputError
 
-#: What the sparse methods take (``reconstruct:`` keys; ``dictionary`` for those of :data:`WITH_DICTIONARY`).
-_SPARSE_OPTIONS = ("max_atoms", "tol_rms", "static_atoms", "stride", "weighting", "batch", "tile", "scheduler",
-                   "workers", "cache_budget", "adapt", "adapt_rounds", "refine")
-
-
 @dataclass(frozen=True)
 class Method:
     """One reconstruction method."""
@@ -36,22 +31,15 @@ class Method:
     #: The per-patch solver the sparse methods run (:attr:`codedvideo.solvers.region.OmpSettings.method`), or
     #: the function of :mod:`codedvideo.solvers.baselines` a baseline is.
     solver: str
-    #: The options (``reconstruct:`` keys, ``dictionary``) it takes.
-    options: tuple[str, ...] = ()
 
 
 _METHODS = (
-    Method("omp", sparse=True, dictionary=True, adapts=True, refines=True, solver="omp",
-           options=("dictionary",) + _SPARSE_OPTIONS),
-    Method("nonlocal", sparse=True, dictionary=True, adapts=True, refines=True, solver="nonlocal",
-           options=("dictionary",) + _SPARSE_OPTIONS),
-    Method("dct", sparse=True, dictionary=False, adapts=True, refines=True, solver="omp", options=_SPARSE_OPTIONS),
-    Method("thinout", sparse=False, dictionary=False, adapts=False, refines=True, solver="thinout",
-           options=("refine",)),
-    Method("interp", sparse=False, dictionary=False, adapts=False, refines=True, solver="interp",
-           options=("refine",)),
-    Method("gaptv", sparse=False, dictionary=False, adapts=False, refines=True, solver="gap_tv",
-           options=("refine",)),
+    Method("omp", sparse=True, dictionary=True, adapts=True, refines=True, solver="omp"),
+    Method("nonlocal", sparse=True, dictionary=True, adapts=True, refines=True, solver="nonlocal"),
+    Method("dct", sparse=True, dictionary=False, adapts=True, refines=True, solver="omp"),
+    Method("thinout", sparse=False, dictionary=False, adapts=False, refines=True, solver="thinout"),
+    Method("interp", sparse=False, dictionary=False, adapts=False, refines=True, solver="interp"),
+    Method("gaptv", sparse=False, dictionary=False, adapts=False, refines=True, solver="gap_tv"),
 )
 
 #: Every method by its name, in the order ``--method`` lists them.

@@ -656,10 +656,6 @@ class WorkStore:
             raise RuntimeError(f"working store {self.path}: tile {index} is not finished or fails its checksum")
         return volume, stats[0]
 
-    def done_tiles(self) -> np.ndarray:
-        """Boolean per tile: its digest matches its volume core and statistics row as read back."""
-        return self.read_verified(self.tiles())[0]
-
     def stats(self) -> np.ndarray:
         """The statistics rows as stored (unverified; see :meth:`read_verified`)."""
         return np.asarray(self.group["stats"][:])
@@ -667,18 +663,6 @@ class WorkStore:
     def volume(self) -> np.ndarray:
         """The volume as stored (unverified; see :meth:`read_verified`)."""
         return np.asarray(self.group["volume"][:])
-
-    @property
-    def volume_array(self):
-        """The zarr array itself (for streaming reads and dask.array.from_zarr)."""
-        return self.group["volume"]
-
-
-def save_array(path: str | os.PathLike, array: np.ndarray, *, chunks=None, attrs: dict | None = None) -> Path:
-    """Write one array as a Zarr store, atomically."""
-    with array_writer(path, array.shape, array.dtype, chunks=chunks, attrs=attrs) as arr:
-        arr[...] = array
-    return Path(path)
 
 
 @contextlib.contextmanager
