@@ -64,5 +64,6 @@ reconstruct: $(STAMP)  ## reconstruct (trains/simulates first if needed)
 submit: $(STAMP)  ## run pipeline.yaml on a dask.distributed scheduler: make submit SCHEDULER=tcp://host:8786
 	$(BIN)/python tasks/submit.py "$(CONFIG)" $(SCHEDULER)
 
-clean:  ## remove outputs and caches (not .venv)
-	rm -rf out cache
+clean:  ## remove the outputs and the default cache (the user's cache folder, where runs keep it; not .venv)
+	rm -rf out
+	test ! -x $(BIN)/codedvideo || $(BIN)/codedvideo cache clean

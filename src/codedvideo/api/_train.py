@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from codedvideo.api._settings import setting_name
-from codedvideo.engine.config import DictionaryConfig, PipelineConfig, validated
+from codedvideo.engine.config import DEFAULT_CACHE, DictionaryConfig, PipelineConfig, validated
 from codedvideo.engine.training import train_dictionary
 from codedvideo.model.errors import ConfigError
 
@@ -19,7 +19,8 @@ NOT_A_STORE = (".npy", ".npz", ".mat", ".json", ".h5", ".hdf5", ".tif", ".tiff",
 def plan_training(*, frames: int, videos=(), kind: str = "learned", atoms: int | None = None,
                   iterations: int | None = None, samples: int | None = None, sparsity: int | None = None,
                   max_speed: float | None = None, init: str | None = None, augment: bool = True, seed: int = 0,
-                  cache: str | Path = "cache", output: str | Path | None = None, door: str = "api") -> PipelineConfig:
+                  cache: str | Path = DEFAULT_CACHE, output: str | Path | None = None,
+                  door: str = "api") -> PipelineConfig:
     """The pipeline config of a training run (``codedvideo train``'s options; None: the default), checked before
     any work: a 3D DCT dictionary takes none of the learned one's settings, and ``output`` is a store."""
     opt = lambda k: setting_name(k, door)  # noqa: E731

@@ -231,7 +231,8 @@ def _parser() -> argparse.ArgumentParser:
                     help="peak value of the frames: the PSNR peak, the full scale of videos, and the working "
                          "scale, so the default tolerance is 2/255 of it (default: found from the capture; "
                          "docs/formats.md, Units)")
-    ro.add_argument("--fps", type=int, default=30, help="frame rate of a video output")
+    ro.add_argument("--fps", type=int, default=OutputConfig.model_fields["fps"].default,
+                    help="frame rate of a video output")
     rp.add_argument("--cache", default=DEFAULT_CACHE,
                     help="working stores and dictionaries, reused by later runs (in the user's cache folder, the working "
                          "stores are kept within 20 GiB)")

@@ -779,14 +779,15 @@ def store_volume(store: WorkStore, plan: StorePlan, D: np.ndarray, settings: Omp
     and ``seconds_verify``, the time spent reading tiles back and checking
     them.  The caller holds the store's lock.
     """
-    volume, summary = _verified_volume(store, list(plan.tiles), {t.index for t in plan.work.tiles}, D, settings,
-                                       patch=patch, scheduler=scheduler, workers=workers, first=plan.work.first)
+    volume, summary = _verified_volume(store, plan, D, settings, patch=patch, scheduler=scheduler, workers=workers)
     return volume, dict(summary, tiles_damaged=int(plan.damaged.sum()))
 
 
-def _verified_volume(store: WorkStore, tiles: list[Tile], computed: set[int], D, settings, *, patch, scheduler,
-                     workers, first: str | None = None) -> tuple[np.ndarray, dict]:
-    """Read every tile of a store back, checked against its digest; compute the ones that fail again."""
+def _verified_volume(store: WorkStore, plan: StorePlan, D, settings, *, patch, scheduler,
+                     workers) -> tuple[np.ndarray, dict]:
+    """Read every tile of a store back, checked against its digest; compute the ones that fail again (those of
+    ``plan``'s work were computed in this run)."""
+    tiles, computed, first = list(plan.tiles), {t.index for t in plan.work.tiles}, plan.work.first
     t0 = time.perf_counter()
     ok, _, volume, stats = store.read_verified(tiles)
     seconds_verify = time.perf_counter() - t0

@@ -277,8 +277,8 @@ def reconstruct_region(
         taken = int(on_grid.sum())  # (every patch was counted: atoms_mean a quarter, patches/s 4x, at stride 2)
     if settings.weighting not in ("uniform", "fit"):
         raise ValueError(f"weighting {settings.weighting!r}: choose uniform or fit")
-    still_rows, skip = _still_rows(still, valid, patch, (hp, wp))
-    summed, weight, counts = _fold_bands(patches, valid, still_rows, skip, D, settings, solve, S_all, (n, h, w))
+    still_rows, skip = stilled = _still_rows(still, valid, patch, (hp, wp))
+    summed, weight, counts = _fold_bands(patches, valid, stilled, D, settings, solve, S_all, (n, h, w))
     with np.errstate(invalid="ignore", divide="ignore"):
         volume = np.where(weight > 0, summed / weight, np.nan).astype(np.float32)
     if still_rows is not None:  # pixels only still patches cover: the still answer exactly, as a still tile gives
@@ -413,11 +413,13 @@ class _Counts:
     seconds: float = 0.0
 
 
-def _fold_bands(patches: RegionPatches, valid: np.ndarray, still_rows, skip, D: np.ndarray, settings: OmpSettings,
+def _fold_bands(patches: RegionPatches, valid: np.ndarray, stilled: tuple, D: np.ndarray, settings: OmpSettings,
                 solve, S_all, shape: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray, _Counts]:
     """Every valid patch's estimate added at its place, whole rows of patches at a time (``settings.batch``):
-    the summed estimates (N, h, w), the weight each pixel got (h, w) and the counts."""
+    the summed estimates (N, h, w), the weight each pixel got (h, w) and the counts.  ``stilled``: the wholly
+    still patches and the pixels to skip (:func:`_still_rows`)."""
     n, h, w = shape
+    still_rows, skip = stilled
     hp, wp = patches.grid
     m = patches.y.shape[1]
     patch = patches.patch
@@ -432,8 +434,8 @@ def _fold_bands(patches: RegionPatches, valid: np.ndarray, still_rows, skip, D: 
         y, tol = patches.y[sl], patches.n_open[sl] * settings.tol_rms**2
         t0 = time.perf_counter()
         calm = None if still_rows is None else still_rows[sl]
-        est = _band_estimates(y, patches.n_pix[sl], tol, np.flatnonzero(valid[sl]), calm, sl, atoms, settings, solve,
-                              counts, frames=n, patch=patch)
+        est = _band_estimates(_Band(y, patches.n_pix[sl], tol, np.flatnonzero(valid[sl]), calm, sl), atoms, settings,
+                              solve, counts, frames=n, patch=patch)
         counts.seconds += time.perf_counter() - t0
         wp_ = valid[sl].astype(np.float32)
         if settings.weighting == "fit":
@@ -446,13 +448,26 @@ def _fold_bands(patches: RegionPatches, valid: np.ndarray, still_rows, skip, D: 
     return summed, weight[0], counts
 
 
-def _band_estimates(y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, valid_rows: np.ndarray, calm: np.ndarray | None,
-                    sl: slice, atoms: np.ndarray, settings: OmpSettings, solve, counts: _Counts, *, frames: int,
+@dataclass
+class _Band:
+    """A band of a region's patches: their coded values ``y``, measured pixel counts, tolerances, the rows to
+    estimate, which of them are wholly still (None: none known) and where the band lies in the region's rows."""
+
+    y: np.ndarray
+    n_pix: np.ndarray
+    tol: np.ndarray
+    valid_rows: np.ndarray
+    calm: np.ndarray | None
+    sl: slice
+
+
+def _band_estimates(band: _Band, atoms: np.ndarray, settings: OmpSettings, solve, counts: _Counts, *, frames: int,
                     patch: int) -> np.ndarray:
     """The estimates (rows of ``frames * m``, zero but for ``valid_rows``) of a band's patches ``y``: the still answer
     of the wholly still ones (``calm``), then the still test's, then OMP (``solve``) for the rest, synthesised from
     the dictionary's :func:`~codedvideo.solvers.omp_kernel.atom_rows` ``atoms``, invented ones guarded
     (:func:`guard_estimates`)."""
+    y, n_pix, tol, valid_rows, calm, sl = band.y, band.n_pix, band.tol, band.valid_rows, band.calm, band.sl
     est = np.zeros((y.shape[0], frames * y.shape[1]), np.float32)
     rows = valid_rows  # those still to estimate
     if calm is not None and rows.size:
