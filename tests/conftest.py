@@ -81,3 +81,11 @@ def regenerated_dictionary(request):
     out, err = proc.communicate(timeout=3000)
     assert proc.returncode == 0, err
     return work / "regen.zarr"
+
+
+@pytest.fixture
+def files(tmp_path):
+    """A valid capture, mask, truth and DCT dictionary in tmp_path/in (:func:`cli_inputs.capture_files`)."""
+    from cli_inputs import capture_files
+
+    return capture_files(tmp_path)

@@ -4,7 +4,7 @@ import json
 import numpy as np
 
 from codedvideo.app.cli import main
-from test_bad_input import files, reconstruct_args  # noqa: F401  (files is a fixture)
+from cli_inputs import reconstruct_args
 
 
 def test_verify_reports_a_damaged_entry_and_clean_removes_only_it(files, tmp_path, capsys):

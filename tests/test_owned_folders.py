@@ -10,8 +10,7 @@ import pytest
 
 from codedvideo.app.cli import main
 from codedvideo.formats.outputs import record_path, written_by_codedvideo
-from test_bad_input import N, files, reconstruct_args  # noqa: F401  (files is a fixture)
-from test_owned_outputs import refused, tree
+from cli_inputs import N, reconstruct_args, refused, tree
 
 
 def run(args) -> int:

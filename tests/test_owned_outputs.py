@@ -1,35 +1,15 @@
 """Nothing a user owns is ever lost: outputs that would touch an input, a folder or a file of the user's are refused
 before any work, with every byte under the working folder unchanged; every bad option is a one-line error.
 """
-import hashlib
 import os
 import socket
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from codedvideo.app.cli import main
 from codedvideo.formats.outputs import record_path, written_by_codedvideo
-from test_bad_input import H, N, W, fails, files, reconstruct_args  # noqa: F401  (files is a fixture)
-
-
-def tree(root: Path) -> dict:
-    """Every path under root with the sha256 of its bytes (folders: None) and its permission bits."""
-    out = {}
-    for p in sorted(root.rglob("*")):
-        st = os.lstat(p)
-        data = hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() and not p.is_symlink() else None
-        out[str(p.relative_to(root))] = (data, st.st_mode)
-    return out
-
-
-def refused(capsys, args, *names, root: Path):
-    """The CLI refuses with one line naming ``names``; nothing under ``root`` changed, byte for byte."""
-    before = tree(root)
-    err = fails(capsys, args, *names)
-    assert tree(root) == before
-    return err
+from cli_inputs import H, N, W, fails, reconstruct_args, refused, tree  # noqa: F401
 
 
 # ----------------------------------------------------------------------------- an output that is an input

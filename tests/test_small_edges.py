@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from codedvideo.app.cli import main
-from test_bad_input import fails, files, reconstruct_args  # noqa: F401  (files is a fixture)
+from cli_inputs import fails, reconstruct_args
 
 
 def _one_store(files, tmp_path):

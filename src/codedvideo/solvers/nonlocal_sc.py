@@ -60,9 +60,30 @@ from codedvideo.solvers.omp_kernel import TableOMP, atom_rows, synthesize, synth
 from codedvideo.solvers.region import (WINDOW, OmpSettings, RegionPatches, estimate_energy, guard_estimates,
                                        region_patches, still_answers, still_patches, stride_grid)
 
-#: Names of the statistics, in the order of the stats vector.
+#: Names of the statistics, in the order of the stats vector (:meth:`NonlocalStats.as_array`).
 STAT_NAMES = ("patches", "groups", "members_mean", "atoms_total", "patches_static", "seconds_match",
               "seconds_solve", "seconds_total", "fallback")
+
+
+@dataclass
+class NonlocalStats:
+    """What a region's non-local pass did: its patches, groups and their mean size, atoms, still patches, the
+    seconds matching, solving and in all, and whether it fell back to the first estimate (1) because the mask's
+    patterns do not fit a table."""
+
+    patches: float = 0.0
+    groups: float = 0.0
+    members_mean: float = 0.0
+    atoms_total: float = 0.0
+    patches_static: float = 0.0
+    seconds_match: float = 0.0
+    seconds_solve: float = 0.0
+    seconds_total: float = 0.0
+    fallback: float = 0.0
+
+    def as_array(self) -> np.ndarray:
+        """The statistics as a vector in the order of :data:`STAT_NAMES` (a working store's row)."""
+        return np.array([float(getattr(self, name)) for name in STAT_NAMES], np.float64)
 
 #: Defaults chosen on the benchmark (tasks/bench_nonlocal.py).
 GROUP = 16
@@ -118,7 +139,7 @@ def nonlocal_region(
     coded : ndarray of shape (h, w)
     mask : ndarray of shape (N, h, w)
         A binary code or a calibrated mask whose distinct pixel patterns fit a
-        pattern table (any other mask: ``first`` is returned, ``stats[fallback] = 1``).
+        pattern table (any other mask: ``first`` is returned, its ``fallback`` statistic 1).
     D : ndarray of shape (N * patch**2, K)
     first : ndarray of shape (N, h, w)
         First estimate of the region (the default reconstruction); NaN reads as 0.
@@ -149,14 +170,13 @@ def nonlocal_region(
     first32 = np.asarray(first, dtype=np.float32)
     binary = is_binary(mask)
     weights = mask if binary else np.asarray(mask, dtype=np.float32)
-    stats = np.zeros(len(STAT_NAMES))
     hp, wp = P.grid_shape(mask.shape[1:], patch)
-    stats[0] = hp * wp
+    stats = NonlocalStats(patches=hp * wp)
     patterns, which = pixel_patterns(weights)
     if not table_fits(len(patterns), D, patch * patch):
-        stats[8] = 1.0
-        stats[7] = time.perf_counter() - t_start
-        return None if sums else (first32.copy(), stats)
+        stats.fallback = 1.0
+        stats.seconds_total = time.perf_counter() - t_start
+        return None if sums else (first32.copy(), stats.as_array())
     coded32 = np.asarray(coded, dtype=np.float32)
     region = _region(coded32, weights, binary, D, patterns, which, settings.tol_rms, still, patch)
     chosen = _references(region, settings, opts, stats)
@@ -166,22 +186,22 @@ def nonlocal_region(
     for _ in range(opts.iterations):
         t0 = time.perf_counter()
         idx, dist = _match(region, chosen, current, k, opts)
-        stats[5] += time.perf_counter() - t0
+        stats.seconds_match += time.perf_counter() - t0
         t0 = time.perf_counter()
         summed, weight, (n_groups, n_members, n_atoms) = _solve_pass(region, chosen, idx, dist, D, settings, opts)
-        stats[6] += time.perf_counter() - t0
-        stats[1] += n_groups
-        stats[2] = n_members / max(n_groups, 1)
-        stats[3] += n_atoms
+        stats.seconds_solve += time.perf_counter() - t0
+        stats.groups += n_groups
+        stats.members_mean = n_members / max(n_groups, 1)
+        stats.atoms_total += n_atoms
         if sums:
-            stats[7] = time.perf_counter() - t_start
-            return summed, weight, stats
+            stats.seconds_total = time.perf_counter() - t_start
+            return summed, weight, stats.as_array()
         volume = finish(summed, weight, coded32, weights, project=opts.project, first=first32)
         if region.calm.any():
             keep_still(volume, coded32, weights, still, patch)
         current = np.nan_to_num(volume, nan=0.0).astype(np.float32)
-    stats[7] = time.perf_counter() - t_start
-    return volume, stats
+    stats.seconds_total = time.perf_counter() - t_start
+    return volume, stats.as_array()
 
 
 @dataclass(frozen=True)
@@ -322,7 +342,7 @@ class _References:
     still_slot: np.ndarray
 
 
-def _references(region: _Region, settings: OmpSettings, opts: NonlocalOptions, stats: np.ndarray) -> _References:
+def _references(region: _Region, settings: OmpSettings, opts: NonlocalOptions, stats: NonlocalStats) -> _References:
     """The reference patches: the measured ones on the default's stride grid combined with ``opts.step``, inside
     ``opts.refs``; then the still test of them (it does not depend on the estimate; counted in ``stats``)."""
     n, h, w = region.shape
@@ -345,13 +365,13 @@ def _references(region: _Region, settings: OmpSettings, opts: NonlocalOptions, s
             ok, still_est = still_patches(patches.y[rows], patches.n_pix[rows], region.tol[rows],
                                           settings.static_atoms, frames=n, patch=opts.patch)
             still_ok[rows[ok]] = True
-            stats[4] = ok.sum()
+            stats.patches_static = int(ok.sum())
     if region.calm.any():  # their still answer, each pixel's value in every sub-frame, after the still test's rows
         rows = np.flatnonzero(ref & region.calm)
         still_est = np.concatenate([still_est, still_answers(patches.y[rows], patches.n_pix[rows], n)])
         order = np.concatenate([np.flatnonzero(still_ok), rows])
         still_ok[rows] = True
-        stats[4] += rows.size
+        stats.patches_static += rows.size
     else:
         order = np.flatnonzero(still_ok)
     still_slot = np.full(hp * wp, -1, np.int64)
