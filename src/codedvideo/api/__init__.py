@@ -216,6 +216,10 @@ def train(videos, *, frames: int, atoms: int = KSVD_ATOMS, samples: int = KSVD_S
     from codedvideo.solvers.dictionaries import learn_dictionary
     from codedvideo.data.scenes import working_units
 
+    # the settings checked as the command line's and pipeline.yaml's are, before any work (atoms below sparsity,
+    # samples too few for the atoms...)
+    plan_training(frames=frames, atoms=atoms, samples=samples, iterations=iterations, sparsity=sparsity, seed=seed,
+                  augment=augment, door="api")
     clips = [working_units(np.array(v, np.float32), what=f"training video {i + 1}") for i, v in enumerate(videos)]
     if not clips:
         raise InputError("train: no training video given")

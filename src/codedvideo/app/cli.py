@@ -27,6 +27,7 @@ import numpy as np
 from codedvideo import __version__, api
 from codedvideo.api.config import (DEFAULT_CACHE, PRESETS, OutputConfig, PipelineConfig, default_config_path, load_config,
                                    preset_options, validated)
+from codedvideo.model import doors
 from codedvideo.model.codes import CODE_NAMES, short_of
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.formats.outputs import Output, check_outputs, mark_written
@@ -800,7 +801,8 @@ def main(argv: list[str] | None = None) -> int:
         args = _parser().parse_args(argv)
     except SystemExit as exc:  # --help, --version, or a bad option (one line already printed)
         return exc.code if isinstance(exc.code, int) else 2
-    return guarded(lambda: COMMANDS[args.command](args))
+    with doors.through("cli"):  # (a setting named as the command line names it, a rule between keys too)
+        return guarded(lambda: COMMANDS[args.command](args))
 
 
 def guarded(fn) -> int:

@@ -87,7 +87,7 @@ class SceneConfig(_Strict):
     @model_validator(mode="after")
     def _start_of_a_file(self) -> "SceneConfig":
         if self.start and self.video.startswith(("synth:", "footage:")):  # (its frames were made from frame 0)
-            raise ValueError(f"scene.start {self.start}: {self.video} is made from its first frame; start applies to "
+            raise ValueError(f"{doors.key('scene.start')} {self.start}: {self.video} is made from its first frame; start applies to "
                              "a video file")
         return self
 
@@ -109,14 +109,14 @@ class CodeConfig(_Strict):
     @model_validator(mode="after")
     def _path_with_file(self, info: ValidationInfo) -> "CodeConfig":
         if self.name == "file" and not self.path:
-            raise ValueError("code 'file' needs code.path (a .npy or multi-page TIFF mask)")
+            raise ValueError(f"code 'file' needs {doors.key('code.path')} (a .npy or multi-page TIFF mask)")
         if self.name != "file" and self.path:
-            raise ValueError(f"code.path is only used with name: file (name is {self.name!r})")
-        unused = [f"code.{k}" for k, codes in (("bump", BUMP_CODES), ("p", P_CODES))
+            raise ValueError(f"{doors.key('code.path')} is only used with name: file (name is {self.name!r})")
+        unused = [doors.key(f"code.{k}") for k, codes in (("bump", BUMP_CODES), ("p", P_CODES))
                   if self.name not in codes and k in self._changed(k) and not (k == "p" and _for_report(info))]
         if unused:
-            raise ValueError(f"{' and '.join(unused)}: code {self.name!r} does not use it (code.bump: "
-                             f"{', '.join(BUMP_CODES)}; code.p: {', '.join(P_CODES)})")
+            raise ValueError(f"{' and '.join(unused)}: code {self.name!r} does not use it ({doors.key('code.bump')}: "
+                             f"{', '.join(BUMP_CODES)}; {doors.key('code.p')}: {', '.join(P_CODES)})")
         return self
 
 
@@ -146,8 +146,9 @@ class NoiseConfig(_Strict):
     def _shot_noise_settings(self) -> "NoiseConfig":
         unused = self._changed("full_well", "gain")
         if unused and not self.shot_noise:
-            raise ValueError(f"{' and '.join('noise.' + k for k in unused)} describe the shot noise, which is off: "
-                             "set noise.shot_noise: true, or leave them at their defaults")
+            on = ": true" if doors.key("noise.shot_noise").startswith("noise.") else ""
+            raise ValueError(f"{' and '.join(doors.key('noise.' + k) for k in unused)} describe the shot noise, which "
+                             f"is off: set {doors.key('noise.shot_noise')}{on}, or leave them at their defaults")
         return self
 
 
@@ -174,29 +175,32 @@ class DictionaryConfig(_Strict):
     def _settings_used(self, info: ValidationInfo) -> "DictionaryConfig":
         report = _for_report(info)
         if self.init is not None and not report and (self.kind == "dct" or "atoms" in self._changed("atoms")):
-            raise ValueError("dictionary.init starts K-SVD from a dictionary, with its atoms: dictionary.kind dct "
-                             "and dictionary.atoms do not apply")
+            raise ValueError(f"{doors.key('dictionary.init')} starts K-SVD from a dictionary, with its atoms: "
+                             f"{doors.key('dictionary.kind')} dct and {doors.key('dictionary.atoms')} do not apply")
         if self.kind == "dct" and self.path is None and not report:  # (as `train --kind dct` refuses them)
             unused = self._changed("atoms", "samples", "iterations", "sparsity", "training", "clips", "max_speed",
                                    "augment")
             if unused:
-                raise ValueError(f"dictionary.kind dct: {', '.join('dictionary.' + k for k in unused)} "
+                raise ValueError(f"{doors.key('dictionary.kind')} dct: "
+                                 f"{', '.join(doors.key('dictionary.' + k) for k in unused)} "
                                  f"{'is' if len(unused) == 1 else 'are'} for learned dictionaries only (a 3D DCT one "
                                  "has N x 49 atoms and is not trained)")
         if self.path is not None and not report:
             unused = self._changed("kind", "atoms", "samples", "iterations", "sparsity", "training", "clips",
                                    "max_speed", "init", "augment")
             if unused:
-                raise ValueError(f"dictionary.path is used as it is, so {', '.join('dictionary.' + k for k in unused)} "
+                raise ValueError(f"dictionary.path is used as it is, so "
+                                 f"{', '.join(doors.key('dictionary.' + k) for k in unused)} "
                                  "would be ignored: leave them at their defaults, or drop dictionary.path")
         elif "synth:train" not in self.training:
             unused = self._changed("clips", "max_speed")
             if unused:
-                raise ValueError(f"{' and '.join('dictionary.' + k for k in unused)} "
+                raise ValueError(f"{' and '.join(doors.key('dictionary.' + k) for k in unused)} "
                                  f"{'describes' if len(unused) == 1 else 'describe'} the synthetic training clips, "
                                  "and dictionary.training names no synth:train")
         if self.kind == "learned" and self.path is None and self.atoms < self.sparsity:
-            raise ValueError(f"dictionary.atoms = {self.atoms}: below dictionary.sparsity {self.sparsity}, the atoms K-SVD "
+            raise ValueError(f"{doors.key('dictionary.atoms')} = {self.atoms}: below {doors.key('dictionary.sparsity')} "
+                             f"{self.sparsity}, the atoms K-SVD "
                              "codes every training patch with; give at least as many atoms")
         return self
 
@@ -500,7 +504,8 @@ class PipelineConfig(_Strict):
                              "own still estimate, which needs no dictionary: leave train out of stages")
         bump = self.code.bump
         if "simulate" in self.stages and self.code.name in BUMP_CODES and not 1 <= bump <= self.frames:
-            raise ValueError(f"code.bump = {bump}: a bump of 1 to {self.frames} sub-frames (frames {self.frames})")
+            raise ValueError(f"{doors.key('code.bump')} = {bump}: a bump of 1 to {self.frames} sub-frames (frames "
+                             f"{self.frames})")
         return self
 
     @model_validator(mode="after")
@@ -508,7 +513,8 @@ class PipelineConfig(_Strict):
         d = self.dictionary
         beyond = d.atoms - self.frames * PATCH * PATCH  # K-SVD starts from the DCT atoms, then draws the rest among the samples
         if d.kind == "learned" and d.path is None and d.init is None and beyond > d.samples:
-            raise ValueError(f"dictionary.atoms {d.atoms} with dictionary.samples {d.samples}: K-SVD starts from the "
+            raise ValueError(f"{doors.key('dictionary.atoms')} {d.atoms} with {doors.key('dictionary.samples')} "
+                             f"{d.samples}: K-SVD starts from the "
                              f"{self.frames * PATCH * PATCH} DCT atoms and draws the other {beyond} among the training samples; "
                              f"give at least {beyond} samples or fewer atoms")
         r = self.report  # its dictionaries: the main one at every N it sweeps, and one per size of the speed study
@@ -747,9 +753,15 @@ def load_config(path: str | Path, *, use: Literal["run", "report"] = "run") -> P
 
     Strict: the file must be UTF-8 YAML holding a non-empty mapping, no key
     may appear twice, and values are not coerced (``frames: "8"`` or
-    ``frames: true`` are errors, as are inf and NaN).
+    ``frames: true`` are errors, as are inf and NaN).  Its messages name pipeline.yaml's keys, whichever door
+    reads the file.
     """
-    file = Path(path)
+    with doors.through("config"):
+        return _load_config(Path(path), use)
+
+
+def _load_config(file: Path, use: str) -> PipelineConfig:
+    """:func:`load_config`, in pipeline.yaml's terms."""
     if not file.exists():
         raise ConfigError(f"config {file}: no such file")
     if not file.is_file():
@@ -805,9 +817,7 @@ def validated(model: type[BaseModel], values: dict, options: dict[str, str] | No
         return model.model_validate(values)
     except ValidationError as exc:
         msg, err = _first_error(exc, model)
-        if not err["loc"]:  # a rule between fields: its message names them as pipeline.yaml keys
-            for field, option in (options or {}).items():
-                msg = re.sub(rf"\b[a-z_]+\.{field}\b", option, msg)
+        if not err["loc"]:  # a rule between fields: its message names them as the door of the call does
             raise ConfigError(f"options: {msg.removeprefix('Value error, ')}") from exc
         field = str(err["loc"][0])
         option = (options or {}).get(field, doors.name(field))

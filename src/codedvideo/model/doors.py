@@ -24,14 +24,15 @@ CONFIG_KEYS = {"noise_sigma": "noise.sigma", "white_level": "noise.white_level",
                "shot_noise": "noise.shot_noise", "full_well": "noise.full_well", "gain": "noise.gain",
                "seed": "seed", "frames": "frames"}
 
-_door: contextvars.ContextVar[str] = contextvars.ContextVar("codedvideo_door", default="cli")
+#: The door of the call in progress; None outside any (the engine called directly).
+_door: contextvars.ContextVar[str | None] = contextvars.ContextVar("codedvideo_door", default=None)
 
 _PACKAGE = str(Path(__file__).resolve().parents[1])
 
 
 def current() -> str:
-    """The door of the call in progress (``"cli"`` outside any)."""
-    return _door.get()
+    """The door of the call in progress (``"cli"`` outside any: the engine's own messages name the options)."""
+    return _door.get() or "cli"
 
 
 @contextlib.contextmanager
@@ -55,6 +56,19 @@ def name(field: str, door: str | None = None) -> str:
     if through_door == "config":
         return CONFIG_KEYS.get(field, f"reconstruct.{field}")
     return field
+
+
+#: pipeline.yaml's keys whose setting the command line and the API name otherwise than by the key's last part.
+_FIELDS_OF_KEYS = {"code.path": "code_file", "noise.sigma": "noise_sigma"}
+
+
+def key(config_key: str) -> str:
+    """A pipeline.yaml key (``code.bump``) as the door of the call names its setting: the key itself in
+    pipeline.yaml (and outside any door: a config validated directly), ``--bump`` on the command line, ``bump``
+    in Python."""
+    if _door.get() in (None, "config"):
+        return config_key
+    return name(_FIELDS_OF_KEYS.get(config_key, config_key.rsplit(".", 1)[-1]))
 
 
 def warn(message: str, category: type[Warning] = UserWarning) -> None:
