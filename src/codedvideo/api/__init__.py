@@ -311,7 +311,7 @@ def _reconstruct_arrays(coded, mask, settings, *, truth=None, full_output=False)
             stack.enter_context(tempfile.TemporaryDirectory(prefix="codedvideo-"))
         for i, volume, _ in job.run(folder):
             out[slice(None) if captures.kind == "bayer" else slice(i * n, (i + 1) * n)] = np.asarray(volume)
-    record = job.record()
+    record = job_record(job)
     if not full_output:
         return out
     infos = [dict(e["reconstruction"], preset=resolved.preset) if resolved.preset else e["reconstruction"]
@@ -443,6 +443,7 @@ def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, s
 
 
 from codedvideo.api._job import Captures, ReconstructionJob  # noqa: E402, F401  (the job the command line runs)
+from codedvideo.api._record import job_record  # noqa: E402, F401  (its metrics record)
 from codedvideo.api._settings import Resolved, resolve as resolve_settings  # noqa: E402, F401
 from codedvideo.api._simulate import (SimulateSettings, SimulationPlan, captures_of, plan_simulation,  # noqa: E402, F401
                                      simulate_captures, simulate_whole)

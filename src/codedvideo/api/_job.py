@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from codedvideo.model import doors
+from codedvideo.api._record import Scores
 from codedvideo.api._settings import Resolved, for_noise, setting_name
 from codedvideo.solvers.guard import sparse_weight
 from codedvideo.engine.bayer import check_even, reconstruct_bayer, static_estimate
@@ -29,7 +30,7 @@ from codedvideo.engine.config import omp_settings
 from codedvideo.formats.volumes import check_coded, check_mask
 from codedvideo.model.codes import short_of
 from codedvideo.model.errors import InputError
-from codedvideo.model.metrics import (IMPLAUSIBLE_SHARE, evaluate, mean_psnr, mse_psnr, other_units,
+from codedvideo.model.metrics import (IMPLAUSIBLE_SHARE, mean_psnr, mse_psnr, other_units,
                                      volume_extremes, volume_peak)
 from codedvideo.model.patches import PATCH
 from codedvideo.model.units import capture_units, tolerance_warning
@@ -263,7 +264,7 @@ def job_dictionary(r: Resolved, frames: int, one_pattern=lambda: False) -> tuple
 
 class ReconstructionJob:
     """One reconstruction: iterate it for ``(i, frames, entry)``, capture after capture, in order; then
-    :meth:`record` is the metrics record (the command line's ``.metrics.json``).
+    :func:`codedvideo.api._record.job_record` is its metrics record (the command line's ``.metrics.json``).
 
     Everything a run needs is checked and found when the job is made, before any reconstruction: the raw
     correction, the dictionary, the data range (with its warnings) and the OMP settings.
@@ -303,11 +304,8 @@ class ReconstructionJob:
             (3, self.n, h, w) if captures.kind == "bayer" else (self.count * self.n, h, w)
         self.cuts = None
         self.entries: list[dict] = []
-        self._frames = dict(psnr=[], ssim=[])
-        self._trivial = dict(psnr=[], ssim=[])
-        from codedvideo.model.sequence import StepErrors
-
-        self._steps = StepErrors()
+        #: Each capture's frames scored against the truth as they come (:class:`codedvideo.api._record.Scores`).
+        self.scores = Scores()
         self.seconds_prepared = time.perf_counter() - t0
         #: Seconds spent scoring the results against the truth (part of each result's time).
         self.seconds_scored = 0.0
@@ -434,23 +432,8 @@ class ReconstructionJob:
         self._warn_implausible(i, volume)
         truth = job.truth(i)
         if truth is not None:
-            t0 = time.perf_counter()
-            h, w = self.shape[-2:]
-            frames = np.asarray(volume)  # (a capture kept on disk read whole to be scored)
-            entry["quality"] = evaluate(frames.reshape(-1, h, w), truth.reshape(-1, h, w), data_range=self.units.value)
-            entry["trivial"] = evaluate(self._trivial_of(i).reshape(-1, h, w), truth.reshape(-1, h, w),
-                                        data_range=self.units.value)
-            trace = info.get("refine_trace")
-            if trace and abs(trace[-1]["psnr"] - entry["quality"]["psnr"]) > 1e-6:
-                # the result after the refinement's last point: joined with its neighbours, raised to the white
-                # level: the trace ends at the capture's own PSNR
-                trace.append(dict(stage="result", seconds=trace[-1]["seconds"], psnr=entry["quality"]["psnr"]))
-            for key in ("psnr", "ssim"):
-                self._frames[key] += entry["quality"][f"{key}_per_frame"]
-                self._trivial[key] += entry["trivial"][f"{key}_per_frame"]
-            if job.kind in ("captures", "measurements"):
-                self._steps.add(frames, truth)
-            self.seconds_scored += time.perf_counter() - t0
+            self.seconds_scored += self.scores.add(entry, volume, truth, self._trivial_of(i),
+                                                   data_range=self.units.value, stream=job.kind in ("captures", "measurements"))
         self.entries.append(entry)
         return entry
 
@@ -459,95 +442,3 @@ class ReconstructionJob:
         if job.kind == "bayer":
             return static_estimate(job.codeds[i], job.mask(i), self.r.bayer)
         return trivial_estimate(job.codeds[i], job.mask(i))
-
-    def record(self, *, output=None, read: float = 0.0, write: float = 0.0, started: float | None = None) -> dict:
-        """The metrics record of the job after its run: settings, data range, preset, each capture's entry and
-        the totals, and the quality when a truth was given.  ``read``, ``write``: the seconds the door spent
-        reading the inputs and writing the outputs; ``started``: when it started (``time.perf_counter``)."""
-        r, job, units = self.r, self.captures, self.units
-        metrics = dict(({"output": str(output)} if output is not None else {}), inputs=job.inputs,
-                       settings=dict(self.omp.__dict__, tol_rms=self.omp.tol_rms / units.scale, method=r.method,
-                                     adapt=r.rc.adapt, adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine,
-                                     tile=r.rc.tile, scheduler=r.rc.scheduler, workers=r.rc.workers,
-                                     dictionary_atoms=self.entries[0]["reconstruction"].get("dictionary_atoms")),
-                       data_range=units.as_dict(), preset=r.preset)
-        if self.cuts is not None:  # the boundaries not joined, and why (each was asked by the join already)
-            metrics["cuts"] = [dict(c, captures=[job.labels[c["boundary"] + d].get("capture", c["boundary"] + d + 1)
-                                                 for d in (0, 1)])
-                               for c in (self.cuts(i) and dict(boundary=i, **self.cuts(i))
-                                         for i in range(self.count - 1)) if c]
-        read_all = read + self.seconds_prepared
-        total = time.perf_counter() - started if started is not None else None
-        if job.kind in ("single", "bayer"):
-            info = self.entries[0]["reconstruction"]
-            info["seconds"] = dict(read=read_all, **info["seconds"], write=write,
-                                   total=total if total is not None else read_all + sum(info["seconds"].values()))
-            metrics["reconstruction"] = info
-            if job.kind == "bayer":
-                metrics.update(layout="(C, N, H, W)", bayer=dict(info.get("bayer", {}), pattern=r.bayer))
-                metrics["settings"]["bayer"] = r.bayer
-        else:
-            metrics.update(self._stream_totals(read_all, write, total))
-        if self._frames["psnr"]:
-            metrics["quality"], metrics["trivial"] = self._quality(output)
-        return metrics
-
-    def _share_solving(self) -> None:
-        """Each capture's ``seconds.reconstruct`` as its share of the stream's: the stream solves a window of
-        captures' tiles in one graph, so the first capture's wait held the others' work; the waits' sum is
-        shared in proportion to the seconds spent on each capture's own tiles in this run (none for tiles
-        reused from the cache)."""
-        infos = [e["reconstruction"] for e in self.entries]
-        work = [float(info.get("seconds_total", 0.0)) for info in infos]
-        if len(infos) < 2 or sum(work) <= 0:
-            return
-        waited = sum(info["seconds"].get("reconstruct", 0.0) for info in infos)
-        for info, w in zip(infos, work):
-            info["seconds"]["reconstruct"] = waited * w / sum(work)
-
-    def _stream_totals(self, read: float, write: float, total: float | None) -> dict:
-        self._share_solving()
-        entries = self.entries
-        t_rec = sum(sum(e["reconstruction"]["seconds"].get(k, 0.0) for k in ("first_pass", "adapt", "reconstruct"))
-                    for e in entries)
-        # the patches of the tiles computed in this run (a rerun from the cache counted every patch: 1.3 M/s)
-        solved = sum(r.get("patches_computed", 0.0) for r in (e["reconstruction"] for e in entries))
-        kind = self.captures.kind
-        return {"layout": "(C, N, H, W)" if kind == "channels" else "(T*N, H, W)",
-                "reconstruction": dict(patches=sum(e["reconstruction"]["patches"] for e in entries),
-                                       patches_per_second=solved / max(t_rec, 1e-9),
-                                       seconds=dict(read=read, reconstruct=t_rec, write=write,
-                                                    total=total if total is not None else read + t_rec + write)),
-                kind: entries}
-
-    def _quality(self, output) -> tuple[dict, dict]:
-        """The mean quality over all frames (every coded image has N frames: the mean of their means), and the
-        trivial estimate's."""
-        per_frame, units, kind, n = self._frames, self.units, self.captures.kind, self.n
-        quality = dict(psnr=mean_psnr(per_frame["psnr"]), ssim=float(np.mean(per_frame["ssim"])),
-                       exact_frames=int(np.sum(np.isposinf(per_frame["psnr"]))),
-                       psnr_per_frame=per_frame["psnr"], ssim_per_frame=per_frame["ssim"], data_range=units.value,
-                       psnr_peak=dict(value=units.value, source=units.source))
-        trivial = dict(psnr=mean_psnr(self._trivial["psnr"]), ssim=float(np.mean(self._trivial["ssim"])),
-                       psnr_per_frame=self._trivial["psnr"], ssim_per_frame=self._trivial["ssim"],
-                       data_range=units.value)
-        if kind == "bayer":  # frames are channel-major: R's N, G's N, B's N
-            for key in ("psnr", "ssim"):
-                quality[f"{key}_per_channel"] = [float(np.mean(per_frame[key][c * n : (c + 1) * n])) for c in range(3)]
-        elif kind != "single":
-            name = kind[:-1]
-            scored = [e for e in self.entries if "quality" in e]  # (a stream's truth may end before its last)
-            quality.update({f"psnr_per_{name}": [e["quality"]["psnr"] for e in scored],
-                            f"ssim_per_{name}": [e["quality"]["ssim"] for e in scored]})
-            if len(scored) < len(self.entries):
-                quality["scored"] = [e.get(name, i + 1) for i, e in enumerate(scored)]
-            if kind in ("captures", "measurements") and len(scored) > 1:
-                pairs = [dict(last=per_frame["psnr"][(i + 1) * n - 1], first_next=per_frame["psnr"][(i + 1) * n])
-                         for i in range(len(scored) - 1)]  # flicker at the boundaries
-                quality["boundaries"] = dict(dict(pairs=pairs), **self._steps.summary())
-        # of the volume as reconstructed (float32); a lossy output file holds it less exactly (evaluate the file)
-        suffix = Path(str(output)).suffix.lower() if output is not None else ""
-        lossy = "H.264" if suffix in (".mp4", ".mov") else \
-            "GIF palette (3-3-2)" if suffix == ".gif" and len(self.shape) == 4 else None
-        quality["measured_on"] = "volume before encoding" + (f"; the output is lossy ({lossy})" if lossy else "")
-        return quality, trivial

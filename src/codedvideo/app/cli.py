@@ -510,7 +510,7 @@ def _cmd_reconstruct(a) -> int:
         t1 = time.perf_counter()
     t_write += time.perf_counter() - t1
     mark_written(a.output)
-    metrics = job.record(output=a.output, read=t_read, write=t_write, started=t_all)
+    metrics = api.job_record(job, output=a.output, read=t_read, write=t_write, started=t_all)
     if metrics.get("quality") and kind in ("single", "captures", "measurements") and _quantised(a.output):
         metrics["quality"]["output_file"] = _written_quality(a.output, job)
     _warn_replaced_record(metrics_path(a.output), a.output)
