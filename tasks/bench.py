@@ -262,25 +262,21 @@ def case_bayer(quick: bool) -> dict:
     """Issue 14: a Bayer (RGGB) coded capture of synth:color-default, reconstructed in colour."""
     import tempfile
 
+    import codedvideo as cv
     from codedvideo.engine import bayer
-    from codedvideo.engine.config import PipelineConfig, omp_settings
     from codedvideo.model.metrics import evaluate
-    from codedvideo.engine.captures import CaptureSettings
-    from codedvideo.model.units import infer_data_range, static_peak
 
     D, meta = dictionary_for(8)
     size = (96, 96) if quick else (256, 256)
     video = bayer.color_scene("color-default", frames=8, size=size)
     cap = bayer.simulate_bayer(video, "RGGB", code="hitomi", bump=2, sigma=0.0, seed=0)
-    units = infer_data_range(static_peak(cap["coded"], cap["mask"]))
     flat = lambda v: v.reshape(-1, *size)  # noqa: E731
-    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
+    with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # (the API's settings path, as a user's run)
         t = time.perf_counter()
-        vol, info = bayer.reconstruct_bayer(CaptureSettings("omp", dictionary=D, data_range=units,
-                                                            settings=omp_settings(PipelineConfig().reconstruct, 0.0),
-                                                            cache=tmp, progress=False),
-                                            cap["coded"], cap["mask"], pattern="RGGB")
+        result = cv.reconstruct(cap["coded"], cap["mask"], bayer="RGGB", dictionary=D, cache=tmp, progress=False,
+                                full_output=True)
         seconds = time.perf_counter() - t
+    vol, info = result.frames, result.info[0]
     q = evaluate(flat(vol), flat(video))
     static = evaluate(flat(bayer.static_estimate(cap["coded"], cap["mask"], "RGGB")), flat(video))
     return dict(case="bayer", size=list(size), frames=8, bump=2, pattern="RGGB", sgemm_gflops=sgemm_gflops(),

@@ -32,6 +32,7 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     The default and the non-local method run as the pipeline runs them (the tile graph on every
     core); with ``options`` (keyword arguments of ``nonlocal_region`` the pipeline does not take) the
     non-local step runs on the whole image in this thread after the default's tile graph."""
+    import codedvideo as cv
     from codedvideo.data import shipped
     from codedvideo.solvers.baselines import gap_tv
     from codedvideo.engine.config import PipelineConfig, omp_settings
@@ -39,11 +40,9 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     from codedvideo.solvers.nonlocal_sc import nonlocal_region
     from codedvideo.solvers.omp_kernel import load_kernels
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
     from codedvideo.engine.simulation import simulate_capture
     from codedvideo.engine.windows import reconstruct_volume
     from codedvideo.formats.store import load_dictionary
-    from codedvideo.model.units import infer_data_range
 
     load_kernels()
     D, _ = load_dictionary(shipped.verified(8))
@@ -72,10 +71,8 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
                 row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
             with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # --adapt: both passes timed
                 t = time.perf_counter()
-                vol, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True,
-                                                             data_range=infer_data_range(255.0), settings=s,
-                                                             dictionary=D, cache=tmp, progress=False),
-                                             cap["coded"], cap["mask"])
+                vol = cv.reconstruct(cap["coded"], cap["mask"], method="nonlocal", adapt=True, dictionary=D,
+                                     noise_sigma=sigma, data_range=255.0, cache=tmp, progress=False)
                 row["adapt"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
         t = time.perf_counter()
         vol = gap_tv(cap["coded"], cap["mask"])

@@ -28,7 +28,6 @@ import numpy as np
 
 from codedvideo.model import doors
 from codedvideo.api._settings import ReconstructSettings
-from codedvideo.model.doors import through
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
@@ -43,7 +42,7 @@ def _door(fn):
 
     @functools.wraps(fn)
     def called(*args, **kwargs):
-        with through("api"):
+        with doors.through("api"):
             return fn(*args, **kwargs)
 
     return called
@@ -391,6 +390,14 @@ def shipped_frames() -> list[int]:
     from codedvideo.data import shipped
 
     return shipped.available()
+
+
+def missing_frame_question(frames: int) -> str:
+    """Whether a mask of ``frames`` sub-frames lost one (a dictionary is shipped for one or two more), as a
+    question to add to a message; empty otherwise."""
+    from codedvideo.data import shipped
+
+    return shipped.missing_frame_question(frames)
 
 
 def truth_data_range(truth, *, data_range: float | None = None, where: str = "truth"):

@@ -750,11 +750,10 @@ def _cmd_codes(a) -> int:
     n = masks.shape[-3]
     shipped = api.shipped_frames()
     if n not in shipped:  # (a mask folder missing an image reads as a code of fewer sub-frames)
-        near = min((k for k in shipped if 0 < k - n <= 2), default=0)
+        ask, need = api.missing_frame_question(n), f"reconstructing it needs a dictionary trained for N = {n}"
         warnings.warn(f"mask {a.mask}: N = {n} sub-frames, for which no dictionary is shipped (shipped: N = "
-                      f"{', '.join(map(str, shipped))}); " + (f"if the code has {near}, {short_of(n, near)} Otherwise, "
-                                                              if near else "")
-                      + f"reconstructing it needs a dictionary trained for N = {n}", stacklevel=2)
+                      f"{', '.join(map(str, shipped))}); " + (f"{ask} Otherwise, {need}" if ask else need),
+                      stacklevel=2)
     if masks.ndim == 3:
         print(json.dumps(dict(check_code(masks).as_dict(), dictionary_shipped=n in shipped)))
         return 0

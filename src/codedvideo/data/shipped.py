@@ -78,15 +78,20 @@ def required(frames: int, where: str, how: str) -> Path:
     arose, the N that are shipped and ``how`` to give a dictionary of one's own (besides training it)."""
     found = verified(frames)
     if found is None:
-        from codedvideo.model.codes import short_of
-
         have = ", ".join(map(str, available())) or "none"
-        near = min((k for k in available() if 0 < k - frames <= 2), default=0)  # (a mask folder missing an image)
-        ask = f"the mask has {frames} sub-frames; if the code has {near}, {short_of(frames, near)} Otherwise, " \
-            if near else ""
-        raise InputError(f"{where}: no dictionary is shipped for N = {frames} (shipped: N = {have}); {ask}train one "
-                         f"with {how}")
+        ask = missing_frame_question(frames)
+        raise InputError(f"{where}: no dictionary is shipped for N = {frames} (shipped: N = {have}); "
+                         + (f"{ask} Otherwise, train one" if ask else "train one") + f" with {how}")
     return found
+
+
+def missing_frame_question(frames: int) -> str:
+    """Where a dictionary is shipped for one or two sub-frames more than ``frames``, whether the mask lost some
+    (a mask folder missing an image reads as a code of fewer sub-frames); empty otherwise."""
+    from codedvideo.model.codes import short_of
+
+    near = min((k for k in available() if 0 < k - frames <= 2), default=0)
+    return f"the mask has {frames} sub-frames; if the code has {near}, {short_of(frames, near)}" if near else ""
 
 
 def matching(frames: int, key: str) -> Path | None:

@@ -13,9 +13,11 @@ was measured above it on held-out footage (docs/research.md, "Long shutter bumps
 * pixels open most of the time (a Bernoulli code of p 0.8 or 0.9): as with long bumps,
   what the closed sub-frames show is too little to choose atoms by.
 
-A code that varies along one image axis only (``rowwise``, ``thinout``) or along none
-(``flutter``, ``global``) gives the 7x7 windows a few patterns to fit by instead of 49,
-and its sparse estimate's weight is halved again.
+A code that varies along one image axis only (``rowwise``, ``thinout``) gives the 7x7
+windows a few patterns to fit by instead of 49, and its sparse estimate's weight is halved
+again; one that every pixel shares (``flutter``) shows no motion at all, and its still
+estimate is blended half and half.  The global shutter, every pixel open throughout, keeps
+coded / N, which GAP-TV gives too.
 
 There the result is a blend, ``w * sparse + (1 - w) * GAP-TV`` (:func:`sparse_weight`);
 on the paper's codes ``w`` is 1 and the sparse estimate is the result, unchanged.
