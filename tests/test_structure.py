@@ -116,7 +116,7 @@ WIDE_STILL = {
     ("engine/adaptation.py", "adapt_capture"), ("model/units.py", "capture_units"),
     ("engine/windows.py", "reconstruct_volume"), ("engine/simulation.py", "simulate_capture"),
     ("api/__init__.py", "simulate"), ("solvers/region.py", "reconstruct_region"),
-    ("solvers/nonlocal_sc.py", "_scatter_members"), ("solvers/nonlocal_sc.py", "_region"), ("solvers/ksvd.py", "ksvd"),
+    ("solvers/ksvd.py", "ksvd"),
     ("solvers/baselines.py", "gap_tv"), ("model/sensor.py", "correct_raw"),
 }
 

@@ -178,7 +178,7 @@ def nonlocal_region(
         stats.seconds_total = time.perf_counter() - t_start
         return None if sums else (first32.copy(), stats.as_array())
     coded32 = np.asarray(coded, dtype=np.float32)
-    region = _region(coded32, weights, binary, D, patterns, which, settings.tol_rms, still, patch)
+    region = _region(coded32, weights, binary, D, (patterns, which), settings.tol_rms, still, patch)
     chosen = _references(region, settings, opts, stats)
     k = min(group, (2 * window + 1) ** 2, hp * wp)
     current = np.nan_to_num(first32, nan=0.0).astype(np.float32)
@@ -315,10 +315,11 @@ class _Region:
     calm: np.ndarray
 
 
-def _region(coded: np.ndarray, mask: np.ndarray, binary: bool, D: np.ndarray, patterns: np.ndarray,
-            which: np.ndarray, tol_rms: float, still: np.ndarray | None, patch: int) -> _Region:
-    """The :class:`_Region` of a coded image (h, w) float32 under ``mask`` with pixel patterns ``patterns``,
-    ``which`` (:func:`pixel_patterns`)."""
+def _region(coded: np.ndarray, mask: np.ndarray, binary: bool, D: np.ndarray, patterned: tuple[np.ndarray, np.ndarray],
+            tol_rms: float, still: np.ndarray | None, patch: int) -> _Region:
+    """The :class:`_Region` of a coded image (h, w) float32 under ``mask`` with its pixel patterns and each
+    pixel's pattern, ``patterned`` (:func:`pixel_patterns`)."""
+    patterns, which = patterned
     table = TableOMP(patterns, D, patch * patch)
     patches = region_patches(coded, mask, binary, patch)
     tol = np.ascontiguousarray(patches.n_open * tol_rms**2, dtype=np.float64)
@@ -422,7 +423,7 @@ def _solve_pass(region: _Region, chosen: _References, idx: np.ndarray, dist: np.
         if opts.aggregate == "reference" or k == 1:  # one estimate per patch: the default's fold
             _fold_references(region, chosen, groups, atoms, settings, (r0, r1), summed, weight)
         else:
-            _scatter_members(region, chosen, groups, atoms, settings, opts.similarity, (r0, r1), summed, weight)
+            _scatter_members(region, chosen, groups, atoms, settings, opts.similarity, (r0, r1), (summed, weight))
     return summed, weight, (n_groups, n_members, n_atoms)
 
 
@@ -496,11 +497,13 @@ def _fold_references(region: _Region, chosen: _References, groups: _Groups, atom
 
 
 def _scatter_members(region: _Region, chosen: _References, groups: _Groups, atoms: np.ndarray,
-                     settings: OmpSettings, similarity: float | None, band: tuple[int, int], summed: np.ndarray,
-                     weight: np.ndarray) -> None:
+                     settings: OmpSettings, similarity: float | None, band: tuple[int, int],
+                     sums: tuple[np.ndarray, np.ndarray]) -> None:
     """``aggregate="all"``: every member's estimate added at its own place (weighted by ``similarity`` and the
     ``fit`` weighting), then the still answers of the still references of the rows ``band``; ``atoms``: the
-    dictionary's :func:`~codedvideo.solvers.omp_kernel.atom_rows`."""
+    dictionary's :func:`~codedvideo.solvers.omp_kernel.atom_rows`; ``sums``: the summed estimates and weights they
+    are added to."""
+    summed, weight = sums
     n = region.shape[0]
     patches = region.patches
     m = patches.y.shape[1]
