@@ -22,6 +22,7 @@ from codedvideo.model.patches import PATCH
 from codedvideo.model.physics import SensorModel
 from codedvideo.model.units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX
 from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
+from codedvideo.solvers.region import OmpSettings
 
 STAGES = ("train", "simulate", "reconstruct", "evaluate")
 #: The tile side in pixels (``reconstruct.tile``, ``--tile``) by default.
@@ -227,15 +228,15 @@ PRESET_KEYS = {"method": "--method", "adapt": "--adapt", "adapt_rounds": "--adap
 class ReconstructConfig(_Strict):
     #: Named settings (:data:`PRESETS`): the keys it sets unless given here (null: none).
     preset: PresetName | None = None
-    max_atoms: int = Field(8, ge=1, le=PATCH * PATCH)
+    max_atoms: int = Field(OmpSettings.max_atoms, ge=1, le=PATCH * PATCH)
     #: RMS residual tolerance per measured pixel; "auto" derives it from the noise.
     tol_rms: Annotated[float, Field(ge=0, le=LEVEL_MAX)] | Literal["auto"] = "auto"  # (also within 1e6 data ranges)
     #: Still-scene test: atoms of the 2D DCT allowed before a patch goes to full OMP (0: off).
-    static_atoms: int = Field(8, ge=0, le=PATCH * PATCH)
+    static_atoms: int = Field(OmpSettings.static_atoms, ge=0, le=PATCH * PATCH)
     #: Patch stride: 1 solves every overlapping patch (the paper); s solves 1 in s**2 (faster).
-    stride: int = Field(1, ge=1, le=PATCH)
+    stride: int = Field(OmpSettings.stride, ge=1, le=PATCH)
     #: Average of overlapping estimates: "uniform" (the paper) or "fit" (weighted by misfit).
-    weighting: Literal["uniform", "fit"] = "uniform"
+    weighting: Literal["uniform", "fit"] = OmpSettings.weighting
     #: "omp": every patch on its own (the paper); "nonlocal": then groups of similar patches solved together.
     method: DictionaryMethod = "omp"
     #: Adapt the dictionary to each capture: reconstruct, K-SVD (4 iterations) on that result, reconstruct again
@@ -250,7 +251,7 @@ class ReconstructConfig(_Strict):
     refine: int = Field(0, ge=0, le=200)
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
     tile: int = Field(DEFAULT_TILE, ge=8, le=4096)
-    batch: int = Field(4096, ge=1, le=1 << 20)
+    batch: int = Field(OmpSettings.batch, ge=1, le=1 << 20)
     #: A dask.distributed address (``tcp://host:port``, ``tls://...``), or "threads" / "sync".
     scheduler: str | None = None
     workers: int | None = Field(None, ge=1, le=1024)
@@ -535,8 +536,6 @@ def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
     in the capture's units; ``scale`` takes the capture's units to working
     units (:mod:`codedvideo.model.units`), in which the settings are returned.
     """
-    from codedvideo.solvers.region import OmpSettings
-
     tol = auto_tolerance(sigma * scale) if rc.tol_rms == "auto" else float(rc.tol_rms) * scale
     return OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms,
                        stride=rc.stride, weighting=rc.weighting, method=rc.method)
