@@ -28,7 +28,7 @@ from codedvideo.engine.methods import SPARSE, WITH_DICTIONARY
 from codedvideo.engine.windows import cache_room
 from codedvideo.engine.config import omp_settings
 from codedvideo.formats.volumes import check_coded, check_mask
-from codedvideo.model.codes import short_of
+from codedvideo.model.codes import short_of_the_truth
 from codedvideo.model.errors import InputError
 from codedvideo.model.metrics import (IMPLAUSIBLE_SHARE, mean_psnr, mse_psnr, other_units,
                                      volume_extremes, volume_peak)
@@ -110,10 +110,8 @@ def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
         want = (len(codeds) * masks[0].shape[0], *codeds.shape[-2:])
         if truths.shape != want:
             per_capture = truths.shape[0] // len(codeds) if truths.shape[0] % len(codeds) == 0 else 0
-            ask = short_of(masks[0].shape[0], per_capture)
-            raise InputError(f"{where}: truth {truths.shape} != (T*N, H, W) {want}" + (
-                f"; the mask has {masks[0].shape[0]} sub-frames where the truth has {per_capture} frames per coded "
-                f"image: {ask}" if ask else ""))
+            raise InputError(f"{where}: truth {truths.shape} != (T*N, H, W) {want}"
+                             + short_of_the_truth(masks[0].shape[0], per_capture))
     kind = "single" if single else "captures"
     return Captures(codeds=codeds, masks=masks, truths=truths, kind=kind, dtype=dtype, source=f"{where}: coded"), \
         single

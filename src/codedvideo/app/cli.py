@@ -28,7 +28,7 @@ from codedvideo import __version__, api
 from codedvideo.api.config import (DEFAULT_CACHE, PRESETS, OutputConfig, PipelineConfig, default_config_path, load_config,
                                    preset_options, validated)
 from codedvideo.model import doors
-from codedvideo.model.codes import CODE_NAMES, short_of
+from codedvideo.model.codes import CODE_NAMES, short_of_the_truth
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.formats.outputs import Output, check_outputs, mark_written
 from codedvideo.model.metrics import json_safe
@@ -446,10 +446,8 @@ def _read_captures(a) -> api.Captures:
         if truth.shape != want:
             what = "(channels, N, H, W)" if color else "(T*N, H, W) for T coded images of N sub-frames"
             given = truth.shape[1] if color else truth.shape[0] // coded.shape[0] * (truth.shape[0] % coded.shape[0] == 0)
-            ask = short_of(n, given)
-            raise InputError(f"truth {a.truth}: shape {truth.shape} != {what} {want}" + (
-                f"; mask {a.mask} has {n} sub-frames where the truth has {given} frames per coded image: {ask}"
-                if ask else ""))
+            raise InputError(f"truth {a.truth}: shape {truth.shape} != {what} {want}"
+                             + short_of_the_truth(n, given, f"mask {a.mask}"))
         truths = truth
     labels = ([dict(channel=c) for c in range(coded.shape[0])] if color else
               [{}] if kind == "single" else [dict(capture=t + 1) for t in range(coded.shape[0])])

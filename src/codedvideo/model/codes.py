@@ -498,3 +498,11 @@ def short_of(frames: int, wanted: int) -> str:
         return ""
     some = "a sub-frame" if wanted - frames == 1 else f"{wanted - frames} sub-frames"
     return f"is {some} missing from the mask (a mask folder needs one image per sub-frame)?"
+
+
+def short_of_the_truth(frames: int, per_capture: int, mask: str = "the mask") -> str:
+    """What to add to a truth's shape error when the truth holds ``per_capture`` frames per coded image and the
+    mask (named ``mask``) fewer sub-frames, ``frames`` (empty otherwise)."""
+    ask = short_of(frames, per_capture)
+    return f"; {mask} has {frames} sub-frames where the truth has {per_capture} frames per coded image: {ask}" \
+        if ask else ""
