@@ -49,12 +49,13 @@ def quality_captures(scenes, size):
     record (scene, kind, code, bump, sigma) that the bench fills with each method's figures."""
     from codedvideo.data.scenes import load_video
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
     for scene in scenes:
         video = load_video(scene, frames=8, size=size)
         for code, bump in QUALITY_CODES:
             for sigma in (0.0, 4.0):
-                cap = simulate_capture(video, code=code, bump=bump, sigma=sigma, seed=0)
+                cap = simulate_capture(video, code=CodeSpec(code, bump=bump), sigma=sigma, seed=0)
                 yield video, cap, dict(scene=scene, kind="real" if scene.startswith("footage:") else "synthetic",
                                        code=code, bump=bump, sigma=sigma)
 
@@ -66,7 +67,7 @@ def default_and_dct(row: dict, video, cap, D, rc, cache: Path):
     import tempfile
 
     from codedvideo.engine.config import omp_settings
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
     from codedvideo.model.metrics import evaluate
     from codedvideo.solvers.dictionaries import dct_dictionary
 
@@ -75,7 +76,8 @@ def default_and_dct(row: dict, video, cap, D, rc, cache: Path):
         s = omp_settings(rc.model_copy(update=dict(max_atoms=atoms)), row["sigma"])
         with tempfile.TemporaryDirectory(dir=cache) as tmp:
             t = time.perf_counter()
-            vol, _ = reconstruct_volume(cap["coded"], cap["mask"], dic, settings=s, cache=tmp, progress=False)
+            vol, _ = reconstruct_volume(cap["coded"], cap["mask"], dic, settings=s,
+                                        run=Execution(cache=tmp, progress=False))
             row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
         first = vol if first is None else first
     return first

@@ -99,16 +99,17 @@ def dictionary_for(frames: int):
 def capture(scene: str, frames: int, size, code: str, bump: int, seed: int = 0):
     from codedvideo.data.scenes import load_video
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
     video = load_video(f"synth:{scene}", frames=frames, size=size, seed=seed)
-    return simulate_capture(video, code=code, bump=bump, sigma=0.0, seed=seed)
+    return simulate_capture(video, code=CodeSpec(code, bump=bump), sigma=0.0, seed=seed)
 
 
 def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128, stride=1, repeats=1):
     """Reconstruct ``repeats`` times (each into a fresh store); seconds: the median, seconds_first: the first."""
     from codedvideo.engine.config import PipelineConfig, omp_settings
     from codedvideo.model.metrics import evaluate
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
     import tempfile
 
     rc = PipelineConfig().reconstruct
@@ -118,8 +119,9 @@ def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128
     for _ in range(repeats):
         with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # fresh store: nothing reused
             t = time.perf_counter()
-            vol, info = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s, tile=tile, cache=tmp,
-                                           workers=workers, progress=False, dictionary_key=meta["sha256"])
+            vol, info = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s,
+                                           run=Execution(tile=tile, cache=tmp, workers=workers, progress=False),
+                                           dictionary_key=meta["sha256"])
             times.append(time.perf_counter() - t)
     seconds = float(np.median(times))
     q = evaluate(vol, cap["truth"])
@@ -264,12 +266,13 @@ def case_bayer(quick: bool) -> dict:
 
     import codedvideo as cv
     from codedvideo.engine import bayer
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.model.metrics import evaluate
 
     D, meta = dictionary_for(8)
     size = (96, 96) if quick else (256, 256)
     video = bayer.color_scene("color-default", frames=8, size=size)
-    cap = bayer.simulate_bayer(video, "RGGB", code="hitomi", bump=2, sigma=0.0, seed=0)
+    cap = bayer.simulate_bayer(video, "RGGB", code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
     flat = lambda v: v.reshape(-1, *size)  # noqa: E731
     with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # (the API's settings path, as a user's run)
         t = time.perf_counter()
@@ -301,6 +304,7 @@ def case_sequence(quick: bool) -> dict:
     import tempfile
 
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     size, t_count = ((64, 64), 4) if quick else ((256, 256), 10)
@@ -311,7 +315,7 @@ def case_sequence(quick: bool) -> dict:
                   "still": np.repeat(make_scene("default", frames=1, size=size), 8 * t_count, axis=0),
                   "moving": make_scene("default", frames=8 * t_count, size=size)}
         for name, video in scenes.items():
-            cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=t_count)
+            cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0, captures=t_count)
             for key in ("coded", "mask", "truth"):
                 np.save(tmp / f"{name}-{key}.npy", cap[key])
         # every timing the median of SEQUENCE_REPEATS whole processes, each on a fresh cache, the runs of all
@@ -356,12 +360,13 @@ def _sequence_longer(tmp: Path, size, longer: int, quick: bool) -> dict:
     """The sequence case's 70 %-still and moving scenes, ``longer`` captures each: the ~1 s that every run pays
     before its first tile (interpreter, imports, numba's set-up, the stores) weighs less."""
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     runs: dict = {}
     for name, spec in (("static70", "default-static70"), ("moving", "default")):
-        cap = simulate_capture(make_scene(spec, frames=8 * longer, size=size), code="hitomi", bump=2, sigma=0.0,
-                               seed=0, captures=longer)
+        cap = simulate_capture(make_scene(spec, frames=8 * longer, size=size), code=CodeSpec("hitomi", bump=2),
+                               sigma=0.0, seed=0, captures=longer)
         np.save(tmp / f"{name}-long-coded.npy", cap["coded"])
         np.save(tmp / f"{name}-long-mask.npy", cap["mask"])
     for repeat in range(1 if quick else SEQUENCE_REPEATS):
@@ -378,12 +383,13 @@ def _sequence_longer(tmp: Path, size, longer: int, quick: bool) -> dict:
 def _sequence_memory(tmp: Path, size, quick: bool) -> dict:
     """The peak memory of whole processes by the stream's length T."""
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     memory = {}
     for t in ((1, 4) if quick else (1, 10, 100)):
         video = make_scene("default", frames=8 * t, size=size)
-        cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=t)
+        cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0, captures=t)
         np.save(tmp / "m-coded.npy", cap["coded"])
         np.save(tmp / "m-mask.npy", cap["mask"])
         seconds, peak = _cli("reconstruct", "--coded", tmp / "m-coded.npy", "--mask", tmp / "m-mask.npy", "--output",
@@ -395,10 +401,11 @@ def _sequence_memory(tmp: Path, size, quick: bool) -> dict:
 def _sequence_noisy(tmp: Path, size, video: np.ndarray, t_count: int, quick: bool) -> dict:
     """Heavy read noise: the still answer is then noisier than OMP's estimate (sequence.STILL_NOISE_MAX)."""
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
     noisy = {}
     for sigma in ((40,) if quick else (10, 20, 40)):
-        cap = simulate_capture(video, code="hitomi", bump=2, sigma=float(sigma), seed=0, captures=t_count)
+        cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=float(sigma), seed=0, captures=t_count)
         np.save(tmp / "n-coded.npy", cap["coded"])
         np.save(tmp / "n-mask.npy", cap["mask"])
         row = {}
@@ -431,6 +438,7 @@ def case_video(quick: bool) -> dict:
     import tempfile
 
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     runs = (((128, 160), 3), ((216, 384), 1)) if quick else (((720, 1280), 30), ((2160, 3840), 1))
@@ -439,7 +447,7 @@ def case_video(quick: bool) -> dict:
         tmp = Path(tmp)
         for size, t_count in runs:
             video = make_scene("default", frames=18 * t_count, size=size)
-            cap = simulate_capture(video, code="hitomi", bump=3, sigma=0.0, seed=0, captures=t_count)
+            cap = simulate_capture(video, code=CodeSpec("hitomi", bump=3), sigma=0.0, seed=0, captures=t_count)
             for key in ("coded", "mask"):
                 np.save(tmp / f"{key}.npy", cap[key])
             del cap
@@ -465,6 +473,7 @@ def case_outputs(quick: bool) -> dict:
     import tempfile
 
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     size = (216, 384) if quick else (1080, 1920)
@@ -473,7 +482,7 @@ def case_outputs(quick: bool) -> dict:
         tmp = Path(tmp)
         for t_count in (1, 2):
             video = make_scene("default", frames=18 * t_count, size=size)
-            cap = simulate_capture(video, code="hitomi", bump=3, sigma=0.0, seed=0, captures=t_count)
+            cap = simulate_capture(video, code=CodeSpec("hitomi", bump=3), sigma=0.0, seed=0, captures=t_count)
             for key in ("coded", "mask"):
                 np.save(tmp / f"{key}.npy", cap[key])
             del cap, video
@@ -503,6 +512,7 @@ def case_outputs4k(quick: bool) -> dict:
     import tempfile
 
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     size = (216, 384) if quick else (2160, 3840)
@@ -511,8 +521,8 @@ def case_outputs4k(quick: bool) -> dict:
                target_mb=STREAM_PEAK_TARGET_MB)
     with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
         tmp = Path(tmp)
-        cap = simulate_capture(make_scene("default", frames=18 * most, size=size), code="hitomi", bump=3, sigma=0.0,
-                               seed=0, captures=most)
+        cap = simulate_capture(make_scene("default", frames=18 * most, size=size), code=CodeSpec("hitomi", bump=3),
+                               sigma=0.0, seed=0, captures=most)
         np.save(tmp / "mask.npy", cap["mask"])  # one code, repeated: the captures are the first t of the stack
         coded = cap["coded"]
         del cap
@@ -602,6 +612,7 @@ def case_adapt(quick: bool) -> dict:
     import tempfile
 
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.scenes import load_video
 
     size = (96, 96) if quick else (256, 256)
@@ -613,7 +624,7 @@ def case_adapt(quick: bool) -> dict:
         for scene in (("footage:bikes-a",) if quick else ("footage:bikes-a", "footage:carphone")):
             video = load_video(scene, frames=8, size=size)
             for code in ("hitomi", "bernoulli"):
-                cap = simulate_capture(video, code=code, bump=2, sigma=0.0, seed=0)
+                cap = simulate_capture(video, code=CodeSpec(code, bump=2), sigma=0.0, seed=0)
                 np.save(tmp / "mask.npy", cap["mask"])
                 for units, scale in (("8-bit", 1.0), ("[0, 1]", 255.0)):
                     np.save(tmp / "coded.npy", cap["coded"] / np.float32(scale))

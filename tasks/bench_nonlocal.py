@@ -41,7 +41,8 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     from codedvideo.solvers.omp_kernel import load_kernels
     from codedvideo.data.scenes import load_video
     from codedvideo.engine.simulation import simulate_capture
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.model.codes import CodeSpec
+    from codedvideo.engine.windows import Execution, reconstruct_volume
     from codedvideo.formats.store import load_dictionary
 
     load_kernels()
@@ -52,7 +53,7 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
     (ROOT / "cache").mkdir(exist_ok=True)
     # compile the non-local kernels outside the timings
     warm = load_video((scenes or QUALITY_SCENES)[0], frames=8, size=(32, 32))
-    cap = simulate_capture(warm, code="hitomi", bump=2, sigma=0.0, seed=0)
+    cap = simulate_capture(warm, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
     nonlocal_region(cap["coded"], cap["mask"], D, warm, omp_settings(rc, 0.0))
     rows = []
     for video, cap, row in quality_captures(scenes or (QUALITY_SCENES[:2] if quick else QUALITY_SCENES), size):
@@ -67,7 +68,8 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
             s = omp_settings(rc.model_copy(update=dict(method="nonlocal")), sigma)
             with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
                 t = time.perf_counter()
-                vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s, cache=tmp, progress=False)
+                vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s,
+                                            run=Execution(cache=tmp, progress=False))
                 row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
             with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # --adapt: both passes timed
                 t = time.perf_counter()

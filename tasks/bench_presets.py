@@ -79,13 +79,14 @@ def write_captures(folder: Path, size, codes=tuple((code, 2) for code in CODES),
     scene under every ``(code, bump)`` of ``codes`` with Gaussian read noise of each of ``sigmas``, grey levels)."""
     from codedvideo.data.scenes import load_video
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
     cases = []
     for scene in SCENES:
         video = load_video(scene, frames=8, size=size)
         for code, bump in codes:
             for sigma in sigmas:
-                cap = simulate_capture(video, code=code, bump=bump, sigma=sigma, seed=0)
+                cap = simulate_capture(video, code=CodeSpec(code, bump=bump), sigma=sigma, seed=0)
                 where = folder / f"{scene.split(':')[1]}-{code}{bump if code == 'hitomi' else ''}-s{sigma:g}"
                 where.mkdir(parents=True)
                 np.save(where / "mask.npy", cap["mask"])
@@ -120,9 +121,10 @@ def warm_up(work: Path) -> None:
     """One small run of each method first: the compiled kernels' on-disk caches filled outside the timings."""
     from codedvideo.data.scenes import load_video
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
-    cap = simulate_capture(load_video("footage:carphone", frames=8, size=(32, 32)), code="hitomi", bump=2, sigma=0.0,
-                           seed=0)
+    cap = simulate_capture(load_video("footage:carphone", frames=8, size=(32, 32)), code=CodeSpec("hitomi", bump=2),
+                           sigma=0.0, seed=0)
     folder = work / "warm"
     folder.mkdir()
     for name in ("coded", "mask", "truth"):
@@ -235,11 +237,12 @@ def scaling(work: Path, repeats: int, sides=SCALING_SIDES) -> dict:
     """``default`` and ``best`` at each side: median seconds, peak memory, microseconds per pixel."""
     from codedvideo.data.scenes import load_video
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
     rows = []
     for side in sides:
-        cap = simulate_capture(load_video("synth:default", frames=8, size=(side, side)), code="hitomi", bump=2,
-                               sigma=0.0, seed=0)
+        cap = simulate_capture(load_video("synth:default", frames=8, size=(side, side)),
+                               code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
         folder = work / f"synth-{side}"
         folder.mkdir()
         for name in ("coded", "mask", "truth"):
@@ -286,12 +289,13 @@ def mosaic_video(side: int, frames: int = 8) -> np.ndarray:
 def front(work: Path, sides=FRONT_SIDES, units_list=("8-bit", "[0, 1]")) -> dict:
     """GAP-TV, the default and best on each side's mosaic under each code, one whole process each."""
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
     rows = []
     for side in sides:
         video = mosaic_video(side)
         for code in CODES:
-            cap = simulate_capture(video, code=code, bump=2, sigma=0.0, seed=0)
+            cap = simulate_capture(video, code=CodeSpec(code, bump=2), sigma=0.0, seed=0)
             folder = work / f"mosaic-{side}-{code}"
             folder.mkdir()
             np.save(folder / "mask.npy", cap["mask"])

@@ -39,6 +39,17 @@ def partly_still_capture(size, still_columns, seed):
     return coded, mask, still, dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=1.0)
 
 
+def capture_settings(method, **options):
+    """The engine's settings of a job by ``method``: the keys of ``reconstruct:`` among ``options`` (``tile``,
+    ``adapt``, ``refine``, ...) validated into its config, the rest its own fields (``cache``, ``dictionary``, ...)."""
+    from codedvideo.engine.captures import CaptureSettings
+    from codedvideo.engine.config import ReconstructConfig
+
+    config = {k: v for k, v in options.items() if k in ReconstructConfig.model_fields}
+    own = {k: v for k, v in options.items() if k not in config}
+    return CaptureSettings(method, config=ReconstructConfig(**config), **own)
+
+
 # ----------------------------------------------------------------------------- the shipped dictionary, regenerated
 # Regenerating the shipped N = 8 dictionary with its listed settings takes about 4 minutes on one core, so it
 # starts as a background process as soon as the test that needs it is collected, and runs beside the rest of

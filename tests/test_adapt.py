@@ -5,14 +5,16 @@ import json
 import numpy as np
 import pytest
 
+from conftest import capture_settings
 from codedvideo.data import shipped
 from codedvideo.app.cli import main
 from codedvideo.engine.config import PipelineConfig, omp_settings
 from codedvideo.model.metrics import evaluate
 from codedvideo.data.scenes import load_video
 from codedvideo.engine.adaptation import adapt_dictionary
-from codedvideo.engine.captures import CaptureSettings, reconstruct_capture, reconstruct_captures
+from codedvideo.engine.captures import reconstruct_capture, reconstruct_captures
 from codedvideo.engine.simulation import simulate_capture
+from codedvideo.model.codes import CodeSpec
 from codedvideo.formats.store import load_dictionary
 from codedvideo.model.units import infer_data_range
 
@@ -31,13 +33,13 @@ def common(D, cache):
 def carphone():
     """A 64x64 crop of held-out real footage (no dictionary was trained on it), hitomi L = 2."""
     video = load_video("footage:carphone", frames=8, size=(64, 64))
-    return video, simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0)
+    return video, simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
 
 
 def test_adapting_to_the_capture_beats_the_shipped_dictionary_on_held_out_footage(tmp_path, D, carphone):
     video, cap = carphone
-    plain, _ = reconstruct_capture(CaptureSettings("omp", **common(D, tmp_path / "a")), cap["coded"], cap["mask"])
-    adapted, info = reconstruct_capture(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "b")),
+    plain, _ = reconstruct_capture(capture_settings("omp", **common(D, tmp_path / "a")), cap["coded"], cap["mask"])
+    adapted, info = reconstruct_capture(capture_settings("omp", adapt=True, **common(D, tmp_path / "b")),
                                         cap["coded"], cap["mask"])
     assert info["adapted"]["adapted"] and info["adapted"]["samples"] == 7000
     gain = evaluate(adapted, video)["psnr"] - evaluate(plain, video)["psnr"]
@@ -46,11 +48,11 @@ def test_adapting_to_the_capture_beats_the_shipped_dictionary_on_held_out_footag
 
 def test_adapt_is_reproducible_and_a_rerun_reuses_both_passes(tmp_path, D, carphone):
     _, cap = carphone
-    a, info_a = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "a")),
+    a, info_a = reconstruct_capture(capture_settings("nonlocal", adapt=True, **common(D, tmp_path / "a")),
                                     cap["coded"], cap["mask"])
-    again, info_again = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "a")),
+    again, info_again = reconstruct_capture(capture_settings("nonlocal", adapt=True, **common(D, tmp_path / "a")),
                                             cap["coded"], cap["mask"])
-    fresh, _ = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, **common(D, tmp_path / "b")),
+    fresh, _ = reconstruct_capture(capture_settings("nonlocal", adapt=True, **common(D, tmp_path / "b")),
                                    cap["coded"], cap["mask"])
     np.testing.assert_array_equal(a, again)
     np.testing.assert_array_equal(a, fresh)
@@ -67,21 +69,22 @@ def test_nonlocal_adapt_solves_its_groups_from_the_survey_not_from_default_tiles
 
     from codedvideo.solvers.nonlocal_sc import nonlocal_region
     from codedvideo.engine.adaptation import ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
 
     video, cap = carphone
     options = common(D, tmp_path / "a")
     settings = dataclasses.replace(options["settings"], method="nonlocal")
-    adapted, info = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True),
+    adapted, info = reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings), adapt=True),
                                         cap["coded"], cap["mask"])
-    survey, _ = reconstruct_volume(cap["coded"], cap["mask"], D, tile=32, cache=tmp_path / "b", progress=False,
-                                   settings=dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP))
+    survey, _ = reconstruct_volume(cap["coded"], cap["mask"], D,
+                                   settings=dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP),
+                                   run=Execution(tile=32, cache=tmp_path / "b", progress=False))
     Da, record = adapt_dictionary(survey, D)
     assert record["final_rmse"] == info["adapted"]["final_rmse"]
     whole, _ = nonlocal_region(cap["coded"], cap["mask"], Da, survey,
                                dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP))
     np.testing.assert_allclose(adapted, whole, rtol=0, atol=1e-3)
-    plain, _ = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings)),
+    plain, _ = reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings)),
                                    cap["coded"], cap["mask"])
     assert evaluate(adapted, video)["psnr"] > evaluate(plain, video)["psnr"] + 0.3
 
@@ -93,19 +96,20 @@ def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path,
     import dataclasses
 
     from codedvideo.engine.adaptation import ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
     from codedvideo.solvers.nonlocal_sc import nonlocal_region
 
     video, cap = carphone
     options = common(D, tmp_path / "a")
     settings = dataclasses.replace(options["settings"], method="nonlocal")
-    two, info = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True,
+    two, info = reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings), adapt=True,
                                                     adapt_rounds=2),
                                     cap["coded"], cap["mask"])
-    one, _ = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True),
+    one, _ = reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings), adapt=True),
                                  cap["coded"], cap["mask"])
-    survey, _ = reconstruct_volume(cap["coded"], cap["mask"], D, tile=32, cache=tmp_path / "b", progress=False,
-                                   settings=dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP))
+    survey, _ = reconstruct_volume(cap["coded"], cap["mask"], D,
+                                   settings=dataclasses.replace(settings, group_step=ADAPT_SURVEY_STEP),
+                                   run=Execution(tile=32, cache=tmp_path / "b", progress=False))
     Da, _ = adapt_dictionary(survey, D)
     second, _ = nonlocal_region(cap["coded"], cap["mask"], Da, survey,
                                 dataclasses.replace(settings, group_step=ADAPT_REFINE_STEP))
@@ -118,7 +122,7 @@ def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path,
     assert evaluate(two, video)["psnr"] > evaluate(one, video)["psnr"]
     assert info["seconds"]["adapt"] == pytest.approx(sum(r["seconds"] for r in info["adapted"]["rounds"]))
     # a rerun (resume) reuses every pass from the cache and gives the same bits
-    again, info_again = reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings),
+    again, info_again = reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings),
                                                             adapt=True, adapt_rounds=2),
                                             cap["coded"], cap["mask"])
     np.testing.assert_array_equal(again, two)
@@ -137,7 +141,7 @@ def test_two_rounds_killed_in_the_last_pass_resume_with_the_same_bits(tmp_path, 
     _, cap = carphone
     options = common(D, tmp_path / "a")
     settings = dataclasses.replace(options["settings"], method="nonlocal")
-    run = lambda: reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True,
+    run = lambda: reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings), adapt=True,
                                                       adapt_rounds=2),
                                       cap["coded"], cap["mask"])
     ref, info = run()
@@ -173,7 +177,7 @@ def test_a_second_pass_whose_survey_is_damaged_is_not_given_as_a_result(tmp_path
     adaptation.adapt_dictionary = adapt_then_damage
     try:
         with pytest.raises(RuntimeError, match="tile 0 is not finished or fails its checksum"):
-            reconstruct_capture(CaptureSettings("nonlocal", **dict(options, settings=settings), adapt=True),
+            reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings), adapt=True),
                                 cap["coded"], cap["mask"])
     finally:
         adaptation.adapt_dictionary = real
@@ -192,9 +196,9 @@ def test_nonlocal_adapt_on_a_code_the_groups_cannot_solve_is_omp_adapt(tmp_path)
     D16 = rng.standard_normal((16 * 49, 512)).astype(np.float32)
     common = dict(data_range=infer_data_range(255.0), settings=omp_settings(PipelineConfig().reconstruct, 0.0),
                   dictionary=D16, tile=24, progress=False, adapt=True)
-    omp_adapted, omp_info = reconstruct_capture(CaptureSettings("omp", cache=tmp_path / "a", **common), coded, mask)
+    omp_adapted, omp_info = reconstruct_capture(capture_settings("omp", cache=tmp_path / "a", **common), coded, mask)
     with pytest.warns(UserWarning, match="--method nonlocal .* distinct pixel shutter patterns"):
-        vol, info = reconstruct_capture(CaptureSettings("nonlocal", cache=tmp_path / "b", **common), coded, mask)
+        vol, info = reconstruct_capture(capture_settings("nonlocal", cache=tmp_path / "b", **common), coded, mask)
     assert omp_info["adapted"]["adapted"] and info["adapted"]["adapted"]
     assert info["method"] == "omp" and "patterns" in info["nonlocal_unavailable"]
     np.testing.assert_array_equal(vol, omp_adapted)
@@ -204,15 +208,15 @@ def test_each_capture_of_a_stream_gets_its_own_dictionary(tmp_path, D):
     """Captures in one job (one graph) come out as each adapted alone: a tile whose inputs two captures share
     is not shared when their dictionaries differ, and equal captures share their work."""
     video = load_video("footage:bikes-a", frames=16, size=(64, 64))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=2)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0, captures=2)
     second = cap["coded"][0].copy()
     second[:, 40:] = cap["coded"][1][:, 40:]  # the left tiles (core 0..32, halo to 38) equal the first capture's
     codeds = [cap["coded"][0], second, cap["coded"][0]]
-    results = list(reconstruct_captures(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "job")),
+    results = list(reconstruct_captures(capture_settings("omp", adapt=True, **common(D, tmp_path / "job")),
                                         codeds, lambda i: cap["mask"]))
     assert [i for i, _, _ in results] == [0, 1, 2]
     for i, volume, info in results:
-        alone, info_alone = reconstruct_capture(CaptureSettings("omp", adapt=True,
+        alone, info_alone = reconstruct_capture(capture_settings("omp", adapt=True,
                                                                 **common(D, tmp_path / f"alone{i}")),
                                                 codeds[i], cap["mask"])
         np.testing.assert_array_equal(volume, alone)
@@ -226,8 +230,8 @@ def test_a_stream_adapted_again_into_its_cache_or_a_fresh_one_is_the_same(tmp_pa
     products round differently with one BLAS thread or two, and an adaptation that ran beside the first job's
     graph saw that graph's limit; in a rerun (no graph: every tile in the cache) it did not."""
     video = load_video("footage:carphone", frames=24, size=(64, 64))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=3)
-    runs = [list(reconstruct_captures(CaptureSettings("omp", adapt=True, **common(D, tmp_path / cache)),
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0, captures=3)
+    runs = [list(reconstruct_captures(capture_settings("omp", adapt=True, **common(D, tmp_path / cache)),
                                       list(cap["coded"]), lambda i: cap["mask"]))
             for cache in ("a", "a", "b")]
     for (_, first, info), (_, again, info_again), (_, fresh, _) in zip(*runs):
@@ -244,9 +248,9 @@ def test_adapting_the_complete_dct_keeps_its_unused_atoms_and_gains_on_held_out_
     from codedvideo.solvers.dictionaries import dct_dictionary
 
     video = load_video("footage:carphone", frames=16, size=(64, 64))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0)
-    plain, _ = reconstruct_capture(CaptureSettings("dct", **common(None, tmp_path / "a")), cap["coded"], cap["mask"])
-    adapted, info = reconstruct_capture(CaptureSettings("dct", adapt=True, **common(None, tmp_path / "b")),
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
+    plain, _ = reconstruct_capture(capture_settings("dct", **common(None, tmp_path / "a")), cap["coded"], cap["mask"])
+    adapted, info = reconstruct_capture(capture_settings("dct", adapt=True, **common(None, tmp_path / "b")),
                                         cap["coded"], cap["mask"])
     assert info["adapted"]["adapted"] and info["adapted"]["unused_atoms"] == "kept"
     gain = evaluate(adapted, video)["psnr"] - evaluate(plain, video)["psnr"]
@@ -270,10 +274,10 @@ def test_a_capture_saturated_everywhere_is_still_said_with_adapt(tmp_path, D):
     """Reported: the warning for a blown-out capture of a stream was lost (the first job's warnings are left to
     the second, but the capture was marked as warned)."""
     video = load_video("footage:carphone", frames=16, size=(48, 48))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=2)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0, captures=2)
     codeds = [cap["coded"][0], np.full_like(cap["coded"][1], 2000.0)]
     with pytest.warns(UserWarning, match="capture 2 of 2: every measured pixel is at or above"):
-        out = list(reconstruct_captures(CaptureSettings("omp", adapt=True, white_level=1000.0,
+        out = list(reconstruct_captures(capture_settings("omp", adapt=True, white_level=1000.0,
                                                         **common(D, tmp_path / "c")),
                                         codeds, lambda i: cap["mask"]))
     assert len(out) == 2 and all(np.isfinite(v).all() for _, v, _ in out)
@@ -283,9 +287,9 @@ def test_a_flat_capture_keeps_the_dictionary_and_stays_finite(tmp_path, D):
     flat = np.full((8, 24, 24), 100.0, np.float32)
     same, record = adapt_dictionary(flat, D)
     assert same is D and not record["adapted"]
-    mask = simulate_capture(flat, code="hitomi", bump=2, sigma=0.0, seed=0)["mask"]
+    mask = simulate_capture(flat, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)["mask"]
     dark = np.zeros((24, 24), np.float32)
-    volume, info = reconstruct_capture(CaptureSettings("omp", adapt=True, **common(D, tmp_path / "c")),
+    volume, info = reconstruct_capture(capture_settings("omp", adapt=True, **common(D, tmp_path / "c")),
                                        dark + 1e-3, mask)
     assert np.isfinite(volume).all() and np.abs(volume).max() < 1
     assert not info["adapted"]["adapted"] and info["tiles_computed"] == 0  # the first job's tiles, not solved again
@@ -305,7 +309,7 @@ def test_cli_adapt_writes_its_record_and_is_refused_without_a_dictionary(tmp_pat
     metrics = json.loads((tmp_path / "r.metrics.json").read_text())
     assert metrics["settings"]["adapt"] is True and metrics["reconstruction"]["adapted"]["adapted"]
     assert metrics["data_range"]["value"] == 1.0  # [0, 1] floats: the same as the 8-bit run, in its units
-    eight_bit, _ = reconstruct_capture(CaptureSettings("omp", adapt=True, **dict(common(D=load_dictionary(shipped.verified(8))[0], cache=tmp_path / "c8"),
+    eight_bit, _ = reconstruct_capture(capture_settings("omp", adapt=True, **dict(common(D=load_dictionary(shipped.verified(8))[0], cache=tmp_path / "c8"),
                                               tile=32)), cap["coded"], cap["mask"])
     np.testing.assert_allclose(np.load(tmp_path / "r.npy") * 255.0, eight_bit, atol=0.05)
 
@@ -331,12 +335,12 @@ def test_nonlocal_adapt_within_a_cache_budget_keeps_the_surveys_until_the_job_en
     monkeypatch.setattr(windows, "WINDOW_TILES", 1)
     monkeypatch.chdir(tmp_path)
     video = load_video("footage:carphone", frames=24, size=(48, 48))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=3)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0, captures=3)
     run = dict(common(D, tmp_path / "free"), settings=omp_settings(PipelineConfig().reconstruct.model_copy(
         update=dict(method="nonlocal")), 0.0))
-    free = list(reconstruct_captures(CaptureSettings("nonlocal", adapt=True, **run),
+    free = list(reconstruct_captures(capture_settings("nonlocal", adapt=True, **run),
                                      list(cap["coded"]), lambda i: cap["mask"]))
-    bounded = list(reconstruct_captures(CaptureSettings("nonlocal", adapt=True, **dict(run, cache="bounded"),
+    bounded = list(reconstruct_captures(capture_settings("nonlocal", adapt=True, **dict(run, cache="bounded"),
                                                         cache_budget=100_000),
                                         list(cap["coded"]), lambda i: cap["mask"]))
     for (_, want, _), (_, got, info) in zip(free, bounded):

@@ -364,12 +364,12 @@ def test_training_options_given_to_a_dct_dictionary_are_refused_not_ignored(tmp_
 
 def test_learning_more_atoms_than_its_samples_can_give_is_one_line_from_the_api_too():
     """(The report's dictionaries, and any caller that builds its settings without the config model.)"""
-    from codedvideo.solvers.dictionaries import learn_dictionary
+    from codedvideo.solvers.dictionaries import KsvdSettings, learn_dictionary
     from codedvideo.model.errors import InputError
 
     video = np.random.default_rng(0).uniform(0, 255, (4, 16, 16)).astype(np.float32)
     with pytest.raises(InputError, match="other 300 among the training patches, but only 200 were drawn"):
-        learn_dictionary([video], frames=4, atoms=4 * 49 + 300, samples=200, iterations=1)
+        learn_dictionary([video], frames=4, settings=KsvdSettings(atoms=4 * 49 + 300, samples=200, iterations=1))
 
 
 def test_a_calibrated_code_for_a_cacti_file_is_refused_before_anything_is_written(tmp_path, capsys):

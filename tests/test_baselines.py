@@ -9,7 +9,8 @@ import pytest
 
 from codedvideo.solvers.baselines import gap_tv, interp, normalized_fill, thinout
 from codedvideo.engine.captures import reconstruct_method
-from codedvideo.model.codes import make_code
+from codedvideo.engine.windows import Execution
+from codedvideo.model.codes import CodeSpec, make_code
 from codedvideo.model.errors import InputError
 from codedvideo.model.metrics import evaluate
 from codedvideo.model.physics import forward, static_estimate
@@ -33,7 +34,7 @@ def smooth_moving(n=8, size=(40, 40)):
 @pytest.mark.parametrize("code", ["thinout", "grid", "hitomi", "bernoulli"])
 @pytest.mark.parametrize("fn", [thinout, interp, gap_tv])
 def test_shape_and_finite(scene, fn, code):
-    cap = simulate_capture(scene, code=code, bump=2, sigma=2.0, seed=1)
+    cap = simulate_capture(scene, code=CodeSpec(code, bump=2), sigma=2.0, seed=1)
     out = fn(cap["coded"], cap["mask"])
     assert out.shape == scene.shape and out.dtype == np.float32
     assert np.isfinite(out).all()
@@ -70,7 +71,7 @@ def test_thinout_keeps_read_rows_and_interpolates_linearly_between_them():
 
 def test_interp_beats_trivial_on_a_smooth_moving_scene_with_the_grid_code():
     truth = smooth_moving()
-    cap = simulate_capture(truth, code="grid", bump=1, sigma=0.0, seed=0)
+    cap = simulate_capture(truth, code=CodeSpec("grid", bump=1), sigma=0.0, seed=0)
     trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), truth)["psnr"]
     got = evaluate(interp(cap["coded"], cap["mask"]), truth)["psnr"]
     assert got > trivial + 3.0
@@ -78,14 +79,14 @@ def test_interp_beats_trivial_on_a_smooth_moving_scene_with_the_grid_code():
 
 def test_thinout_beats_trivial_on_a_smooth_moving_scene():
     truth = smooth_moving()
-    cap = simulate_capture(truth, code="thinout", bump=1, sigma=0.0, seed=0)
+    cap = simulate_capture(truth, code=CodeSpec("thinout", bump=1), sigma=0.0, seed=0)
     trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), truth)["psnr"]
     assert evaluate(thinout(cap["coded"], cap["mask"]), truth)["psnr"] > trivial + 1.0
 
 
 @pytest.mark.parametrize("code,bump", [("hitomi", 2), ("hitomi", 3), ("bernoulli", 1)])
 def test_gaptv_beats_the_trivial_estimate(scene, code, bump):
-    cap = simulate_capture(scene, code=code, bump=bump, sigma=0.0, seed=0)
+    cap = simulate_capture(scene, code=CodeSpec(code, bump=bump), sigma=0.0, seed=0)
     trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), scene)["psnr"]
     got = gap_tv(cap["coded"], cap["mask"])
     assert evaluate(got, scene)["psnr"] > trivial + 1.0
@@ -94,11 +95,11 @@ def test_gaptv_beats_the_trivial_estimate(scene, code, bump):
 
 
 def test_reconstruct_method_dispatch(scene, tmp_path):
-    cap = simulate_capture(scene, code="hitomi", bump=2, sigma=0.0, seed=0)
+    cap = simulate_capture(scene, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
     trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), scene)["psnr"]
     for method in ("dct", "thinout", "interp", "gaptv"):
         start = time.perf_counter()
-        vol, info = reconstruct_method(method, cap["coded"], cap["mask"], cache=str(tmp_path), tile=32)
+        vol, info = reconstruct_method(method, cap["coded"], cap["mask"], run=Execution(tile=32, cache=str(tmp_path)))
         wall = time.perf_counter() - start
         assert vol.shape == scene.shape and np.isfinite(vol).all()
         assert info["method"] == method
@@ -113,7 +114,7 @@ def test_reconstruct_method_dispatch(scene, tmp_path):
 
 
 def test_cli_reconstruct_method_without_dictionary(tmp_path, scene):
-    cap = simulate_capture(scene, code="grid", bump=1, sigma=0.0, seed=0)
+    cap = simulate_capture(scene, code=CodeSpec("grid", bump=1), sigma=0.0, seed=0)
     for name in ("coded", "mask", "truth"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     cli = [sys.executable, "-m", "codedvideo.app.cli", "-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"),

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from codedvideo.engine import bayer
+from codedvideo.model.codes import CodeSpec
 from codedvideo.app.cli import main
 
 # ----------------------------------------------------------------------------- mosaic and demosaic
@@ -129,7 +130,7 @@ def test_a_refined_bayer_capture_keeps_its_measurements_and_gains_on_real_footag
     from codedvideo.model.metrics import volume_psnr
 
     truth = bayer.color_footage("carphone", frames=8, size=(64, 64))
-    cap = bayer.simulate_bayer(truth, "RGGB", code="hitomi", bump=2, sigma=sigma, seed=0)
+    cap = bayer.simulate_bayer(truth, "RGGB", code=CodeSpec("hitomi", bump=2), sigma=sigma, seed=0)
     stack_mask = bayer.color_mask(cap["mask"], "RGGB")
     results = {refine: cv.reconstruct(cap["coded"], cap["mask"], bayer="RGGB", refine=refine, noise_sigma=sigma,
                                       data_range=255.0, full_output=True) for refine in (0, 12)}

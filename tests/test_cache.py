@@ -16,7 +16,7 @@ import zarr
 from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.physics import simulate
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.data.synth import make_scene
 
@@ -46,12 +46,13 @@ for i in range(reps):
             np.save(root / f"{tag}-{i}.npy", load_dictionary(path)[0])
             row = dict(ok=True, computed=not meta["reused"])
         else:
-            from codedvideo.engine.windows import reconstruct_volume
+            from codedvideo.engine.windows import Execution, reconstruct_volume
             from codedvideo.solvers.region import OmpSettings
             d = np.load(root / "scene.npz")
+            run = Execution(tile=int(sys.argv[6]), cache=root / f"cache-{i}", workers=1, progress=False,
+                            scheduler=sys.argv[7] or None)
             vol, info = reconstruct_volume(d["coded"], d["mask"], d["D"], settings=OmpSettings(**json.loads(sys.argv[5])),
-                                           tile=int(sys.argv[6]), cache=root / f"cache-{i}", workers=1, progress=False,
-                                           scheduler=sys.argv[7] or None)
+                                           run=run)
             np.save(root / f"{tag}-{i}.npy", vol)
             row = dict(ok=True, computed=info["tiles_computed"])
     except Exception:
@@ -70,8 +71,8 @@ def scene():
 @pytest.fixture(scope="module")
 def reference(scene, tmp_path_factory):
     coded, mask, D = scene
-    vol, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(**SETTINGS), tile=TILE,
-                                   cache=tmp_path_factory.mktemp("ref"), progress=False)
+    vol, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(**SETTINGS),
+                                   run=Execution(tile=TILE, cache=tmp_path_factory.mktemp("ref"), progress=False))
     assert info["tiles"] == 9 and info["tiles_computed"] == 9
     return vol
 
@@ -166,10 +167,11 @@ def test_a_tile_whose_checksum_was_deleted_is_counted_as_damaged(scene, referenc
     """Reported: recomputed without a word and not counted in tiles_damaged."""
     coded, mask, D = scene
     s = OmpSettings(**SETTINGS)
-    reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+    reconstruct_volume(coded, mask, D, settings=s, run=Execution(tile=TILE, cache=tmp_path, progress=False))
     (_entry(tmp_path) / "digest/c/4/0").unlink()
     with caplog.at_level("WARNING"):
-        again, info = reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+        again, info = reconstruct_volume(coded, mask, D, settings=s,
+                                         run=Execution(tile=TILE, cache=tmp_path, progress=False))
     np.testing.assert_array_equal(again, reference)
     assert info["tiles_computed"] == 1 and info["tiles_damaged"] == 1
     assert "tiles [4]" in caplog.text and "damaged" in caplog.text
@@ -179,7 +181,7 @@ def test_a_tile_whose_checksum_was_deleted_is_counted_as_damaged(scene, referenc
 def test_a_damaged_volume_chunk_is_recomputed_not_returned(scene, reference, tmp_path, damage):
     coded, mask, D = scene
     s = OmpSettings(**SETTINGS)
-    reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+    reconstruct_volume(coded, mask, D, settings=s, run=Execution(tile=TILE, cache=tmp_path, progress=False))
     entry = _entry(tmp_path)
     DAMAGE[damage](entry)
     try:  # the damage is real: read as it is, the store no longer holds the answer
@@ -189,11 +191,13 @@ def test_a_damaged_volume_chunk_is_recomputed_not_returned(scene, reference, tmp
         raise
     except Exception:
         pass  # zarr cannot even decode it
-    again, info = reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+    again, info = reconstruct_volume(coded, mask, D, settings=s,
+                                     run=Execution(tile=TILE, cache=tmp_path, progress=False))
     np.testing.assert_array_equal(again, reference)
     assert info["tiles_computed"] == 1 and info["tiles_reused"] == 8 and info["tiles_damaged"] == 1
     # repaired in place: the next run reuses every tile
-    third, info = reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+    third, info = reconstruct_volume(coded, mask, D, settings=s,
+                                     run=Execution(tile=TILE, cache=tmp_path, progress=False))
     np.testing.assert_array_equal(third, reference)
     assert info["tiles_computed"] == 0
 
@@ -218,13 +222,14 @@ def test_a_damaged_zarr_json_or_input_array_rebuilds_the_entry(scene, reference,
     the remaining tiles from damaged inputs (or failing on damaged metadata)."""
     coded, mask, D = scene
     s = OmpSettings(**SETTINGS)
-    reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+    reconstruct_volume(coded, mask, D, settings=s, run=Execution(tile=TILE, cache=tmp_path, progress=False))
     entry = _entry(tmp_path)
     for i in range(4, 9):  # as if stopped after 4 tiles: tiles 4-8 were never finished
         for name in ("stats", "digest"):
             (entry / name / "c" / str(i) / "0").unlink(missing_ok=True)
     ENTRY_DAMAGE[damage](entry)
-    again, info = reconstruct_volume(coded, mask, D, settings=s, tile=TILE, cache=tmp_path, progress=False)
+    again, info = reconstruct_volume(coded, mask, D, settings=s,
+                                     run=Execution(tile=TILE, cache=tmp_path, progress=False))
     np.testing.assert_array_equal(again, reference)
     assert info["tiles_computed"] == info["tiles"] == 9  # rebuilt as a whole
     assert sorted(p.name.rsplit(".", 1)[1] for p in tmp_path.iterdir()) == ["lock", "zarr"]  # no debris
@@ -254,10 +259,11 @@ def test_verify_reports_a_damaged_entry_and_clean_removes_only_that_one(scene, r
 
     coded, mask, D = scene
     cache = tmp_path / "cache"
-    reconstruct_volume(coded, mask, D, settings=OmpSettings(**SETTINGS), tile=TILE, cache=cache, progress=False)
+    reconstruct_volume(coded, mask, D, settings=OmpSettings(**SETTINGS),
+                       run=Execution(tile=TILE, cache=cache, progress=False))
     damaged = _entry(cache)
-    _, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=4, tol_rms=2.0), tile=TILE,
-                                 cache=cache, progress=False)
+    _, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=4, tol_rms=2.0),
+                                 run=Execution(tile=TILE, cache=cache, progress=False))
     healthy = Path(info["work_store"])
     dictionary, _ = train_dictionary(PipelineConfig.model_validate(dict(frames=4, cache=str(cache),
                                                                         dictionary=dict(kind="dct"))), progress=False)
@@ -285,8 +291,8 @@ def test_verify_reports_a_damaged_entry_and_clean_removes_only_that_one(scene, r
     assert not damaged.exists() and healthy.exists() and dictionary.exists()
     assert all(p.exists() for p in mine)
     assert {r["status"] for r in verify_cache(cache)} == {"ok"}
-    _, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=4, tol_rms=2.0), tile=TILE,
-                                 cache=cache, progress=False)
+    _, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=4, tol_rms=2.0),
+                                 run=Execution(tile=TILE, cache=cache, progress=False))
     assert info["tiles_computed"] == 0  # the healthy entry still serves
 
     removed = clean_cache(cache, broken_only=False)
@@ -301,7 +307,8 @@ def test_verify_calls_an_entry_of_an_older_layout_stale_and_clean_removes_it(sce
     from codedvideo.engine.cache import clean_cache, verify_cache
 
     coded, mask, D = scene
-    reconstruct_volume(coded, mask, D, settings=OmpSettings(**SETTINGS), tile=TILE, cache=tmp_path, progress=False)
+    reconstruct_volume(coded, mask, D, settings=OmpSettings(**SETTINGS),
+                       run=Execution(tile=TILE, cache=tmp_path, progress=False))
     entry = _entry(tmp_path)
     zarr.open_group(str(entry), mode="r+").attrs["format_version"] = 1
     (tmp_path / f".{entry.name}.tmp-12345-0123abcd").mkdir()  # what a run killed while creating it leaves
@@ -370,7 +377,7 @@ def test_sizes_are_read_in_powers_of_1024_and_anything_else_is_refused():
 
 def _stores(tmp_path, count):
     """``count`` working stores of distinct 48x48 captures in one cache, made one after another."""
-    from codedvideo.engine.windows import sparse_volumes
+    from codedvideo.engine.windows import Execution, sparse_volumes
 
     video = make_scene("default", frames=4 * count, size=(48, 48))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
@@ -378,7 +385,8 @@ def _stores(tmp_path, count):
     out = []
     for t in range(count):  # a job each: their stores are used in this order
         out += list(sparse_volumes(1, lambda _, t=t: (codeds[t], mask, None), dct_dictionary(4),
-                                   settings=OmpSettings(**SETTINGS), tile=TILE, cache=tmp_path / "c", progress=False))
+                                   settings=OmpSettings(**SETTINGS),
+                                   run=Execution(tile=TILE, cache=tmp_path / "c", progress=False)))
     return codeds, mask, [Path(info["work_store"]) for _, _, info in out]
 
 
@@ -413,9 +421,11 @@ def test_a_stream_within_a_cache_budget_gives_the_same_bits_and_reruns_from_what
     from codedvideo.engine.cache import _folder_bytes
 
     codeds, mask, stores = _stores(tmp_path, 6)  # the unlimited job, capture by capture
-    unlimited = [np.asarray(v) for _, v, _ in windows.sparse_volumes(
-        6, lambda i: (codeds[i], mask, None), dct_dictionary(4), settings=OmpSettings(**SETTINGS), tile=TILE,
-        cache=tmp_path / "c", progress=False)]
+    unlimited = [np.asarray(v) for _, v, _ in windows.sparse_volumes(6, lambda i: (codeds[i], mask, None),
+                                                                     dct_dictionary(4),
+                                                                     settings=OmpSettings(**SETTINGS),
+                                                                     run=Execution(tile=TILE, cache=tmp_path / "c",
+                                                                                   progress=False))]
     size = _folder_bytes(stores[0])
     monkeypatch.setattr(windows, "WINDOW_TILES", 1)
     bounded = tmp_path / "bounded"
@@ -425,8 +435,8 @@ def test_a_stream_within_a_cache_budget_gives_the_same_bits_and_reruns_from_what
 
         budget = CacheBudget(bounded, 2 * size + size // 2)
         got = list(windows.sparse_volumes(6, lambda i: (codeds[i], mask, None), dct_dictionary(4),
-                                         settings=OmpSettings(**SETTINGS), tile=TILE, cache=bounded, progress=False,
-                                         budget=budget))
+                                          settings=OmpSettings(**SETTINGS),
+                                          run=Execution(tile=TILE, cache=bounded, progress=False), budget=budget))
         return got, budget
 
     first, budget = job()

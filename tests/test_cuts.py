@@ -15,8 +15,9 @@ N, T, SIZE = 8, 5, 64
 
 def _capture(video, sigma=0.0):
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=sigma, seed=0, captures=len(video) // N)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=sigma, seed=0, captures=len(video) // N)
     return np.asarray(cap["coded"], np.float32), np.asarray(cap["mask"]), np.asarray(video, np.float32)
 
 

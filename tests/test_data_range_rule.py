@@ -29,7 +29,7 @@ def test_a_dark_8_bit_capture_with_read_noise_is_not_taken_for_unit_floats(sigma
     truth = make_scene("default", frames=N, size=(H, W)).astype(np.float32)
     truth *= 37.0 / truth.max()  # a dark scene: its brightest pixel at 37 grey levels
     mask = make_code("hitomi", (H, W), frames=N, bump=2, rng=0)
-    units, _ = _units([_noisy(truth, mask, sigma)], mask, noise_sigma=sigma)
+    units, _ = _units([_noisy(truth, mask, sigma)], mask, levels=dict(noise_sigma=sigma))
     assert units.value == 255.0, units
 
 
@@ -37,14 +37,14 @@ def test_a_dark_8_bit_capture_with_read_noise_is_not_taken_for_unit_floats(sigma
 def test_heavy_read_noise_widens_the_8_bit_range_and_does_not_pick_another(sigma):
     truth = make_scene("default", frames=N, size=(H, W)).astype(np.float32)
     mask = make_code("hitomi", (H, W), frames=N, bump=2, rng=0)
-    units, _ = _units([_noisy(truth, mask, sigma)], mask, noise_sigma=sigma)
+    units, _ = _units([_noisy(truth, mask, sigma)], mask, levels=dict(noise_sigma=sigma))
     assert units.value == 255.0, units
 
 
 def test_a_unit_float_capture_with_its_own_noise_keeps_its_range():
     truth = make_scene("default", frames=N, size=(H, W)).astype(np.float32) / 255
     mask = make_code("hitomi", (H, W), frames=N, bump=2, rng=0)
-    units, _ = _units([_noisy(truth, mask, 0.03)], mask, noise_sigma=0.03)
+    units, _ = _units([_noisy(truth, mask, 0.03)], mask, levels=dict(noise_sigma=0.03))
     assert units.value == 1.0, units
 
 

@@ -13,12 +13,13 @@ from codedvideo.model import patches as P
 from codedvideo.data import synth
 from codedvideo.engine.captures import reconstruct_method
 from codedvideo.model.codes import make_code
-from codedvideo.solvers.dictionaries import UNIT_NORM_TOL, dct_dictionary, learn_dictionary, prepare_dictionary
+from codedvideo.solvers.dictionaries import (UNIT_NORM_TOL, KsvdSettings, dct_dictionary, learn_dictionary,
+                                             prepare_dictionary)
 from codedvideo.model.errors import InputError
 from codedvideo.model.metrics import evaluate
 from codedvideo.solvers.omp import MaskedOperator, omp
 from codedvideo.model.physics import simulate, static_estimate
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.data.synth import make_scene
 
@@ -39,7 +40,7 @@ def scene():
 def dictionary():
     """A small learned (K-SVD) dictionary: unit-norm float32 atoms, not orthogonal (about 2 s)."""
     videos = synth.training_videos(frames=N, count=12, seed=0)
-    D, _ = learn_dictionary(videos, frames=N, atoms=128, samples=2000, iterations=2, seed=0)
+    D, _ = learn_dictionary(videos, frames=N, settings=KsvdSettings(atoms=128, samples=2000, iterations=2), seed=0)
     assert D.dtype == np.float32 and np.abs(np.linalg.norm(D.astype(np.float64), axis=0) - 1).max() < 1e-6
     return D
 
@@ -48,7 +49,8 @@ def _recon(scene, D, cache, **kw):
     video, mask, coded = scene
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)  # no "stopped early", no overflow: a clean run
-        vol, info = reconstruct_method("omp", coded, mask, dictionary=D, settings=SETTINGS, tile=16, cache=cache, **kw)
+        vol, info = reconstruct_method("omp", coded, mask, dictionary=D, settings=SETTINGS,
+                                       run=Execution(tile=16, cache=cache), **kw)
     return vol, info, evaluate(vol, video)["psnr"]
 
 
@@ -90,9 +92,10 @@ def test_omp_floors_are_relative_without_prepare(dictionary, code, scale, tmp_pa
     D = dictionary
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # never-open pixels of the Bernoulli mask
-        ref, _ = reconstruct_volume(coded, mask, D, settings=SETTINGS, tile=16, cache=tmp_path / "a", progress=False)
-        vol, info = reconstruct_volume(coded, mask, D * np.float32(scale), settings=SETTINGS, tile=16,
-                                       cache=tmp_path / "b", progress=False)
+        ref, _ = reconstruct_volume(coded, mask, D, settings=SETTINGS,
+                                    run=Execution(tile=16, cache=tmp_path / "a", progress=False))
+        vol, info = reconstruct_volume(coded, mask, D * np.float32(scale), settings=SETTINGS,
+                                       run=Execution(tile=16, cache=tmp_path / "b", progress=False))
     assert info["dependent_stops"] == 0
     assert abs(evaluate(vol, video)["psnr"] - evaluate(ref, video)["psnr"]) < PSNR_TOL
 
@@ -123,7 +126,8 @@ def test_zero_and_nan_atoms_are_dropped_with_a_warning(scene, dictionary, refere
     assert D.shape[1] == k + 6 and (np.linalg.norm(D, axis=0) == 0).sum() == 6
     video, mask, coded = scene
     with pytest.warns(UserWarning, match=f"dropped 6 all-zero .*of its {k + 6} atoms"):
-        vol, info = reconstruct_method("omp", coded, mask, dictionary=D, settings=SETTINGS, tile=16, cache=tmp_path)
+        vol, info = reconstruct_method("omp", coded, mask, dictionary=D, settings=SETTINGS,
+                                       run=Execution(tile=16, cache=tmp_path))
     assert info["dictionary_atoms"] == k
     np.testing.assert_array_equal(vol, ref)  # the kept atoms are the clean dictionary, bit for bit
     D[:, 0] = np.nan
@@ -136,7 +140,8 @@ def test_all_zero_dictionary_is_a_one_line_error(scene, tmp_path):
     video, mask, coded = scene
     D = np.zeros((N * 49, 64), np.float32)
     with pytest.raises(InputError, match="every atom is zero") as exc:
-        reconstruct_method("omp", coded, mask, dictionary=D, settings=SETTINGS, tile=16, cache=tmp_path / "cache")
+        reconstruct_method("omp", coded, mask, dictionary=D, settings=SETTINGS,
+                           run=Execution(tile=16, cache=tmp_path / "cache"))
     assert "\n" not in str(exc.value) and str(exc.value).startswith("dictionary ")
     assert not (tmp_path / "cache").exists()  # refused before any work
     with pytest.raises(InputError, match=r"^dictionary runs/d\.zarr: every atom is zero"):
@@ -173,5 +178,5 @@ def test_malformed_dictionaries_are_refused(bad):
 def test_dct_method_goes_through_the_same_preparation(scene, tmp_path):
     """--method dct: its DCT is already unit-norm, used as built."""
     video, mask, coded = scene
-    vol, info = reconstruct_method("dct", coded, mask, settings=SETTINGS, tile=16, cache=tmp_path)
+    vol, info = reconstruct_method("dct", coded, mask, settings=SETTINGS, run=Execution(tile=16, cache=tmp_path))
     assert info["dictionary_atoms"] == N * 49 and np.isfinite(vol).all()

@@ -4,10 +4,11 @@ import os
 import numpy as np
 import pytest
 
-from codedvideo.model.codes import make_code
+from conftest import capture_settings
+from codedvideo.model.codes import CodeSpec, make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.physics import simulate
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.data.synth import make_scene
 
@@ -26,9 +27,10 @@ def test_distributed_equals_local(cluster, tmp_path):
     coded = simulate(video, mask)
     D = dct_dictionary(4)
     s = OmpSettings(max_atoms=6, tol_rms=0.5)
-    local, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "a", progress=False)
-    remote, info = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "b", progress=False,
-                                      scheduler=cluster.scheduler_address)
+    local, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                  run=Execution(tile=16, cache=tmp_path / "a", progress=False))
+    remote, info = reconstruct_volume(coded, mask, D, settings=s,
+                                      run=Execution(tile=16, cache=tmp_path / "b", scheduler=cluster.scheduler_address, progress=False))
     assert info["tiles_computed"] == info["tiles"] == 12
     np.testing.assert_allclose(remote, local, rtol=1e-5, atol=1e-3)
 
@@ -37,11 +39,12 @@ def test_a_relative_cache_reaches_workers_started_in_another_folder(cluster, tmp
     """The cache is the default relative `cache`: workers whose folder is not the client's still find it."""
     coded, mask, D = _scene()
     s = OmpSettings(max_atoms=6, tol_rms=0.5)
-    local, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "a", progress=False)
+    local, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                  run=Execution(tile=16, cache=tmp_path / "a", progress=False))
     (tmp_path / "elsewhere").mkdir()
     monkeypatch.chdir(tmp_path / "elsewhere")  # the workers stay where they were started
-    remote, info = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache="relcache", progress=False,
-                                      scheduler=cluster.scheduler_address)
+    remote, info = reconstruct_volume(coded, mask, D, settings=s,
+                                      run=Execution(tile=16, cache="relcache", scheduler=cluster.scheduler_address, progress=False))
     assert info["tiles_computed"] == info["tiles"]
     np.testing.assert_array_equal(remote, local)
     assert (tmp_path / "elsewhere" / "relcache").is_dir()
@@ -55,10 +58,12 @@ def _scene(size=(40, 52)):
 
 def _one_two_remote(cluster, tmp_path, s):
     coded, mask, D = _scene()
-    one, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "1", progress=False, workers=1)
-    two, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "2", progress=False, workers=2)
-    remote, _ = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path / "d", progress=False,
-                                   scheduler=cluster.scheduler_address)
+    one, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                run=Execution(tile=16, cache=tmp_path / "1", workers=1, progress=False))
+    two, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                run=Execution(tile=16, cache=tmp_path / "2", workers=2, progress=False))
+    remote, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                   run=Execution(tile=16, cache=tmp_path / "d", scheduler=cluster.scheduler_address, progress=False))
     np.testing.assert_array_equal(two, one)
     np.testing.assert_array_equal(remote, one)
 
@@ -75,8 +80,8 @@ def test_distributed_with_the_still_test_is_bit_identical_too(cluster, tmp_path)
     vector path depends on array alignment; the compiled test computes every patch alone.)"""
     _one_two_remote(cluster, tmp_path, OmpSettings(max_atoms=6, tol_rms=2.0))
     coded, mask, D = _scene()
-    _, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=6, tol_rms=2.0), tile=16,
-                                 cache=tmp_path / "s", progress=False, workers=1)
+    _, info = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=6, tol_rms=2.0),
+                                 run=Execution(tile=16, cache=tmp_path / "s", workers=1, progress=False))
     assert info["patches_static"] > 0  # the still test did take some patches
 
 
@@ -130,10 +135,11 @@ def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_p
     """SIGKILL one of two worker processes while tiles run: its tasks are rescheduled, nothing is lost."""
     coded, mask, D = _scene((96, 128))
     s = OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0)
-    local, _ = reconstruct_volume(coded, mask, D, settings=s, tile=8, cache=tmp_path / "local", progress=False)
+    local, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                  run=Execution(tile=8, cache=tmp_path / "local", progress=False))
     remote, info = _kill_a_worker_midway(
-        lambda address: reconstruct_volume(coded, mask, D, settings=s, tile=8, cache=tmp_path / "remote",
-                                           progress=False, scheduler=address),
+        lambda address: reconstruct_volume(coded, mask, D, settings=s,
+                                           run=Execution(tile=8, cache=tmp_path / "remote", scheduler=address, progress=False)),
         tmp_path / "remote", after=10, total=192)
     assert info["tiles_computed"] == info["tiles"] == 192
     np.testing.assert_array_equal(remote, local)
@@ -143,7 +149,7 @@ def test_killing_a_worker_midway_still_gives_the_complete_identical_result(tmp_p
 def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_path):
     """A sequence of captures as one graph on two worker processes; one is SIGKILLed while tiles of the
     sequence run: its tasks are rescheduled, and every capture equals the local run bit for bit."""
-    from codedvideo.engine.windows import sparse_volumes
+    from codedvideo.engine.windows import Execution, sparse_volumes
 
     video = make_scene("default", frames=4 * 4, size=(64, 96))
     mask = make_code("hitomi", video.shape[1:], frames=4, bump=2, rng=1)
@@ -152,8 +158,8 @@ def test_killing_a_worker_mid_sequence_still_gives_the_identical_sequence(tmp_pa
     s = OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0)
 
     def run(cache, scheduler=None):
-        return [v for _, v, _ in sparse_volumes(4, lambda i: (codeds[i], mask, None), D, settings=s, tile=8,
-                                                cache=cache, progress=False, scheduler=scheduler)]
+        return [v for _, v, _ in sparse_volumes(4, lambda i: (codeds[i], mask, None), D, settings=s,
+                                                run=Execution(tile=8, cache=cache, scheduler=scheduler, progress=False))]
 
     local = run(tmp_path / "local")
     remote = _kill_a_worker_midway(lambda address: run(tmp_path / "remote", address), tmp_path / "remote",
@@ -215,7 +221,7 @@ def test_a_scheduler_lost_mid_run_is_one_line_and_the_rerun_resumes(tmp_path):
     rerun = subprocess.run([*args, "--output", str(tmp_path / "out" / "r.npy")], capture_output=True, text=True)
     assert rerun.returncode == 0, rerun.stderr
     local, _ = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=8, tol_rms=0.5, static_atoms=0),
-                                  tile=8, cache=tmp_path / "local", progress=False)
+                                  run=Execution(tile=8, cache=tmp_path / "local", progress=False))
     np.testing.assert_array_equal(np.load(tmp_path / "out" / "r.npy"), local)
 
 
@@ -225,20 +231,20 @@ def test_an_adapted_stream_on_worker_processes_is_bit_identical_to_a_local_run(c
     up to 3.4 grey levels apart from the local run when an adaptation ran beside a local graph.  With the
     non-local method the second pass's tasks read the survey's tiles from its working store in the workers."""
     from codedvideo.data import shipped
-    from codedvideo.engine.captures import CaptureSettings, reconstruct_captures
+    from codedvideo.engine.captures import reconstruct_captures
     from codedvideo.engine.simulation import simulate_capture
     from codedvideo.formats.store import load_dictionary
     from codedvideo.model.units import infer_data_range
 
     D = load_dictionary(shipped.verified(8))[0]
     video = make_scene("default", frames=24, size=(48, 48))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0, captures=3)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0, captures=3)
     common = dict(data_range=infer_data_range(255.0), settings=OmpSettings(max_atoms=8, tol_rms=2.0), dictionary=D,
                   tile=32, progress=False, adapt=True, adapt_rounds=rounds,
                   refine=8 if rounds == 2 else 0)  # (2: --preset best's third pass, then the refinement: its bits tested)
-    local = list(reconstruct_captures(CaptureSettings(method, cache=tmp_path / "a", **common),
+    local = list(reconstruct_captures(capture_settings(method, cache=tmp_path / "a", **common),
                                       list(cap["coded"]), lambda i: cap["mask"]))
-    remote = list(reconstruct_captures(CaptureSettings(method, cache=tmp_path / "b",
+    remote = list(reconstruct_captures(capture_settings(method, cache=tmp_path / "b",
                                                        scheduler=cluster.scheduler_address, **common),
                                        list(cap["coded"]), lambda i: cap["mask"]))
     for (_, a, info), (_, b, _) in zip(local, remote):

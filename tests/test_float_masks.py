@@ -16,7 +16,7 @@ from codedvideo.model.codes import is_binary
 from codedvideo.solvers.omp import MaskedOperator, patch_code_groups, pixel_patterns
 from codedvideo.engine.parallel import plan_tiles
 from codedvideo.model.patches import extract
-from codedvideo.solvers.region import OmpSettings, reconstruct_region
+from codedvideo.solvers.region import OmpSettings, Placement, reconstruct_region
 from codedvideo.data.synth import make_scene
 
 N, H, W = 8, 48, 52
@@ -163,7 +163,7 @@ def test_float_mask_tiles_give_the_bits_of_the_whole_image(video, code, D):
             hy0, hy1, hx0, hx1 = t.halo
             y0, y1, x0, x1 = t.core
             vol, _ = reconstruct_region(coded[hy0:hy1, hx0:hx1], mask[:, hy0:hy1, hx0:hx1], D, SETTINGS,
-                                        origin=(hy0, hx0), image_shape=(H, W))
+                                        place=Placement((hy0, hx0), (H, W)))
             out[:, y0:y1, x0:x1] = vol[:, y0 - hy0:y1 - hy0, x0 - hx0:x1 - hx0]
         assert np.array_equal(out, whole), tile
 

@@ -104,10 +104,11 @@ def test_a_rerun_from_the_cache_reports_no_patches_solved(tmp_path, capsys):
     """Reported: a stream reconstructed again from its cached tiles claimed 0.9 to 1.3 M patches a second."""
     from codedvideo.app.cli import main
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
-    cap = simulate_capture(make_scene("default", frames=12, size=(32, 32)), code="hitomi", bump=2, sigma=0, seed=0,
-                           captures=3)
+    cap = simulate_capture(make_scene("default", frames=12, size=(32, 32)), code=CodeSpec("hitomi", bump=2), sigma=0,
+                           seed=0, captures=3)
     for name in ("coded", "mask"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     rates = []
@@ -123,10 +124,11 @@ def test_a_rerun_from_the_cache_reports_no_patches_solved(tmp_path, capsys):
 def test_the_metrics_say_the_quality_is_the_volumes_and_when_the_file_is_lossy(tmp_path, capsys):
     from codedvideo.app.cli import main
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4, size=(24, 24))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0, seed=0)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0, seed=0)
     for name in ("coded", "mask", "truth"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     said = {}
@@ -194,9 +196,11 @@ def test_an_output_sharing_a_stem_with_another_says_it_replaces_its_record(tmp_p
     silence."""
     from codedvideo.app.cli import main
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
-    cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code="hitomi", bump=2, sigma=0, seed=0)
+    cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code=CodeSpec("hitomi", bump=2), sigma=0,
+                           seed=0)
     for name in ("coded", "mask"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     args = ["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
@@ -211,9 +215,11 @@ def test_the_same_output_named_relative_then_absolute_is_not_said_to_replace_ano
     """Reported: rec.npy, then /abs/rec.npy, warned that the metrics file held the record of another output."""
     from codedvideo.app.cli import main
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
-    cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code="hitomi", bump=2, sigma=0, seed=0)
+    cap = simulate_capture(make_scene("default", frames=4, size=(24, 24)), code=CodeSpec("hitomi", bump=2), sigma=0,
+                           seed=0)
     for name in ("coded", "mask"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     monkeypatch.chdir(tmp_path)

@@ -6,7 +6,7 @@ import pytest
 from codedvideo.solvers.nonlocal_sc import joint_omp, match_groups, nonlocal_region
 from codedvideo.solvers.region import OmpSettings, reconstruct_region
 
-from conftest import random_dictionary
+from conftest import capture_settings, random_dictionary
 
 N = 4
 PATCH = 7
@@ -175,7 +175,7 @@ def test_the_method_through_the_tiled_graph_equals_one_whole_tile(tmp_path):
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.model.physics import simulate
     from codedvideo.solvers.region import tile_halo
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
     from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4, size=(72, 88))
@@ -184,12 +184,14 @@ def test_the_method_through_the_tiled_graph_equals_one_whole_tile(tmp_path):
     s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=1.0), method="nonlocal")
     assert tile_halo(s) > tile_halo(OmpSettings())
     D = dct_dictionary(4)
-    whole, _ = reconstruct_volume(coded, mask, D, settings=s, tile=128, cache=tmp_path / "a", progress=False)
-    tiled, info = reconstruct_volume(coded, mask, D, settings=s, tile=24, cache=tmp_path / "b", progress=False)
+    whole, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                  run=Execution(tile=128, cache=tmp_path / "a", progress=False))
+    tiled, info = reconstruct_volume(coded, mask, D, settings=s,
+                                     run=Execution(tile=24, cache=tmp_path / "b", progress=False))
     assert info["tiles"] == 12
     np.testing.assert_allclose(tiled, whole, atol=1e-3)
-    per_patch, _ = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=6, tol_rms=1.0), tile=128,
-                                      cache=tmp_path / "c", progress=False)
+    per_patch, _ = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=6, tol_rms=1.0),
+                                      run=Execution(tile=128, cache=tmp_path / "c", progress=False))
     err = lambda v: float(np.sqrt(np.mean((v - video) ** 2)))  # noqa: E731
     assert err(whole) < err(per_patch)  # groups under different codes beat each patch alone
 
@@ -225,13 +227,13 @@ def test_the_three_stages_give_the_same_bits_on_one_thread_and_on_two(tmp_path, 
     import dataclasses
 
     from codedvideo.solvers.dictionaries import dct_dictionary
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
 
     coded, mask, _ = _periodic_capture(rng, period=23, reps=3)
     s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=1.0), method="nonlocal")
     D = dct_dictionary(N)
-    runs = [reconstruct_volume(coded, mask, D, settings=s, tile=24, cache=tmp_path / name, progress=False,
-                               scheduler=scheduler)[0]
+    runs = [reconstruct_volume(coded, mask, D, settings=s,
+                               run=Execution(tile=24, cache=tmp_path / name, scheduler=scheduler, progress=False))[0]
             for name, scheduler in (("sync", "sync"), ("threads", "threads"))]
     assert np.isfinite(runs[0]).all()
     assert np.array_equal(runs[0], runs[1])
@@ -244,16 +246,18 @@ def test_tiles_of_equal_inputs_share_an_answer_only_where_the_reference_grid_agr
     import dataclasses
 
     from codedvideo.solvers.dictionaries import dct_dictionary
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
 
     coded, mask, _ = _periodic_capture(rng)
     D = dct_dictionary(N)
     per_patch = OmpSettings(max_atoms=6, tol_rms=1.0)
     s = dataclasses.replace(per_patch, method="nonlocal")
-    _, omp_info = reconstruct_volume(coded, mask, D, settings=per_patch, tile=20, cache=tmp_path / "o",
-                                     progress=False)
-    tiled, info = reconstruct_volume(coded, mask, D, settings=s, tile=20, cache=tmp_path / "t", progress=False)
-    whole, _ = reconstruct_volume(coded, mask, D, settings=s, tile=120, cache=tmp_path / "w", progress=False)
+    _, omp_info = reconstruct_volume(coded, mask, D, settings=per_patch,
+                                     run=Execution(tile=20, cache=tmp_path / "o", progress=False))
+    tiled, info = reconstruct_volume(coded, mask, D, settings=s,
+                                     run=Execution(tile=20, cache=tmp_path / "t", progress=False))
+    whole, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                  run=Execution(tile=120, cache=tmp_path / "w", progress=False))
     assert omp_info["tile_tasks"] < 36  # equal tiles shared by the default
     assert info["tile_tasks"] > omp_info["tile_tasks"]
     np.testing.assert_allclose(tiled, whole, atol=1e-3)
@@ -266,7 +270,7 @@ def test_the_progress_bar_counts_the_stages_and_ends_full(tmp_path, rng, monkeyp
     import tqdm.auto
 
     from codedvideo.solvers.dictionaries import dct_dictionary
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
 
     bars = []
 
@@ -280,8 +284,8 @@ def test_the_progress_bar_counts_the_stages_and_ends_full(tmp_path, rng, monkeyp
     coded, mask, _ = _periodic_capture(rng, period=23, reps=2)  # 46 x 46: 3 x 3 tiles of 16, 6 x 6 blocks of 8
     s = OmpSettings(max_atoms=6, tol_rms=1.0)
     for settings in (s, dataclasses.replace(s, method="nonlocal")):
-        _, info = reconstruct_volume(coded, mask, dct_dictionary(N), settings=settings, tile=16,
-                                     cache=tmp_path / settings.method, progress=True)
+        _, info = reconstruct_volume(coded, mask, dct_dictionary(N), settings=settings,
+                                     run=Execution(tile=16, cache=tmp_path / settings.method, progress=True))
     (omp_total, omp_n), (nl_total, nl_n) = bars
     assert omp_total == omp_n == 9  # the default: one task a tile
     assert nl_total == nl_n == 9 + 9 + 36  # tiles, their first estimates and blocks of half a tile
@@ -326,7 +330,7 @@ def test_captures_of_one_job_come_out_as_each_alone(tmp_path, rng):
     import dataclasses
 
     from codedvideo.solvers.dictionaries import dct_dictionary
-    from codedvideo.engine.windows import reconstruct_volume, sparse_volumes
+    from codedvideo.engine.windows import Execution, reconstruct_volume, sparse_volumes
 
     video = 100 + np.tile(rng.uniform(0, 3, (N, 4, 4)).astype(np.float32), (1, 24, 24))
     mask = np.tile((rng.random((N, 8, 8)) < 0.5).astype(np.uint8), (1, 12, 12))
@@ -336,12 +340,12 @@ def test_captures_of_one_job_come_out_as_each_alone(tmp_path, rng):
     codeds = [(mask * v).sum(0).astype(np.float32) for v in (video, other)]
     s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=0.5), method="nonlocal")
     D = dct_dictionary(N)
-    job = list(sparse_volumes(2, lambda i: (codeds[i], mask, None), D, settings=s, tile=32, cache=tmp_path / "j",
-                              progress=False))
+    job = list(sparse_volumes(2, lambda i: (codeds[i], mask, None), D, settings=s,
+                              run=Execution(tile=32, cache=tmp_path / "j", progress=False)))
     assert job[0][2]["tile_tasks"] < 2 * 9  # the lower tiles are shared
     for i, volume, _ in job:
-        alone, _ = reconstruct_volume(codeds[i], mask, D, settings=s, tile=32, cache=tmp_path / f"a{i}",
-                                      progress=False)
+        alone, _ = reconstruct_volume(codeds[i], mask, D, settings=s,
+                                      run=Execution(tile=32, cache=tmp_path / f"a{i}", progress=False))
         assert np.array_equal(volume, alone)
 
 
@@ -377,7 +381,7 @@ def test_still_tiles_of_a_sequence_are_shared_and_come_out_as_each_capture_alone
 
     from codedvideo.solvers.dictionaries import dct_dictionary
     from codedvideo.solvers.region import _still_answer
-    from codedvideo.engine.windows import reconstruct_volume, sparse_volumes
+    from codedvideo.engine.windows import Execution, reconstruct_volume, sparse_volumes
 
     mask = (rng.random((N, 64, 96)) < 0.5).astype(np.uint8)
     mask[0] = 1
@@ -388,16 +392,17 @@ def test_still_tiles_of_a_sequence_are_shared_and_come_out_as_each_capture_alone
     still[:, :44] = True
     s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=1.0), method="nonlocal")
     D = dct_dictionary(N)
-    job = list(sparse_volumes(2, lambda i: (codeds[i], mask, still), D, settings=s, tile=32,
-                              cache=tmp_path / "j", progress=False))
+    job = list(sparse_volumes(2, lambda i: (codeds[i], mask, still), D, settings=s,
+                              run=Execution(tile=32, cache=tmp_path / "j", progress=False)))
     assert job[0][2]["tile_tasks"] == 2 * 6 - 2  # the two left tiles (columns 0:32) solved once
     for i, volume, _ in job:
         assert np.array_equal(volume[:, :, :32], np.broadcast_to(_still_answer(codeds[i], mask, True)[:, :32],
                                                                  (N, 64, 32)))
-        alone = next(sparse_volumes(1, lambda _: (codeds[i], mask, still), D, settings=s, tile=32,
-                                    cache=tmp_path / f"a{i}", progress=False))[1]
+        alone = next(sparse_volumes(1, lambda _: (codeds[i], mask, still), D, settings=s,
+                                    run=Execution(tile=32, cache=tmp_path / f"a{i}", progress=False)))[1]
         assert np.array_equal(volume, alone)
-    moving, _ = reconstruct_volume(codeds[0], mask, D, settings=s, tile=32, cache=tmp_path / "m", progress=False)
+    moving, _ = reconstruct_volume(codeds[0], mask, D, settings=s,
+                                   run=Execution(tile=32, cache=tmp_path / "m", progress=False))
     assert not np.array_equal(moving[:, :, :32], job[0][1][:, :, :32])
 
 
@@ -409,13 +414,14 @@ def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms
     from codedvideo.model.metrics import evaluate
     from codedvideo.solvers.nonlocal_sc import group_atoms
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.formats.store import load_dictionary
     from codedvideo.data.synth import make_scene
 
     assert group_atoms(8) == 16 and group_atoms(16) == 24 and group_atoms(32) == 32 and group_atoms(49) == 39
     D, _ = load_dictionary(shipped.verified(8))
     video = make_scene("default", frames=8, size=(48, 48))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
     s = OmpSettings(max_atoms=max_atoms, tol_rms=0.0)
     first, _ = reconstruct_region(cap["coded"], cap["mask"], D, s)
     vol, _ = nonlocal_region(cap["coded"], cap["mask"], D, first, s)
@@ -426,7 +432,7 @@ def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms
 def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
     """N = 16 Bernoulli: more pixel patterns than the groups' table holds; the tiles give the default's answer,
     and the metrics and a warning say so (it was silent, with method: nonlocal)."""
-    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
+    from codedvideo.engine.captures import reconstruct_capture
     from codedvideo.model.units import infer_data_range
 
     rng = np.random.default_rng(3)
@@ -436,9 +442,9 @@ def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
     D = random_dictionary(rng, 16 * M, 512)
     s = OmpSettings(max_atoms=6, tol_rms=1.0)
     common = dict(data_range=infer_data_range(255.0), settings=s, dictionary=D, tile=16, progress=False)
-    plain, _ = reconstruct_capture(CaptureSettings("omp", cache=tmp_path / "a", **common), coded, mask)
+    plain, _ = reconstruct_capture(capture_settings("omp", cache=tmp_path / "a", **common), coded, mask)
     with pytest.warns(UserWarning, match="--method nonlocal .* distinct pixel shutter patterns"):
-        vol, info = reconstruct_capture(CaptureSettings("nonlocal", cache=tmp_path / "b", **common), coded, mask)
+        vol, info = reconstruct_capture(capture_settings("nonlocal", cache=tmp_path / "b", **common), coded, mask)
     assert info["method"] == "omp" and "patterns" in info["nonlocal_unavailable"]
     np.testing.assert_array_equal(vol, plain)
 
@@ -449,11 +455,12 @@ def test_a_noisy_stream_whose_blocks_have_no_still_reference_runs(tmp_path, caps
     from codedvideo.app.cli import main
     from codedvideo.solvers.region import still_answers
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     assert still_answers(np.zeros((0, 49), np.float32), np.ones((0, 49), np.float32), 8).shape == (0, 8 * 49)
     video = make_scene("default", frames=16, size=(256, 256))[:, 96:160, 96:160]
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=2.0, seed=0, captures=2)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=2.0, seed=0, captures=2)
     for name in ("coded", "mask", "truth"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),

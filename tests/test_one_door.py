@@ -112,9 +112,10 @@ def test_simulate_refuses_a_nan_video_and_a_mask_outside_0_1():
 
 
 @pytest.mark.parametrize("flags,options", [
-    (["--bits", "12"], dict(bits=12)),
+    (["--bits", "12"], dict(sensor=dict(bits=12))),
     (["--noise-sigma", "3"], dict(noise_sigma=3.0)),
-    (["--shot-noise", "--gain", "4", "--white-level", "400"], dict(shot_noise=True, gain=4.0, white_level=400.0)),
+    (["--shot-noise", "--gain", "4", "--white-level", "400"],
+     dict(sensor=cv.SensorModel(shot_noise=True, gain=4.0, white_level=400.0))),
 ])
 def test_simulate_has_one_sensor_model_through_both_doors(tmp_path, capsys, capture, flags, options):
     folder, _, mask, _ = capture

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import scipy.io
 
+from conftest import capture_settings
 from codedvideo.formats import io as cio
 from codedvideo.formats.store import load_array
 from codedvideo.formats.volumes import FrameFile, spilled, volume_writer, write_volume
@@ -234,7 +235,7 @@ def test_a_yielded_capture_is_not_held_by_the_job_while_its_consumer_works(tmp_p
     import gc
     import weakref
 
-    from codedvideo.engine.captures import CaptureSettings, reconstruct_captures
+    from codedvideo.engine.captures import reconstruct_captures
     from codedvideo.model.codes import make_code
     from codedvideo.model.physics import simulate
     from codedvideo.model.units import infer_data_range
@@ -245,7 +246,7 @@ def test_a_yielded_capture_is_not_held_by_the_job_while_its_consumer_works(tmp_p
     video = make_scene("default", frames=8, size=(24, 24))
     codeds = [simulate(video[:4], make_code("hitomi", (24, 24), frames=4, bump=2, rng=s)) for s in (1, 2)]
     masks = [make_code("hitomi", (24, 24), frames=4, bump=2, rng=s) for s in (1, 2)]
-    results = reconstruct_captures(CaptureSettings(method, data_range=infer_data_range(255.0, given=255.0),
+    results = reconstruct_captures(capture_settings(method, data_range=infer_data_range(255.0, given=255.0),
                                                    settings=OmpSettings(max_atoms=4, tol_rms=2.0),
                                                    dictionary=dct_dictionary(4), cache=tmp_path / "cache", tile=16,
                                                    progress=False),

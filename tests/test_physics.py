@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from codedvideo.model.codes import check_code, make_code
+from conftest import capture_settings
+from codedvideo.model.codes import CodeSpec, check_code, make_code
 from codedvideo.model.errors import InputError
 from codedvideo.model.physics import (
     SensorModel,
@@ -44,7 +45,7 @@ def test_default_capture_is_bit_identical_to_before():
     from codedvideo.engine.simulation import sensor_model, simulate_capture
 
     video = np.random.default_rng(0).uniform(0, 255, (8, 16, 16)).astype(np.float32)
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=2.0, seed=5)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=2.0, seed=5)
     code_rng, noise_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(5).spawn(2))
     mask = make_code("hitomi", (16, 16), frames=8, bump=2, rng=code_rng)
     assert np.array_equal(cap["mask"], mask)
@@ -279,7 +280,7 @@ def test_saturated_pixels_are_kept_and_record_at_least_the_white_level(tmp_path,
     from codedvideo.model.metrics import evaluate
     from codedvideo.model.physics import saturated_as_missing
     from codedvideo.solvers.region import OmpSettings
-    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
+    from codedvideo.engine.captures import reconstruct_capture
     from codedvideo.data.synth import make_scene
     from codedvideo.model.units import infer_data_range
 
@@ -292,11 +293,11 @@ def test_saturated_pixels_are_kept_and_record_at_least_the_white_level(tmp_path,
     saturated = coded >= W
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # (the never-open notice)
-        vol, info = reconstruct_capture(CaptureSettings("omp", white_level=W, cache=tmp_path / "a", **common),
+        vol, info = reconstruct_capture(capture_settings("omp", white_level=W, cache=tmp_path / "a", **common),
                                         coded, mask)
-        exact, _ = reconstruct_capture(CaptureSettings("omp", cache=tmp_path / "b", **common), coded, mask)
+        exact, _ = reconstruct_capture(capture_settings("omp", cache=tmp_path / "b", **common), coded, mask)
         dropped, _ = saturated_as_missing(coded, mask, W)
-        left_out, _ = reconstruct_capture(CaptureSettings("omp", cache=tmp_path / "c", **common),
+        left_out, _ = reconstruct_capture(capture_settings("omp", cache=tmp_path / "c", **common),
                                           np.where(saturated, 0, coded).astype(np.float32), dropped)
     assert saturated.mean() > 0.01 and info["saturated_raised"] > 0 and info["saturated_pixels"] == saturated.sum()
     assert ((mask * vol).sum(0)[saturated] >= W - 1e-2).all()

@@ -35,13 +35,14 @@ def test_simulate_refuses_a_video_with_nan_or_inf_through_both_doors(tmp_path, c
 
 def test_the_k_svd_defaults_are_one_set_through_the_api_the_config_and_the_solver():
     from codedvideo.engine.config import DictionaryConfig
-    from codedvideo.solvers.dictionaries import learn_dictionary
+    from codedvideo.solvers.dictionaries import KsvdSettings, learn_dictionary
 
     api = inspect.signature(cv.train).parameters
-    solver = inspect.signature(learn_dictionary).parameters
+    solver = inspect.signature(learn_dictionary).parameters["settings"].default
+    assert solver == KsvdSettings()
     for key in ("atoms", "samples", "iterations", "sparsity"):
         config = DictionaryConfig.model_fields[key].default
-        assert api[key].default == solver[key].default == config, (key, api[key].default, solver[key].default, config)
+        assert api[key].default == getattr(solver, key) == config, (key, api[key].default, getattr(solver, key), config)
 
 
 @pytest.fixture(scope="module")
@@ -170,7 +171,7 @@ def test_simulate_bits_with_a_white_level_spans_it_in_the_videos_units_as_docume
     values are multiples of 200 / 255, not raw counts; they reconstruct as grey levels (no `bits`)."""
     video = cv.synthetic_scene("default", frames=N, size=(SIZE, SIZE))
     mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
-    coded = cv.simulate(video, mask, bits=8, white_level=200.0)
+    coded = cv.simulate(video, mask, sensor=dict(bits=8, white_level=200.0))
     levels = coded.astype(np.float64) / (200.0 / 255)
     assert coded.max() <= 200 and np.allclose(levels, np.round(levels), atol=1e-3)
     assert not np.allclose(coded, np.round(coded))  # not whole numbers: not raw counts

@@ -10,8 +10,9 @@ from codedvideo.model.metrics import evaluate
 from codedvideo.data.scenes import load_video
 from codedvideo.engine.captures import trivial_estimate
 from codedvideo.engine.simulation import simulate_capture
+from codedvideo.model.codes import CodeSpec
 from codedvideo.engine.training import train_dictionary
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.formats.store import load_dictionary
 
@@ -32,12 +33,12 @@ def learned(tmp_path_factory):
 @pytest.mark.parametrize("code,bump", [("hitomi", 2), ("bernoulli", 2)])
 def test_learned_beats_dct_and_trivial_on_held_out_real_footage(learned, code, bump, tmp_path):
     video = load_video("footage:bikes-b", frames=8, size=(64, 64))
-    cap = simulate_capture(video, code=code, bump=bump, sigma=0.0, seed=0)
+    cap = simulate_capture(video, code=CodeSpec(code, bump=bump), sigma=0.0, seed=0)
     s = OmpSettings(max_atoms=8, tol_rms=2.0)
     got = {}
     for name, D in (("learned", learned), ("dct", dct_dictionary(8))):
-        vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s, tile=32, cache=tmp_path / name,
-                                    progress=False)
+        vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s,
+                                    run=Execution(tile=32, cache=tmp_path / name, progress=False))
         got[name] = evaluate(vol, video)["psnr"]
     trivial = evaluate(trivial_estimate(cap["coded"], cap["mask"]), video)["psnr"]
     assert got["learned"] > got["dct"] + 0.3, json.dumps(got)

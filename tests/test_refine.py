@@ -4,10 +4,12 @@ import numba
 import numpy as np
 import pytest
 
+from conftest import capture_settings
 from codedvideo.data.scenes import load_video
 from codedvideo.model.metrics import evaluate
 from codedvideo.model.physics import forward
 from codedvideo.engine.simulation import simulate_capture
+from codedvideo.model.codes import CodeSpec
 from codedvideo.solvers import refine as R
 from codedvideo.solvers.refine_kernel import match_frame_patches, shrink_frame_groups
 
@@ -19,7 +21,7 @@ def carphone():
     import codedvideo as cv
 
     video = load_video("footage:carphone", frames=8, size=(64, 64))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0.0, seed=0)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
     start = cv.reconstruct(cap["coded"], cap["mask"], data_range=255.0)
     return video, cap, start
 
@@ -250,7 +252,7 @@ def test_saturated_pixels_are_not_held_to_their_clipped_values_and_still_record_
     """With --white-level the clipped pixels are left out of the refinement's measurements (never pulled down to
     the clipped value) and afterwards still record at least the white level; the rest keeps its measurements."""
     from codedvideo.engine.config import PipelineConfig, omp_settings
-    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
+    from codedvideo.engine.captures import reconstruct_capture
     from codedvideo.model.units import infer_data_range
     from codedvideo.solvers.dictionaries import dct_dictionary
 
@@ -260,7 +262,7 @@ def test_saturated_pixels_are_not_held_to_their_clipped_values_and_still_record_
     saturated = coded >= np.float32(white)
     runs = {}
     for refine in (0, 6):
-        runs[refine] = reconstruct_capture(CaptureSettings("omp", refine=refine, white_level=white,
+        runs[refine] = reconstruct_capture(capture_settings("omp", refine=refine, white_level=white,
                                                            dictionary=dct_dictionary(8),
                                                            data_range=infer_data_range(255.0, given=255.0), tile=32,
                                                            progress=False, cache=tmp_path,
@@ -281,7 +283,7 @@ def test_with_read_noise_the_relaxed_steps_beat_holding_the_noisy_measurements_e
     import codedvideo as cv
 
     video = load_video("footage:carphone", frames=8, size=(64, 64))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=8.0, seed=0)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=8.0, seed=0)
     start = cv.reconstruct(cap["coded"], cap["mask"], data_range=255.0, noise_sigma=8.0)
     exact, _ = R.refine(cap["coded"], cap["mask"], start, iterations=12)
     relaxed, info = R.refine(cap["coded"], cap["mask"], start, iterations=12, noise_sigma=8.0)
@@ -301,7 +303,7 @@ def test_the_command_line_read_noise_reaches_the_refinement_in_working_units(tmp
     from codedvideo.app.cli import main
 
     video = load_video("footage:carphone", frames=8, size=(32, 32))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=4.0, seed=0)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=4.0, seed=0)
     np.save(tmp_path / "coded.npy", (cap["coded"] / np.float32(scale)).astype(np.float32))
     np.save(tmp_path / "mask.npy", cap["mask"])
     rc = main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
@@ -461,8 +463,8 @@ def test_a_large_volume_is_refined_in_bands_with_the_same_quality(carphone, monk
     assert len(parts) == 4 and parts[0][0] == 0 and parts[-1][1] == h
     assert all(a[1] == b[0] for a, b in zip(parts, parts[1:]))
     seen = []
-    banded, info = R.refine(cap["coded"], cap["mask"], start, iterations=8,
-                            watch=lambda i, v, seconds, rows: seen.append((i, rows.start, rows.stop, v.shape[1])))
+    banded, info = R.refine(cap["coded"], cap["mask"], start, iterations=8, run=R.RefineRun(
+        watch=lambda i, v, seconds, rows: seen.append((i, rows.start, rows.stop, v.shape[1]))))
     assert info["bands"] == 4 and not np.array_equal(banded, whole)
     assert sorted(seen) == sorted((i, a, b, b - a) for i in (8,) for a, b in parts)  # each band's rows, once
     residual = forward(banded, cap["mask"]) - cap["coded"]
@@ -472,7 +474,7 @@ def test_a_large_volume_is_refined_in_bands_with_the_same_quality(carphone, monk
     assert abs(gap) < 0.05, gap
     # in place (the memory of one band beside the start): the same bits, written into the start itself
     own = start.astype(np.float32).copy()
-    inplace, _ = R.refine(cap["coded"], cap["mask"], own, iterations=8, overwrite=True)
+    inplace, _ = R.refine(cap["coded"], cap["mask"], own, iterations=8, run=R.RefineRun(overwrite=True))
     assert inplace is own
     np.testing.assert_array_equal(inplace, banded)
 

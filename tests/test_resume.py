@@ -12,11 +12,11 @@ import pytest
 import zarr
 
 from codedvideo.formats import io as cio
-from codedvideo.model.codes import CODE_NAMES, make_code
-from codedvideo.solvers.dictionaries import dct_dictionary, learn_dictionary
+from codedvideo.model.codes import CODE_NAMES, CodeSpec, make_code
+from codedvideo.solvers.dictionaries import KsvdSettings, dct_dictionary, learn_dictionary
 from codedvideo.model.physics import simulate
 from codedvideo.engine.simulation import simulate_capture
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.formats.volumes import write_capture, write_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.formats.store import WorkStore, save_dictionary
@@ -249,11 +249,12 @@ def test_a_tile_killed_between_its_volume_and_its_statistics_is_recomputed(small
 
     coded, mask, D = small
     s = dataclasses.replace(OmpSettings(max_atoms=6, tol_rms=2.0), method=method)
-    ref, info = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
+    ref, info = reconstruct_volume(coded, mask, D, settings=s, run=Execution(tile=16, cache=tmp_path, progress=False))
     store = WorkStore(info["work_store"])
     store.group["volume"][:, 16:32, 0:16] = 1e30  # tile 3's core, as if half-done
     store.group["stats"][3:4, :] = np.nan
-    again, info2 = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
+    again, info2 = reconstruct_volume(coded, mask, D, settings=s,
+                                      run=Execution(tile=16, cache=tmp_path, progress=False))
     assert info2["tiles_computed"] == 1 and info2["tiles_reused"] == info2["tiles"] - 1
     np.testing.assert_array_equal(again, ref)
 
@@ -261,11 +262,12 @@ def test_a_tile_killed_between_its_volume_and_its_statistics_is_recomputed(small
 def test_a_store_killed_while_being_created_is_rebuilt(small, tmp_path):
     coded, mask, D = small
     s = OmpSettings(max_atoms=6, tol_rms=2.0)
-    ref, info = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
+    ref, info = reconstruct_volume(coded, mask, D, settings=s, run=Execution(tile=16, cache=tmp_path, progress=False))
     group = zarr.open_group(info["work_store"], mode="r+")
     del group.attrs["complete_inputs"]  # the last step of creation never happened
     group["coded"][:] = 0  # and its inputs are incomplete
-    again, info2 = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
+    again, info2 = reconstruct_volume(coded, mask, D, settings=s,
+                                      run=Execution(tile=16, cache=tmp_path, progress=False))
     assert info2["tiles_computed"] == info2["tiles"]
     np.testing.assert_array_equal(again, ref)
 
@@ -280,16 +282,17 @@ def test_codes_and_captures_are_functions_of_the_seed(tmp_path):
         np.testing.assert_array_equal(a, b)
         if name in ("hitomi", "hitomi-tiled", "rowwise", "bernoulli", "shifting"):
             assert not np.array_equal(a, make_code(name, (21, 23), rng=8, **kw)), name
-    c1 = simulate_capture(video, code="hitomi", bump=2, sigma=5.0, seed=3)
-    c2 = simulate_capture(video, code="hitomi", bump=2, sigma=5.0, seed=3)
+    c1 = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=5.0, seed=3)
+    c2 = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=5.0, seed=3)
     for key in ("coded", "mask", "truth"):
         np.testing.assert_array_equal(c1[key], c2[key])
-    assert not np.array_equal(c1["coded"], simulate_capture(video, code="hitomi", bump=2, sigma=5.0, seed=4)["coded"])
+    other = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=5.0, seed=4)
+    assert not np.array_equal(c1["coded"], other["coded"])
 
 
 def test_ksvd_dictionaries_are_functions_of_the_seed():
     videos = [make_scene("default", frames=6, size=(24, 24), seed=s) for s in (0, 1)]
-    kw = dict(frames=4, atoms=60, samples=400, iterations=2, sparsity=3)
+    kw = dict(frames=4, settings=KsvdSettings(atoms=60, samples=400, iterations=2, sparsity=3))
     D1, m1 = learn_dictionary(videos, seed=5, **kw)
     D2, m2 = learn_dictionary(videos, seed=5, **kw)
     np.testing.assert_array_equal(D1, D2)
@@ -308,8 +311,8 @@ def _volumes(moving, tmp_path, settings, runs):
     coded, mask, D = moving
     out = {}
     for i, (tile, kw) in enumerate(runs):
-        out[(i, tile, tuple(kw.items()))] = reconstruct_volume(coded, mask, D, settings=settings, tile=tile,
-                                                            cache=tmp_path / str(i), progress=False, **kw)[0]
+        run = Execution(tile=tile, cache=tmp_path / str(i), progress=False, **kw)
+        out[(i, tile, tuple(kw.items()))] = reconstruct_volume(coded, mask, D, settings=settings, run=run)[0]
     return out
 
 

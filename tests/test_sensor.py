@@ -14,7 +14,7 @@ from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.errors import InputError
 from codedvideo.model.metrics import evaluate
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.solvers.region import OmpSettings
 from codedvideo.data.synth import make_scene
 
@@ -40,8 +40,8 @@ def D():
 def recon_psnr(coded, mask, truth, D, tmp_path, *, data_range=255.0):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "pixels are never open": the missing ones, filled
-        vol, info = reconstruct_volume(np.asarray(coded, np.float32), mask, D, settings=SETTINGS, tile=64,
-                                       cache=tmp_path, progress=False, workers=1)
+        vol, info = reconstruct_volume(np.asarray(coded, np.float32), mask, D, settings=SETTINGS,
+                                       run=Execution(tile=64, cache=tmp_path, workers=1, progress=False))
     assert np.isfinite(vol).all()
     return evaluate(vol, truth, data_range=data_range)["psnr"]
 
@@ -77,7 +77,7 @@ def test_sensor_model_adds_the_black_level_once_per_readout(video, mask):
 def test_black_level_correction_brings_the_answer_closer(video, mask, D, tmp_path):
     model = physics.SensorModel(bits=12, read_sigma=1.0, black_level=64.0)
     raw = physics.simulate(video, mask, rng=0, sensor=model)
-    fixed = sensor.correct_raw(raw, mask, black_level=64.0, bits=12)
+    fixed = sensor.correct_raw(raw, mask, levels=sensor.RawLevels(black_level=64.0, bits=12))
     clean = physics.forward(video, mask)
     assert abs(float(np.mean(fixed.coded - clean))) < 0.2  # offset gone (once, not once per open sub-frame)
     assert fixed.saturated_pixels == 0 and fixed.black_level == 64.0 and fixed.white_level == 4095.0
@@ -90,10 +90,10 @@ def test_black_level_below_the_signal_clips_at_zero_and_a_dark_frame_works(mask)
     raw = np.full((H, W), 10.0, np.float32)
     dark = np.full((H, W), 8.0, np.float32)
     dark[0, :5] = 12.0  # above the raw value: clipped
-    fixed = sensor.correct_raw(raw, mask, black_level=dark)
+    fixed = sensor.correct_raw(raw, mask, levels=sensor.RawLevels(black_level=dark))
     assert fixed.clipped_pixels == 5 and (fixed.coded[0, :5] == 0).all() and (fixed.coded[1] == 2.0).all()
     assert fixed.black_level is None
-    kept = sensor.correct_raw(raw, mask, black_level=dark, clip_negative=False)
+    kept = sensor.correct_raw(raw, mask, levels=sensor.RawLevels(black_level=dark), clip_negative=False)
     assert (kept.coded[0, :5] == -2.0).all()
 
 
@@ -105,19 +105,20 @@ def test_white_level_of_the_bit_depth_marks_pixels_at_full_scale_missing(video, 
     assert raw.max() < 1023  # the scene itself does not saturate
     rows = np.stack(np.unravel_index(np.random.default_rng(2).choice(H * W, 80, replace=False), (H, W)), 1)
     raw[rows[:, 0], rows[:, 1]] = 1023.0
-    fixed = sensor.correct_raw(raw, mask, black_level=32.0, bits=10)
+    fixed = sensor.correct_raw(raw, mask, levels=sensor.RawLevels(black_level=32.0, bits=10))
     assert fixed.saturated_pixels == 80 and fixed.white_level == 1023.0
     assert not fixed.mask[:, rows[:, 0], rows[:, 1]].any() and (fixed.coded[rows[:, 0], rows[:, 1]] == 0).all()
-    naive = sensor.correct_raw(raw, mask, black_level=32.0)  # the black level only: full-scale pixels trusted
+    # the black level only: full-scale pixels trusted
+    naive = sensor.correct_raw(raw, mask, levels=sensor.RawLevels(black_level=32.0))
     assert naive.saturated_pixels == 0 and naive.white_level is None
     without = recon_psnr(naive.coded, naive.mask, video, D, tmp_path / "naive")
     with_ = recon_psnr(fixed.coded, fixed.mask, video, D, tmp_path / "fixed")
     assert with_ > without + 1.0, (without, with_)
-    trusted = sensor.correct_raw(raw, mask, black_level=32.0, bits=10, trust_saturated=True)
+    trusted = sensor.correct_raw(raw, mask, levels=sensor.RawLevels(black_level=32.0, bits=10), trust_saturated=True)
     assert trusted.saturated_pixels == 80 and trusted.missing_pixels == 0
     np.testing.assert_array_equal(trusted.coded, naive.coded)
     # an explicit white level below the ADC's top (a full well that saturates first)
-    lower = sensor.correct_raw(raw, mask, black_level=32.0, bits=10, white_level=400.0)
+    lower = sensor.correct_raw(raw, mask, levels=sensor.RawLevels(black_level=32.0, bits=10, white_level=400.0))
     assert lower.saturated_pixels == int((raw >= 400).sum()) > 80
 
 
@@ -125,13 +126,13 @@ def test_raw_values_that_no_adc_of_that_depth_gives_are_errors(mask):
     raw = np.full((H, W), 100.0, np.float32)
     raw[3, 4] = 5000.0
     with pytest.raises(InputError, match=r"coded image: value 5000 is above 4095, the largest 12-bit value"):
-        sensor.correct_raw(raw, mask, bits=12)
+        sensor.correct_raw(raw, mask, levels=sensor.RawLevels(bits=12))
     with pytest.raises(InputError, match="black level 300 is not below the white level 255"):
-        sensor.correct_raw(np.full((H, W), 10.0, np.float32), mask, bits=8, black_level=300.0)
+        sensor.correct_raw(np.full((H, W), 10.0, np.float32), mask, levels=sensor.RawLevels(bits=8, black_level=300.0))
     with pytest.raises(InputError, match="every pixel is saturated"):
-        sensor.correct_raw(np.full((H, W), 255.0, np.float32), mask, bits=8)
+        sensor.correct_raw(np.full((H, W), 255.0, np.float32), mask, levels=sensor.RawLevels(bits=8))
     with pytest.raises(InputError, match="bits must be an integer"):
-        sensor.correct_raw(raw, mask, bits=0)
+        sensor.correct_raw(raw, mask, levels=sensor.RawLevels(bits=0))
 
 
 # ----------------------------------------------------------------------------- defective pixels

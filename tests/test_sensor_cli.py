@@ -110,7 +110,8 @@ def test_raw_correction_of_a_stream_holds_one_capture_at_a_time():
     j = job()
     counts = correct_raw(api.resolve_settings(api.ReconstructSettings(black_level=16.0)), j)
     assert reads == []  # nothing corrected before it is asked for
-    np.testing.assert_array_equal(j.codeds[4], sensor.correct_raw(frames[4], mask, black_level=16.0).coded)
+    fixed = sensor.correct_raw(frames[4], mask, levels=sensor.RawLevels(black_level=16.0))
+    np.testing.assert_array_equal(j.codeds[4], fixed.coded)
     assert reads == [4] and counts[4]["black_level"] == 16.0
     reads[:] = []
     j = job()

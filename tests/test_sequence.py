@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from codedvideo.app.cli import main
-from conftest import partly_still_capture
+from codedvideo.engine.windows import Execution
+from conftest import capture_settings, partly_still_capture
 
 N, H, W, T = 4, 40, 44, 3
 CLI = [sys.executable, "-m", "codedvideo.app.cli", "-q"]
@@ -42,8 +43,10 @@ def test_simulate_writes_a_stream_of_captures(sequence):
     # the first capture is the single capture of the same seed
     from codedvideo.data.scenes import load_video
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
 
-    one = simulate_capture(load_video("synth:default", frames=N, size=(H, W)), code="hitomi", bump=2, sigma=0, seed=0)
+    one = simulate_capture(load_video("synth:default", frames=N, size=(H, W)), code=CodeSpec("hitomi", bump=2), sigma=0,
+                           seed=0)
     np.testing.assert_array_equal(np.load(cap / "coded.npy")[0], one["coded"])
 
 
@@ -177,10 +180,12 @@ def test_sigkill_mid_sequence_then_rerun_equals_a_clean_run(tmp_path):
 def test_the_still_path_is_exact_for_a_still_scene(tmp_path, capsys, new_code):
     """Nothing moves (a tripod on a still scene): every frame is coded / open count, exactly, with no sparse coding."""
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * N, axis=0)
-    cap = simulate_capture(still, code="hitomi", bump=2, sigma=0, seed=1, captures=T, new_code_per_capture=new_code)
+    cap = simulate_capture(still, code=CodeSpec("hitomi", bump=2, new_code_per_capture=new_code), sigma=0, seed=1,
+                           captures=T)
     for name in ("coded", "mask", "truth"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     _run(capsys, "reconstruct", "--coded", tmp_path / "coded.npy", "--mask", tmp_path / "mask.npy", "--output",
@@ -246,14 +251,14 @@ def test_a_tile_equal_to_one_already_solved_reuses_its_result(tmp_path):
     moved[:, 40:, 40:] = np.roll(frames[:, 40:, 40:], 2, axis=0)  # something changes in the corner tile only
     codeds = [simulate(frames, mask), simulate(moved, mask), simulate(frames, mask) + np.float32(0)]
     D, s = dct_dictionary(4), OmpSettings(max_atoms=6, tol_rms=1.0)
-    results = list(sparse_volumes(3, lambda i: (codeds[i], mask, None), D, settings=s, tile=16, cache=tmp_path / "job",
-                                  progress=False))
+    results = list(sparse_volumes(3, lambda i: (codeds[i], mask, None), D, settings=s,
+                                  run=Execution(tile=16, cache=tmp_path / "job", progress=False)))
     tasks = results[0][2]["tile_tasks"]
     assert tasks < 2 * 9  # 9 tiles a capture; capture 1 shares all but the tiles near the corner, capture 2 all
     assert tasks > 9  # the changed corner was solved again
     for i, volume, info in results:
-        alone, _ = reconstruct_volume(codeds[i], mask, D, settings=s, tile=16, cache=tmp_path / f"alone{i}",
-                                      progress=False)
+        alone, _ = reconstruct_volume(codeds[i], mask, D, settings=s,
+                                      run=Execution(tile=16, cache=tmp_path / f"alone{i}", progress=False))
         np.testing.assert_array_equal(volume, alone)
 
 
@@ -275,8 +280,8 @@ def test_captures_are_handed_out_in_order_while_later_ones_still_compute(tmp_pat
 
     seen = []
     for i, volume, _ in sparse_volumes(6, lambda i: (codeds[i], mask, None), dct_dictionary(4),
-                                       settings=OmpSettings(max_atoms=6, tol_rms=0.5), tile=16, cache=tmp_path / "c",
-                                       progress=False, workers=1):
+                                       settings=OmpSettings(max_atoms=6, tol_rms=0.5),
+                                       run=Execution(tile=16, cache=tmp_path / "c", workers=1, progress=False)):
         seen.append((i, finished_tiles()))
     assert [i for i, _ in seen] == list(range(6))
     assert seen[0][1] < 6 * 9 // 2  # the first capture came out with most of the job still to compute
@@ -312,8 +317,8 @@ def test_still_patches_give_the_same_bits_at_every_tile_size(tmp_path):
     coded, mask, still, D, s = partly_still_capture((64, 72), 40, seed=5)
     runs = {}
     for tile in (16, 24, 128):
-        (_, volume, info), = sparse_volumes(1, lambda i: (coded, mask, still), D, settings=s, tile=tile,
-                                            cache=tmp_path / f"t{tile}", progress=False)
+        (_, volume, info), = sparse_volumes(1, lambda i: (coded, mask, still), D, settings=s,
+                                            run=Execution(tile=tile, cache=tmp_path / f"t{tile}", progress=False))
         runs[tile] = volume
         assert info["patches_static"] >= 58 * 34  # every patch inside the still columns
     np.testing.assert_array_equal(runs[16], runs[128])
@@ -446,6 +451,7 @@ def test_simulate_streams_a_video_file_capture_by_capture_with_the_same_files(tm
     from codedvideo.formats.io import write_frames, write_video
     from codedvideo.data.scenes import read_clip
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
     from codedvideo.formats.volumes import read_volume
 
@@ -455,8 +461,9 @@ def test_simulate_streams_a_video_file_capture_by_capture_with_the_same_files(tm
     with pytest.warns(UserWarning, match=rf"make 3 captures of N = {N}; its last {N - 2} frames are left out"):
         _run(capsys, "simulate", tmp_path / source, "--frames", N, "--captures", "all", "--start", 2, "--size", H, W,
              "--noise-sigma", 2, "--seed", 7, *flags, "--output", tmp_path / "cap")
-    whole = simulate_capture(read_clip(str(tmp_path / source), frames=3 * N, size=(H, W), start=2), code="hitomi",
-                             bump=2, sigma=2.0, seed=7, captures=3, new_code_per_capture=new_code)
+    whole = simulate_capture(read_clip(str(tmp_path / source), frames=3 * N, size=(H, W), start=2),
+                             code=CodeSpec("hitomi", bump=2, new_code_per_capture=new_code), sigma=2.0, seed=7,
+                             captures=3)
     for name in ("coded", "mask", "truth"):
         np.testing.assert_array_equal(np.load(tmp_path / "cap" / f"{name}.npy"), whole[name], err_msg=name)
     np.testing.assert_array_equal(read_volume(tmp_path / "cap" / "coded.tif"), whole["coded"])
@@ -539,10 +546,12 @@ def test_pixels_never_open_in_several_captures_are_one_warning(tmp_path, capsys)
     import warnings
 
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4 * N, size=(H, W))
-    cap = simulate_capture(video, code="bernoulli", bump=2, sigma=0, seed=2, captures=4, new_code_per_capture=True)
+    cap = simulate_capture(video, code=CodeSpec("bernoulli", bump=2, new_code_per_capture=True), sigma=0, seed=2,
+                           captures=4)
     closed = [int((~cap["mask"][t].any(0)).sum()) for t in range(4)]
     assert sum(c > 0 for c in closed) >= 2, closed
     for name in ("coded", "mask"):
@@ -597,7 +606,7 @@ def _window_job(tmp_path, monkeypatch, window_tiles, *, scheduler=None, name="w"
 
     monkeypatch.setattr(tqdm.auto, "tqdm", Recording)
     out = list(windows.sparse_volumes(6, capture, dct_dictionary(4), settings=OmpSettings(max_atoms=6, tol_rms=0.5),
-                                     tile=16, cache=cache, progress=True, scheduler=scheduler))
+                                      run=Execution(tile=16, cache=cache, scheduler=scheduler, progress=True)))
     return out, asked, planned, len(solved), bars
 
 
@@ -669,8 +678,8 @@ def test_a_job_never_waits_for_a_busy_entry_while_it_holds_another(tmp_path, mon
     other = threading.Thread(target=other_run, daemon=True)
     other.start()
     assert holds_a.wait(60)
-    job = threading.Thread(target=lambda: out.extend(windows.sparse_volumes(2, capture, D, settings=s, tile=16,
-                                                                           cache=cache, progress=False)),
+    job = threading.Thread(target=lambda: out.extend(windows.sparse_volumes(2, capture, D, settings=s,
+                                                                            run=Execution(tile=16, cache=cache, progress=False))),
                            daemon=True)
     job.start()
     job.join(120)
@@ -705,11 +714,13 @@ def test_a_pixel_is_still_only_where_its_still_answer_is_quiet_enough():
     """sigma / open count above STILL_NOISE_MAX: never still; below it a still scene agrees (with a changing code)."""
     from codedvideo.model.sequence import STILL_NOISE_MAX, agreeing_pixels
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * 8, axis=0)
     for bump in (2, 3):
-        cap = simulate_capture(still, code="hitomi", bump=bump, sigma=0, seed=1, captures=T, new_code_per_capture=True)
+        cap = simulate_capture(still, code=CodeSpec("hitomi", bump=bump, new_code_per_capture=True), sigma=0, seed=1,
+                               captures=T)
         mask_of = lambda j: cap["mask"][j]  # noqa: E731
         quiet = agreeing_pixels(cap["coded"], mask_of, 1, sigma=STILL_NOISE_MAX * bump)
         loud = agreeing_pixels(cap["coded"], mask_of, 1, sigma=STILL_NOISE_MAX * bump * 1.01)
@@ -759,11 +770,12 @@ def test_a_clipped_neighbour_is_never_averaged_into_a_still_answer():
     answer down (it did, by 3 grey levels on a half-saturated neighbour); the capture before still counts."""
     from codedvideo.model.sequence import still_values
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * 8, axis=0)
-    short = simulate_capture(still, code="hitomi", bump=2, sigma=5, seed=1, captures=T)
-    long = simulate_capture(still, code="hitomi", bump=4, sigma=5, seed=2, captures=T)
+    short = simulate_capture(still, code=CodeSpec("hitomi", bump=2), sigma=5, seed=1, captures=T)
+    long = simulate_capture(still, code=CodeSpec("hitomi", bump=4), sigma=5, seed=2, captures=T)
     codeds, masks = short["coded"].copy(), [short["mask"], short["mask"], long["mask"]]
     white = float(np.percentile(codeds[1], 90))
     codeds[2] = np.minimum(long["coded"][2], white)
@@ -778,11 +790,11 @@ def test_a_clipped_neighbour_is_never_averaged_into_a_still_answer():
 
 def test_reconstruct_capture_refuses_a_map_of_still_pixels_for_still_values():
     """A bool map where still values are asked would make every pixel still (its 0s and 1s the answer)."""
-    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
+    from codedvideo.engine.captures import reconstruct_capture
 
     coded, mask = np.ones((16, 16), np.float32), np.ones((4, 16, 16), np.uint8)
     with pytest.raises(TypeError, match="still values"):
-        reconstruct_capture(CaptureSettings("omp", data_range=None, settings=None), coded, mask,
+        reconstruct_capture(capture_settings("omp", data_range=None, settings=None), coded, mask,
                             still=np.ones((16, 16), bool))
 
 
@@ -791,11 +803,12 @@ def test_a_flat_still_background_under_noise_is_no_worse_than_its_captures_one_b
     removes, so flat regions are left to that test (the background was 10 dB worse than capture by capture)."""
     from codedvideo.model.metrics import evaluate
     from codedvideo.engine.simulation import simulate_capture
+    from codedvideo.model.codes import CodeSpec
     from codedvideo.data.synth import make_scene
 
     video = np.full((T * 8, 48, 64), 100.0, np.float32)
     video[..., 40:] = make_scene("default", frames=T * 8, size=(48, 24))  # something moves on the right
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=5, seed=0, captures=T)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=5, seed=0, captures=T)
     for name in ("coded", "mask"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     flat, psnr = (..., slice(0, 28)), {}

@@ -11,6 +11,7 @@ from codedvideo.engine.config import PipelineConfig
 from codedvideo.model.errors import InputError
 from codedvideo.engine.cache import dictionary_key
 from codedvideo.engine.simulation import simulate_capture
+from codedvideo.model.codes import CodeSpec
 from codedvideo.engine.training import train_dictionary
 from codedvideo.formats.store import load_dictionary
 from conftest import REGENERATE_TEST
@@ -52,7 +53,8 @@ def test_reconstruct_without_dictionary_uses_the_shipped_one_or_names_the_train_
     from codedvideo.data.synth import make_scene
 
     for n in (8, 5):
-        cap = simulate_capture(make_scene("default", frames=n, size=(32, 32)), code="hitomi", bump=2, sigma=0, seed=0)
+        cap = simulate_capture(make_scene("default", frames=n, size=(32, 32)), code=CodeSpec("hitomi", bump=2), sigma=0,
+                               seed=0)
         np.save(tmp_path / f"coded{n}.npy", cap["coded"])
         np.save(tmp_path / f"mask{n}.npy", cap["mask"])
     capsys.readouterr()
@@ -75,15 +77,15 @@ def test_shipped_dictionary_regenerates_from_its_listed_settings(regenerated_dic
     from codedvideo.engine.config import omp_settings
     from codedvideo.model.metrics import evaluate
     from codedvideo.data.scenes import load_video
-    from codedvideo.engine.windows import reconstruct_volume
+    from codedvideo.engine.windows import Execution, reconstruct_volume
 
     cfg = PipelineConfig()
     video = load_video(cfg.scene.video, frames=8, size=cfg.scene.size, seed=0)
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0, seed=0)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0, seed=0)
     psnr = []
     for store in (shipped.path_for(8), regenerated_dictionary):
         D, _ = load_dictionary(store)
         vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=omp_settings(cfg.reconstruct, 0.0),
-                                    cache=regenerated_dictionary.parent / "recon", progress=False)
+                                    run=Execution(cache=regenerated_dictionary.parent / "recon", progress=False))
         psnr.append(evaluate(vol, cap["truth"])["psnr"])
     assert psnr[0] > 28 and abs(psnr[0] - psnr[1]) <= 0.05, psnr

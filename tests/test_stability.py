@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+from conftest import capture_settings
 from codedvideo.model import patches as P
 from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
@@ -21,7 +22,7 @@ from codedvideo.solvers.omp import MaskedOperator, omp
 from codedvideo.solvers.omp_kernel import synthesize
 from codedvideo.model.physics import forward, simulate, static_estimate
 from codedvideo.formats.volumes import read_coded, read_mask
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.solvers.region import STAT_NAMES, OmpSettings, reconstruct_region
 from codedvideo.data.synth import make_scene
 
@@ -33,8 +34,9 @@ def recon(coded, mask, D, tmp_path, **kw):
     s = kw.pop("settings", OmpSettings(max_atoms=8, tol_rms=2.0))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        return reconstruct_volume(coded, mask, D, settings=s, tile=kw.pop("tile", 16), cache=tmp_path / "cache",
-                                  progress=False, **kw)
+        return reconstruct_volume(coded, mask, D, settings=s,
+                                  run=Execution(tile=kw.pop("tile", 16), cache=tmp_path / "cache", progress=False),
+                                  **kw)
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +92,8 @@ def test_dependent_atoms_end_patches_early_with_a_counted_warning(scene8, tmp_pa
     D = np.concatenate([base[:, :1], 3.0 * base[:, 1:2], twin / np.linalg.norm(twin), np.zeros_like(twin)], 1)
     s = OmpSettings(max_atoms=4, tol_rms=0.0, static_atoms=0)
     with pytest.warns(UserWarning, match="stopped early") as rec:
-        vol, info = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
+        vol, info = reconstruct_volume(coded, mask, D, settings=s,
+                                       run=Execution(tile=16, cache=tmp_path, progress=False))
     assert np.isfinite(vol).all()
     assert info["dependent_stops"] == info["patches"]  # all of them, counted
     assert str(info["patches"]) in str(rec[0].message) or str(int(info["patches"])) in str(rec[0].message)
@@ -132,12 +135,13 @@ def test_ksvd_on_all_zero_training_data_stays_finite(rng):
 
 def test_training_on_a_flat_video_is_refused_not_a_dictionary_of_one_atom():
     """(It trained, silently, a dictionary whose every atom was the flat one: 21 dB against 23.6 trivial.)"""
-    from codedvideo.solvers.dictionaries import learn_dictionary
+    from codedvideo.solvers.dictionaries import KsvdSettings, learn_dictionary
 
+    few = KsvdSettings(atoms=40, samples=500, iterations=1)
     with pytest.raises(InputError, match="training patches drawn is flat"):
-        learn_dictionary([np.full((24, 32, 32), 128.0, np.float32)], frames=4, atoms=40, samples=500, iterations=1)
+        learn_dictionary([np.full((24, 32, 32), 128.0, np.float32)], frames=4, settings=few)
     video = make_scene("default", frames=24, size=(32, 32))  # the same call on a moving scene trains
-    D, _ = learn_dictionary([video], frames=4, atoms=40, samples=500, iterations=1)
+    D, _ = learn_dictionary([video], frames=4, settings=few)
     assert np.linalg.matrix_rank(D) > 30
 
 
@@ -333,8 +337,8 @@ def test_smaller_than_a_patch_is_a_clear_error(tmp_path, shape):
     mask = np.ones((4, *shape), np.uint8)
     mask[1] = 0  # not all-open, so the sparse path is taken
     with pytest.raises(InputError, match="smaller than one 7x7 patch"):
-        reconstruct_volume(np.zeros(shape, np.float32), mask, dct_dictionary(4), settings=OmpSettings(), tile=16,
-                           cache=tmp_path, progress=False)
+        reconstruct_volume(np.zeros(shape, np.float32), mask, dct_dictionary(4), settings=OmpSettings(),
+                           run=Execution(tile=16, cache=tmp_path, progress=False))
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
@@ -391,8 +395,8 @@ def test_never_open_pixels_are_filled_and_counted(tmp_path):
     mask[:, holes] = 0
     coded = simulate(video, mask)
     with pytest.warns(UserWarning, match=f"{int(holes.sum())} pixels are never open"):
-        vol, info = reconstruct_volume(coded, mask, dct_dictionary(n), settings=OmpSettings(), tile=16,
-                                       cache=tmp_path, progress=False)
+        vol, info = reconstruct_volume(coded, mask, dct_dictionary(n), settings=OmpSettings(),
+                                       run=Execution(tile=16, cache=tmp_path, progress=False))
     assert info["never_open_pixels"] == holes.sum()
     assert np.isfinite(vol).all()
     err = np.abs(vol - video)[:, holes]
@@ -406,7 +410,7 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     refinement): an all-dark scene is exactly dark, an all-white one flat white, and read noise of 80 grey levels
     no worse than the trivial estimate."""
     from codedvideo.data import shipped
-    from codedvideo.engine.captures import CaptureSettings, reconstruct_capture
+    from codedvideo.engine.captures import reconstruct_capture
     from codedvideo.formats.store import load_dictionary
     from codedvideo.model.units import infer_data_range
 
@@ -414,7 +418,7 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     truth = video if kind == "noise" else _scene(kind)
     sigma = 80.0 if kind == "noise" else 0.0
     coded = simulate(truth, mask, sigma=sigma, rng=2)
-    vol, info = reconstruct_capture(CaptureSettings("nonlocal", adapt=True, adapt_rounds=2, refine=32,
+    vol, info = reconstruct_capture(capture_settings("nonlocal", adapt=True, adapt_rounds=2, refine=32,
                                                     data_range=infer_data_range(255.0, given=255.0),
                                                     settings=OmpSettings(max_atoms=8, tol_rms=max(sigma, 2.0)),
                                                     dictionary=load_dictionary(shipped.verified(8))[0],

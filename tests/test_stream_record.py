@@ -7,6 +7,7 @@ import pytest
 
 from codedvideo.app.cli import main
 from codedvideo.engine.simulation import simulate_capture
+from codedvideo.model.codes import CodeSpec
 from codedvideo.data.synth import make_scene
 
 H = W = 48
@@ -16,7 +17,7 @@ N, T = 8, 3
 @pytest.fixture()
 def stream(tmp_path):
     video = make_scene("default", frames=N * T, size=(H, W))
-    cap = simulate_capture(video, code="hitomi", bump=2, sigma=0, seed=1, captures=T)
+    cap = simulate_capture(video, code=CodeSpec("hitomi", bump=2), sigma=0, seed=1, captures=T)
     for name in ("coded", "mask", "truth"):
         np.save(tmp_path / f"{name}.npy", cap[name])
     return ["--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),

@@ -16,7 +16,7 @@ from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.solvers.omp import pattern_table, pixel_patterns
 from codedvideo.model.physics import simulate
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.solvers.region import OmpSettings, reconstruct_region
 from codedvideo.data.synth import make_scene
 
@@ -44,8 +44,8 @@ def test_every_tiling_gives_the_same_bits(video, code, settings, tmp_path):
     for tile, workers in ((13, 2), (24, 1), (32, 2), (64, 2), (128, 1)):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # never-open pixels of the Bernoulli mask
-            vols[tile], _ = reconstruct_volume(coded, mask, D, settings=settings, tile=tile, cache=tmp_path / str(tile),
-                                               progress=False, workers=workers)
+            vols[tile], _ = reconstruct_volume(coded, mask, D, settings=settings,
+                                               run=Execution(tile=tile, cache=tmp_path / str(tile), workers=workers, progress=False))
     ref = vols[128]  # one tile: the whole image
     assert np.isfinite(ref).all()
     for tile, vol in vols.items():
@@ -66,8 +66,8 @@ def test_default_settings_on_a_wide_image(tmp_path):
     assert settings.batch // (w - 6) < h - 6  # several bands in the whole image
     whole, _ = reconstruct_region(coded, mask, D, settings)
     for tile in (32, 64, 200):
-        vol, _ = reconstruct_volume(coded, mask, D, settings=settings, tile=tile, cache=tmp_path / str(tile),
-                                    progress=False)
+        vol, _ = reconstruct_volume(coded, mask, D, settings=settings,
+                                    run=Execution(tile=tile, cache=tmp_path / str(tile), progress=False))
         assert np.array_equal(vol, whole), (tile, float(np.abs(vol - whole).max()))
 
 

@@ -6,7 +6,7 @@ from codedvideo.model.codes import make_code
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.engine.parallel import plan_tiles
 from codedvideo.model.physics import simulate
-from codedvideo.engine.windows import reconstruct_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume
 from codedvideo.solvers.region import OmpSettings, reconstruct_region
 
 
@@ -38,7 +38,8 @@ def test_chunked_equals_single_chunk(capture, tile, tmp_path):
     D = dct_dictionary(4)
     s = OmpSettings(max_atoms=6, tol_rms=0.5, batch=97)
     whole, _ = reconstruct_region(coded, mask, D, s)
-    vol, info = reconstruct_volume(coded, mask, D, settings=s, tile=tile, cache=tmp_path, progress=False, workers=2)
+    vol, info = reconstruct_volume(coded, mask, D, settings=s,
+                                   run=Execution(tile=tile, cache=tmp_path, workers=2, progress=False))
     assert info["tiles"] == len(plan_tiles(coded.shape, tile))
     np.testing.assert_allclose(vol, whole, rtol=1e-4, atol=1e-3)
 
@@ -47,12 +48,13 @@ def test_rerun_reuses_finished_tiles(capture, tmp_path):
     coded, mask, _ = capture
     D = dct_dictionary(4)
     s = OmpSettings(max_atoms=4, tol_rms=0.5)
-    v1, i1 = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
-    v2, i2 = reconstruct_volume(coded, mask, D, settings=s, tile=16, cache=tmp_path, progress=False)
+    v1, i1 = reconstruct_volume(coded, mask, D, settings=s, run=Execution(tile=16, cache=tmp_path, progress=False))
+    v2, i2 = reconstruct_volume(coded, mask, D, settings=s, run=Execution(tile=16, cache=tmp_path, progress=False))
     assert i1["tiles_computed"] == i1["tiles"] and i2["tiles_computed"] == 0
     np.testing.assert_array_equal(v1, v2)
     # other settings: a different key, computed afresh
-    _, i3 = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=3, tol_rms=0.5), tile=16, cache=tmp_path, progress=False)
+    _, i3 = reconstruct_volume(coded, mask, D, settings=OmpSettings(max_atoms=3, tol_rms=0.5),
+                               run=Execution(tile=16, cache=tmp_path, progress=False))
     assert i3["tiles_computed"] == i3["tiles"]
 
 
@@ -62,7 +64,7 @@ def test_reconstruction_beats_trivial_estimate(capture, tmp_path):
 
     coded, mask, video = capture
     vol, _ = reconstruct_volume(coded, mask, dct_dictionary(4), settings=OmpSettings(max_atoms=8, tol_rms=0.5),
-                                tile=32, cache=tmp_path, progress=False)
+                                run=Execution(tile=32, cache=tmp_path, progress=False))
     assert evaluate(vol, video)["psnr"] > evaluate(static_estimate(coded, mask), video)["psnr"] + 3
 
 
@@ -129,7 +131,7 @@ def test_never_open_regions_are_filled_from_neighbours_not_zeros(side, tmp_path)
     mask[:, 10 : 10 + side, 12 : 12 + side] = 0
     with pytest.warns(UserWarning, match="never open"):
         vol, info = reconstruct_volume(simulate(video, mask), mask, dct_dictionary(n), settings=OmpSettings(),
-                                       tile=16, cache=tmp_path, progress=False)
+                                       run=Execution(tile=16, cache=tmp_path, progress=False))
     hole = (slice(None), slice(10, 10 + side), slice(12, 12 + side))
     assert np.isfinite(vol).all()
     assert np.abs(vol[hole] - video[hole]).max() < 0.3 * side + 2  # a ramp filled by its nearest neighbours
@@ -145,7 +147,7 @@ def test_one_shutter_pattern_for_all_pixels_gives_the_static_estimate(capture, t
     flutter = make_code("flutter", video.shape[1:], frames=video.shape[0], rng=3)
     coded = simulate(video, flutter)
     vol, info = reconstruct_volume(coded, flutter, dct_dictionary(video.shape[0]), settings=OmpSettings(),
-                                   tile=16, cache=tmp_path, progress=False)
+                                   run=Execution(tile=16, cache=tmp_path, progress=False))
     assert info["method"] == "static"
     np.testing.assert_allclose(vol, static_estimate(coded, flutter), rtol=1e-6)
     assert 0 < flutter.sum(0).min() < video.shape[0]  # a real flutter sequence, not all open
@@ -171,7 +173,8 @@ def test_patch_stride_covers_every_pixel_and_chunking_does_not_matter(capture, s
     per_patch = lambda st: solved(st) / counted(st)
     assert per_patch(st_whole) > 0.5 * per_patch(st_full)
     for tile in (9, 16):
-        vol, _ = reconstruct_volume(coded, mask, D, settings=s, tile=tile, cache=tmp_path / str(tile), progress=False)
+        vol, _ = reconstruct_volume(coded, mask, D, settings=s,
+                                    run=Execution(tile=tile, cache=tmp_path / str(tile), progress=False))
         np.testing.assert_allclose(vol, whole, rtol=1e-4, atol=1e-3)
 
 

@@ -10,8 +10,8 @@ The public API (:mod:`codedvideo.api`) is loaded on first use, so ``import coded
 __version__ = "0.1.0"
 
 #: The public API: these names load :mod:`codedvideo.api` (and numpy) on first use.
-__all__ = ["CodedVideoError", "ConfigError", "InputError", "Reconstruction", "ReconstructSettings", "evaluate",
-           "load_dictionary", "make_code", "reconstruct", "simulate", "synthetic_scene", "train"]
+__all__ = ["CodedVideoError", "ConfigError", "InputError", "Reconstruction", "ReconstructSettings", "SensorModel",
+           "evaluate", "load_dictionary", "make_code", "reconstruct", "simulate", "synthetic_scene", "train"]
 
 
 def __getattr__(name: str):

@@ -21,18 +21,20 @@ from __future__ import annotations
 import contextlib
 import functools
 import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from codedvideo.model import doors
+from codedvideo.model.physics import SensorModel
 from codedvideo.api._settings import ReconstructSettings
 from codedvideo.model.errors import CodedVideoError, ConfigError, InputError
 from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
 
-__all__ = ["CodedVideoError", "ConfigError", "InputError", "Reconstruction", "ReconstructSettings", "evaluate",
-           "load_dictionary", "make_code", "reconstruct", "simulate", "synthetic_scene", "train"]
+__all__ = ["CodedVideoError", "ConfigError", "InputError", "Reconstruction", "ReconstructSettings", "SensorModel",
+           "evaluate", "load_dictionary", "make_code", "reconstruct", "simulate", "synthetic_scene", "train"]
 
 
 def _door(fn):
@@ -96,9 +98,8 @@ def make_code(name: str, shape: tuple[int, int], *, frames: int, bump: int | Non
 
 
 @_door
-def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, shot_noise: bool = False,
-             full_well: float | None = None, gain: float | None = None, bits: int | None = None,
-             white_level: float | None = None, black_level: float = 0.0, seed: int = 0) -> np.ndarray:
+def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0,
+             sensor: SensorModel | Mapping | None = None, seed: int = 0) -> np.ndarray:
     """The coded image(s) a camera with this code records: ``sensor(noise(S E))``, the command line's
     ``simulate`` on arrays (the same sensor model, options and seeded noise: the same bits).
 
@@ -108,18 +109,20 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     mask : ndarray of shape (N, H, W) (one code for every capture) or (T, N, H, W), in [0, 1]
     noise_sigma : float
         Gaussian read noise, in the video's units.
-    shot_noise : bool
-        Poisson photon noise (``full_well`` electrons, ``gain`` electrons per grey level).
-    full_well, gain : float, optional
-        The shot noise's sensor, with ``shot_noise`` (defaults of :class:`codedvideo.model.physics.SensorModel`).
-    bits : int, optional
-        Quantise the coded image to this many bits (values at ``2**bits - 1`` and above clipped); no noise added.
-        With ``white_level`` the ``2**bits`` levels span ``[0, white_level]`` in the video's units (an ADC of that
-        full scale), so the values are not raw counts.
-    white_level : float, optional
-        Clip the coded image at this level (saturation).
-    black_level : float
-        Raw output: add this offset once per read-out (then clipping and quantisation).
+    sensor : SensorModel or mapping, optional
+        The sensor's read-out beyond the read noise: a :class:`SensorModel` (its ``read_sigma`` left at 0: the
+        read noise is ``noise_sigma``) or a mapping of some of its fields (``dict(bits=12)``), checked as the
+        command line's options:
+
+        - ``shot_noise``: Poisson photon noise (``full_well`` electrons, ``gain`` electrons per grey level;
+          those two only with it; None or not given: the defaults of :class:`SensorModel`);
+        - ``bits``: quantise the coded image to this many bits (values at ``2**bits - 1`` and above
+          clipped); no noise added.  With ``white_level`` the ``2**bits`` levels span ``[0, white_level]``
+          in the video's units (an ADC of that full scale), so the values are not raw counts;
+        - ``white_level``: clip the coded image at this level (saturation);
+        - ``black_level``: raw output, this offset added once per read-out (then clipping and quantisation).
+
+        None: read noise only.
     seed : int
         The noise's seed (as ``--seed``).
 
@@ -136,6 +139,7 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     from codedvideo.engine.config import NoiseConfig, validated
     from codedvideo.engine.simulation import sensor_model, simulate_stream
     from codedvideo.formats.volumes import check_coded, check_mask
+    from codedvideo.model.codes import CodeSpec
 
     frames = check_coded(video, "simulate: video", unit="frame")
     masks = np.asarray(mask)
@@ -147,15 +151,35 @@ def simulate(video: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0, s
     if masks.ndim == 4 and masks.shape[0] != count:
         raise InputError(f"simulate: {count} captures in the video, {masks.shape[0]} masks")
     codes = [check_mask(m, "simulate: mask") for m in (masks if masks.ndim == 4 else [masks])]
-    given = {k: v for k, v in dict(full_well=full_well, gain=gain).items() if v is not None}
-    noise = validated(NoiseConfig, dict(sigma=noise_sigma, shot_noise=shot_noise, bits=bits, white_level=white_level,
-                                        black_level=black_level, **given),
+    noise = validated(NoiseConfig, dict(sigma=noise_sigma, **_sensor_fields(sensor)),
                       {"sigma": "noise_sigma", **{k: k for k in ("shot_noise", "full_well", "gain", "bits")}})
     _check_seed(seed)
-    stream = simulate_stream((frames[i * n:(i + 1) * n] for i in range(count)), code="array", bump=0,
+    stream = simulate_stream((frames[i * n:(i + 1) * n] for i in range(count)), code=CodeSpec("array", 0),
                              sigma=noise.sigma, seed=seed, sensor=sensor_model(noise), captures=count, codes=codes)
     coded = [one for one, _, _ in stream]
     return coded[0] if count == 1 and masks.ndim == 3 else np.stack(coded)
+
+
+#: The fields of a :class:`SensorModel` that ``simulate``'s ``sensor`` takes (its read noise is ``noise_sigma``).
+_SENSOR_FIELDS = ("shot_noise", "full_well", "gain", "bits", "white_level", "black_level")
+
+
+def _sensor_fields(sensor) -> dict:
+    """``simulate``'s ``sensor`` as the keys of its ``NoiseConfig`` (those given; None: none), or a ConfigError."""
+    if sensor is None:
+        return {}
+    if isinstance(sensor, SensorModel):
+        if sensor.read_sigma:
+            raise ConfigError(f"sensor: read_sigma {sensor.read_sigma:g}: give the read noise as noise_sigma")
+        return {k: getattr(sensor, k) for k in _SENSOR_FIELDS}
+    if not isinstance(sensor, Mapping):
+        raise ConfigError(f"sensor: a SensorModel or a mapping of its fields ({', '.join(_SENSOR_FIELDS)}), got "
+                          f"{type(sensor).__name__}")
+    unknown = [k for k in sensor if k not in _SENSOR_FIELDS]
+    if unknown:
+        raise ConfigError(f"sensor: unknown key {unknown[0]!r}; the keys are {', '.join(_SENSOR_FIELDS)} (the read "
+                          "noise is noise_sigma)")
+    return {k: v for k, v in sensor.items() if v is not None or k not in ("full_well", "gain")}  # (None: the default)
 
 
 @_door
@@ -212,18 +236,18 @@ def train(videos, *, frames: int, atoms: int = KSVD_ATOMS, samples: int = KSVD_S
     -------
     D : ndarray of shape (N * 49, atoms), float32
     """
-    from codedvideo.solvers.dictionaries import learn_dictionary
+    from codedvideo.solvers.dictionaries import KsvdSettings, learn_dictionary
     from codedvideo.data.scenes import working_units
 
     # the settings checked as the command line's and pipeline.yaml's are, before any work (atoms below sparsity,
     # samples too few for the atoms...)
-    plan_training(frames=frames, atoms=atoms, samples=samples, iterations=iterations, sparsity=sparsity, seed=seed,
-                  augment=augment, door="api")
+    plan_training(frames=frames, dictionary=dict(atoms=atoms, samples=samples, iterations=iterations,
+                                                 sparsity=sparsity, augment=augment), seed=seed, door="api")
     clips = [working_units(np.array(v, np.float32), what=f"training video {i + 1}") for i, v in enumerate(videos)]
     if not clips:
         raise InputError("train: no training video given")
-    D, _ = learn_dictionary(clips, frames=frames, atoms=atoms, samples=samples, iterations=iterations,
-                            sparsity=sparsity, seed=seed, augment=augment)
+    D, _ = learn_dictionary(clips, frames=frames, seed=seed, settings=KsvdSettings(
+        atoms=atoms, samples=samples, iterations=iterations, sparsity=sparsity, augment=augment))
     return D
 
 
@@ -285,8 +309,6 @@ def reconstruct(coded, mask, settings: ReconstructSettings | None = None, *, tru
     >>> reconstruct(simulate(video, mask), mask).shape
     (8, 32, 32)
     """
-    from codedvideo.api._settings import replaced
-
     chosen = replaced(settings or ReconstructSettings(), **options)
     if _is_dask(coded):
         if full_output or truth is not None:
@@ -450,12 +472,13 @@ def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, s
 
 
 from codedvideo.api._job import Captures, ReconstructionJob  # noqa: E402, F401  (the job the command line runs)
-from codedvideo.api._record import job_record  # noqa: E402, F401  (its metrics record)
-from codedvideo.api._settings import Resolved, resolve as resolve_settings  # noqa: E402, F401
+from codedvideo.api._record import job_record, quantised, written_quality  # noqa: E402, F401  (its metrics record)
+from codedvideo.formats.volumes import read_scored  # noqa: E402, F401  (a reconstruction or truth as evaluate reads it)
+from codedvideo.api._settings import Resolved, replaced, resolve as resolve_settings  # noqa: E402, F401
 from codedvideo.api._simulate import (SimulateSettings, SimulationPlan, captures_of, plan_simulation,  # noqa: E402, F401
                                      simulate_captures, simulate_whole)
-from codedvideo.api._train import plan_training, train_dictionary  # noqa: E402, F401
-from codedvideo.api._pipeline import run_pipeline  # noqa: E402, F401
+from codedvideo.api._train import TRAINING_KEYS, plan_training, train_dictionary  # noqa: E402, F401
+from codedvideo.api._pipeline import run_pipeline, run_settings  # noqa: E402, F401
 from codedvideo.api.cache import clean_cache, verify_cache  # noqa: E402, F401  (codedvideo cache)
 from codedvideo.engine.bayer import PATTERNS as BAYER_PATTERNS  # noqa: E402, F401  (the Bayer patterns bayer= takes)
 from codedvideo.engine.methods import METHOD_NAMES, REGISTRY as METHODS  # noqa: E402, F401  (the methods, by name)

@@ -185,7 +185,8 @@ def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
     noise = r.noise
     if not (noise.black_level or noise.bits is not None or r.bad_pixels is not None or r.detect_bad_pixels):
         return None
-    from codedvideo.model.sensor import bad_pixel_array, correct_raw as correct_frames, read_bad_pixels, vote_bad_pixels
+    from codedvideo.model.sensor import (RawLevels, bad_pixel_array, correct_raw as correct_frames, read_bad_pixels,
+                                         vote_bad_pixels)
 
     count = len(job.labels)
     shape = tuple(job.mask(0).shape[-2:])
@@ -193,12 +194,12 @@ def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
         if isinstance(r.bad_pixels, (str, os.PathLike)) else bad_pixel_array(r.bad_pixels, shape, "bad_pixels")
 
     files = getattr(job.codeds, "files", None)  # (a folder of images: each capture its file)
+    levels = RawLevels(black_level=noise.black_level, bits=noise.bits, white_level=noise.white_level)
 
     def correct(coded, mask, i):  # (an error names the capture of a stack: one flash must not read as all)
         where = job.source if count == 1 else f"{job.source}, capture {i + 1} of {count}" + \
             (f" ({Path(files[i]).name})" if files is not None and i < len(files) else "")
-        return correct_frames(coded, mask, black_level=noise.black_level, bits=noise.bits,
-                              white_level=noise.white_level, bad_pixels=listed, trust_saturated=r.trust_saturated,
+        return correct_frames(coded, mask, levels=levels, bad_pixels=listed, trust_saturated=r.trust_saturated,
                               where=where)
 
     codeds, masks = job.codeds, job.masks  # as read (job's own accessors are replaced below)
@@ -283,14 +284,12 @@ class ReconstructionJob:
         if self.white is None and not (resolved.trust_saturated or self.raw):
             self.white = _clipped_at_type_maximum(captures, door)
         self.units = capture_units(
-            captures.codeds, captures.mask, dtype=captures.dtype, given=resolved.data_range, noise_sigma=noise.sigma,
-            white_level=self.white, where=captures.source,
-            levels={setting_name("noise_sigma", door): noise.sigma,
-                    setting_name("tol_rms", door): rc.tol_rms if rc.tol_rms != "auto" else None,
-                    setting_name("white_level", door): noise.white_level,
-                    setting_name("black_level", door): noise.black_level},
-            names={k: setting_name(k, door) for k in ("noise_sigma", "data_range", "white_level")},
-            black=f"{setting_name('black_level', door)} {noise.black_level:g}" if noise.black_level else "")
+            captures.codeds, captures.mask, dtype=captures.dtype, given=resolved.data_range, white_level=self.white,
+            where=captures.source,
+            levels=dict(noise_sigma=noise.sigma, tol_rms=rc.tol_rms if rc.tol_rms != "auto" else None,
+                        white_level=noise.white_level, black_level=noise.black_level),
+            names={k: setting_name(k, door) for k in ("noise_sigma", "data_range", "white_level", "tol_rms",
+                                                      "black_level")})
         # the read noise known in working units: heavy noise leaves out a preset's non-local passes
         # and a code that leaves its patches blind (long bumps): they are left out as well
         weight, blind = sparse_weight(np.asarray(captures.mask(0))) if resolved.settings.preset else (1.0, "")
@@ -337,10 +336,8 @@ class ReconstructionJob:
         r = self.r
         return CaptureSettings(r.method, data_range=self.units, settings=self.omp, dictionary=self.dictionary,
                                dictionary_key=self.dictionary_key, dictionary_name=self.dictionary_name,
-                               white_level=self.white, where=self.captures.source, tile=r.rc.tile, cache=cache,
-                               scheduler=r.rc.scheduler, workers=r.rc.workers, progress=r.progress, adapt=r.rc.adapt,
-                               adapt_rounds=r.rc.adapt_rounds, refine=r.rc.refine, noise_sigma=r.noise.sigma,
-                               cache_budget=r.rc.cache_budget,
+                               white_level=self.white, where=self.captures.source, config=r.rc, cache=cache,
+                               progress=r.progress, noise_sigma=r.noise.sigma,
                                trace=self._trace if self.captures.truths is not None and r.rc.refine else None)
 
     def _trace(self, i: int, iterations: int | str, volume: np.ndarray, seconds: float, rows: slice) -> None:

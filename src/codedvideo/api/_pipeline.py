@@ -15,6 +15,7 @@ from pathlib import Path
 
 from codedvideo.model import doors
 from codedvideo.api._job import Captures, ReconstructionJob
+from codedvideo.api._record import quantised, written_quality
 from codedvideo.api._settings import ReconstructSettings, resolve
 from codedvideo.model.doors import through
 from codedvideo.data.scenes import load_video
@@ -23,6 +24,7 @@ from codedvideo.engine.simulation import sensor_model, simulate_capture
 from codedvideo.engine.training import train_dictionary
 from codedvideo.formats import io as cio
 from codedvideo.formats.volumes import CAPTURE_FILES, metrics_path, write_capture, write_json, write_volume
+from codedvideo.model.codes import CodeSpec
 
 
 def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str | Path | None = None) -> dict:
@@ -52,8 +54,9 @@ def _run_pipeline(cfg: PipelineConfig, *, progress: bool, config_path: str | Pat
         # short or too small video, or a code file that does not fit, ends the run in a second, not after K-SVD
         t0 = time.perf_counter()
         video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
-        capture = simulate_capture(video, code=cfg.code.name, bump=cfg.code.bump, sigma=cfg.noise.sigma, seed=cfg.seed,
-                                   p=cfg.code.p, code_path=cfg.code.path, sensor=sensor_model(cfg.noise))
+        code = CodeSpec(cfg.code.name, cfg.code.bump, p=cfg.code.p, path=cfg.code.path)
+        capture = simulate_capture(video, code=code, sigma=cfg.noise.sigma, seed=cfg.seed,
+                                   sensor=sensor_model(cfg.noise))
         del video
         report["seconds"]["simulate"] = time.perf_counter() - t0
     if "train" in cfg.stages or "reconstruct" in cfg.stages:
@@ -173,3 +176,6 @@ def _reconstruct(cfg: PipelineConfig, capture: dict, dict_path, out: Path, repor
     if "quality" in entry:
         report["quality"], report["trivial"] = entry["quality"], entry["trivial"]
         report["seconds"]["evaluate"] = job.seconds_scored
+        if quantised(report["outputs"]["video"]):  # the video as written, decoded and scored (8-bit, lossy)
+            report["quality"]["output_file"] = written_quality(report["outputs"]["video"], job)
+            report["seconds"]["evaluate"] += report["quality"]["output_file"]["seconds"]

@@ -138,3 +138,35 @@ def _quality(job, output) -> tuple[dict, dict]:
         "GIF palette (3-3-2)" if suffix == ".gif" and len(job.shape) == 4 else None
     quality["measured_on"] = "volume before encoding" + (f"; the output is lossy ({lossy})" if lossy else "")
     return quality, trivial
+
+
+def quantised(output) -> bool:
+    """Whether an output holds the reconstruction less exactly than float32: a video (8-bit, H.264 or a GIF's
+    palette) or a folder of 16-bit frames."""
+    from codedvideo.formats.io import VIDEO_SUFFIXES
+
+    return Path(output).suffix.lower() in (*VIDEO_SUFFIXES, "", ".d")
+
+
+def written_quality(output, job) -> dict:
+    """PSNR/SSIM of the output file as written, decoded and read back in the run's units (a video's 8-bit frames
+    times the data range / 255), against the frames the truth of ``job`` covers."""
+    from codedvideo.formats.io import VIDEO_SUFFIXES
+    from codedvideo.formats.volumes import read_scored
+
+    t0 = time.perf_counter()
+    written = read_scored(str(output), "reconstruction")
+    truths = []
+    for i in range(job.count):
+        truth = job.captures.truth(i)
+        if truth is None:  # (a benchmark file's truth covers its first measurements only)
+            break
+        truths.append(np.asarray(truth, np.float32).reshape(-1, *job.shape[-2:]))
+    truth = np.concatenate(truths)
+    frames = np.asarray(written[: truth.shape[0]], np.float32)
+    if Path(output).suffix.lower() in VIDEO_SUFFIXES:
+        frames *= np.float32(job.units.value / 255.0)
+    scored = evaluate(frames, truth, data_range=job.units.value)
+    return dict(psnr=scored["psnr"], ssim=scored["ssim"], psnr_per_frame=scored["psnr_per_frame"],
+                ssim_per_frame=scored["ssim_per_frame"], measured_on=f"{output} as written, decoded",
+                seconds=time.perf_counter() - t0)

@@ -62,11 +62,14 @@ class SimulationPlan:
         return not (s.bayer or s.video.startswith(MADE_SOURCES))
 
     def options(self) -> dict:
+        """The keywords of :func:`codedvideo.engine.simulation.simulate_capture` but the number of captures (a
+        Bayer capture is one colour capture: a new code per capture does not reach it)."""
         from codedvideo.engine.simulation import sensor_model
+        from codedvideo.model.codes import CodeSpec
 
         s, c = self.settings, self.code
-        return dict(code=c.name, bump=c.bump, sigma=self.noise.sigma, seed=s.seed, p=c.p, code_path=c.path,
-                    sensor=sensor_model(self.noise))
+        code = CodeSpec(c.name, c.bump, p=c.p, path=c.path, new_code_per_capture=s.new_code_per_capture and not s.bayer)
+        return dict(code=code, sigma=self.noise.sigma, seed=s.seed, sensor=sensor_model(self.noise))
 
 
 def _code(s: SimulateSettings, door: str) -> CodeConfig:
@@ -182,7 +185,7 @@ def simulate_whole(plan: SimulationPlan, captures: int) -> dict:
 
     _check_in_memory(s.video, s.frames * captures, plan.size)
     video = load_video(s.video, frames=s.frames * captures, size=plan.size, seed=s.seed, start=s.start)
-    return simulate_capture(video, captures=captures, new_code_per_capture=s.new_code_per_capture, **plan.options())
+    return simulate_capture(video, captures=captures, **plan.options())
 
 
 def simulate_captures(plan: SimulationPlan, captures: int):
@@ -196,8 +199,7 @@ def simulate_captures(plan: SimulationPlan, captures: int):
     s = plan.settings
     clips = iter_clips(s.video, frames=s.frames, captures=captures, size=plan.size, start=s.start)
     first = next(clips)
-    return first, simulate_stream(itertools.chain([first], clips), captures=captures,
-                                  new_code_per_capture=s.new_code_per_capture, **plan.options())
+    return first, simulate_stream(itertools.chain([first], clips), captures=captures, **plan.options())
 
 
 def _check_in_memory(video: str, frames: int, size) -> None:

@@ -293,9 +293,8 @@ def _given(**options) -> dict:
 
 def _cmd_train(a) -> int:
     """Learn (or reuse) a dictionary with the API's training job and store it at ``--output``."""
-    cfg = api.plan_training(frames=a.frames, videos=list(a.videos), kind=a.kind, atoms=a.atoms,
-                            iterations=a.iterations, samples=a.samples, sparsity=a.sparsity, max_speed=a.max_speed,
-                            init=a.init, augment=a.augment, seed=a.seed, cache=a.cache, output=a.output, door="cli")
+    cfg = api.plan_training(frames=a.frames, dictionary={k: getattr(a, k) for k in api.TRAINING_KEYS}, seed=a.seed,
+                            cache=a.cache, output=a.output, door="cli")
     kind = "file" if Path(a.output).suffix.lower() == ".zip" else "folder"  # a zipped store is one file
     check_outputs([Output(Path(a.output), kind, "dictionary")],  # before training
                   dict(video=list(a.videos), cache=a.cache, init=a.init if a.init != "shipped" else None),
@@ -509,45 +508,13 @@ def _cmd_reconstruct(a) -> int:
     t_write += time.perf_counter() - t1
     mark_written(a.output)
     metrics = api.job_record(job, output=a.output, read=t_read, write=t_write, started=t_all)
-    if metrics.get("quality") and kind in ("single", "captures", "measurements") and _quantised(a.output):
-        metrics["quality"]["output_file"] = _written_quality(a.output, job)
+    if metrics.get("quality") and kind in ("single", "captures", "measurements") and api.quantised(a.output):
+        metrics["quality"]["output_file"] = api.written_quality(a.output, job)
     _warn_replaced_record(metrics_path(a.output), a.output)
     mpath = write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
     print(json.dumps(_summary(metrics, mpath, kind), allow_nan=False))  # strict JSON: an exact PSNR is null
     return 0
-
-
-def _quantised(output) -> bool:
-    """Whether an output holds the reconstruction less exactly than float32: a video (8-bit, H.264 or a GIF's
-    palette) or a folder of 16-bit frames."""
-    from codedvideo.formats.io import VIDEO_SUFFIXES
-
-    return Path(output).suffix.lower() in (*VIDEO_SUFFIXES, "", ".d")
-
-
-def _written_quality(output, job) -> dict:
-    """PSNR/SSIM of the output file as written, decoded and read back in the run's units (a video's 8-bit frames
-    times the data range / 255), against the frames the truth covers."""
-    from codedvideo.formats.io import VIDEO_SUFFIXES
-    from codedvideo.model.metrics import evaluate
-
-    t0 = time.perf_counter()
-    written = _scored_volume(str(output), "reconstruction")
-    truths = []
-    for i in range(job.count):
-        truth = job.captures.truth(i)
-        if truth is None:  # (a benchmark file's truth covers its first measurements only)
-            break
-        truths.append(np.asarray(truth, np.float32).reshape(-1, *job.shape[-2:]))
-    truth = np.concatenate(truths)
-    frames = np.asarray(written[: truth.shape[0]], np.float32)
-    if Path(output).suffix.lower() in VIDEO_SUFFIXES:
-        frames *= np.float32(job.units.value / 255.0)
-    scored = evaluate(frames, truth, data_range=job.units.value)
-    return dict(psnr=scored["psnr"], ssim=scored["ssim"], psnr_per_frame=scored["psnr_per_frame"],
-                ssim_per_frame=scored["ssim_per_frame"], measured_on=f"{output} as written, decoded",
-                seconds=time.perf_counter() - t0)
 
 
 def _summary(metrics: dict, mpath, kind: str) -> dict:
@@ -625,8 +592,8 @@ def _cmd_evaluate(a) -> int:
         check_outputs([Output(Path(a.output), "file")], dict(recon=a.recon, truth=a.truth), overwrite=a.overwrite)
         if Path(a.output).suffix.lower() != ".json":
             raise ConfigError(f"evaluate --output {a.output}: the scores are written as JSON; name it .json")
-    recon = _scored_volume(a.recon, "reconstruction")
-    truth = _scored_volume(a.truth, "truth")
+    recon = api.read_scored(a.recon, "reconstruction")
+    truth = api.read_scored(a.truth, "truth")
     recon, truth = api.as_scored(recon, truth, names=(str(a.recon), str(a.truth)))
     extra = {}
     if Path(a.truth).suffix.lower() == ".mat" and len(truth.shape) == len(recon.shape) == 3 \
@@ -650,22 +617,6 @@ def _cmd_evaluate(a) -> int:
     return 0
 
 
-def _scored_volume(path: str, what: str):
-    """A reconstruction or truth to score: a .npy, .zarr or .mat as stored (a long .npy read a block at a
-    time); any other file with its channels, (3, N, H, W) when it holds colour (it was read as luma, so
-    that a colour truth's score depended on its container), else (N, H, W)."""
-    from codedvideo.model.metrics import EVALUATE_BLOCK
-    from codedvideo.formats.volumes import read_truth_stack, read_volume
-
-    if Path(path).suffix.lower() in (".npy", ".zarr", ".mat"):
-        return read_truth_stack(path, EVALUATE_BLOCK, what=what)
-    channels = read_volume(path, color="channels")
-    if channels.ndim == 4 and (channels.shape[0] == 1 or ((channels[0] == channels[1]).all()
-                                                          and (channels[1] == channels[2]).all())):
-        return channels[0]  # grey (or grey stored as RGB)
-    return channels
-
-
 def _config(a, use: str = "run"):
     """The config file of ``run`` and ``report`` (``run`` without one: the built-in pipeline.yaml), ``--overwrite``
     as ``output.overwrite: true``."""
@@ -686,6 +637,9 @@ def _cmd_run(a) -> int:
     if "quality" in report:
         q, tr = report["quality"], report["trivial"]
         lines.append(f"PSNR {q['psnr']:.2f} dB, SSIM {q['ssim']:.4f} (trivial estimate: {tr['psnr']:.2f} dB, {tr['ssim']:.4f})")
+        if "output_file" in q:  # the video as written (8-bit, lossy), decoded
+            lines.append(f"PSNR of {report['outputs']['video']} as written: {q['output_file']['psnr']:.2f} dB, SSIM "
+                         f"{q['output_file']['ssim']:.4f}")
     secs = ", ".join(f"{k} {v:.1f} s" for k, v in report["seconds"].items())
     lines.append(f"time: {secs}")
     print("\n".join(lines))

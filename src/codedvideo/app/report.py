@@ -35,6 +35,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -64,6 +65,32 @@ FIG7_METHODS = (
     ("gaptv", "hitomi", None, "GAP-TV (hitomi)"),
     ("gaptv", "bernoulli", 1, "GAP-TV (bernoulli)"),
 )
+
+
+class Case(NamedTuple):
+    """One experiment's capture: a test scene, N, the shutter code, its bump length and the read noise (grey
+    levels)."""
+
+    scene: str
+    frames: int
+    code: str
+    bump: int
+    sigma: float
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """An experiment's settings beside its method: OMP's (None: the pipeline's ``reconstruct:`` values, the
+    tolerance ``max(sigma, 2)``), the dictionary's atoms (None: the report's size), the adaptation (``--adapt``,
+    both passes timed; ``--adapt-rounds``) and the refinement's iterations (``--refine``; 0: none)."""
+
+    max_atoms: int | None = None
+    tol_rms: float | None = None
+    atoms: int | None = None
+    stride: int | None = None
+    adapt: bool = False
+    adapt_rounds: int = 1
+    refine: int = 0
 
 
 @dataclass
@@ -129,10 +156,12 @@ class Runner:
         ``chosen`` (None: the pipeline's), in the report's 8-bit units."""
         r = self.cfg.reconstruct
         given = {k: v for k, v in chosen.items() if v is not None and v is not False}
-        settings = api.ReconstructSettings(
-            **dict(dict(max_atoms=r.max_atoms, stride=r.stride, tol_rms=None), **given), method=method,
-            dictionary=dictionary, noise_sigma=sigma, data_range=EIGHT_BIT, weighting=r.weighting,
-            static_atoms=r.static_atoms, batch=r.batch, tile=r.tile, workers=r.workers)
+        # pipeline.yaml's settings as a run takes them, less what an experiment sets itself: no preset, its own
+        # method and steps, the automatic tolerance, the noise-free simulated capture's 8-bit units, a fresh cache
+        settings = api.replaced(api.run_settings(self.cfg, dictionary, sigma, progress=False), **dict(dict(
+            preset=None, adapt=None, adapt_rounds=None, refine=None, max_atoms=r.max_atoms, stride=r.stride,
+            tol_rms=None, data_range=EIGHT_BIT, white_level=None, scheduler=None, cache_budget=None, cache=None),
+            **given), method=method)
         # a refined experiment is scored along its refinement (that scoring's time is left out of its own)
         captures = api.Captures(codeds=[cap["coded"]], masks=[cap["mask"]], source="report: simulated capture",
                                 truths=cap["truth"] if chosen.get("refine") else None)
@@ -141,31 +170,22 @@ class Runner:
     def main_atoms(self) -> int:
         return self.cfg.report.dictionary.atoms or self.cfg.dictionary.atoms
 
-    def run(self, *, scene: str, frames: int, code: str, bump: int, sigma: float, method: str,
-            max_atoms: int | None = None, tol_rms: float | None = None, atoms: int | None = None,
-            stride: int | None = None, keep: bool = False, timed: bool = False, adapt: bool = False,
-            adapt_rounds: int = 1, refine: int = 0) -> dict:
+    def run(self, case: Case, method: str, tuning: Tuning = Tuning(), *, keep: bool = False,
+            timed: bool = False) -> dict:
         """One experiment: capture, reconstruct, evaluate (or its cached record).
 
         Parameters
         ----------
-        scene, frames, code, bump, sigma
+        case : Case
             The capture (read noise only, seed of the pipeline).
         method : one of :data:`codedvideo.api.METHOD_NAMES`
-        max_atoms, tol_rms, atoms
-            OMP settings (None: the pipeline's ``reconstruct:`` values, the
-            tolerance ``max(sigma, 2)``, the report's dictionary size).
+        tuning : Tuning
+            The method's settings beside the pipeline's.
         keep : bool
             Also keep the reconstruction ``(N, H, W)`` as ``<key>.npy``.
         timed : bool
             The wall time is plotted: take the best of ``report.repeats`` runs
             (otherwise one run).
-        adapt : bool
-            A sparse method with its dictionary adapted to the capture (``--adapt``), both passes timed.
-        adapt_rounds : int
-            With ``adapt``: its rounds (``--adapt-rounds``).
-        refine : int
-            Iterations of the refinement after the result (``--refine``; 0: none).
 
         Returns
         -------
@@ -174,18 +194,20 @@ class Runner:
         """
         rc = self.cfg.report
         repeats = rc.repeats if timed else 1
+        scene, frames, code, bump, sigma = case
         cap = self.capture(scene, frames, code, bump, sigma)
         settings = dict(scene=scene, size=list(rc.size), frames=frames, code=code, bump=bump, sigma=float(sigma),
                         method=method, seed=self.cfg.seed, repeats=repeats)
         entry = api.METHODS[method]
-        if refine and not entry.sparse:
+        if tuning.refine and not entry.sparse:
             raise ValueError(f"report: refine is run after the sparse methods only, not {method}")
         D, dkey = None, ""
         if entry.dictionary:
-            D, meta = self.dictionary(frames, atoms)
+            D, meta = self.dictionary(frames, tuning.atoms)
             dkey = meta["sha256"]
-        job = self._job(cap, method, D, sigma, max_atoms=max_atoms, tol_rms=tol_rms, stride=stride, adapt=adapt,
-                        adapt_rounds=adapt_rounds, refine=refine)
+        job = self._job(cap, method, D, sigma, max_atoms=tuning.max_atoms, tol_rms=tuning.tol_rms,
+                        stride=tuning.stride, adapt=tuning.adapt, adapt_rounds=tuning.adapt_rounds,
+                        refine=tuning.refine)
         omp = job.omp if entry.sparse else None
         if entry.sparse:
             settings.update(omp.__dict__, tile=self.cfg.reconstruct.tile)
@@ -270,28 +292,24 @@ def run_experiments(runner: Runner) -> dict:
     for bump in rc.table_bumps:
         for sigma in rc.table_sigmas:
             for scene in rc.scenes:
-                out["table1"].append(runner.run(scene=scene, frames=n, code="hitomi", bump=bump, sigma=sigma,
-                                                method="omp"))
+                out["table1"].append(runner.run(Case(scene, n, "hitomi", bump, sigma), "omp"))
     for frames in rc.table_frames:  # Table 1 at other N, the simple answers beside the default
         for bump in table_bumps_at(rc.table_bumps, frames):
             for sigma in rc.table_sigmas:
                 for scene in rc.scenes:
                     for method in ("omp", "gaptv"):
-                        out["table1_frames"].append(runner.run(scene=scene, frames=frames, code="hitomi", bump=bump,
-                                                               sigma=sigma, method=method))
+                        out["table1_frames"].append(runner.run(Case(scene, frames, "hitomi", bump, sigma), method))
     for frames in rc.fig7_frames:
         for method, code, bump, label in FIG7_METHODS:
             for scene in rc.scenes + ([rc.video_scene] if rc.video_scene not in rc.scenes else []):
                 keep = frames == n and scene == rc.video_scene
                 if scene not in rc.scenes and not keep:
                     continue
-                rec = runner.run(scene=scene, frames=frames, code=code, bump=bump or L, sigma=0.0, method=method,
-                                 keep=keep, timed=True)
+                rec = runner.run(Case(scene, frames, code, bump or L, 0.0), method, keep=keep, timed=True)
                 out["fig7"].append(dict(rec, label=label, in_mean=scene in rc.scenes))
     for code in ("hitomi", "rowwise"):
         for scene in rc.scenes + ([rc.video_scene] if rc.video_scene not in rc.scenes else []):
-            rec = runner.run(scene=scene, frames=n, code=code, bump=L, sigma=0.0, method="omp",
-                             keep=scene == rc.video_scene)
+            rec = runner.run(Case(scene, n, code, L, 0.0), "omp", keep=scene == rc.video_scene)
             out["fig4"].append(dict(rec, label=f"{code} (L = {L})", in_mean=scene in rc.scenes))
     r = runner.cfg.reconstruct
     tol0, k0 = auto_tolerance(0.0), runner.main_atoms()
@@ -306,18 +324,17 @@ def run_experiments(runner: Runner) -> dict:
     variants += [dict(label="default settings, adapted (--adapt)", method=m, adapt=True) for m in rc.speed_adapt]
     for v in variants:
         for scene in rc.scenes:
-            rec = runner.run(scene=scene, frames=n, code=v.get("code", "hitomi"), bump=L, sigma=0.0,
-                             method=v["method"], max_atoms=v.get("max_atoms"), tol_rms=v.get("tol_rms"),
-                             atoms=v.get("atoms"), stride=v.get("stride"), timed=True, adapt=v.get("adapt", False))
+            tuning = Tuning(**{k: v[k] for k in ("max_atoms", "tol_rms", "atoms", "stride", "adapt") if k in v})
+            rec = runner.run(Case(scene, n, v.get("code", "hitomi"), L, 0.0), v["method"], tuning, timed=True)
             name = "OMP" if v["method"] == "omp" else "non-local OMP"
             out["speed"].append(dict(rec, label=f"{name} {v['label']}", in_mean=True))
     for name in PRESETS:  # each preset a point (the same experiment as a variant above is reused from the cache)
         o, _ = resolve_preset(name, {})
         for scene in rc.scenes + ([rc.video_scene] if name == "best" and rc.video_scene not in rc.scenes else []):
             keep = name == "best" and scene == rc.video_scene  # best's frames beside the baselines' (the strips)
-            rec = runner.run(scene=scene, frames=n, code="hitomi", bump=L, sigma=0.0, method=o["method"],
-                             max_atoms=o["max_atoms"], stride=o["stride"], adapt=o["adapt"],
-                             adapt_rounds=o["adapt_rounds"], refine=o["refine"], timed=True, keep=keep)
+            tuning = Tuning(max_atoms=o["max_atoms"], stride=o["stride"], adapt=o["adapt"],
+                            adapt_rounds=o["adapt_rounds"], refine=o["refine"])
+            rec = runner.run(Case(scene, n, "hitomi", L, 0.0), o["method"], tuning, timed=True, keep=keep)
             if scene in rc.scenes:
                 out["speed"].append(dict(rec, label=f"preset {name}", in_mean=True))
             if keep:

@@ -4,15 +4,16 @@ reconstruction, then the capture reconstructed again with the adapted dictionary
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from codedvideo.engine.cache import CacheBudget
+from codedvideo.engine.windows import sparse_volumes
 from codedvideo.model.errors import InputError
-from codedvideo.solvers.dictionaries import learn_dictionary
+from codedvideo.solvers.dictionaries import KsvdSettings, learn_dictionary
 
 #: Adapting the dictionary to a capture (``--adapt``): K-SVD started from the dictionary, its atoms kept,
 #: for this many iterations on this many 7x7xN patches of the capture's own first reconstruction, taken as
@@ -73,9 +74,9 @@ def adapt_dictionary(volume: np.ndarray, D: np.ndarray, *, seed: int = 0, keep_u
         # one BLAS thread: the same bits whatever the cores (products round otherwise with other thread counts);
         # the caller runs no graph meanwhile, whose own limit would change it midway (adapt_capture)
         with threadpool_limits(limits=1, user_api="blas"):
-            Da, meta = learn_dictionary([first], frames=first.shape[0], init=D, augment=False,
-                                        iterations=ADAPT_ITERATIONS, samples=ADAPT_SAMPLES, sparsity=ADAPT_SPARSITY,
-                                        tol_rms=0.0, seed=seed, replace_unused=not keep)
+            Da, meta = learn_dictionary([first], frames=first.shape[0], init=D, seed=seed, settings=KsvdSettings(
+                samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY, tol_rms=0.0,
+                augment=False, replace_unused=not keep))
     except InputError:  # every patch drawn is flat (a dark frame with a few bright pixels): nothing to learn
         return D, dict(adapted=False, reason="no patch drawn from the first reconstruction has texture",
                        seconds=time.perf_counter() - t0)
@@ -96,34 +97,39 @@ def is_basis(D: np.ndarray) -> bool:
     return bool(np.linalg.norm(D64.T @ (D64 @ v) - v) <= 1e-4 * np.linalg.norm(v))
 
 
-def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictionary_key: str, pass_settings, *,
-                   matched: bool, nonlocal_problem, budget: CacheBudget | None,
-                   run, stage=None) -> tuple[np.ndarray, str | None, dict | None]:
+def adapt_capture(job, i: int, stage=None) -> tuple[np.ndarray, str | None, dict | None]:
     """Capture ``i``'s passes before its last (``--adapt``), each a job of its own followed by an adaptation of
     the dictionary to its result (:func:`adapt_dictionary`), the next pass solved with that dictionary.
 
     One job at a time: no graph is in flight while K-SVD runs (a graph's thread limits BLAS threads, which changed
     an adaptation's bits when it ran beside one).  The passes' warnings (never-open pixels, dependent stops) are
-    swallowed: the last job, which gives the result, says them.  ``pass_settings``: one per pass before the last;
-    ``matched``: the non-local method's passes, each matched on and solved from the previous pass's working store
-    (where the code's groups can be solved: ``nonlocal_problem(mask)`` is None); ``run``:
-    :func:`codedvideo.engine.windows.sparse_volumes`
-    with the job's tiles, cache and scheduler.  Stops early where a result has nothing to learn from.
+    swallowed: the last job, which gives the result, says them.  ``job``: the prepared job of captures
+    (:func:`codedvideo.engine.captures.reconstruct_captures`), of which this reads ``options`` (the dictionary, its
+    key, :attr:`~codedvideo.engine.captures.CaptureSettings.execution` and ``config.adapt_rounds``),
+    ``pass_settings`` (one per pass; those before the last are run here), ``for_sparse(i)`` (the capture's inputs
+    to :func:`codedvideo.engine.windows.sparse_volumes`), ``inputs.count``, ``budget`` and ``survey``: the
+    non-local method's passes, each matched on and solved from the previous pass's working store (where the code's
+    groups can be solved: ``job.nonlocal_problem(mask)`` is None).  Stops early where a result has nothing to
+    learn from.
     ``stage(label, volume, seconds)``: each pass's result (working units) and the capture's seconds to it (its
     passes and adaptations so far), for its error against time.
 
     Returns the dictionary for the last pass (``dictionary`` itself if none was adapted), the working store the
     last pass is matched on (or None), and the record of the adaptations with the earlier jobs' seconds (or None).
     """
+    o, budget = job.options, job.budget
+    pass_settings = job.pass_settings[:o.config.adapt_rounds]
+    dictionary = o.dictionary
     D_i, store, done, spent = dictionary, None, [], 0.0
     keep = is_basis(dictionary)  # (decided on the dictionary the first round starts from, for every round)
     for k, settings in enumerate(pass_settings):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            pass_job = run(1, lambda _: for_sparse(i), dictionary if k == 0 else (lambda _, D=D_i: (D, "")),
-                           settings=settings, dictionary_key=dictionary_key,
-                           first_of=None if store is None else (lambda _, s=store: s),
-                           desc=f"pass {k + 1} of {i + 1}/{count}")
+            pass_job = sparse_volumes(1, lambda _: job.for_sparse(i),
+                                      dictionary if k == 0 else (lambda _, D=D_i: (D, "")), settings=settings,
+                                      run=dataclasses.replace(o.execution, desc=f"pass {k + 1} of {i + 1}/{job.inputs.count}"),
+                                      dictionary_key=o.dictionary_key,
+                                      first_of=None if store is None else (lambda _, s=store: s))
             with contextlib.closing(pass_job):  # closed here: the graph's thread has ended
                 _, first, info = next(pass_job)
         learnt = first is not None and info.get("method") != "static"  # (one pattern for all pixels: no tiles)
@@ -140,7 +146,7 @@ def adapt_capture(i: int, count: int, for_sparse, dictionary: np.ndarray, dictio
             D_i = Da
             # (a code the groups cannot solve: the survey is the default's result, and the later passes their
             # own per-patch OMP with the adapted dictionary, as with omp --adapt)
-            if matched and nonlocal_problem(for_sparse(i)[1]) is None:
+            if job.survey and job.nonlocal_problem(job.for_sparse(i)[1]) is None:
                 store = info["work_store"]
                 if budget is not None:  # the next job reads it: kept until the job ends
                     budget.keep.add(Path(store).absolute())

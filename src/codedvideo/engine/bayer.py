@@ -236,7 +236,7 @@ def simulate_bayer(video: np.ndarray, pattern: str, *, where: str = "video", **c
     ``video`` (3, N, H, W) is filtered (:func:`mosaic`: one channel per
     pixel), then coded and measured exactly as a grey video
     (:func:`codedvideo.engine.simulation.simulate_capture` with ``capture``'s keywords:
-    code, bump, sigma, seed, sensor, ...).  Returns ``coded`` (H, W) mosaic,
+    code, sigma, seed, sensor, ...).  Returns ``coded`` (H, W) mosaic,
     ``mask`` (N, H, W) and ``truth`` (3, N, H, W), the colour video.
     """
     from codedvideo.engine.simulation import simulate_capture
@@ -358,7 +358,7 @@ def reconstruct_bayer(options: CaptureSettings, coded: np.ndarray, mask: np.ndar
     demosaicked 16.60 dB; demosaicked static estimate 23.79 dB.
 
     ``options``: the method and its options (:class:`~codedvideo.engine.captures.CaptureSettings`: ``method``,
-    ``dictionary`` (the grey one), ``white_level``, ``data_range``, ``settings``, ``tile``, ``cache``, ...).
+    ``dictionary`` (the grey one), ``white_level``, ``data_range``, ``settings``, ``config``, ``cache``, ...).
     """
     import dataclasses
     import warnings

@@ -23,9 +23,9 @@ from codedvideo.model import doors
 from codedvideo.engine import methods
 from codedvideo.engine.adaptation import ADAPT_LAST_STEP, ADAPT_REFINE_STEP, ADAPT_SURVEY_STEP, adapt_capture
 from codedvideo.engine.cache import CacheBudget, content_key
-from codedvideo.engine.config import DEFAULT_CACHE, DEFAULT_TILE
+from codedvideo.engine.config import DEFAULT_CACHE, ReconstructConfig
 from codedvideo.engine.parallel import progress_bar
-from codedvideo.engine.windows import reconstruct_volume, sparse_volumes, static_volume
+from codedvideo.engine.windows import Execution, reconstruct_volume, sparse_volumes, static_volume
 from codedvideo.model import physics
 from codedvideo.model.errors import ConfigError, InputError, OutputError
 from codedvideo.model.patches import PATCH
@@ -58,21 +58,19 @@ class CaptureSettings:
         and each result's frame sums there raised to it.
     where : str
         Names the captures in messages.
-    tile, cache, scheduler, workers, progress
-        The sparse methods' tiles, cache folder and scheduler (:func:`codedvideo.engine.windows.sparse_volumes`).
-    adapt : bool
-        Sparse methods: reconstruct each capture (a job each), adapt the
-        dictionary to its result (:func:`codedvideo.engine.adaptation.adapt_dictionary`), then reconstruct
-        every capture again with its own (one job).  ``omp``: about twice the
-        time; ``nonlocal``: a survey first (:data:`~codedvideo.engine.adaptation.ADAPT_SURVEY_STEP`), about
-        1.2x its time, +0.6 dB on held-out real footage (README).
-    adapt_rounds : int
-        With ``adapt``: 2 adapts the dictionary again to the second pass's result and reconstructs a
-        third time with it (:data:`~codedvideo.engine.adaptation.ADAPT_LAST_STEP`; ``--preset best``).
-    refine : int
-        Iterations of GAP with a low-rank prior on groups after each capture's result (0: none;
-        :func:`codedvideo.solvers.refine.refine`, ``--preset best``), in the process, not cached; pixels that
-        only still patches cover keep their still answer.
+    config : :class:`codedvideo.engine.config.ReconstructConfig`
+        The validated ``reconstruct:`` settings the job reads as they are: its tiles, scheduler and workers
+        (:func:`codedvideo.engine.windows.sparse_volumes`), its cache budget, and its steps beyond the method:
+        ``adapt`` (reconstruct each capture, adapt the dictionary to its result,
+        :func:`codedvideo.engine.adaptation.adapt_dictionary`, reconstruct every capture again with its own;
+        ``nonlocal``: a survey first, :data:`~codedvideo.engine.adaptation.ADAPT_SURVEY_STEP`), ``adapt_rounds``
+        (2: adapt again to the second pass's result and reconstruct a third time,
+        :data:`~codedvideo.engine.adaptation.ADAPT_LAST_STEP`) and ``refine`` (iterations of GAP with a low-rank
+        prior on groups after each capture's result, :func:`codedvideo.solvers.refine.refine`, in the process,
+        not cached; pixels that only still patches cover keep their still answer).  Its OMP fields are read
+        through ``settings``, in working units.
+    cache, progress
+        The sparse methods' cache folder and progress bars (:attr:`execution`).
     blocks : int
         With ``refine``: the frames of a capture are that many videos stacked, each of its own sub-frames (a
         Bayer capture's colour channels, :func:`codedvideo.engine.bayer.reconstruct_bayer`); the refinement's
@@ -81,10 +79,6 @@ class CaptureSettings:
         The captures' read noise (capture units, ``--noise-sigma``): with ``refine``, a noisy capture's steps to
         its measurements are relaxed by it (:func:`codedvideo.solvers.refine.refine`); a stream's still
         answers follow it (:func:`reconstruct_stream`).
-    cache_budget : int, optional
-        Bytes the cache's working stores may take (:class:`codedvideo.engine.cache.CacheBudget`): the least recently
-        used are removed as the job's windows finish (with ``adapt``, the first passes' stores only after the
-        job).  None: no limit.
     trace : callable, optional
         With ``refine``: ``trace(i, iterations, volume, seconds, rows)`` with the rows ``rows`` of capture ``i``'s
         estimate (working units) before the refinement (``iterations`` 0) and every few of its iterations
@@ -100,18 +94,19 @@ class CaptureSettings:
     dictionary_name: str = ""
     white_level: float | None = None
     where: str = "coded image"
-    tile: int = DEFAULT_TILE
+    config: ReconstructConfig = dataclasses.field(default_factory=ReconstructConfig)
     cache: str | Path = DEFAULT_CACHE
-    scheduler: str | None = None
-    workers: int | None = None
     progress: bool = True
-    adapt: bool = False
-    adapt_rounds: int = 1
-    refine: int = 0
     blocks: int = 1
     noise_sigma: float = 0.0
-    cache_budget: int | None = None
     trace: object = None
+
+    @property
+    def execution(self) -> Execution:
+        """Where the sparse methods' tiles run (a view of ``config``, ``cache`` and ``progress``)."""
+        c = self.config
+        return Execution(tile=c.tile, cache=self.cache, scheduler=c.scheduler, workers=c.workers,
+                         progress=self.progress)
 
 
 class _Inputs:
@@ -224,19 +219,19 @@ def _prepare(options: CaptureSettings, codeds, mask_of, still_of) -> _Job:
                                                   options.dictionary_key, options.dictionary_name,
                                                   frames=mask_of(0).shape[0])
         resolved = dataclasses.replace(options, settings=settings, dictionary=dictionary, dictionary_key=key)
-    if options.adapt and not entry.adapts:
+    if options.config.adapt and not entry.adapts:
         raise ConfigError(f"{doors.name('adapt')}: method {options.method} has no dictionary to adapt "
                           f"({', '.join(methods.ADAPTIVE[:-1])} and {methods.ADAPTIVE[-1]} have)")
     # --adapt with the non-local method: a first pass on a sparser grid of groups (a survey: what K-SVD learns
     # from and the groups of the second pass are matched on), then the groups solved from it (no default tiles);
     # with adapt_rounds 2 the second pass is learnt from and matched on in turn, and a third pass gives the result
-    rounds = options.adapt_rounds
-    survey = resolved.settings.method == "nonlocal" and options.adapt
+    rounds = options.config.adapt_rounds
+    survey = resolved.settings.method == "nonlocal" and options.config.adapt
     steps = (ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP, ADAPT_LAST_STEP)[:rounds + 1] if survey else ()
     pass_settings = [dataclasses.replace(resolved.settings, group_step=step) for step in steps] if survey \
         else [resolved.settings] * (rounds + 1)
-    budget = None if options.cache_budget is None or not entry.sparse else CacheBudget(options.cache,
-                                                                                       options.cache_budget)
+    limit = options.config.cache_budget
+    budget = None if limit is None or not entry.sparse else CacheBudget(options.cache, limit)
     return _Job(dataclasses.replace(resolved, settings=pass_settings[-1]), inputs, entry.sparse, survey,
                 pass_settings, budget)
 
@@ -245,13 +240,8 @@ def _adapt(job: _Job) -> None:
     """``--adapt``: each capture's passes before the last, and its dictionary adapted to them
     (:func:`codedvideo.engine.adaptation.adapt_capture`), into ``job``."""
     o = job.options
-    run = functools.partial(sparse_volumes, tile=o.tile, cache=o.cache, scheduler=o.scheduler, workers=o.workers,
-                            progress=o.progress)
     for i in range(job.inputs.count):
-        D_i, store, record = adapt_capture(
-            i, job.inputs.count, job.for_sparse, o.dictionary, o.dictionary_key, job.pass_settings[:o.adapt_rounds],
-            matched=job.survey, nonlocal_problem=job.nonlocal_problem, budget=job.budget, run=run,
-            stage=None if o.trace is None else functools.partial(_stage, o.trace, i))
+        D_i, store, record = adapt_capture(job, i, stage=None if o.trace is None else functools.partial(_stage, o.trace, i))
         if D_i is not o.dictionary:
             job.adapted[i] = D_i
         if store is not None:
@@ -271,15 +261,15 @@ def _solved(job: _Job):
     o, count = job.options, job.inputs.count
     if not job.sparse:
         return ((i, None, None) for i in range(count))
-    run = functools.partial(sparse_volumes, count, job.for_sparse, settings=o.settings, tile=o.tile, cache=o.cache,
-                            scheduler=o.scheduler, workers=o.workers, progress=o.progress, budget=job.budget)
+    run = functools.partial(sparse_volumes, count, job.for_sparse, settings=o.settings, budget=job.budget)
     if not job.adapted:
-        return run(o.dictionary, dictionary_key=o.dictionary_key)
+        return run(o.dictionary, run=o.execution, dictionary_key=o.dictionary_key)
     # a capture not adapted (flat) keeps the dictionary and its key: its second job is the first's, from the cache
     # (with the survey, the method's own job at the second pass's stride)
     adapted = job.adapted
     return run(lambda i: (adapted.pop(i), "") if i in adapted else (o.dictionary, o.dictionary_key),
-               desc="adapted", first_of=job.first_stores.get if job.survey else None)
+               run=dataclasses.replace(o.execution, desc="adapted"),
+               first_of=job.first_stores.get if job.survey else None)
 
 
 def reconstruct_captures(options: CaptureSettings, codeds, mask_of, *,
@@ -307,7 +297,7 @@ def reconstruct_captures(options: CaptureSettings, codeds, mask_of, *,
     it is done; the sparse methods run every capture's tiles in one graph.
     """
     job = _prepare(options, codeds, mask_of, still_of)
-    if job.sparse and options.adapt:
+    if job.sparse and options.config.adapt:
         _adapt(job)
     results = _solved(job)
     with contextlib.closing(results) if job.sparse else contextlib.nullcontext():
@@ -334,12 +324,8 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
         volume, info = reconstruct_method(o.method, coded_used, mask_used)
     else:
         volume, info = _guarded(solved, solved_info, coded_used, mask_used, still)
-    if o.refine and moving and info.get("method") != "static":
-        volume, info = _refined(coded_used, mask_used, volume, info, o.refine, still=still, where=o.where,
-                                noise_sigma=float(o.noise_sigma) * float(inputs.scale), blocks=o.blocks,
-                                progress=o.progress, label=f"{i + 1}/{inputs.count}",
-                                trace=None if o.trace is None else functools.partial(o.trace, i),
-                                spent=_seconds_so_far(job, i, info))
+    if o.config.refine and moving and info.get("method") != "static":
+        volume, info = _refined(job, i, (coded_used, mask_used, still), volume, info)
     if measured is not None:  # still answers averaged over captures: the residual of this capture's own
         residual = physics.forward(volume, mask_used) - measured
         info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
@@ -408,28 +394,32 @@ def _sparse_info(job: _Job, i: int, solved_info: dict, mask_used) -> dict:
     return info
 
 
-def _refined(coded: np.ndarray, mask: np.ndarray, volume: np.ndarray, info: dict, iterations: int, *,
-             still: np.ndarray | None, where: str, noise_sigma: float, progress: bool, label: str,
-             blocks: int = 1, trace=None, spent: float = 0.0) -> tuple[np.ndarray, dict]:
-    """A capture's result after ``iterations`` of :func:`codedvideo.solvers.refine.refine` (working units, the
-    read noise ``noise_sigma`` too; ``blocks``, the videos stacked in its frames), its info with what the
-    refinement did; the pixels that only still patches cover keep their values.  ``trace(iterations, estimate,
-    seconds, rows)``: the estimates along the way, a band of rows at a time where the refinement goes in bands
-    (:class:`CaptureSettings`), ``spent`` the capture's seconds before the refinement.  ``volume`` may be
+def _refined(job: _Job, i: int, used: tuple, volume: np.ndarray, info: dict) -> tuple[np.ndarray, dict]:
+    """Capture ``i``'s result after the job's ``config.refine`` iterations of :func:`codedvideo.solvers.refine.refine`
+    (working units, the read noise too; ``blocks``, the videos stacked in its frames), its info with what the
+    refinement did; ``used``: its coded image, mask and still pixels as reconstructed (:meth:`_Inputs.used`), the
+    pixels that only still patches cover keeping their values.  The job's ``trace(i, iterations, estimate,
+    seconds, rows)`` is shown the estimates along the way, a band of rows at a time where the refinement goes in
+    bands (:class:`CaptureSettings`), from the capture's seconds before the refinement.  ``volume`` may be
     overwritten by the result (a refinement in bands writes into it)."""
+    o, inputs = job.options, job.inputs
+    coded, mask, still = used
+    iterations, trace = o.config.refine, None if o.trace is None else functools.partial(o.trace, i)
+    noise_sigma, blocks, where = float(o.noise_sigma) * float(inputs.scale), o.blocks, o.where
     inner = None if still is None else erode_to_patches(still, PATCH)  # (the refinement keeps their values)
-    watch = None
+    watch, spent = None, _seconds_so_far(job, i, info)
     if trace is not None:
         trace(0, volume, spent, slice(0, volume.shape[1]))
         share = lambda rows: (rows.stop - rows.start) / volume.shape[1]  # noqa: E731  (a band's part of `spent`)
         watch = lambda done, estimate, seconds, rows: trace(  # noqa: E731
             done, estimate, spent * share(rows) + seconds, rows)
     steps = iterations * len(refinement.bands(volume.shape))
-    with progress_bar(steps, f"refine {label}") if progress else contextlib.nullcontext() as bar:
+    with progress_bar(steps, f"refine {i + 1}/{inputs.count}") if o.progress else contextlib.nullcontext() as bar:
         refined, record = refinement.refine(coded, mask, volume, iterations=iterations, noise_sigma=noise_sigma,
                                             known=inner, blocks=blocks,
-                                            tick=None if bar is None else (lambda: bar.update(1)),
-                                            watch=watch, overwrite=True)
+                                            run=refinement.RefineRun(
+                                                tick=None if bar is None else (lambda: bar.update(1)),
+                                                watch=watch, overwrite=True))
     if not np.isfinite(refined).all():  # (never seen: the start and the measurements are finite)
         raise OutputError(f"{where}: the refinement gave non-finite values; run without {doors.name('refine')}")
     seconds = dict(info.get("seconds", {}), refine=record["seconds"])
@@ -536,11 +526,7 @@ def reconstruct_method(
     dictionary_key: str = "",
     dictionary_name: str = "",
     settings=None,
-    tile: int = DEFAULT_TILE,
-    cache: str = DEFAULT_CACHE,
-    scheduler: str | None = None,
-    workers: int | None = None,
-    progress: bool = False,
+    run: Execution = Execution(progress=False),
 ) -> tuple[np.ndarray, dict]:
     """Reconstruct with any method of :data:`codedvideo.engine.methods.METHOD_NAMES` on the same forward model.
 
@@ -563,9 +549,10 @@ def reconstruct_method(
         atoms dropped with a warning, all-zero refused).
     dictionary_name : str
         Names the dictionary in those messages (e.g. its path).
-    dictionary_key, settings, tile, cache, scheduler, workers, progress
+    dictionary_key, settings, run
         Passed to :func:`~codedvideo.engine.windows.reconstruct_volume` (``settings``
-        an :class:`~codedvideo.solvers.region.OmpSettings`; default settings when None).
+        an :class:`~codedvideo.solvers.region.OmpSettings`, default settings when None; ``run`` an
+        :class:`~codedvideo.engine.windows.Execution`, without a progress bar unless it says so).
 
     Returns
     -------
@@ -579,9 +566,7 @@ def reconstruct_method(
     if methods.method(method).sparse:
         used, atoms, key = sparse_method(method, settings or OmpSettings(), dictionary, dictionary_key,
                                          dictionary_name, frames=mask.shape[0])
-        volume, info = reconstruct_volume(coded, mask, atoms, settings=used, tile=tile, cache=cache,
-                                          scheduler=scheduler, workers=workers, progress=progress,
-                                          dictionary_key=key)
+        volume, info = reconstruct_volume(coded, mask, atoms, settings=used, run=run, dictionary_key=key)
         return volume, dict(info, method=method, dictionary_atoms=int(atoms.shape[1]))
     solve = methods.solver(method)
     t0 = time.perf_counter()

@@ -41,7 +41,7 @@ import numpy as np
 from dask.highlevelgraph import HighLevelGraph
 
 from codedvideo.model.errors import CodedVideoError, SchedulerError
-from codedvideo.solvers.region import STAT_NAMES, OmpSettings, reconstruct_region, tile_halo
+from codedvideo.solvers.region import STAT_NAMES, OmpSettings, Placement, reconstruct_region, tile_halo
 from codedvideo.formats.store import WorkStore, write_tiles
 from codedvideo.model.patches import PATCH
 
@@ -121,8 +121,9 @@ def _estimate(store_path: str, tile: Tile, D: np.ndarray, settings: OmpSettings,
     coded, mask, still = store.read_inputs(hy0, hy1, hx0, hx1)
     _one_blas_thread_in_worker()
     try:
-        volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch, origin=(hy0, hx0),
-                                           image_shape=store.array("coded").shape, still=still.astype(bool))
+        volume, stats = reconstruct_region(coded, mask, D, settings, patch=patch,
+                                           place=Placement((hy0, hx0), store.array("coded").shape),
+                                           still=still.astype(bool))
     except Exception as exc:  # name the tile, keep the cause
         raise RuntimeError(f"tile {tile.index} (rows {y0}:{y1}, cols {x0}:{x1}) of {store_path}: {exc}") from exc
     return volume[:, y0 - hy0 : y1 - hy0, x0 - hx0 : x1 - hx0], stats

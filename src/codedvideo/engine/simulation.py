@@ -4,29 +4,24 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 
 from codedvideo.model import doors
 from codedvideo.formats.volumes import load_code_file
 from codedvideo.model import physics
-from codedvideo.model.codes import make_code
+from codedvideo.model.codes import CodeSpec, make_code
 from codedvideo.model.errors import InputError
 
 
 def simulate_capture(
     video: np.ndarray,
     *,
-    code: str,
-    bump: int,
+    code: CodeSpec,
     sigma: float,
     seed: int,
-    p: float = 0.5,
-    code_path: str | Path | None = None,
     sensor: physics.SensorModel | None = None,
     captures: int = 1,
-    new_code_per_capture: bool = False,
 ) -> dict[str, np.ndarray]:
     """Coded capture(s) of a video: mask, coded image(s) (noisy) and the truth.
 
@@ -34,8 +29,10 @@ def simulate_capture(
     ----------
     video : ndarray of shape (T * N, H, W)
         ``captures`` consecutive captures of N sub-frames each.
-    code, bump, p, code_path
-        The code (:func:`codedvideo.model.codes.make_code`; ``code_path`` for ``file``).
+    code : CodeSpec
+        The code (:func:`codedvideo.model.codes.make_code`; its ``path`` for ``file``), and whether each
+        capture has a new one (``new_code_per_capture``: instead of the same code repeated, as a real
+        sensor repeats its code).
     sigma : float
         Gaussian read noise, grey levels.
     seed : int
@@ -45,9 +42,6 @@ def simulate_capture(
         by ``sigma``.  None: read noise only.
     captures : int
         T, the number of coded images (a coded camera's stream).
-    new_code_per_capture : bool
-        A new code for every capture instead of the same code repeated (as a
-        real sensor repeats its code).
 
     Returns
     -------
@@ -58,9 +52,8 @@ def simulate_capture(
     if captures < 1 or video.shape[0] % captures:
         raise InputError(f"video of {video.shape[0]} frames: not {captures} captures of equal length")
     n = video.shape[0] // captures
-    stream = simulate_stream((video[t * n : (t + 1) * n] for t in range(captures)), code=code, bump=bump,
-                             sigma=sigma, seed=seed, p=p, code_path=code_path, sensor=sensor, captures=captures,
-                             new_code_per_capture=new_code_per_capture)
+    stream = simulate_stream((video[t * n : (t + 1) * n] for t in range(captures)), code=code, sigma=sigma,
+                             seed=seed, sensor=sensor, captures=captures)
     coded, masks = [], []
     for one, mask, _ in stream:
         coded.append(one)
@@ -70,14 +63,14 @@ def simulate_capture(
                 mask=masks[0] if repeating else np.stack(masks), truth=np.asarray(video, np.float32))
 
 
-def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: float = 0.5,
-                    code_path: str | Path | None = None, sensor: physics.SensorModel | None = None, captures: int = 1,
-                    new_code_per_capture: bool = False,
+def simulate_stream(clips, *, code: CodeSpec, sigma: float, seed: int, sensor: physics.SensorModel | None = None,
+                    captures: int = 1,
                     codes: list | None = None) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """:func:`simulate_capture` one capture at a time: ``clips`` yields the T clips (N, H, W) in order; yields
     ``(coded (H, W), mask (N, H, W), clip)`` for each, from the same seeded streams (the same captures bit for
     bit).  A repeating code is the same array every capture; a code file of K codes gives capture ``t`` its
-    code ``t mod K``.  ``codes``: the masks themselves (the API's arrays), taken in turn as a code file's."""
+    code ``t mod K``.  ``codes``: the masks themselves (the API's arrays), taken in turn as a code file's (then
+    ``code`` only names them in messages)."""
     ss = np.random.SeedSequence(seed)
     code_rng, noise_rng = (np.random.default_rng(s) for s in ss.spawn(2))
     sensed = None if sensor is None else dataclasses.replace(sensor, read_sigma=sigma)
@@ -85,17 +78,18 @@ def simulate_stream(clips, *, code: str, bump: int, sigma: float, seed: int, p: 
     warned = False
     for t, clip in enumerate(clips):
         if masks is None:  # every code is drawn first, from its own stream
-            masks = [load_code_file(code_path, frames=clip.shape[0], shape=clip.shape[1:]) if code == "file" else
-                     make_code(code, clip.shape[1:], frames=clip.shape[0], bump=bump, p=p, rng=code_rng)
-                     for _ in range(captures if new_code_per_capture else 1)]
+            masks = [load_code_file(code.path, frames=clip.shape[0], shape=clip.shape[1:]) if code.name == "file"
+                     else make_code(code.name, clip.shape[1:], frames=clip.shape[0], bump=code.bump, p=code.p,
+                                    rng=code_rng)
+                     for _ in range(captures if code.new_code_per_capture else 1)]
             if masks[0].ndim == 4:  # a code file of one code per capture, in turn
-                if new_code_per_capture:
-                    raise InputError(f"code file {code_path}: holds {masks[0].shape[0]} codes, one per capture; "
+                if code.new_code_per_capture:
+                    raise InputError(f"code file {code.path}: holds {masks[0].shape[0]} codes, one per capture; "
                                      "a new code per capture does not apply")
                 masks = list(masks[0])
             if not all(np.any(m) for m in masks):  # (a Bernoulli p of 1e-9, say): nothing would be measured
-                raise InputError(f"code {code}{f' (p = {p:g})' if code == 'bernoulli' else ''}: opens no pixel in any "
-                                 "sub-frame; nothing would be measured")
+                p = f" (p = {code.p:g})" if code.name == "bernoulli" else ""
+                raise InputError(f"code {code.name}{p}: opens no pixel in any sub-frame; nothing would be measured")
         mask = masks[t % len(masks)]
         # one noise stream, drawn capture after capture
         coded = (physics.simulate(clip, mask, sigma=sigma, rng=noise_rng) if sensed is None

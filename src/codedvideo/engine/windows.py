@@ -36,6 +36,34 @@ from codedvideo.solvers.region import STAT_NAMES, OmpSettings
 WINDOW_TILES = 64
 
 
+@dataclasses.dataclass(frozen=True)
+class Execution:
+    """Where and how a job's sparse coding runs: its tiles, its cache folder, its dask scheduler and its progress.
+
+    Attributes
+    ----------
+    tile : int
+        Tile side in pixels (the unit of the graph and of the working store).
+    cache : str or Path
+        The cache folder holding the working stores (``recon-KEY.zarr``).
+    scheduler : str, optional
+        A dask.distributed address, or ``"threads"`` / ``"sync"`` (None: the local threads).
+    workers : int, optional
+        Local worker threads (None: every core).
+    progress : bool
+        Show a progress bar.
+    desc : str
+        The progress bar's label.
+    """
+
+    tile: int = DEFAULT_TILE
+    cache: str | Path = DEFAULT_CACHE
+    scheduler: str | None = None
+    workers: int | None = None
+    progress: bool = True
+    desc: str = "reconstruct"
+
+
 @dataclasses.dataclass
 class _Window:
     """Captures ``start ..`` of a job, planned: per capture how it is done (None: the caller's, "static", or the
@@ -213,13 +241,8 @@ def sparse_volumes(
     D: np.ndarray,
     *,
     settings: OmpSettings,
-    tile: int = DEFAULT_TILE,
-    cache: str | Path = DEFAULT_CACHE,
-    scheduler: str | None = None,
-    workers: int | None = None,
-    progress: bool = True,
+    run: Execution = Execution(),
     dictionary_key: str = "",
-    desc: str = "reconstruct",
     first_of=None,
     budget: CacheBudget | None = None,
 ) -> Iterator[tuple[int, np.ndarray | None, dict | None]]:
@@ -247,6 +270,12 @@ def sparse_volumes(
     D : ndarray of shape (N * 49, K), or a callable ``D(i)`` giving capture ``i``'s own
         dictionary and its cache key (a dictionary adapted to each capture,
         :func:`codedvideo.engine.adaptation.adapt_dictionary`; an empty key: keyed by its contents)
+    settings : OmpSettings
+        The sparse code's settings, in working units.
+    run : Execution
+        The tiles, cache folder, scheduler and progress bar of the job.
+    dictionary_key : str
+        ``D``'s cache key (empty: keyed by its contents).
     first_of : callable, optional
         The non-local method: ``first_of(i)`` -> the working store of an earlier
         job on capture ``i`` (same tiles) whose result is the first estimate its
@@ -276,9 +305,10 @@ def sparse_volumes(
     estimate): that capture's result is the static estimate ``coded / open
     count`` itself (``method: "static"``), computed without tiles.
     """
-    planner = _Planner(count, capture, D, dictionary_key, settings=settings, tile=tile, cache=cache, first_of=first_of)
-    with contextlib.closing(planner.locks), GraphRunner(scheduler=scheduler, workers=workers, progress=progress,
-                                                        desc=desc) as runner:
+    planner = _Planner(count, capture, D, dictionary_key, settings=settings, tile=run.tile, cache=run.cache,
+                       first_of=first_of)
+    with contextlib.closing(planner.locks), GraphRunner(scheduler=run.scheduler, workers=run.workers,
+                                                        progress=run.progress, desc=run.desc) as runner:
         # (holding nothing: it waits for a busy entry)
         windows = [w for w in (planner.next_window(runner),) if w is not None]
         while windows:
@@ -287,7 +317,8 @@ def sparse_volumes(
                 following = planner.next_window(runner)
                 if following is not None:
                     windows.append(following)
-            yield from _window_volumes(window, capture, runner, settings, scheduler=scheduler, workers=workers)
+            yield from _window_volumes(window, capture, runner, settings, scheduler=run.scheduler,
+                                       workers=run.workers)
             windows.pop(0)
             planner.done(window, runner, budget)
             if not windows and planner.position < count:  # the next window put off (an entry busy): nothing is held now
@@ -301,11 +332,7 @@ def reconstruct_volume(
     D: np.ndarray,
     *,
     settings: OmpSettings,
-    tile: int = DEFAULT_TILE,
-    cache: str | Path = DEFAULT_CACHE,
-    scheduler: str | None = None,
-    workers: int | None = None,
-    progress: bool = True,
+    run: Execution = Execution(),
     dictionary_key: str = "",
 ) -> tuple[np.ndarray, dict]:
     """Reconstruct one coded image (working units) through the Zarr working store and the dask graph.
@@ -316,8 +343,8 @@ def reconstruct_volume(
     chosen ones are counted (``dependent_stops``) and reported by a warning.
     """
     coded32 = np.asarray(coded, np.float32)
-    results = sparse_volumes(1, lambda i: (coded32, mask, None), D, settings=settings, tile=tile, cache=cache,
-                             scheduler=scheduler, workers=workers, progress=progress, dictionary_key=dictionary_key)
+    results = sparse_volumes(1, lambda i: (coded32, mask, None), D, settings=settings, run=run,
+                             dictionary_key=dictionary_key)
     with contextlib.closing(results):
         _, volume, info = next(results)
     return volume, info

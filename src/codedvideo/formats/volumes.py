@@ -498,6 +498,21 @@ def metrics_path(output: str | Path) -> Path:
     return target.with_name((target.stem if target.suffix else target.name) + ".metrics.json")
 
 
+def read_scored(path: str | Path, what: str):
+    """A reconstruction or truth to score: a .npy, .zarr or .mat as stored (a long .npy read a block at a
+    time); any other file with its channels, (3, N, H, W) when it holds colour (it was read as luma, so
+    that a colour truth's score depended on its container), else (N, H, W)."""
+    from codedvideo.model.metrics import EVALUATE_BLOCK
+
+    if Path(path).suffix.lower() in (".npy", ".zarr", ".mat"):
+        return read_truth_stack(path, EVALUATE_BLOCK, what=what)
+    channels = read_volume(path, color="channels")
+    if channels.ndim == 4 and (channels.shape[0] == 1 or ((channels[0] == channels[1]).all()
+                                                          and (channels[1] == channels[2]).all())):
+        return channels[0]  # grey (or grey stored as RGB)
+    return channels
+
+
 def read_volume(path: str | Path, *, color: str = "luma") -> np.ndarray:
     """Read a volume written by :func:`write_volume` (or any stack :func:`codedvideo.formats.io.read_stack` reads).
 

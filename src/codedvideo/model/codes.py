@@ -66,6 +66,7 @@ the same idea to rows: roles are ``y mod M``.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,6 +79,34 @@ from codedvideo.model.patches import PATCH
 CODE_NAMES = (
     "hitomi", "hitomi-tiled", "rowwise", "thinout", "grid", "flutter", "bernoulli", "shifting", "global", "file",
 )
+
+#: The open probability of ``bernoulli`` and ``shifting`` when none is given.
+OPEN_PROBABILITY = 0.5
+
+
+@dataclass(frozen=True)
+class CodeSpec:
+    """The shutter code of a simulated capture (:func:`codedvideo.engine.simulation.simulate_capture`).
+
+    Attributes
+    ----------
+    name : str
+        A code of :func:`make_code`, or ``file``: the mask stored at ``path``.
+    bump : int
+        Bump length of ``hitomi``, ``hitomi-tiled`` and ``rowwise``.
+    p : float
+        Open probability of ``bernoulli`` and ``shifting``.
+    path : str or Path, optional
+        The mask file of ``file`` (:func:`codedvideo.formats.volumes.load_code_file`).
+    new_code_per_capture : bool
+        A new code for every capture instead of the same code repeated (as a real sensor repeats its code).
+    """
+
+    name: str
+    bump: int
+    p: float = OPEN_PROBABILITY
+    path: str | os.PathLike | None = None
+    new_code_per_capture: bool = False
 
 
 def _check_bump(frames: int, bump: int, patch: int | None) -> None:
@@ -285,7 +314,7 @@ def make_code(
     *,
     frames: int,
     bump: int = 2,
-    p: float = 0.5,
+    p: float = OPEN_PROBABILITY,
     rng: np.random.Generator | int | None = 0,
 ) -> np.ndarray:
     """Build a named shutter code (see the table in the module docstring).

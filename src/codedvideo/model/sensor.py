@@ -87,6 +87,29 @@ class RawCorrection:
                     white_level=self.white_level, black_level=self.black_level)
 
 
+@dataclass(frozen=True)
+class RawLevels:
+    """The levels of a sensor's raw read-out, as :func:`correct_raw` takes them.
+
+    Attributes
+    ----------
+    black_level : float or ndarray of shape (H, W)
+        Offset of every read-out (once per pixel, not per sub-frame): a scalar
+        or a dark frame.  Finite and >= 0.
+    bits : int, optional
+        ADC bit depth: raw values above ``2**bits - 1`` are an error (the wrong
+        depth, or data scaled after read-out), and values at ``2**bits - 1``
+        are saturated unless ``white_level`` says otherwise.
+    white_level : float, optional
+        Raw saturation level when it is not ``2**bits - 1`` (e.g. a full well
+        below the ADC's top); pixels with ``raw >= white_level`` are saturated.
+    """
+
+    black_level: float | np.ndarray = 0.0
+    bits: int | None = None
+    white_level: float | None = None
+
+
 def white_level_of(bits: int | None, white_level: float | None = None) -> float | None:
     """The raw white level: ``white_level`` when given, else ``2**bits - 1``, else None."""
     if bits is not None and not (isinstance(bits, (int, np.integer)) and not isinstance(bits, bool) and 1 <= bits <= 32):
@@ -104,9 +127,7 @@ def correct_raw(
     coded: np.ndarray,
     mask: np.ndarray,
     *,
-    black_level: float | np.ndarray = 0.0,
-    bits: int | None = None,
-    white_level: float | None = None,
+    levels: RawLevels = RawLevels(),
     bad_pixels: np.ndarray | None = None,
     clip_negative: bool = True,
     trust_saturated: bool = False,
@@ -120,16 +141,10 @@ def correct_raw(
         Raw values, ``sum of frames + black_level`` (ADC units).
     mask : ndarray of shape (N, H, W)
         Binary code or calibrated weights.
-    black_level : float or ndarray of shape (H, W)
-        Offset of every read-out (once per pixel, not per sub-frame): a scalar
-        or a dark frame.  Finite and >= 0.
-    bits : int, optional
-        ADC bit depth: raw values above ``2**bits - 1`` are an error (the wrong
-        depth, or data scaled after read-out), and values at ``2**bits - 1``
-        are saturated unless ``white_level`` says otherwise.
-    white_level : float, optional
-        Raw saturation level when it is not ``2**bits - 1`` (e.g. a full well
-        below the ADC's top); pixels with ``raw >= white_level`` are saturated.
+    levels : RawLevels
+        The black level (a number or a dark frame), the ADC's bit depth and the
+        white level of the raw values; ``RawLevels()`` subtracts nothing and
+        tests no saturation.
     bad_pixels : ndarray, optional
         Defective pixels: a boolean map (H, W) or integer ``(y, x)`` rows (K, 2)
         (:func:`read_bad_pixels`, :func:`detect_bad_pixels`).
@@ -158,7 +173,8 @@ def correct_raw(
     raw = arr.astype(np.float32)
     if not np.isfinite(raw).all():
         raise InputError(f"{where}: contains NaN or Inf")
-    black = np.asarray(black_level, dtype=np.float32)
+    bits, white_level = levels.bits, levels.white_level
+    black = np.asarray(levels.black_level, dtype=np.float32)
     if black.ndim not in (0, 2) or (black.ndim == 2 and black.shape != raw.shape):
         raise InputError(f"{where}: black level of shape {black.shape} is neither a number nor a frame {raw.shape}")
     if not np.isfinite(black).all() or (black < 0).any():

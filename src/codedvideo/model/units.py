@@ -264,9 +264,9 @@ def tolerance_warning(coded: np.ndarray, tol_rms: float, patch: int = PATCH) -> 
 RANGE_SETTINGS = ("noise_sigma", "data_range", "white_level")
 
 
-def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, noise_sigma: float = 0.0,
-                  white_level: float | None = None, levels: dict[str, float | None] | None = None,
-                  where: str = "coded image", names: dict[str, str] | None = None, black: str = "") -> DataRange:
+def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, white_level: float | None = None,
+                  levels: dict[str, float | None] | None = None, where: str = "coded image",
+                  names: dict[str, str] | None = None) -> DataRange:
     """The data range of a job's captures, found once, checked and warned about: the one inference that the
     command line, ``codedvideo run`` and the Python API all use.
 
@@ -276,15 +276,15 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     mask_of : callable ``mask_of(i)`` -> the (N, H, W) mask of capture ``i``
     dtype : the captures' type as stored (8-bit integers are 0..255 whatever their values)
     given : the data range the user gave (``--data-range``), or None to find it from the values
-    noise_sigma : the read noise in the capture's units (its peaks may lie above the range)
     white_level : the sensor's saturation level in coded units, when known: pixels at or above it hold no
         measurement and do not set the range.  When none is given and the captures show one
         (:func:`clipped_level`), it is used the same way, with a warning.
-    levels : option name -> grey-level setting in the capture's units, refused when far above the range
+    levels : setting -> its grey level in the capture's units (None: not set), each refused when far above the
+        range.  Among them ``noise_sigma``, the read noise (its peaks may lie above the range; none: 0), and
+        ``black_level``, the black level subtracted from the captures (named when nothing lies above 0).
     where : what the captures are called in messages (the file)
-    names : what the caller calls ``noise_sigma``, ``data_range`` and ``white_level`` in messages
-        (default: as the door of the call names them, :data:`RANGE_SETTINGS`)
-    black : the black level subtracted from the captures as the caller names it (``--black-level 64``), or empty
+    names : what the caller calls the settings in messages (``noise_sigma``, ``data_range``, ``white_level`` and
+        those of ``levels``; default: as the door of the call names them)
 
     Raises :class:`codedvideo.model.errors.InputError` for a capture with nothing above 0 (and no range given) or
     values beyond float32's working bounds; warns (one line each) when values lie above the range found or
@@ -292,7 +292,11 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     """
     from codedvideo.model.errors import InputError
 
-    labels = dict({k: doors.name(k) for k in RANGE_SETTINGS}, **(names or {}))
+    given_levels = levels or {}
+    labels = dict({k: doors.name(k) for k in (*RANGE_SETTINGS, *given_levels)}, **(names or {}))
+    noise_sigma = given_levels.get("noise_sigma") or 0.0
+    black_level = given_levels.get("black_level")
+    black = f"{labels['black_level']} {black_level:g}" if black_level else "the black level"
     count = len(codeds)
     clip = white_level
     eight_bit = dtype is not None and np.dtype(dtype).kind in "iu" and np.dtype(dtype).itemsize == 1
@@ -311,13 +315,13 @@ def capture_units(codeds, mask_of, *, dtype=None, given: float | None = None, no
     # a sum of frames is never negative: the wrong file, or a black level taken off twice
     if peak <= 0 and given is None:
         raise InputError(f"{where}: no coded value above 0 where the code is open; nothing to reconstruct "
-                         f"(check the file and {black or 'the black level'})")
+                         f"(check the file and {black})")
     units = infer_data_range(peak, dtype=dtype, given=given, noise=noise_sigma, quantile=lambda: max(
         static_quantile(codeds[i], mask_of(i), 1 - OUTLIER_SHARE, white_level=clip) for i in range(count)))
     if given is not None:
         units = DataRange(units.value, f"given ({labels['data_range']})", units.peak)
         _warn_far_below(peak, given, labels["data_range"], where)
-    check_range(units, levels or {}, where)
+    check_range(units, {labels[k]: v for k, v in given_levels.items()}, where)
     level = units.value * NOISE_ROOM + noise_room(units.value, noise_sigma)
     if peak > level:  # outliers above a range found, or a range given below the values: clipped in videos and frames
         doors.warn(_above_range(codeds, mask_of, level, clip, peak, units, where))

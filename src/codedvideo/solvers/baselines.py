@@ -36,6 +36,7 @@ below the static estimate, while on Bernoulli masks both starts agree
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from codedvideo.model.errors import InputError
@@ -197,21 +198,43 @@ def interp(coded: np.ndarray, mask: np.ndarray, *, radius_t: int = 3, radius_xy:
     return normalized_fill(vals, w, (min(radius_t, n), spatial_radius, spatial_radius))
 
 
+@dataclass(frozen=True)
+class GapTvSettings:
+    """The GAP and TV settings of :func:`gap_tv` (how their defaults were chosen is documented there).
+
+    Parameters
+    ----------
+    iterations : int
+        GAP iterations.
+    tv_weight : float
+        Chambolle weight on frames scaled to [0, 1].
+    tv_iterations : int
+        Inner iterations of each TV denoising.
+    temporal : bool
+        Denoise the (N, H, W) volume with 3D TV (True) or each sub-frame with
+        2D TV (False, the classical GAP-TV).
+    accelerate : bool
+        Accumulate the measurement residual (accelerated GAP).
+    """
+
+    iterations: int = 40
+    tv_weight: float = 0.3
+    tv_iterations: int = 5
+    temporal: bool = True
+    accelerate: bool = True
+
+
 def gap_tv(
     coded: np.ndarray,
     mask: np.ndarray,
     *,
-    iterations: int = 40,
-    tv_weight: float = 0.3,
-    tv_iterations: int = 5,
-    temporal: bool = True,
+    settings: GapTvSettings = GapTvSettings(),
     data_range: float = EIGHT_BIT,
-    accelerate: bool = True,
     x0: np.ndarray | None = None,
 ) -> np.ndarray:
     """Reconstruct a video by GAP-TV.
 
-    Defaults were tuned on synthetic *training* scenes (``synth:train-0`` to
+    The defaults of ``settings`` were tuned on synthetic *training* scenes (``synth:train-0`` to
     ``train-5``, 96x96, N = 8, no noise; PSNR averaged over the six scenes for
     the codes hitomi L = 2 / hitomi L = 3 / bernoulli p = 0.5).  3D TV
     (``temporal=True``) against per-frame 2D TV, accelerated, weight 0.01 /
@@ -236,19 +259,10 @@ def gap_tv(
     ----------
     coded : ndarray of shape (H, W)
     mask : ndarray of shape (N, H, W)
-    iterations : int
-        GAP iterations.
-    tv_weight : float
-        Chambolle weight on frames scaled to [0, 1].
-    tv_iterations : int
-        Inner iterations of each TV denoising.
-    temporal : bool
-        Denoise the (N, H, W) volume with 3D TV (True) or each sub-frame with
-        2D TV (False, the classical GAP-TV).
+    settings : GapTvSettings
+        The GAP and TV iterations (:class:`GapTvSettings`).
     data_range : float
         Peak frame value (frames are scaled by it for the TV step).
-    accelerate : bool
-        Accumulate the measurement residual (accelerated GAP).
     x0 : ndarray of shape (N, H, W), optional
         Start; default the static estimate.
 
@@ -259,6 +273,7 @@ def gap_tv(
     from skimage.restoration import denoise_tv_chambolle  # lazy: keeps the command line quick to start
 
     check_pair(coded.shape, mask.shape)
+    iterations, tv_weight, tv_iterations = settings.iterations, settings.tv_weight, settings.tv_iterations
     if iterations < 0 or tv_weight < 0 or tv_iterations < 1:
         raise InputError(f"gap_tv: need iterations >= 0, tv_weight >= 0, tv_iterations >= 1 "
                          f"(got {iterations}, {tv_weight}, {tv_iterations})")
@@ -270,12 +285,12 @@ def gap_tv(
     y1 = y.copy()
     for _ in range(iterations):
         yb = forward(x, m)
-        if accelerate:
+        if settings.accelerate:
             y1 = y1 + (y - yb)
             x = x + adjoint((y1 - yb) * inv, m)
         else:
             x = x + adjoint((y - yb) * inv, m)
-        if temporal:
+        if settings.temporal:
             x = denoise_tv_chambolle(x, weight=tv_weight, max_num_iter=tv_iterations).astype(np.float32)
         else:
             x = np.stack([denoise_tv_chambolle(f, weight=tv_weight, max_num_iter=tv_iterations) for f in x]).astype(np.float32)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,6 +21,39 @@ from codedvideo.solvers.ksvd import ksvd
 #: K-SVD's defaults (:func:`learn_dictionary`, ``dictionary:`` in pipeline.yaml): atoms, training patches drawn,
 #: iterations and atoms per patch while training.
 KSVD_ATOMS, KSVD_SAMPLES, KSVD_ITERATIONS, KSVD_SPARSITY = 512, 80000, 20, 6
+
+
+@dataclass(frozen=True)
+class KsvdSettings:
+    """How :func:`learn_dictionary` trains: the K-SVD knobs, with its defaults.
+
+    Parameters
+    ----------
+    atoms : int
+        Columns of the dictionary: the complete 3D DCT basis topped up with random training patches (an
+        ``init`` given keeps its own K atoms instead).
+    samples : int
+        Training patches drawn.
+    iterations : int
+        K-SVD iterations.
+    sparsity : int
+        Atoms per patch while training.
+    tol_rms : float
+        The coding of a sample stops once its RMS residual (grey levels per entry) is below it.
+    augment : bool
+        Rotations, flips and time reversal of the patches (off to fit a scene).
+    replace_unused : bool
+        An atom no patch's code uses becomes one of the worst represented patches (False: it is kept,
+        :func:`codedvideo.solvers.ksvd.ksvd`).
+    """
+
+    atoms: int = KSVD_ATOMS
+    samples: int = KSVD_SAMPLES
+    iterations: int = KSVD_ITERATIONS
+    sparsity: int = KSVD_SPARSITY
+    tol_rms: float = 0.5
+    augment: bool = True
+    replace_unused: bool = True
 
 
 #: Atoms are rescaled to unit norm when some nonzero atom's norm differs from 1
@@ -217,28 +251,20 @@ def learn_dictionary(
     videos: list[np.ndarray],
     *,
     frames: int,
-    atoms: int = KSVD_ATOMS,
-    samples: int = KSVD_SAMPLES,
-    iterations: int = KSVD_ITERATIONS,
-    sparsity: int = KSVD_SPARSITY,
-    tol_rms: float = 0.5,
+    settings: KsvdSettings = KsvdSettings(),
     seed: int = 0,
     patch: int = PATCH,
     progress=None,
     init: np.ndarray | None = None,
-    augment: bool = True,
-    replace_unused: bool = True,
 ) -> tuple[np.ndarray, dict]:
     """Learn a dictionary with K-SVD, initialised from the 3D DCT (or from ``init``).
 
     The initial dictionary is the complete 3D DCT basis, topped up with random
-    training patches up to ``atoms`` columns; or ``init`` (N * patch**2, K), whose
-    K atoms it keeps (``atoms`` does not apply): a dictionary adapted to the
-    training videos, such as one scene's reconstruction.  ``tol_rms`` stops the
-    coding of a sample once its RMS residual (grey levels per entry) is below it.
-    ``augment``: rotations, flips and time reversal of the patches (off to fit a scene).
-    ``replace_unused``: an atom no patch's code uses becomes one of the worst represented patches (False: it is
-    kept, :func:`codedvideo.solvers.ksvd.ksvd`).
+    training patches up to ``settings.atoms`` columns; or ``init`` (N * patch**2, K), whose
+    K atoms it keeps (``settings.atoms`` does not apply): a dictionary adapted to the
+    training videos, such as one scene's reconstruction.  ``settings``: the training
+    patches drawn, the iterations, the atoms per patch, the coding's tolerance, the
+    augmentation and the unused atoms' replacement (:class:`KsvdSettings`).
 
     Returns
     -------
@@ -249,7 +275,8 @@ def learn_dictionary(
     rng = np.random.default_rng(seed)
     n_feat = frames * patch * patch
     t0 = time.perf_counter()
-    X = training_patches(videos, frames=frames, samples=samples, rng=rng, patch=patch, augment=augment)
+    X = training_patches(videos, frames=frames, samples=settings.samples, rng=rng, patch=patch,
+                         augment=settings.augment)
     spread = np.ptp(X, axis=1) if X.size else np.zeros(0)
     if not (spread > 1e-3 * max(1.0, float(np.abs(X).max(initial=0.0)))).any():
         raise InputError(f"training videos: every one of the {X.shape[0]} training patches drawn is flat (no change "
@@ -260,22 +287,22 @@ def learn_dictionary(
             raise InputError(f"initial dictionary: {init.shape[0]} rows, patches of N = {frames} have {n_feat}")
         D0 = np.asarray(init, np.float32)
     else:
-        D0 = _initial_dictionary(X, frames, atoms, patch, rng)
+        D0 = _initial_dictionary(X, frames, settings.atoms, patch, rng)
     D, hist = ksvd(
-        X, D0, sparsity=sparsity, iterations=iterations, tol=n_feat * tol_rms**2, rng=rng, progress=progress,
-        replace_unused=replace_unused,
+        X, D0, sparsity=settings.sparsity, iterations=settings.iterations, tol=n_feat * settings.tol_rms**2, rng=rng,
+        progress=progress, replace_unused=settings.replace_unused,
     )
     meta = dict(
         patch=patch,
         frames=frames,
         method="ksvd",
         seed=seed,
-        iterations=iterations,
+        iterations=settings.iterations,
         samples=int(X.shape[0]),
-        sparsity=sparsity,
-        tol_rms=tol_rms,
+        sparsity=settings.sparsity,
+        tol_rms=settings.tol_rms,
         init="dct3d+samples" if init is None else "given",
-        augment=augment,
+        augment=settings.augment,
         final_rmse=hist.rmse[-1] if hist.rmse else None,
         rmse_history=hist.rmse,
         replaced_history=hist.replaced,

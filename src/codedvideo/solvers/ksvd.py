@@ -21,6 +21,8 @@ from codedvideo.solvers.ksvd_kernel import row_energy, subtract_codes, update_at
 from codedvideo.solvers.omp_kernel import batch_omp
 
 DUPLICATE_COS = 0.99
+# power-iteration steps of each rank-1 atom update (warm-started, so a few suffice)
+POWER_STEPS = 3
 
 
 @dataclass
@@ -40,7 +42,6 @@ def ksvd(
     iterations: int,
     tol: float = 0.0,
     rng: np.random.Generator | int | None = 0,
-    power_steps: int = 3,
     progress=None,
     replace_unused: bool = True,
 ) -> tuple[np.ndarray, KsvdHistory]:
@@ -59,8 +60,6 @@ def ksvd(
         Squared-residual tolerance of the coding step (0: use ``sparsity`` atoms).
     rng : Generator or int
         Order of the atom updates.
-    power_steps : int
-        Power-iteration steps of each rank-1 update.
     progress : callable, optional
         Called as ``progress(iteration, rmse)`` after each iteration.
     replace_unused : bool
@@ -103,11 +102,11 @@ def ksvd(
         start = 0
         for i in unused:
             if i > start:
-                update_atoms(E, err, Dt, coef, perm[start:i], order, bounds, power_steps)
+                update_atoms(E, err, Dt, coef, perm[start:i], order, bounds, POWER_STEPS)
             replaced += _replace_atom(D, perm[i], E, err, gen)
             start = i + 1
         if start < perm.size:
-            update_atoms(E, err, Dt, coef, perm[start:], order, bounds, power_steps)
+            update_atoms(E, err, Dt, coef, perm[start:], order, bounds, POWER_STEPS)
         replaced += _replace_duplicates(D, E, err, gen)
         rmse = float(np.sqrt(err.sum() / E.size))
         hist.rmse.append(rmse)

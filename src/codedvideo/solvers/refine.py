@@ -37,6 +37,8 @@ in float32 at a time (:data:`BAND`).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -260,10 +262,31 @@ def bands(shape: tuple) -> list[tuple[int, int]]:
     return [(r, min(r + rows, h)) for r in range(0, h, rows)]
 
 
-def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int,
-           sigma_start: float = SIGMA_START, sigma_end: float = SIGMA_END, blend: float = BLEND,
-           noise_sigma: float = 0.0, known: np.ndarray | None = None, blocks: int = 1, tick=None,
-           watch=None, overwrite: bool = False) -> tuple[np.ndarray, dict]:
+@dataclass(frozen=True)
+class RefineRun:
+    """How :func:`refine` runs, none of which changes the values of its result: its progress hooks and where
+    the result is written.
+
+    Attributes
+    ----------
+    tick : callable, optional
+        Called once per iteration of each band (a progress bar of ``iterations * len(bands(shape))``).
+    watch : callable, optional
+        Called as ``watch(i, estimate, seconds, rows)`` after every :data:`WATCH_EVERY` iterations and after
+        the last, with the rows ``rows`` (a slice; every row unless banded) of the result the run would give
+        if it ended there (projected and blended as the last is; after the last, the result itself) and the
+        band's seconds so far, its own calls left out.
+    overwrite : bool
+        A float32 ``start`` takes the result (the memory of one band beside it).
+    """
+
+    tick: Callable[[], object] | None = None
+    watch: Callable[[int, np.ndarray, float, slice], object] | None = None
+    overwrite: bool = False
+
+
+def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int, noise_sigma: float = 0.0,
+           known: np.ndarray | None = None, blocks: int = 1, run: RefineRun = RefineRun()) -> tuple[np.ndarray, dict]:
     """``iterations`` of GAP with the group prior from ``start`` (N, H, W), in working units.
 
     ``coded`` (H, W) and ``mask`` (N, H, W) are the measurements the result keeps (a pixel never open is not
@@ -280,47 +303,44 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
 
     A volume of more than :data:`BAND_VOXELS` voxels is refined a band of rows at a time (:func:`bands`), each
     with :data:`HALO` rows of the image on either side, and its own rows kept: the memory is that of one band's
-    volumes beside the start and the result (with ``overwrite``, a float32 ``start`` takes the result: the
-    memory of one band beside it).  ``tick``: called once per iteration of each band (a progress bar of
-    ``iterations * len(bands(shape))``).  ``watch``: called as ``watch(i, estimate, seconds, rows)`` after every
-    :data:`WATCH_EVERY` iterations and after the last, with the rows ``rows`` (a slice; every row unless banded)
-    of the result the run would give if it ended there (projected and blended as the last is; after the last,
-    the result itself) and the band's seconds so far, its own calls left out.  Returns the video (N, H, W)
-    float32 and what was done: iterations, the noise levels, the groups shrunk an iteration (the mean over
-    its matchings; summed over the bands), seconds.
+    volumes beside the start and the result (with ``run.overwrite``, a float32 ``start`` takes the result: the
+    memory of one band beside it).  ``run``: the progress hooks ``tick`` and ``watch`` and ``overwrite``
+    (:class:`RefineRun`).  The noise levels (:data:`SIGMA_START` to :data:`SIGMA_END`) and the share of the
+    start (:data:`BLEND`) are the module's.  Returns the video (N, H, W) float32 and what was done: iterations,
+    the noise levels, the groups shrunk an iteration (the mean over its matchings; summed over the bands),
+    seconds.
     """
     t0 = time.perf_counter()
     shape = np.shape(mask)
     parts = bands(shape)
     if len(parts) == 1 or shape[2] < SIDE:
-        return _refine_whole(coded, mask, start, iterations=iterations, sigma_start=sigma_start,
-                             sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma, known=known, blocks=blocks,
-                             tick=tick, watch=watch, rows=slice(0, shape[1]))
-    in_place = overwrite and isinstance(start, np.ndarray) and start.dtype == np.float32 and start.flags.writeable
+        return _refine_whole(coded, mask, start, iterations=iterations, noise_sigma=noise_sigma, known=known,
+                             blocks=blocks, run=run)
+    in_place = run.overwrite and isinstance(start, np.ndarray) and start.dtype == np.float32 and start.flags.writeable
     out = start if in_place else np.empty(shape, np.float32)
     groups = 0
     above = None  # in place: the start's rows above a band (its upper halo), before the band above wrote them
     for first, end in parts:
         lo, hi = max(0, first - HALO), min(shape[1], end + HALO)
-        band_watch = None if watch is None else \
-            (lambda i, v, seconds, rows, cut=slice(first - lo, end - lo): watch(i, v[:, cut], seconds, rows))
+        band_watch = None if run.watch is None else \
+            (lambda i, v, seconds, rows, cut=slice(first - lo, end - lo), kept=slice(first, end):
+             run.watch(i, v[:, cut], seconds, kept))
         band = start[:, lo:hi] if above is None else np.concatenate([above, start[:, first:hi]], axis=1)
         if in_place:
             above = start[:, max(first, end - HALO):end].copy()
-        v, info = _refine_whole(coded[lo:hi], mask[:, lo:hi], band, iterations=iterations,
-                                sigma_start=sigma_start, sigma_end=sigma_end, blend=blend, noise_sigma=noise_sigma,
-                                known=None if known is None else known[lo:hi], blocks=blocks, tick=tick,
-                                watch=band_watch, rows=slice(first, end))
+        v, info = _refine_whole(coded[lo:hi], mask[:, lo:hi], band, iterations=iterations, noise_sigma=noise_sigma,
+                                known=None if known is None else known[lo:hi], blocks=blocks,
+                                run=replace(run, watch=band_watch))
         out[:, first:end] = v[:, first - lo:end - lo]
         groups += info.get("groups", 0)
         del v
     return out, dict(info, groups=groups, bands=len(parts), halo=HALO, seconds=time.perf_counter() - t0)
 
 
-def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int, sigma_start: float,
-                  sigma_end: float, blend: float, noise_sigma: float, known: np.ndarray | None, blocks: int,
-                  tick, watch, rows: slice) -> tuple[np.ndarray, dict]:
-    """:func:`refine` of one image (or band): the estimates shown to ``watch`` are said to be ``rows``."""
+def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations: int, noise_sigma: float,
+                  known: np.ndarray | None, blocks: int, run: RefineRun) -> tuple[np.ndarray, dict]:
+    """:func:`refine` of one image (or band), ``run.overwrite`` aside: the estimates shown to ``run.watch`` are
+    said to be every row of ``coded`` (``slice(0, H)``; :func:`refine` maps a band's to the image's)."""
     t0 = time.perf_counter()
     y = np.asarray(coded, np.float32)
     mask_arr = np.asarray(mask)
@@ -333,14 +353,15 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     x = x0.copy()
     noisy = noise_sigma > 0
     accumulated = None if noisy else y.copy()
-    levels = sigmas(iterations, sigma_start, sigma_end)
+    levels = sigmas(iterations, SIGMA_START, SIGMA_END)
+    tick, watch, rows = run.tick, run.watch, slice(0, h)
 
     still = None if known is None or not known.any() else np.asarray(known, bool)
 
     def settle(v: np.ndarray, sigma: float) -> np.ndarray:  # (in place) the result a run ending here gives
         to_measurements(v, mask_arr, y, relaxed(open2, noise_sigma, sigma) if noisy else inv)
-        np.multiply(v, np.float32(1.0 - blend), out=v)
-        np.add(v, np.float32(blend) * x0, out=v)
+        np.multiply(v, np.float32(1.0 - BLEND), out=v)
+        np.add(v, np.float32(BLEND) * x0, out=v)
         if still is not None:  # the known pixels keep their values
             v[:, still] = x0[:, still]
         return v
@@ -366,8 +387,8 @@ def _refine_whole(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, ite
     seconds = time.perf_counter() - t0 - watched
     if watch is not None:
         watch(len(levels), x, seconds, rows)
-    info = dict(recipe(), iterations=int(iterations), sigma_start=float(sigma_start), sigma_end=float(sigma_end),
-                blend=float(blend), noise_sigma=float(noise_sigma),
+    info = dict(recipe(), iterations=int(iterations), sigma_start=float(SIGMA_START), sigma_end=float(SIGMA_END),
+                blend=float(BLEND), noise_sigma=float(noise_sigma),
                 groups=int(round(shrunk / len(levels))),
                 **(dict(blocks=int(blocks)) if blocks != 1 else {}), seconds=seconds)
     return x, info

@@ -193,10 +193,18 @@ def _still_answer(coded: np.ndarray, mask: np.ndarray, binary: bool) -> np.ndarr
         return np.where(k > 0, coded / np.maximum(k, 1e-12).astype(np.float32), 0).astype(np.float32)
 
 
+@dataclass(frozen=True)
+class Placement:
+    """A region's place in its image: ``origin``, the region's top-left corner in the image, and
+    ``image_shape``, the image's (H, W)."""
+
+    origin: tuple[int, int]
+    image_shape: tuple[int, int]
+
+
 def reconstruct_region(
     coded: np.ndarray, mask: np.ndarray, D: np.ndarray, settings: OmpSettings, *, patch: int = P.PATCH,
-    origin: tuple[int, int] = (0, 0), image_shape: tuple[int, int] | None = None, operator: str = "auto",
-    still: np.ndarray | None = None,
+    place: Placement | None = None, operator: str = "auto", still: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Reconstruct every pixel of a region from the patches inside it.
 
@@ -210,8 +218,9 @@ def reconstruct_region(
         weights sum to more than 0.
     D : ndarray of shape (N * patch**2, K)
     settings : OmpSettings
-    origin, image_shape : the region's top-left corner in the image and the image's (H, W)
-        (default: the region is the image); a patch stride counts from the image's corner.
+    place : Placement, optional
+        The region's top-left corner in the image and the image's (H, W) (default: the region is the
+        image); a patch stride counts from the image's corner.
     operator : {"auto", "dense", "patch"}
         "auto": periodic codes use the grouped operator; codes whose distinct
         per-pixel patterns fit a pattern table (every binary single-bump code;
@@ -271,7 +280,8 @@ def reconstruct_region(
     # average, and pixels no patch with a measurement covers are NaN (filled later)
     valid = patches.n_open > 0
     taken = valid.size  # the patches this region solves or takes the still answer of (its statistics' count)
-    on_grid = stride_grid(settings.stride, (hp, wp), patch, origin, image_shape or (h, w))
+    origin, image_shape = ((0, 0), (h, w)) if place is None else (place.origin, place.image_shape)
+    on_grid = stride_grid(settings.stride, (hp, wp), patch, origin, image_shape)
     if on_grid is not None:
         valid &= on_grid
         taken = int(on_grid.sum())  # (every patch was counted: atoms_mean a quarter, patches/s 4x, at stride 2)
