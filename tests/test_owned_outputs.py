@@ -288,3 +288,33 @@ def test_a_run_stopped_after_its_capture_is_written_does_not_block_the_next(tmp_
     capsys.readouterr()
     assert main(["-q", "run", str(cfg)]) == 0, capsys.readouterr().err
     assert written_by_codedvideo(tmp_path / "out" / "recon.npy")
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, OSError])
+def test_an_output_stopped_before_it_is_in_place_leaves_no_folder_it_made(tmp_path, monkeypatch, stop):
+    """Reported: SIGTERM (unwound as Ctrl-C) left the empty folder made for the output behind; a folder that
+    was there before stays, and so does one that holds something else."""
+    from codedvideo.formats.atomic import atomic_output
+    from codedvideo.formats.store import save_dictionary
+    from codedvideo.solvers.dictionaries import dct_dictionary
+
+    (tmp_path / "kept").mkdir()
+    for target in (tmp_path / "new" / "deeper" / "r.npy", tmp_path / "kept" / "sub" / "r.npy"):
+        with pytest.raises((stop, OSError)), atomic_output(target) as tmp:
+            np.save(tmp, np.zeros(3))
+            raise stop("stopped")
+    assert not (tmp_path / "new").exists() and list((tmp_path / "kept").iterdir()) == []
+    (tmp_path / "other").mkdir()
+    with pytest.raises(KeyboardInterrupt), atomic_output(tmp_path / "other" / "a" / "r.npy"):
+        (tmp_path / "other" / "note.txt").write_text("the user's")
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in (tmp_path / "other").iterdir()) == ["note.txt"]
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    import zarr
+    monkeypatch.setattr(zarr, "open_group", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        save_dictionary(tmp_path / "dicts" / "d.zarr", dct_dictionary(4), dict(patch=7, frames=4))
+    assert not (tmp_path / "dicts").exists()

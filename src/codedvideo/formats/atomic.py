@@ -72,10 +72,7 @@ def atomic_output(path: str | os.PathLike):
     removed and the exception re-raised; an existing ``path`` is untouched.
     """
     target = Path(path)
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{target}: cannot create folder {target.parent} ({exc.strerror or exc})") from exc
+    made = make_parents(target)
     if not os.access(target.parent, os.W_OK):
         raise OutputError(f"{target}: folder {target.parent} is not writable")
     remove_dead_temporaries(target)
@@ -98,7 +95,26 @@ def atomic_output(path: str | os.PathLike):
                 time.sleep(0.02)
         else:
             tmp.unlink(missing_ok=True)
+        remove_made(made)
         raise
+
+
+def make_parents(target: Path) -> list[Path]:
+    """Create the folders ``target`` is to go into; those this made, deepest first (for :func:`remove_made`)."""
+    made = [folder for folder in target.parents if not folder.exists()]
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{target}: cannot create folder {target.parent} ({exc.strerror or exc})") from exc
+    return made
+
+
+def remove_made(made: list[Path]) -> None:
+    """Remove the folders :func:`make_parents` made that are still empty (an output stopped before it was in
+    place leaves no empty folder behind)."""
+    for folder in made:  # (deepest first: each parent is empty once its child is gone)
+        with contextlib.suppress(OSError):
+            folder.rmdir()
 
 
 def remove_dead_temporaries(path: Path) -> None:

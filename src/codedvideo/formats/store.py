@@ -42,7 +42,8 @@ except ImportError:  # pragma: no cover - not POSIX: no locks, create-then-renam
 
 from codedvideo.formats.atomic import atomic_output
 from codedvideo.formats.atomic import discard as _discard
-from codedvideo.formats.atomic import remove_dead_temporaries, replace_dir, temporaries_of, temporary_name
+from codedvideo.formats.atomic import (make_parents, remove_dead_temporaries, remove_made, replace_dir, temporaries_of,
+                                      temporary_name)
 from codedvideo.model.errors import InputError, OutputError
 from codedvideo.model.patches import PATCH
 
@@ -175,8 +176,8 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
     )
     tmp = temporary_name(target, keep_suffix=False)
     zipped = target.suffix.lower() == ".zip"  # one file (the shipped dictionaries): a zipped Zarr store
+    made = make_parents(target)
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
         remove_dead_temporaries(target)  # what a killed run left
         store = zarr.storage.ZipStore(tmp, mode="w") if zipped else str(tmp)
         group = zarr.open_group(store, mode="w", attributes=json.loads(json.dumps(attrs)))
@@ -189,9 +190,11 @@ def save_dictionary(path: str | os.PathLike, D: np.ndarray, meta: dict) -> Path:
             replace_dir(tmp, target)
     except OSError as exc:
         _discard(tmp)
+        remove_made(made)
         raise OutputError(f"dictionary {target}: cannot write ({exc.strerror or exc})") from exc
-    except BaseException:  # Ctrl-C, SIGTERM: no temporary left
+    except BaseException:  # Ctrl-C, SIGTERM: no temporary left, nor a folder made for it
         _discard(tmp)
+        remove_made(made)
         raise
     return target
 
