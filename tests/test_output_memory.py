@@ -8,6 +8,7 @@ import scipy.io
 
 from conftest import capture_settings
 from codedvideo.formats import io as cio
+from codedvideo.formats import images
 from codedvideo.formats.store import load_array
 from codedvideo.formats.volumes import FrameFile, spilled, volume_writer, write_volume
 
@@ -94,7 +95,7 @@ def test_each_output_is_the_bits_of_an_independent_reference(tmp_path, volume, n
         cio.write_frames(ref, np.zeros((2 * N, H, W)), fmt="tiff16", data_range=RANGE)  # (its names and sidecar)
         expect = np.clip(np.rint(volume * (65535.0 / RANGE)), 0, 65535).astype(np.uint16)  # (float32, as before)
         for k, f in enumerate(cio.frame_files(ref)):
-            cio._oiio_write(f, [expect[k]], "uint16")
+            images._oiio_write(f, [expect[k]], "uint16")
     elif name.endswith(".npy"):
         ref.parent.mkdir()
         np.save(ref, volume)
@@ -126,7 +127,7 @@ def test_frame_folders_hold_the_reference_values(tmp_path, volume, fmt, scale, d
     """Frame folders of each format, written from a FrameFile: each file the reference conversion of its frame."""
     paths = cio.write_frames(tmp_path / fmt, FrameFile(volume, tmp_path), fmt=fmt, data_range=RANGE)
     for k, f in enumerate(paths):
-        got = cio._oiio_read_all(f, "luma", first_only=True)[0]
+        got = images._oiio_read_all(f, "luma", first_only=True)[0]
         if dtype == np.float32:
             expect = (volume[k] * np.float32(scale / RANGE)).astype(np.float32)
         elif dtype == np.uint8:  # rounded in float64
