@@ -223,3 +223,20 @@ def test_training_a_dictionary_for_one_sub_frame_is_refused(tmp_path, capsys):
     """frames 1: every pixel opens alike and the still estimate needs no dictionary; training one took 10 s."""
     rc, err = run(tmp_path, capsys, "frames: 1\nstages: [train]\n")
     assert rc == 2 and "frames 1" in err and "leave train out" in err, err
+
+
+def test_run_writes_the_record_reconstruct_writes_with_its_stages_beside_it(tmp_path, capsys):
+    """One record schema: `run`'s holds every key of `reconstruct`'s record of the same capture (its quality, its
+    video as written, its settings and inputs), with the run's stages beside them."""
+    out, _ = _small_run(tmp_path, capsys)
+    ran = json.loads((out / "recon.metrics.json").read_text())
+    cap = out / "capture"
+    assert main(["-q", "reconstruct", "--coded", str(cap / "coded.npy"), "--mask", str(cap / "mask.npy"),
+                 "--truth", str(cap / "truth.npy"), "--dictionary", ran["dictionary"]["path"], "--tile", "32",
+                 "--output", str(tmp_path / "r.mp4"), "--cache", str(tmp_path / "cache")]) == 0
+    alone = json.loads((tmp_path / "r.metrics.json").read_text())
+    assert set(alone) <= set(ran) and {"config", "seconds", "capture", "outputs"} <= set(ran) - set(alone)
+    for key in ("reconstruction", "quality", "trivial", "data_range", "settings"):
+        assert set(alone[key]) == set(ran[key]), key
+    assert ran["quality"]["psnr"] == pytest.approx(alone["quality"]["psnr"], abs=1e-9)
+    assert ran["quality"]["output_file"]["psnr"] == pytest.approx(alone["quality"]["output_file"]["psnr"], abs=1e-6)

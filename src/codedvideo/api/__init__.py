@@ -472,7 +472,7 @@ def scores(recon, truth, *, data_range: float | None = None, names: tuple[str, s
 
 
 from codedvideo.api._job import Captures, ReconstructionJob  # noqa: E402, F401  (the job the command line runs)
-from codedvideo.api._record import job_record, quantised, written_quality  # noqa: E402, F401  (its metrics record)
+from codedvideo.api._record import job_record  # noqa: E402, F401  (its metrics record)
 from codedvideo.formats.volumes import read_scored  # noqa: E402, F401  (a reconstruction or truth as evaluate reads it)
 from codedvideo.api._settings import Resolved, replaced, resolve as resolve_settings  # noqa: E402, F401
 from codedvideo.api._simulate import (SimulateSettings, SimulationPlan, captures_of, plan_simulation,  # noqa: E402, F401

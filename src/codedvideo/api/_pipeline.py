@@ -15,7 +15,7 @@ from pathlib import Path
 
 from codedvideo.model import doors
 from codedvideo.api._job import Captures, ReconstructionJob
-from codedvideo.api._record import quantised, written_quality
+from codedvideo.api._record import job_record
 from codedvideo.api._settings import ReconstructSettings, resolve
 from codedvideo.model.doors import through
 from codedvideo.data.scenes import load_video
@@ -164,18 +164,14 @@ def _reconstruct(cfg: PipelineConfig, capture: dict, dict_path, out: Path, repor
     job = ReconstructionJob(Captures(codeds=[capture["coded"]], masks=[capture["mask"]],
                                      truths=capture["truth"] if "evaluate" in cfg.stages else None,
                                      source="simulated capture"), resolved)
-    report["preset"] = job.r.preset
-    report["data_range"] = job.units.as_dict()
+    started = time.perf_counter()
+    (_, volume, _), = job.run(cfg.cache)
+    report["seconds"]["reconstruct"] = time.perf_counter() - started - job.seconds_scored
     t0 = time.perf_counter()
-    (_, volume, entry), = job.run(cfg.cache)
-    report["seconds"]["reconstruct"] = time.perf_counter() - t0 - job.seconds_scored
-    report["reconstruction"] = entry["reconstruction"]
-    t0 = time.perf_counter()
-    report["outputs"] = _write_outputs(cfg, out, volume, job.units.value)
+    outputs = _write_outputs(cfg, out, volume, job.units.value)
     report["seconds"]["write"] = time.perf_counter() - t0
-    if "quality" in entry:
-        report["quality"], report["trivial"] = entry["quality"], entry["trivial"]
-        report["seconds"]["evaluate"] = job.seconds_scored
-        if quantised(report["outputs"]["video"]):  # the video as written, decoded and scored (8-bit, lossy)
-            report["quality"]["output_file"] = written_quality(report["outputs"]["video"], job)
-            report["seconds"]["evaluate"] += report["quality"]["output_file"]["seconds"]
+    # the record `codedvideo reconstruct` writes (the video as written scored too), the run's stages beside it
+    report.update(job_record(job, output=outputs["video"], write=report["seconds"]["write"], started=started),
+                  outputs=outputs)
+    if "quality" in report:
+        report["seconds"]["evaluate"] = job.seconds_scored + report["quality"].get("output_file", {}).get("seconds", 0.0)

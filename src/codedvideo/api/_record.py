@@ -47,7 +47,10 @@ def job_record(job, *, output=None, read: float = 0.0, write: float = 0.0, start
     """The metrics record of a :class:`~codedvideo.api._job.ReconstructionJob` after its run: settings, data
     range, preset, each capture's entry and the totals, and the quality when a truth was given.  ``read``,
     ``write``: the seconds the door spent reading the inputs and writing the outputs; ``started``: when it
-    started (``time.perf_counter``)."""
+    started (``time.perf_counter``).  With a truth and an ``output`` that holds the frames less exactly than
+    float32 (:func:`quantised`: a video, a folder of 16-bit frames), the file as written is read back and scored
+    too (``quality.output_file``, :func:`written_quality`).  ``codedvideo reconstruct`` and ``codedvideo run``
+    both write this record (``run`` with its stages beside it)."""
     r, captures, units, omp = job.r, job.captures, job.units, job.omp
     metrics = dict(({"output": str(output)} if output is not None else {}), inputs=captures.inputs,
                    settings=dict(omp.__dict__, tol_rms=omp.tol_rms / units.scale, method=r.method,
@@ -74,6 +77,8 @@ def job_record(job, *, output=None, read: float = 0.0, write: float = 0.0, start
         metrics.update(_stream_totals(job.entries, captures.kind, read_all, write, total))
     if job.scores.frames["psnr"]:
         metrics["quality"], metrics["trivial"] = _quality(job, output)
+        if output is not None and captures.kind in ("single", "captures", "measurements") and quantised(output):
+            metrics["quality"]["output_file"] = written_quality(output, job)  # the file as written, decoded
     return metrics
 
 

@@ -508,8 +508,6 @@ def _cmd_reconstruct(a) -> int:
     t_write += time.perf_counter() - t1
     mark_written(a.output)
     metrics = api.job_record(job, output=a.output, read=t_read, write=t_write, started=t_all)
-    if metrics.get("quality") and kind in ("single", "captures", "measurements") and api.quantised(a.output):
-        metrics["quality"]["output_file"] = api.written_quality(a.output, job)
     _warn_replaced_record(metrics_path(a.output), a.output)
     mpath = write_json(metrics_path(a.output), metrics)
     mark_written(mpath)
