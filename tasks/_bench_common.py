@@ -78,7 +78,7 @@ def default_and_dct(row: dict, video, cap, D, rc, cache: Path):
             t = time.perf_counter()
             vol, _ = reconstruct_volume(cap["coded"], cap["mask"], dic, settings=s,
                                         run=Execution(cache=tmp, progress=False))
-            row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+            row[label] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video, data_range=255.0)))
         first = vol if first is None else first
     return first
 

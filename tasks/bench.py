@@ -124,7 +124,7 @@ def timed_reconstruct(cap, D, meta, *, workers=None, static_atoms=None, tile=128
                                            dictionary_key=meta["sha256"])
             times.append(time.perf_counter() - t)
     seconds = float(np.median(times))
-    q = evaluate(vol, cap["truth"])
+    q = evaluate(vol, cap["truth"], data_range=255.0)
     return dict(seconds=seconds, seconds_first=times[0], repeats=repeats, psnr=q["psnr"], ssim=q["ssim"], patches=info["patches"],
                 patches_per_second=info["patches"] / seconds, static_fraction=info["static_fraction"],
                 atoms_mean=info["atoms_mean"], stages=info["seconds"], settings=s.__dict__, workers=workers or os.cpu_count())
@@ -140,7 +140,7 @@ def timed_gaptv(cap, repeats=1):
         t = time.perf_counter()
         vol = gap_tv(cap["coded"], cap["mask"])
         times.append(time.perf_counter() - t)
-    q = evaluate(vol, cap["truth"])
+    q = evaluate(vol, cap["truth"], data_range=255.0)
     return dict(seconds=float(np.median(times)), seconds_first=times[0], repeats=repeats, psnr=q["psnr"], ssim=q["ssim"])
 
 
@@ -178,7 +178,7 @@ def naive_omp(cap, D, *, crop=48):
                                                               0.0))
     fast_s = time.perf_counter() - t
     return dict(crop=crop, patches=int(y.shape[0]), naive_seconds=naive_s, fast_seconds=fast_s,
-                naive_psnr=evaluate(vol, truth)["psnr"], fast_psnr=evaluate(fast, truth)["psnr"],
+                naive_psnr=evaluate(vol, truth, data_range=255.0)["psnr"], fast_psnr=evaluate(fast, truth, data_range=255.0)["psnr"],
                 naive_seconds_per_patch=naive_s / y.shape[0])
 
 
@@ -255,7 +255,7 @@ def case_quality(quick: bool) -> dict:
         default_and_dct(row, video, cap, D, rc, ROOT / "cache")
         t = time.perf_counter()
         vol = gap_tv(cap["coded"], cap["mask"])
-        row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+        row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video, data_range=255.0)))
         rows.append(row)
     return dict(case="quality", size=list(size), frames=8, rows=rows, sgemm_gflops=sgemm_gflops())
 
@@ -280,8 +280,8 @@ def case_bayer(quick: bool) -> dict:
                                 full_output=True)
         seconds = time.perf_counter() - t
     vol, info = result.frames, result.info[0]
-    q = evaluate(flat(vol), flat(video))
-    static = evaluate(flat(bayer.static_estimate(cap["coded"], cap["mask"], "RGGB")), flat(video))
+    q = evaluate(flat(vol), flat(video), data_range=255.0)
+    static = evaluate(flat(bayer.static_estimate(cap["coded"], cap["mask"], "RGGB")), flat(video), data_range=255.0)
     return dict(case="bayer", size=list(size), frames=8, bump=2, pattern="RGGB", sgemm_gflops=sgemm_gflops(),
                 omp=dict(seconds=seconds, psnr=q["psnr"], ssim=q["ssim"], patches_per_second=info["patches"] / seconds),
                 static=dict(psnr=static["psnr"], ssim=static["ssim"]))
@@ -290,7 +290,7 @@ def case_bayer(quick: bool) -> dict:
 def _psnr(recon: np.ndarray, truth: np.ndarray, cols=slice(None)) -> float:
     from codedvideo.model.metrics import evaluate
 
-    return evaluate(recon[..., cols], truth[..., cols])["psnr"]
+    return evaluate(recon[..., cols], truth[..., cols], data_range=255.0)["psnr"]
 
 
 #: Whole-process timings of the sequence case: the median of this many runs (one run varies by 5 % here).

@@ -63,22 +63,22 @@ def case_nonlocal(quick: bool, scenes=None, options: dict | None = None) -> dict
             t = time.perf_counter()
             vol, _ = nonlocal_region(cap["coded"], cap["mask"], D, first, omp_settings(rc, sigma), **extra)
             row["nonlocal"] = dict(seconds=row["default"]["seconds"] + time.perf_counter() - t,
-                                   **_q(evaluate(vol, video)))
+                                   **_q(evaluate(vol, video, data_range=255.0)))
         else:  # as `--method nonlocal` runs: the default's tile graph with the groups in each tile
             s = omp_settings(rc.model_copy(update=dict(method="nonlocal")), sigma)
             with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:
                 t = time.perf_counter()
                 vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s,
                                             run=Execution(cache=tmp, progress=False))
-                row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+                row["nonlocal"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video, data_range=255.0)))
             with tempfile.TemporaryDirectory(dir=ROOT / "cache") as tmp:  # --adapt: both passes timed
                 t = time.perf_counter()
                 vol = cv.reconstruct(cap["coded"], cap["mask"], method="nonlocal", adapt=True, dictionary=D,
                                      noise_sigma=sigma, data_range=255.0, cache=tmp, progress=False)
-                row["adapt"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+                row["adapt"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video, data_range=255.0)))
         t = time.perf_counter()
         vol = gap_tv(cap["coded"], cap["mask"])
-        row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video)))
+        row["gaptv"] = dict(seconds=time.perf_counter() - t, **_q(evaluate(vol, video, data_range=255.0)))
         rows.append(row)
         print("  ".join(table_row(row)), flush=True)
     return dict(case="nonlocal", size=list(size), frames=8, options=extra, rows=rows,

@@ -42,7 +42,7 @@ def test_adapting_to_the_capture_beats_the_shipped_dictionary_on_held_out_footag
     adapted, info = reconstruct_capture(capture_settings("omp", adapt=True, **common(D, tmp_path / "b")),
                                         cap["coded"], cap["mask"])
     assert info["adapted"]["adapted"] and info["adapted"]["samples"] == 7000
-    gain = evaluate(adapted, video)["psnr"] - evaluate(plain, video)["psnr"]
+    gain = evaluate(adapted, video, data_range=255.0)["psnr"] - evaluate(plain, video, data_range=255.0)["psnr"]
     assert gain > 0.3, gain  # measured +0.67 dB here, +0.4 to +1.0 on 64x64 and 96x96 crops of three scenes
 
 
@@ -86,7 +86,7 @@ def test_nonlocal_adapt_solves_its_groups_from_the_survey_not_from_default_tiles
     np.testing.assert_allclose(adapted, whole, rtol=0, atol=1e-3)
     plain, _ = reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings)),
                                    cap["coded"], cap["mask"])
-    assert evaluate(adapted, video)["psnr"] > evaluate(plain, video)["psnr"] + 0.3
+    assert evaluate(adapted, video, data_range=255.0)["psnr"] > evaluate(plain, video, data_range=255.0)["psnr"] + 0.3
 
 
 def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path, D, carphone):
@@ -119,7 +119,7 @@ def test_two_rounds_adapt_again_and_solve_a_third_pass_from_the_second(tmp_path,
     whole, _ = nonlocal_region(cap["coded"], cap["mask"], Db, one,
                                dataclasses.replace(settings, group_step=ADAPT_LAST_STEP))
     np.testing.assert_allclose(two, whole, rtol=0, atol=1e-3)
-    assert evaluate(two, video)["psnr"] > evaluate(one, video)["psnr"]
+    assert evaluate(two, video, data_range=255.0)["psnr"] > evaluate(one, video, data_range=255.0)["psnr"]
     assert info["seconds"]["adapt"] == pytest.approx(sum(r["seconds"] for r in info["adapted"]["rounds"]))
     # a rerun (resume) reuses every pass from the cache and gives the same bits
     again, info_again = reconstruct_capture(capture_settings("nonlocal", **dict(options, settings=settings),
@@ -253,7 +253,7 @@ def test_adapting_the_complete_dct_keeps_its_unused_atoms_and_gains_on_held_out_
     adapted, info = reconstruct_capture(capture_settings("dct", adapt=True, **common(None, tmp_path / "b")),
                                         cap["coded"], cap["mask"])
     assert info["adapted"]["adapted"] and info["adapted"]["unused_atoms"] == "kept"
-    gain = evaluate(adapted, video)["psnr"] - evaluate(plain, video)["psnr"]
+    gain = evaluate(adapted, video, data_range=255.0)["psnr"] - evaluate(plain, video, data_range=255.0)["psnr"]
     assert gain > 0.7, gain
     # the shipped (over-complete) dictionary's unused atoms are replaced, as K-SVD does
     shipped_record = adapt_dictionary(video[:8], load_dictionary(shipped.verified(8))[0])[1]

@@ -134,3 +134,18 @@ def test_import_is_light_and_the_docstring_examples_run():
 
     result = doctest.testmod(api)
     assert result.attempted >= 10 and result.failed == 0
+
+
+def test_a_dask_mosaic_under_bayer_gives_the_numpy_paths_colour_frames(tmp_path):
+    """`bayer=` with a dask mosaic gave a lazy (N, H, W) array whose computing failed ('coded (1, H, W); under
+    bayer= it is one mosaic (H, W)'); it now gives the numpy path's (3, N, H, W) frames."""
+    import dask.array as da
+
+    cap = tmp_path / "cap"
+    assert main(["-q", "simulate", "synth:color-default", "--frames", str(N), "--bump", "2", "--bayer", "rggb",
+                 "--size", "32", "32", "--output", str(cap)]) == 0
+    coded, mask = np.load(cap / "coded.npy"), np.load(cap / "mask.npy")
+    want = cv.reconstruct(coded, mask, bayer="RGGB")
+    lazy = cv.reconstruct(da.from_array(coded), mask, bayer="RGGB")
+    assert lazy.shape == want.shape == (3, N, 32, 32)
+    np.testing.assert_array_equal(lazy.compute(), want)

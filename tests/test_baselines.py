@@ -72,31 +72,31 @@ def test_thinout_keeps_read_rows_and_interpolates_linearly_between_them():
 def test_interp_beats_trivial_on_a_smooth_moving_scene_with_the_grid_code():
     truth = smooth_moving()
     cap = simulate_capture(truth, code=CodeSpec("grid", bump=1), sigma=0.0, seed=0)
-    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), truth)["psnr"]
-    got = evaluate(interp(cap["coded"], cap["mask"]), truth)["psnr"]
+    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), truth, data_range=255.0)["psnr"]
+    got = evaluate(interp(cap["coded"], cap["mask"]), truth, data_range=255.0)["psnr"]
     assert got > trivial + 3.0
 
 
 def test_thinout_beats_trivial_on_a_smooth_moving_scene():
     truth = smooth_moving()
     cap = simulate_capture(truth, code=CodeSpec("thinout", bump=1), sigma=0.0, seed=0)
-    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), truth)["psnr"]
-    assert evaluate(thinout(cap["coded"], cap["mask"]), truth)["psnr"] > trivial + 1.0
+    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), truth, data_range=255.0)["psnr"]
+    assert evaluate(thinout(cap["coded"], cap["mask"]), truth, data_range=255.0)["psnr"] > trivial + 1.0
 
 
 @pytest.mark.parametrize("code,bump", [("hitomi", 2), ("hitomi", 3), ("bernoulli", 1)])
 def test_gaptv_beats_the_trivial_estimate(scene, code, bump):
     cap = simulate_capture(scene, code=CodeSpec(code, bump=bump), sigma=0.0, seed=0)
-    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), scene)["psnr"]
+    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), scene, data_range=255.0)["psnr"]
     got = gap_tv(cap["coded"], cap["mask"])
-    assert evaluate(got, scene)["psnr"] > trivial + 1.0
+    assert evaluate(got, scene, data_range=255.0)["psnr"] > trivial + 1.0
     # the measurement is (nearly) met
     assert np.sqrt(np.mean((forward(got, cap["mask"]) - cap["coded"]) ** 2)) < 5.0
 
 
 def test_reconstruct_method_dispatch(scene, tmp_path):
     cap = simulate_capture(scene, code=CodeSpec("hitomi", bump=2), sigma=0.0, seed=0)
-    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), scene)["psnr"]
+    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), scene, data_range=255.0)["psnr"]
     for method in ("dct", "thinout", "interp", "gaptv"):
         start = time.perf_counter()
         vol, info = reconstruct_method(method, cap["coded"], cap["mask"], run=Execution(tile=32, cache=str(tmp_path)))
@@ -105,7 +105,7 @@ def test_reconstruct_method_dispatch(scene, tmp_path):
         assert info["method"] == method
         assert 0 < info["seconds"]["reconstruct"] <= wall  # the call's own time, not a placeholder
         if method in ("dct", "gaptv"):
-            assert evaluate(vol, scene)["psnr"] > trivial
+            assert evaluate(vol, scene, data_range=255.0)["psnr"] > trivial
     for method in ("omp", "nonlocal"):
         with pytest.raises(InputError, match=f"method {method}: needs a dictionary"):
             reconstruct_method(method, cap["coded"], cap["mask"])

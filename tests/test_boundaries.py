@@ -54,8 +54,8 @@ def test_the_boundary_step_is_no_worse_than_a_step_inside(stream):
 
 def test_psnr_does_not_fall(stream):
     captures, coded, mask, truth = stream
-    before = evaluate(np.concatenate(captures), truth)["psnr"]
-    after = evaluate(np.concatenate(_join_all(captures, coded, mask)), truth)["psnr"]
+    before = evaluate(np.concatenate(captures), truth, data_range=255.0)["psnr"]
+    after = evaluate(np.concatenate(_join_all(captures, coded, mask)), truth, data_range=255.0)["psnr"]
     assert after >= before - 0.05
 
 

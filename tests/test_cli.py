@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from codedvideo.app.cli import main
+
 CLI = [sys.executable, "-m", "codedvideo.app.cli"]
 
 
@@ -132,3 +134,9 @@ def test_a_reader_that_goes_away_ends_the_command_with_sigpipes_status_and_no_tr
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err, err
+
+
+def test_quiet_after_the_command_says_where_it_goes(capsys):
+    """`codedvideo reconstruct -q ...` said only `unrecognized arguments: -q`."""
+    assert main(["reconstruct", "-q", "--coded", "c.npy", "--mask", "m.npy", "--output", "r.npy"]) == 2
+    assert "-q goes before the command" in capsys.readouterr().err

@@ -51,14 +51,14 @@ def _recon(scene, D, cache, **kw):
         warnings.simplefilter("error", UserWarning)  # no "stopped early", no overflow: a clean run
         vol, info = reconstruct_method("omp", coded, mask, dictionary=D, settings=SETTINGS,
                                        run=Execution(tile=16, cache=cache), **kw)
-    return vol, info, evaluate(vol, video)["psnr"]
+    return vol, info, evaluate(vol, video, data_range=255.0)["psnr"]
 
 
 @pytest.fixture(scope="module")
 def reference(scene, dictionary, tmp_path_factory):
     vol, info, psnr = _recon(scene, dictionary, tmp_path_factory.mktemp("ref"))
     video, mask, coded = scene
-    assert psnr > evaluate(static_estimate(coded, mask), video)["psnr"] + 2  # a meaningful reconstruction
+    assert psnr > evaluate(static_estimate(coded, mask), video, data_range=255.0)["psnr"] + 2  # a meaningful reconstruction
     return vol, info, psnr
 
 
@@ -97,7 +97,7 @@ def test_omp_floors_are_relative_without_prepare(dictionary, code, scale, tmp_pa
         vol, info = reconstruct_volume(coded, mask, D * np.float32(scale), settings=SETTINGS,
                                        run=Execution(tile=16, cache=tmp_path / "b", progress=False))
     assert info["dependent_stops"] == 0
-    assert abs(evaluate(vol, video)["psnr"] - evaluate(ref, video)["psnr"]) < PSNR_TOL
+    assert abs(evaluate(vol, video, data_range=255.0)["psnr"] - evaluate(ref, video, data_range=255.0)["psnr"]) < PSNR_TOL
 
 
 def test_batched_omp_selects_the_same_atoms_at_any_global_scale(rng):

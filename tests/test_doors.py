@@ -11,6 +11,7 @@ import codedvideo as cv
 from codedvideo.engine import captures
 
 SIZE, N = 48, 8
+SMALL = 16  # the side of the captures that need no more
 
 
 def _capture():
@@ -73,3 +74,49 @@ def test_a_rule_between_settings_is_named_by_each_door_and_refused_before_traini
     assert main(["-q", "run", str(tmp_path / "p.yaml")]) == 2
     assert "dictionary.atoms = 2: below dictionary.sparsity 6" in capsys.readouterr().err
     assert not (tmp_path / "d.zarr").exists() and not (tmp_path / "out").exists()
+
+
+def test_a_muted_call_keeps_its_own_warnings_and_leaves_other_threads_theirs():
+    """The first passes of --adapt and a Bayer capture's channels mute warnings their last job says again; they
+    did so with ``warnings.catch_warnings``, which changes the filters of the whole process, so a reconstruction
+    in another thread lost its warnings meanwhile."""
+    import threading
+
+    from codedvideo.model import doors
+
+    with pytest.warns(UserWarning) as said:
+        with doors.muted("never open"):
+            doors.warn("12 pixels are never open")  # muted: this call's own
+            doors.warn("said: another warning of this call")
+            with doors.muted():
+                doors.warn("muted: everything in the inner block")
+            other = threading.Thread(target=doors.warn, args=("said: 3 pixels are never open (another thread)",))
+            other.start()
+            other.join()
+        doors.warn("said: 5 pixels are never open, after the block")
+    assert sorted(str(w.message) for w in said) == [
+        "said: 3 pixels are never open (another thread)", "said: 5 pixels are never open, after the block",
+        "said: another warning of this call"]
+
+
+def test_a_command_quoted_in_an_api_message_keeps_its_options():
+    """The API's messages name its arguments, but a command they quote is run as written (`--frames`, not
+    `frames`)."""
+    mask = cv.make_code("hitomi", (SMALL, SMALL), frames=4, bump=2, seed=0)
+    with pytest.raises(cv.InputError) as raised:
+        cv.reconstruct(np.ones((SMALL, SMALL), np.float32), mask)
+    assert "`codedvideo train --frames 4 --output dict-N4.zarr`" in str(raised.value), str(raised.value)
+
+
+def test_a_dask_inputs_warnings_name_the_apis_arguments():
+    """Warnings said while a dask input's graph is computed named the command line's options (--tol-rms)."""
+    import dask.array as da
+
+    mask = cv.make_code("hitomi", (SMALL, SMALL), frames=N, bump=2, seed=0)
+    coded = cv.simulate(cv.synthetic_scene("default", frames=N, size=(SMALL, SMALL)), mask)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        cv.reconstruct(da.from_array(coded), mask, data_range=65535).compute()
+    messages = [str(w.message) for w in said]
+    assert any("data_range" in m for m in messages), messages
+    assert not any("--" in m for m in messages), messages

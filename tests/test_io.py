@@ -1,9 +1,15 @@
 """Real files written and read back; bad files give one clear error."""
+import warnings
+
 import numpy as np
 import pytest
 
+import codedvideo as cv
+from codedvideo.app.cli import main
 from codedvideo.formats import io as cio
 from codedvideo.model.errors import InputError
+
+N, SIZE = 8, 16
 
 
 @pytest.fixture
@@ -362,3 +368,115 @@ def test_a_video_written_again_is_the_same_bytes(tmp_path, suffix):
     first = cio.write_video(tmp_path / f"a{suffix}", frames).read_bytes()
     time.sleep(1.1)  # (a date in whole seconds would differ)
     assert cio.write_video(tmp_path / f"b{suffix}", frames).read_bytes() == first
+
+
+@pytest.mark.parametrize("planes", [2, 4, 5])
+def test_color_channels_refuses_an_npy_of_other_than_1_or_3_planes_before_any_work(tmp_path, capsys, planes):
+    """`--color channels` on a (5, H, W) .npy (a stream of captures) took it for 5 colour channels, ran the whole
+    reconstruction and failed only at the video writer; now it is refused first, naming the file."""
+    video = cv.synthetic_scene("default", frames=N, size=(SIZE, SIZE))
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    np.save(tmp_path / "coded.npy", np.stack([coded] * planes))
+    np.save(tmp_path / "mask.npy", mask)
+    cache = tmp_path / "cache"
+    capsys.readouterr()
+    rc = main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+               "--color", "channels", "--cache", str(cache), "--output", str(tmp_path / "out.mp4")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "coded.npy" in err and f"{planes} colour channels" in err, err
+    assert not (tmp_path / "out.mp4").exists() and not (cache.exists() and any(cache.iterdir()))
+
+
+def test_color_channels_refuses_a_stack_of_other_than_1_or_3_channels(tmp_path):
+    from codedvideo.formats.io import read_stack
+
+    np.save(tmp_path / "mask.npy", np.ones((5, N, SIZE, SIZE), np.float32))
+    with pytest.raises(cv.InputError, match="mask.npy: 5 colour channels"):
+        read_stack(tmp_path / "mask.npy", color="channels")
+    np.save(tmp_path / "rgb.npy", np.ones((3, N, SIZE, SIZE), np.float32))
+    assert read_stack(tmp_path / "rgb.npy", color="channels").shape == (3, N, SIZE, SIZE)
+
+
+def test_a_coded_stream_read_from_a_lossy_video_is_warned_of(tmp_path):
+    """An H.264 .mp4 was taken as the coded stream without a word, though its compression changes the values the
+    sensor recorded (the docs ask for a lossless video); FFV1 in .mkv is read as it is, silently."""
+    from codedvideo.formats.io import write_video
+    from codedvideo.formats.volumes import read_coded_stack
+
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    video = cv.synthetic_scene("default", frames=3 * N, size=(SIZE, SIZE))
+    coded = np.round(cv.simulate(video, np.stack([mask] * 3)) / 2).astype(np.float32)  # (3, H, W), within 8 bits
+    write_video(tmp_path / "c.mp4", coded)
+    write_video(tmp_path / "c.mkv", coded)
+    with pytest.warns(UserWarning, match="c.mp4: a h264 video, whose compression changes the values"):
+        read_coded_stack(tmp_path / "c.mp4")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        stack = read_coded_stack(tmp_path / "c.mkv")
+    np.testing.assert_array_equal(np.stack([stack[i] for i in range(len(stack))]), coded)
+
+
+def test_a_tiff_of_separate_planes_read_as_one_capture_is_said(tmp_path):
+    """tifffile stores a (3, H, W) array as planar RGB: a stack of three captures saved so was read as one capture,
+    their luma, with no word.  It is now warned of; an interleaved colour TIFF is not."""
+    tifffile = pytest.importorskip("tifffile")
+    from codedvideo.formats import io as cio
+
+    stack = np.arange(3 * 8 * 8, dtype=np.uint16).reshape(3, 8, 8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # (tifffile's own, about this very layout)
+        tifffile.imwrite(tmp_path / "planes.tif", stack)
+    tifffile.imwrite(tmp_path / "rgb.tif", np.moveaxis(stack, 0, -1), photometric="rgb")
+    for name, warned in (("planes.tif", True), ("rgb.tif", False)):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            assert cio.read_image(tmp_path / name).shape == (8, 8)
+        messages = [str(w.message) for w in said if "separate planes" in str(w.message)]
+        assert bool(messages) == warned, name
+        if warned:
+            assert "planes.tif" in messages[0] and "3 channels" in messages[0], messages
+
+
+def test_float_tiffs_read_back_without_optional_codecs(tmp_path):
+    """The float TIFFs codedvideo writes used libtiff's floating-point predictor, which tifffile and scikit-image
+    decode only with the optional imagecodecs package; they are now plain deflate, read by both as written."""
+    tifffile = pytest.importorskip("tifffile")
+    from codedvideo.formats import io as cio
+
+    frames = np.random.default_rng(0).random((3, 8, 8)).astype(np.float32)
+    cio.write_stack(tmp_path / "s.tif", frames)
+    cio.write_image(tmp_path / "f.tif", frames[0])
+    with tifffile.TiffFile(tmp_path / "s.tif") as tif:
+        assert tif.pages[0].predictor == 1 and tif.pages[0].compression == 8  # none, deflate
+    assert np.array_equal(tifffile.imread(tmp_path / "s.tif"), frames)
+    assert np.array_equal(tifffile.imread(tmp_path / "f.tif"), frames[0])
+
+
+def test_a_folder_with_one_image_of_another_size_names_it(tmp_path, capsys):
+    """A mask folder with one odd-sized image said `frames differ in shape [(32, 32), (64, 64)]`, naming no file."""
+    from codedvideo.formats import io as cio
+
+    (tmp_path / "m").mkdir()
+    for i in range(3):
+        cio.write_image(tmp_path / "m" / f"m{i}.png", np.full((16, 16) if i == 2 else (32, 32), 255, np.uint8))
+    np.save(tmp_path / "coded.npy", np.ones((32, 32), np.float32))
+    assert main(["reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "m"),
+                 "--output", str(tmp_path / "r.npy")]) == 2
+    assert "m2.png is (16, 16), m0.png (32, 32)" in capsys.readouterr().err
+    assert not (tmp_path / "r.npy").exists()
+
+
+def test_a_raw_value_beyond_the_bits_in_a_folder_names_its_file(tmp_path, capsys):
+    """`--bits 8` on a folder of 16-bit PNGs named the folder and the capture's number, not the file."""
+    from codedvideo.formats import io as cio
+
+    (tmp_path / "coded").mkdir()
+    for i in range(3):
+        cio.write_image(tmp_path / "coded" / f"c{i}.png", np.full((32, 32), 300 if i == 1 else 100, np.uint16),
+                        dtype="uint16")
+    np.save(tmp_path / "mask.npy", np.ones((8, 32, 32), np.uint8))
+    assert main(["reconstruct", "--coded", str(tmp_path / "coded"), "--mask", str(tmp_path / "mask.npy"),
+                 "--bits", "8", "--output", str(tmp_path / "r.npy")]) == 2
+    assert "capture 2 of 3 (c1.png): value 300 is above 255" in capsys.readouterr().err

@@ -1,4 +1,8 @@
+import inspect
+
 import numpy as np
+
+import codedvideo as cv
 
 from codedvideo.solvers.dictionaries import dct_dictionary, training_patches
 from codedvideo.solvers.ksvd import ksvd
@@ -64,3 +68,15 @@ def test_training_patches_augment_and_are_seeded(rng):
     # at least the set of patches is not identical to unaugmented sampling
     c = training_patches([v], frames=4, samples=200, rng=3, augment=False)
     assert not np.array_equal(a, c)
+
+
+def test_the_k_svd_defaults_are_one_set_through_the_api_the_config_and_the_solver():
+    from codedvideo.engine.config import DictionaryConfig
+    from codedvideo.solvers.dictionaries import KsvdSettings, learn_dictionary
+
+    api = inspect.signature(cv.train).parameters
+    solver = inspect.signature(learn_dictionary).parameters["settings"].default
+    assert solver == KsvdSettings()
+    for key in ("atoms", "samples", "iterations", "sparsity"):
+        config = DictionaryConfig.model_fields[key].default
+        assert api[key].default == getattr(solver, key) == config, (key, api[key].default, getattr(solver, key), config)

@@ -1,16 +1,21 @@
 """Strict JSON: metrics never print Infinity or NaN (json_safe turns them into null)."""
 import json
 import math
+import warnings
 
 import numpy as np
 import pytest
 
+import codedvideo as cv
+from codedvideo.app.cli import main
 from codedvideo.model.metrics import PSNR_CEILING, evaluate, json_safe
+
+N, SIZE = 8, 16
 
 
 def test_psnr_of_identical_volumes_is_strict_json():
     v = np.full((3, 16, 16), 100.0, np.float32)
-    metrics = evaluate(v, v)
+    metrics = evaluate(v, v, data_range=255.0)
     assert math.isinf(metrics["psnr_per_frame"][0])  # a frame's own PSNR stays +inf
     assert metrics["psnr"] == PSNR_CEILING  # (the mean counts each frame at most at the ceiling)
     with pytest.raises(ValueError):
@@ -67,7 +72,7 @@ def test_finite_values_are_preserved_exactly_and_the_input_is_not_changed():
 def test_evaluate_of_a_real_reconstruction_is_unchanged():
     rng = np.random.default_rng(1)
     truth = (rng.random((2, 12, 12)) * 255).astype(np.float32)
-    metrics = evaluate(truth + rng.normal(0, 3, truth.shape).astype(np.float32), truth)
+    metrics = evaluate(truth + rng.normal(0, 3, truth.shape).astype(np.float32), truth, data_range=255.0)
     assert json_safe(metrics) == metrics
 
 
@@ -79,10 +84,10 @@ def test_an_exact_frame_counts_at_the_ceiling_in_the_mean_psnr():
     recon = truth.copy()
     recon[1] += rng.normal(0, 4, (16, 16))
     recon[2] += rng.normal(0, 8, (16, 16))
-    m = evaluate(recon, truth)
+    m = evaluate(recon, truth, data_range=255.0)
     assert m["exact_frames"] == 1 and np.isinf(m["psnr_per_frame"][0])
     assert m["psnr"] == pytest.approx(np.mean([PSNR_CEILING, *m["psnr_per_frame"][1:]]))
-    assert evaluate(truth, truth)["psnr"] == PSNR_CEILING  # every frame exact: the ceiling, not null
+    assert evaluate(truth, truth, data_range=255.0)["psnr"] == PSNR_CEILING  # every frame exact: the ceiling, not null
 
 
 def test_the_mean_psnr_does_not_change_with_the_outputs_quantisation():
@@ -93,9 +98,9 @@ def test_the_mean_psnr_does_not_change_with_the_outputs_quantisation():
     recon = truth.copy()
     recon[1:] += rng.normal(0, 6, (2, 32, 32))
     recon = np.clip(recon, 0, 255)
-    as_float = evaluate(recon, truth)["psnr"]
-    as_16_bit = evaluate(np.round(recon / 255 * 65535) * 255 / 65535, truth)["psnr"]
-    as_8_bit = evaluate(np.round(recon), truth)["psnr"]
+    as_float = evaluate(recon, truth, data_range=255.0)["psnr"]
+    as_16_bit = evaluate(np.round(recon / 255 * 65535) * 255 / 65535, truth, data_range=255.0)["psnr"]
+    as_8_bit = evaluate(np.round(recon), truth, data_range=255.0)["psnr"]
     assert as_16_bit == pytest.approx(as_float, abs=0.01)
     assert as_8_bit == pytest.approx(as_float, abs=0.1)
 
@@ -228,3 +233,39 @@ def test_the_same_output_named_relative_then_absolute_is_not_said_to_replace_ano
     assert main([*args, "--output", str(tmp_path / "rec.npy"), "--overwrite"]) == 0
     assert not [w for w in recwarn if "held the record" in str(w.message)], [str(w.message) for w in recwarn]
     assert json.loads((tmp_path / "rec.metrics.json").read_text())["output"] == str(tmp_path / "rec.npy")
+
+
+def test_evaluate_scores_colour_volumes_alike_through_both_doors(tmp_path, capsys):
+    """`codedvideo evaluate` scored (3, N, H, W) colour volumes (every channel's frames) where `cv.evaluate` refused
+    them; colour against grey is scored as luma, with a warning, through both."""
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0, 255, (3, N, SIZE, SIZE)).astype(np.float32)
+    recon = np.clip(truth + rng.normal(0, 4, truth.shape), 0, 255).astype(np.float32)
+    np.save(tmp_path / "t.npy", truth)
+    np.save(tmp_path / "r.npy", recon)
+    api = cv.evaluate(recon, truth)
+    assert api["psnr"] == pytest.approx(cv.evaluate(recon.reshape(-1, SIZE, SIZE), truth.reshape(-1, SIZE, SIZE))["psnr"])
+    capsys.readouterr()
+    assert main(["-q", "evaluate", "--recon", str(tmp_path / "r.npy"), "--truth", str(tmp_path / "t.npy")]) == 0
+    assert json.loads(capsys.readouterr().out)["psnr"] == pytest.approx(api["psnr"])
+    grey = np.tensordot(np.array([0.299, 0.587, 0.114], np.float32), truth, axes=([0], [0]))
+    with pytest.warns(UserWarning, match="is colour and .* grey; compared as luma"):
+        luma = cv.evaluate(recon, grey)
+    np.save(tmp_path / "g.npy", grey)
+    with pytest.warns(UserWarning, match="compared as luma"):
+        assert main(["-q", "evaluate", "--recon", str(tmp_path / "r.npy"), "--truth", str(tmp_path / "g.npy")]) == 0
+    assert json.loads(capsys.readouterr().out)["psnr"] == pytest.approx(luma["psnr"])
+
+
+def test_evaluate_says_only_the_nan_and_checks_its_data_range_as_the_command_line():
+    """A NaN reconstruction was warned of as 'peaks at nan ... same units?' before its error; a data range of 0
+    raised InputError where reconstruct raises ConfigError."""
+    truth = np.linspace(0, 255, N * SIZE * SIZE, dtype=np.float32).reshape(N, SIZE, SIZE)
+    bad = truth.copy()
+    bad[0, 0, 0] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(cv.InputError, match="NaN"):
+            cv.evaluate(bad, truth)
+    with pytest.raises(cv.ConfigError, match="option data_range 0"):
+        cv.evaluate(truth, truth, data_range=0)

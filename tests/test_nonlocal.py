@@ -1,8 +1,11 @@
 """The non-local method (issue 16): grouping, the joint solve under different codes, stiff inputs."""
 
+import warnings
+
 import numpy as np
 import pytest
 
+import codedvideo as cv
 from codedvideo.solvers.nonlocal_sc import joint_omp, match_groups, nonlocal_region
 from codedvideo.solvers.region import OmpSettings, reconstruct_region
 
@@ -426,7 +429,7 @@ def test_a_large_atom_budget_does_not_make_the_members_fit_their_codes(max_atoms
     first, _ = reconstruct_region(cap["coded"], cap["mask"], D, s)
     vol, _ = nonlocal_region(cap["coded"], cap["mask"], D, first, s)
     assert np.isfinite(vol).all() and -64 < vol.min() and vol.max() < 320
-    assert evaluate(vol, video)["psnr"] > evaluate(first, video)["psnr"] - 0.5
+    assert evaluate(vol, video, data_range=255.0)["psnr"] > evaluate(first, video, data_range=255.0)["psnr"] - 0.5
 
 
 def test_a_code_with_too_many_patterns_for_the_method_says_so(tmp_path):
@@ -467,3 +470,43 @@ def test_a_noisy_stream_whose_blocks_have_no_still_reference_runs(tmp_path, caps
                  "--truth", str(tmp_path / "truth.npy"), "--noise-sigma", "2", "--method", "nonlocal", "--tile", "32",
                  "--output", str(tmp_path / "r.npy"), "--cache", str(tmp_path / "cache")]) == 0
     assert np.isfinite(np.load(tmp_path / "r.npy")).all()
+
+
+def test_a_block_of_missing_pixels_stays_within_sensible_values_with_the_non_local_method(tmp_path):
+    """An 8x8 square of bad pixels (or of saturated ones) ended `--preset best` and `nonlocal --adapt` with a
+    RuntimeError traceback (the survey's grid patch inside it is no reference, and no group reached the pixels
+    around it), and a 13x13 one gave values from -2031 to 2612 (groups' atoms fitted to the few measured pixels
+    of a corner).  Patches that see too few measurements are now in no group, and pixels no group reaches keep
+    the first estimate: every value within the default's spread, the rest of the frame better than the
+    default's."""
+    video = cv.synthetic_scene("default", frames=8, size=(64, 64))
+    mask = cv.make_code("hitomi", (64, 64), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    for y0, side in ((20, 8), (15, 13)):
+        bad = np.zeros((64, 64), bool)
+        bad[y0:y0 + side, y0:y0 + side] = True  # (the first holds the survey's grid patch at 21..27)
+        default = cv.reconstruct(coded, mask, bad_pixels=bad)
+        frames = cv.reconstruct(coded, mask, method="nonlocal", adapt=True, bad_pixels=bad)
+        assert np.isfinite(frames).all()
+        spread = default.max() - default.min()
+        assert default.min() - spread / 2 < frames.min() and frames.max() < default.max() + spread / 2, side
+        far = np.ones((64, 64), bool)
+        far[y0 - 6:y0 + side + 6, y0 - 6:y0 + side + 6] = False  # the square and the patches that reach into it
+        error = {name: float(np.mean((f[:, far] - video[:, far]) ** 2)) for name, f in (("adapt", frames),
+                                                                                     ("omp", default))}
+        assert error["adapt"] < error["omp"], (side, error)
+
+
+def test_the_fallback_of_the_non_local_method_says_the_dictionary_was_adapted():
+    """A calibrated mask of many pixel patterns gives the per-patch OMP in place of the groups; with `--adapt` its
+    dictionary is the adapted one, where the warning called it the default's answer."""
+    video = cv.synthetic_scene("default", frames=8, size=(32, 32))
+    mask = cv.make_code("hitomi", (32, 32), frames=8, bump=2, seed=0).astype(np.float32)
+    mask = np.clip(mask * 0.9 + np.random.default_rng(0).random(mask.shape).astype(np.float32) * 0.1, 0, 1)
+    coded = cv.simulate(video, mask)
+    for adapt in (True, False):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            cv.reconstruct(coded, mask, method="nonlocal", adapt=adapt)
+        fallback = [str(w.message) for w in said if "distinct pixel shutter patterns" in str(w.message)]
+        assert len(fallback) == 1 and ("with the adapted dictionary" in fallback[0]) == adapt, fallback

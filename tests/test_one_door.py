@@ -1,7 +1,8 @@
 """One door: the command line and the Python API take the same arrays to the same bits, refuse the same inputs
 with the same one-line message (the API's with an exception class of the package's, naming its arguments), and
-simulate with one sensor model.  Each probe finding here failed before the CLI became a shell over the API."""
+simulate with one sensor model."""
 import json
+import re
 import warnings
 
 import numpy as np
@@ -11,6 +12,7 @@ import codedvideo as cv
 from codedvideo.app.cli import main
 
 N, SIZE = 8, 48
+SMALL = 16  # the side of the captures that need no more
 
 
 @pytest.fixture(scope="module")
@@ -170,3 +172,200 @@ def test_a_presets_record_is_the_same_from_pipeline_yaml_and_the_command_line(tm
     # each reason in its door's terms: pipeline.yaml's keys, the command line's options
     assert yaml_record["left_out"]["adapt_rounds"] == "applies with reconstruct.adapt only"
     assert cli_record["left_out"]["adapt_rounds"] == "applies with --adapt only"
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_simulate_refuses_a_video_with_nan_or_inf_through_both_doors(tmp_path, capsys, bad):
+    video = cv.synthetic_scene("default", frames=N, size=(SMALL, SMALL))
+    video[3, 4, 5] = bad
+    mask = cv.make_code("hitomi", (SMALL, SMALL), frames=N, bump=2)
+    with pytest.raises(cv.InputError) as raised:
+        cv.simulate(video, mask)
+    api = str(raised.value)
+    assert "\n" not in api and "video" in api and "contains NaN or Inf" in api, api
+    np.save(tmp_path / "video.npy", video)
+    capsys.readouterr()
+    rc = main(["-q", "simulate", str(tmp_path / "video.npy"), "--frames", str(N), "--output", str(tmp_path / "cap")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert "video.npy" in err and "contains NaN or Inf" in err, err
+    assert not (tmp_path / "cap").exists()
+
+
+@pytest.mark.parametrize("call, said", [
+    (lambda: cv.simulate(np.ones((N, SMALL, SMALL)), cv.make_code("global", (SMALL, SMALL), frames=N), seed=-1),
+     "option seed -1"),
+    (lambda: cv.make_code("bernoulli", (SMALL, SMALL), frames=N, seed=-1), "option seed -1"),
+    (lambda: cv.make_code("bernoulli", (SMALL, SMALL), frames=N, seed=1.5), "option seed 1.5"),
+    (lambda: cv.make_code("hitomi", (SMALL, SMALL), frames=N, bump=2, p=0.3), "p: code 'hitomi' does not use it"),
+    (lambda: cv.make_code("bernoulli", (SMALL, SMALL), frames=N, bump=3), "bump: code 'bernoulli' does not use it"),
+])
+def test_the_apis_seed_and_code_options_are_checked_as_the_command_lines_are(call, said):
+    """A bad seed raised numpy's own error, and a code option the code does not use was taken silently; the command
+    line refuses both with one line naming the option."""
+    with pytest.raises(cv.ConfigError, match=re.escape(said)):
+        call()
+
+
+@pytest.mark.parametrize("factor", [1 / 255, 257.0])
+def test_a_truth_in_other_units_than_the_capture_is_said_before_work_through_both_doors(tmp_path, factor):
+    """`reconstruct --truth` with the truth in [0, 1] (or 16-bit) against an 8-bit capture: every PSNR would mean
+    nothing (19 dB, -29 dB), so both doors warn, as `evaluate` does; a truth in the capture's units is not warned."""
+    video = cv.synthetic_scene("default", frames=N, size=(32, 32))
+    mask = cv.make_code("hitomi", (32, 32), frames=N, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    with pytest.warns(UserWarning, match="truth peaks at .* are they in the same units"):
+        cv.reconstruct(coded, mask, truth=video * np.float32(factor), full_output=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cv.reconstruct(coded, mask, truth=video, full_output=True)
+    for name, array in (("coded", coded), ("mask", mask), ("truth", video * np.float32(factor)), ("good", video)):
+        np.save(tmp_path / f"{name}.npy", array)
+    for truth, warned in (("truth", True), ("good", False)):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            rc = main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask",
+                       str(tmp_path / "mask.npy"), "--truth", str(tmp_path / f"{truth}.npy"), "--output",
+                       str(tmp_path / f"{truth}-out.npy")])
+        messages = [str(w.message) for w in said]
+        assert rc == 0 and any("are they in the same units" in m for m in messages) == warned, messages
+
+
+def test_a_black_truth_is_not_warned_of_as_other_units():
+    """A truth black throughout says nothing of its units: reconstruct warned 'truth peaks at 0 ... same units?'."""
+    mask = cv.make_code("hitomi", (SMALL, SMALL), frames=N, bump=2, seed=0)
+    video = cv.synthetic_scene("default", frames=N, size=(SMALL, SMALL))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        cv.reconstruct(cv.simulate(video, mask), mask, truth=np.zeros_like(video), full_output=True)
+    assert not any("same units" in str(w.message) for w in said), [str(w.message) for w in said]
+
+
+@pytest.fixture()
+def capture_files(tmp_path):
+    video = cv.synthetic_scene("default", frames=N, size=(SMALL, SMALL))
+    mask = cv.make_code("hitomi", (SMALL, SMALL), frames=N, bump=2, seed=0)
+    np.save(tmp_path / "coded.npy", cv.simulate(video, mask))
+    np.save(tmp_path / "mask.npy", mask)
+    return ["--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy")]
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--trust-saturated"], "--trust-saturated: keeps the pixels --white-level or --bits marks saturated"),
+    (["--fps", "24"], "--fps 24 with --output"),
+])
+def test_reconstruct_refuses_a_flag_it_would_ignore_before_any_work(tmp_path, capsys, capture_files, extra, said):
+    """`--trust-saturated` without a white level or bit depth, and `--fps` with an array output, changed
+    nothing and were taken silently; refused as any ignored value is (docs/guarantees.md)."""
+    capsys.readouterr()
+    rc = main(["-q", "reconstruct", *capture_files, "--output", str(tmp_path / "out.npy"), *extra])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and said in err, err
+    assert not (tmp_path / "out.npy").exists()
+    assert main(["-q", "reconstruct", *capture_files, "--output", str(tmp_path / "out.mp4"), "--fps", "24"]) == 0
+
+
+def test_the_api_refuses_trust_saturated_without_a_white_level_in_its_own_terms(capture_files):
+    coded, mask = np.load(capture_files[1]), np.load(capture_files[3])
+    with pytest.raises(cv.ConfigError, match="option trust_saturated: keeps the pixels white_level or bits"):
+        cv.reconstruct(coded, mask, trust_saturated=True)
+
+
+def test_the_api_takes_bad_pixels_as_an_array_and_gives_the_files_bits(tmp_path, capture_files):
+    """`bad_pixels=[[1, 1]]` raised a bare TypeError; an array of (y, x) rows (or a map) is now taken as the file
+    of the same rows is, through both doors; a row outside the image is the file's one-line error."""
+    coded, mask = np.load(capture_files[1]), np.load(capture_files[3])
+    rows = np.array([[1, 1], [5, 9]])
+    np.save(tmp_path / "bad.npy", rows)
+    from_array = cv.reconstruct(coded, mask, bad_pixels=rows.tolist(), full_output=True)
+    json.dumps(from_array.record, default=str)
+    np.testing.assert_array_equal(from_array.frames, cv.reconstruct(coded, mask, bad_pixels=str(tmp_path / "bad.npy")))
+    bad_map = np.zeros(coded.shape, bool)
+    bad_map[1, 1] = bad_map[5, 9] = True
+    np.testing.assert_array_equal(from_array.frames, cv.reconstruct(coded, mask, bad_pixels=bad_map))
+    assert main(["-q", "reconstruct", *capture_files, "--bad-pixels", str(tmp_path / "bad.npy"),
+                 "--output", str(tmp_path / "r.npy")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "r.npy"), from_array.frames)
+    with pytest.raises(cv.InputError, match="bad_pixels"):
+        cv.reconstruct(coded, mask, bad_pixels=[[1, 99]])
+
+
+@pytest.mark.parametrize("frames", [1, 4])
+def test_a_code_that_opens_every_pixel_alike_needs_no_dictionary_through_both_doors(tmp_path, capsys, frames):
+    """A global shutter (N = 1, or every pixel open in all 4 sub-frames) is solved by the static estimate,
+    coded / N (docs/guarantees.md), yet asked for a dictionary of N that is not shipped; it no longer does, and a
+    code that moves at that N still does."""
+    video = cv.synthetic_scene("default", frames=frames, size=(SMALL, SMALL))
+    mask = np.ones((frames, SMALL, SMALL), np.uint8)
+    coded = cv.simulate(video, mask)
+    frames_out = cv.reconstruct(coded, mask)
+    np.testing.assert_allclose(frames_out, np.broadcast_to(coded / frames, frames_out.shape), rtol=1e-6)
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                 "--output", str(tmp_path / "out.npy")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "out.npy"), frames_out)
+    if frames > 1:
+        moving = cv.make_code("hitomi", (SMALL, SMALL), frames=frames, bump=2, seed=0)
+        with pytest.raises(cv.InputError, match=f"no dictionary is shipped for N = {frames}"):
+            cv.reconstruct(cv.simulate(video, moving), moving)
+
+
+def test_one_mask_as_a_stack_of_one_is_shared_by_a_stream_through_both_doors(tmp_path):
+    """The command line shares a (1, N, H, W) mask among T captures; the API refused it ('6 coded images, 1
+    masks'); both now share it, with the same bits as the (N, H, W) mask."""
+    import dask.array as da
+
+    mask = cv.make_code("hitomi", (SMALL, SMALL), frames=N, bump=2, seed=0)
+    video = cv.synthetic_scene("default", frames=3 * N, size=(SMALL, SMALL))
+    coded = cv.simulate(video, mask[None].repeat(3, 0))
+    want = cv.reconstruct(coded, mask)
+    np.testing.assert_array_equal(cv.reconstruct(coded, mask[None]), want)
+    np.testing.assert_array_equal(cv.reconstruct(da.from_array(coded, chunks=(1, SMALL, SMALL)), mask[None]).compute(),
+                                  want)
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask[None])
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                 "--output", str(tmp_path / "r.npy")]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "r.npy"), want)
+
+
+def test_a_data_range_far_above_the_captures_is_said_through_both_doors(tmp_path):
+    """camera.md's own `--data-range 4095`, given for 8-bit frames: no word, a PSNR of 51.1 dB that is 27.0 at 255,
+    and a tolerance 16 times too loose.  Both doors now warn before any work; the range that fits does not."""
+    video = cv.synthetic_scene("default", frames=8, size=(32, 32))
+    mask = cv.make_code("hitomi", (32, 32), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    for given, warned in ((4095.0, True), (255.0, False)):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            cv.reconstruct(coded, mask, data_range=given)
+        messages = [str(w.message) for w in said if "under 1/16 of the data range" in str(w.message)]
+        assert bool(messages) == warned, (given, [str(w.message) for w in said])
+        if warned:
+            assert "data range 4095 given (data_range)" in messages[0], messages
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                     "--data-range", "4095", "--output", str(tmp_path / "r.npy")]) == 0
+    said = [str(w.message) for w in said]
+    assert any("coded.npy" in m and "data range 4095 given (--data-range)" in m for m in said), said
+
+
+def test_a_nan_in_a_stream_names_its_capture_through_both_doors(tmp_path, capsys):
+    """The command line said `capture 3` of a stream's NaN; the API, numpy and dask alike, named none."""
+    da = pytest.importorskip("dask.array")
+    video = cv.synthetic_scene("default", frames=8, size=(32, 32))
+    mask = cv.make_code("hitomi", (32, 32), frames=8, bump=2, seed=0)
+    coded = np.stack([cv.simulate(video, mask)] * 3)
+    coded[2, 3, 3] = np.nan
+    for given in (coded, da.from_array(coded, chunks=(1, 32, 32))):
+        with pytest.raises(cv.InputError, match=r"contains NaN or Inf \(capture 3 of 3\)"):
+            out = cv.reconstruct(given, mask)
+            getattr(out, "compute", lambda: out)()
+    with pytest.raises(cv.InputError, match=r"truth: contains NaN or Inf \(frame 9 of 24\)"):
+        truth = np.concatenate([video] * 3)
+        truth[8, 0, 0] = np.inf
+        cv.reconstruct(np.nan_to_num(coded), mask, truth=truth)

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
+import codedvideo as cv
 from conftest import capture_settings
+from codedvideo.app.cli import main
 from codedvideo.model.codes import CodeSpec, check_code, make_code
 from codedvideo.model.errors import InputError
 from codedvideo.model.physics import (
@@ -20,6 +22,8 @@ from codedvideo.model.physics import (
     saturated_as_missing,
     simulate,
 )
+
+N, SIZE = 8, 16
 
 
 @pytest.fixture
@@ -302,7 +306,7 @@ def test_saturated_pixels_are_kept_and_record_at_least_the_white_level(tmp_path,
     assert saturated.mean() > 0.01 and info["saturated_raised"] > 0 and info["saturated_pixels"] == saturated.sum()
     assert ((mask * vol).sum(0)[saturated] >= W - 1e-2).all()
     np.testing.assert_array_equal(vol[:, ~saturated], exact[:, ~saturated])
-    q = {name: evaluate(v, video)["psnr"] for name, v in dict(kept=vol, exact=exact, left_out=left_out).items()}
+    q = {name: evaluate(v, video, data_range=255.0)["psnr"] for name, v in dict(kept=vol, exact=exact, left_out=left_out).items()}
     assert q["kept"] >= q["exact"] and q["kept"] > q["left_out"], q
 
 
@@ -347,3 +351,35 @@ def test_a_capture_at_the_sensors_ceiling_everywhere_is_warned(tmp_path, capsys)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the same sensor on the 8-bit video: nothing to say
         assert _cli("simulate", tmp_path / "v8.npy", "--frames", 8, "--shot-noise", "--output", tmp_path / "b") == 0
+
+
+def test_simulate_bits_with_a_white_level_spans_it_in_the_videos_units_as_documented():
+    """`bits=8, white_level=200`: the 256 levels of an ADC whose full scale is 200 grey levels (docs/api.md), so the
+    values are multiples of 200 / 255, not raw counts; they reconstruct as grey levels (no `bits`)."""
+    video = cv.synthetic_scene("default", frames=N, size=(SIZE, SIZE))
+    mask = cv.make_code("hitomi", (SIZE, SIZE), frames=N, bump=2, seed=0)
+    coded = cv.simulate(video, mask, sensor=dict(bits=8, white_level=200.0))
+    levels = coded.astype(np.float64) / (200.0 / 255)
+    assert coded.max() <= 200 and np.allclose(levels, np.round(levels), atol=1e-3)
+    assert not np.allclose(coded, np.round(coded))  # not whole numbers: not raw counts
+    assert np.isfinite(cv.reconstruct(coded, mask, white_level=200.0)).all()
+
+
+def test_simulate_refuses_a_new_code_per_capture_for_one_capture(tmp_path, capsys):
+    capsys.readouterr()
+    rc = main(["-q", "simulate", "synth:default", "--frames", str(N), "--size", "16", "16", "--new-code-per-capture",
+               "--output", str(tmp_path / "cap")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--new-code-per-capture: one capture is made" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "cap").exists()
+
+
+def test_simulate_refuses_a_black_level_with_a_cacti_file(tmp_path, capsys):
+    """`--black-level 64 --cacti-out F.mat` wrote a meas 64 above the plain sum CACTI files hold, silently (17.9 dB
+    read back against 32.1); refused before any work."""
+    capsys.readouterr()
+    rc = main(["-q", "simulate", "synth:default", "--frames", str(N), "--size", "16", "16", "--black-level", "64",
+               "--output", str(tmp_path / "cap"), "--cacti-out", str(tmp_path / "c.mat")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--black-level 64" in err and "plain sum" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "cap").exists() and not (tmp_path / "c.mat").exists()

@@ -8,7 +8,7 @@ from codedvideo.engine.config import PipelineConfig
 from codedvideo.solvers.dictionaries import dct_dictionary
 from codedvideo.model.metrics import evaluate
 from codedvideo.data.scenes import load_video
-from codedvideo.engine.captures import trivial_estimate
+from codedvideo.model.physics import static_estimate
 from codedvideo.engine.simulation import simulate_capture
 from codedvideo.model.codes import CodeSpec
 from codedvideo.engine.training import train_dictionary
@@ -39,8 +39,8 @@ def test_learned_beats_dct_and_trivial_on_held_out_real_footage(learned, code, b
     for name, D in (("learned", learned), ("dct", dct_dictionary(8))):
         vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=s,
                                     run=Execution(tile=32, cache=tmp_path / name, progress=False))
-        got[name] = evaluate(vol, video)["psnr"]
-    trivial = evaluate(trivial_estimate(cap["coded"], cap["mask"]), video)["psnr"]
+        got[name] = evaluate(vol, video, data_range=255.0)["psnr"]
+    trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), video, data_range=255.0)["psnr"]
     assert got["learned"] > got["dct"] + 0.3, json.dumps(got)
     assert got["learned"] > trivial + 3.0, (got, trivial)
     assert np.isfinite(list(got.values())).all()

@@ -83,7 +83,7 @@ def test_refining_keeps_the_measurements_and_improves_held_out_footage(carphone)
     start_residual = forward(start, cap["mask"]) - cap["coded"]
     # the mean of two estimates that reproduce the measurements (the start to its own residual)
     assert np.sqrt(np.mean(residual ** 2)) <= 0.5 * np.sqrt(np.mean(start_residual ** 2)) + 0.01
-    gain = evaluate(refined, video)["psnr"] - evaluate(start, video)["psnr"]
+    gain = evaluate(refined, video, data_range=255.0)["psnr"] - evaluate(start, video, data_range=255.0)["psnr"]
     assert gain > 0.3, gain  # measured +0.9 dB here (from the default's result)
     matched = [R.reference_grid(8, 64, 64, matching=m).size for m in range(-(-12 // R.REGROUP))]
     assert info["iterations"] == 12 and info["groups"] == round(np.mean(matched))  # groups shrunk an iteration
@@ -288,7 +288,7 @@ def test_with_read_noise_the_relaxed_steps_beat_holding_the_noisy_measurements_e
     exact, _ = R.refine(cap["coded"], cap["mask"], start, iterations=12)
     relaxed, info = R.refine(cap["coded"], cap["mask"], start, iterations=12, noise_sigma=8.0)
     assert info["noise_sigma"] == 8.0 and np.isfinite(relaxed).all()
-    assert evaluate(relaxed, video)["psnr"] > evaluate(exact, video)["psnr"] + 0.15
+    assert evaluate(relaxed, video, data_range=255.0)["psnr"] > evaluate(exact, video, data_range=255.0)["psnr"] + 0.15
     # the exact steps reproduce the noisy measurements, the relaxed ones do not (they leave some of the noise)
     misfit = lambda v: float(np.sqrt(np.mean((forward(v, cap["mask"]) - cap["coded"]) ** 2)))  # noqa: E731
     assert misfit(relaxed) > misfit(exact) + 0.5
@@ -445,7 +445,7 @@ def test_known_pixels_are_left_out_of_the_groups(carphone):
                for m in range(-(-8 // R.REGROUP))]
     assert info["groups"] == round(np.mean(matched)) and matched[0] == kept.size
     right = np.s_[:, :, 40:]  # (beyond the reach of the left half's groups)
-    gap = evaluate(half[right], video[right])["psnr"] - evaluate(whole[right], video[right])["psnr"]
+    gap = evaluate(half[right], video[right], data_range=255.0)["psnr"] - evaluate(whole[right], video[right], data_range=255.0)["psnr"]
     assert abs(gap) < 0.05, gap
 
 
@@ -470,7 +470,7 @@ def test_a_large_volume_is_refined_in_bands_with_the_same_quality(carphone, monk
     residual = forward(banded, cap["mask"]) - cap["coded"]
     start_residual = forward(start, cap["mask"]) - cap["coded"]
     assert np.sqrt(np.mean(residual ** 2)) <= 0.5 * np.sqrt(np.mean(start_residual ** 2)) + 0.01
-    gap = evaluate(banded, video)["psnr"] - evaluate(whole, video)["psnr"]
+    gap = evaluate(banded, video, data_range=255.0)["psnr"] - evaluate(whole, video, data_range=255.0)["psnr"]
     assert abs(gap) < 0.05, gap
     # in place (the memory of one band beside the start): the same bits, written into the start itself
     own = start.astype(np.float32).copy()

@@ -7,6 +7,7 @@ import pytest
 
 from codedvideo.app.cli import main
 from codedvideo.data.synth import make_scene
+from cli_inputs import fails
 
 
 @pytest.fixture
@@ -240,3 +241,15 @@ def test_run_writes_the_record_reconstruct_writes_with_its_stages_beside_it(tmp_
         assert set(alone[key]) == set(ran[key]), key
     assert ran["quality"]["psnr"] == pytest.approx(alone["quality"]["psnr"], abs=1e-9)
     assert ran["quality"]["output_file"]["psnr"] == pytest.approx(alone["quality"]["output_file"]["psnr"], abs=1e-6)
+
+
+@pytest.mark.parametrize("stages,names", [
+    ("[simulate, reconstruct, reconstruct]", ["stages", "reconstruct", "twice"]),
+    ("[train, train]", ["stages", "train", "twice"]),
+    ("[evaluate, reconstruct, simulate]", ["stages", "order", "train, simulate, reconstruct, evaluate"]),
+    ("[reconstruct, train]", ["stages", "order"]),
+])
+def test_stages_with_duplicates_or_out_of_pipeline_order_are_refused(tmp_path, capsys, stages, names):
+    cfg = tmp_path / "p.yaml"
+    cfg.write_text(f"stages: {stages}\noutput: {{dir: {tmp_path / 'out'}}}\ncache: {tmp_path / 'c'}\n")
+    fails(capsys, ["run", cfg], "p.yaml", *names, root=tmp_path)

@@ -429,8 +429,8 @@ def test_evaluate_reads_long_videos_a_block_of_frames_at_a_time(tmp_path, capsys
     np.save(tmp_path / "recon.npy", recon)
     lazy = read_truth_stack(tmp_path / "recon.npy", EVALUATE_BLOCK, what="reconstruction")
     assert isinstance(lazy, NpyStack)
-    whole = evaluate(recon, truth)
-    assert evaluate(lazy, read_truth_stack(tmp_path / "truth.npy", EVALUATE_BLOCK)) == whole
+    whole = evaluate(recon, truth, data_range=255.0)
+    assert evaluate(lazy, read_truth_stack(tmp_path / "truth.npy", EVALUATE_BLOCK), data_range=255.0) == whole
     capsys.readouterr()
     assert main(["-q", "evaluate", "--recon", str(tmp_path / "recon.npy"), "--truth", str(tmp_path / "truth.npy"),
                  "--data-range", "255"]) == 0
@@ -703,7 +703,7 @@ def test_heavy_read_noise_leaves_the_sequence_no_worse_than_its_captures_one_by_
         _run(capsys, "reconstruct", "--coded", cap / "coded.npy", "--mask", cap / "mask.npy", "--noise-sigma", 40,
              "--output", out, "--cache", tmp_path / "cache", *flag)
         recon = np.load(out)
-        psnr[len(flag)] = (evaluate(recon, truth)["psnr"], evaluate(recon[..., moving], truth[..., moving])["psnr"])
+        psnr[len(flag)] = (evaluate(recon, truth, data_range=255.0)["psnr"], evaluate(recon[..., moving], truth[..., moving], data_range=255.0)["psnr"])
         metrics = json.loads(out.with_name(out.stem + ".metrics.json").read_text())
         still[len(flag)] = sum(e["reconstruction"]["still_pixels"] for e in metrics["captures"])
     assert still[0] == 0
@@ -817,7 +817,7 @@ def test_a_flat_still_background_under_noise_is_no_worse_than_its_captures_one_b
         _run(capsys, "reconstruct", "--coded", tmp_path / "coded.npy", "--mask", tmp_path / "mask.npy",
              "--noise-sigma", 5, "--data-range", 255, "--output", out, "--cache", tmp_path / "cache", *flag)
         recon = np.load(out)
-        psnr[len(flag)] = (evaluate(recon, video)["psnr"], evaluate(recon[flat], video[flat])["psnr"])
+        psnr[len(flag)] = (evaluate(recon, video, data_range=255.0)["psnr"], evaluate(recon[flat], video[flat], data_range=255.0)["psnr"])
     assert psnr[0][0] >= psnr[1][0] and psnr[0][1] >= psnr[1][1] - 0.5
 
 

@@ -87,5 +87,5 @@ def test_shipped_dictionary_regenerates_from_its_listed_settings(regenerated_dic
         D, _ = load_dictionary(store)
         vol, _ = reconstruct_volume(cap["coded"], cap["mask"], D, settings=omp_settings(cfg.reconstruct, 0.0),
                                     run=Execution(cache=regenerated_dictionary.parent / "recon", progress=False))
-        psnr.append(evaluate(vol, cap["truth"])["psnr"])
+        psnr.append(evaluate(vol, cap["truth"], data_range=255.0)["psnr"])
     assert psnr[0] > 28 and abs(psnr[0] - psnr[1]) <= 0.05, psnr

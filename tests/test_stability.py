@@ -100,7 +100,7 @@ def test_dependent_atoms_end_patches_early_with_a_counted_warning(scene8, tmp_pa
     # the two usable atoms still give a sensible (flat + ramp) estimate: inside the scene's range and closer to
     # the scene than its flat mean is (23.6 dB measured against 19.7 dB for the mean)
     assert vol.min() >= -1.0 and vol.max() <= video.max() + 1.0
-    assert evaluate(vol, video)["psnr"] > evaluate(np.full_like(video, video.mean()), video)["psnr"] + 2.0
+    assert evaluate(vol, video, data_range=255.0)["psnr"] > evaluate(np.full_like(video, video.mean()), video, data_range=255.0)["psnr"] + 2.0
 
 
 # ----------------------------------------------------------------------------- degenerate dictionaries: K-SVD
@@ -247,7 +247,7 @@ def test_input_dtypes(tmp_path, dtype):
     ref, _ = recon(coded.astype(np.float32), mask, D, tmp_path / "ref")
     assert np.isfinite(vol).all()
     if dtype == "float16":  # spacing 0.125 at 128..256: the result moves by about as much
-        assert evaluate(vol, ref)["psnr"] > 45
+        assert evaluate(vol, ref, data_range=255.0)["psnr"] > 45
     else:
         np.testing.assert_array_equal(vol, ref)
 
@@ -259,7 +259,7 @@ def test_bump_length_one(tmp_path):
     coded = simulate(video, mask)
     vol, _ = recon(coded, mask, dct_dictionary(8), tmp_path)
     assert np.isfinite(vol).all()
-    assert evaluate(vol, video)["psnr"] > evaluate(static_estimate(coded, mask), video)["psnr"]
+    assert evaluate(vol, video, data_range=255.0)["psnr"] > evaluate(static_estimate(coded, mask), video, data_range=255.0)["psnr"]
 
 
 @pytest.mark.parametrize("frames,sigma", [(8, 0.0), (8, 20.0), (1, 0.0), (1, 20.0)])
@@ -307,7 +307,7 @@ def test_partly_always_open_mask_through_the_pipeline(tmp_path):
     diff = vol[left] - static_estimate(coded, mask)[left]
     assert np.sqrt(np.mean(diff**2)) < 4.0
     right = (slice(None), slice(None), slice(W // 2 + 6, None))  # coded: a reconstruction (26.3 dB measured)
-    assert evaluate(vol[right], video[right])["psnr"] > 24.0
+    assert evaluate(vol[right], video[right], data_range=255.0)["psnr"] > 24.0
 
 
 @pytest.fixture(scope="module")
@@ -328,7 +328,7 @@ def test_n64_is_finite(n64):
 
 def test_n64_is_not_worse_than_the_trivial_estimate(n64):
     video, mask, coded, vol, _ = n64
-    assert evaluate(vol, video)["psnr"] >= evaluate(static_estimate(coded, mask), video)["psnr"] - 1.0
+    assert evaluate(vol, video, data_range=255.0)["psnr"] >= evaluate(static_estimate(coded, mask), video, data_range=255.0)["psnr"] - 1.0
 
 
 # ----------------------------------------------------------------------------- sizes
@@ -372,8 +372,8 @@ def test_heavy_noise_degrades_gracefully_and_never_below_trivial(scene8, tmp_pat
         vol, _ = recon(coded, mask, D, tmp_path / str(sigma), settings=OmpSettings(max_atoms=8, tol_rms=max(sigma, 2.0)),
                        tile=64)
         assert np.isfinite(vol).all()
-        q = evaluate(vol, video)["psnr"]
-        trivial = evaluate(static_estimate(coded, mask), video)["psnr"]
+        q = evaluate(vol, video, data_range=255.0)["psnr"]
+        trivial = evaluate(static_estimate(coded, mask), video, data_range=255.0)["psnr"]
         assert q >= trivial - TRIVIAL_MARGIN_DB, (sigma, q, trivial)
         psnr.append(q)
     # graceful: quality falls monotonically (0.2 dB slack) and by well under the 24 dB the noise grows by
@@ -430,6 +430,6 @@ def test_best_on_extreme_scenes_is_finite_and_sensible(scene8, tmp_path, kind):
     elif kind == "saturated":
         assert np.abs(vol - 255.0).max() < 0.01
     else:
-        trivial = evaluate(static_estimate(coded, mask), video)["psnr"]
-        assert evaluate(vol, video)["psnr"] >= trivial - TRIVIAL_MARGIN_DB
+        trivial = evaluate(static_estimate(coded, mask), video, data_range=255.0)["psnr"]
+        assert evaluate(vol, video, data_range=255.0)["psnr"] >= trivial - TRIVIAL_MARGIN_DB
         assert len(info["adapted"]["rounds"]) == 2 and info["refine"]["iterations"] == 32

@@ -65,7 +65,7 @@ def test_reconstruction_beats_trivial_estimate(capture, tmp_path):
     coded, mask, video = capture
     vol, _ = reconstruct_volume(coded, mask, dct_dictionary(4), settings=OmpSettings(max_atoms=8, tol_rms=0.5),
                                 run=Execution(tile=32, cache=tmp_path, progress=False))
-    assert evaluate(vol, video)["psnr"] > evaluate(static_estimate(coded, mask), video)["psnr"] + 3
+    assert evaluate(vol, video, data_range=255.0)["psnr"] > evaluate(static_estimate(coded, mask), video, data_range=255.0)["psnr"] + 3
 
 
 def test_still_patches_take_the_cheap_path_with_the_same_answer():

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
+import codedvideo as cv
 from codedvideo.app.cli import main
 from codedvideo.model.codes import make_code
 from codedvideo.model.physics import simulate
@@ -254,3 +255,25 @@ def test_the_tolerance_warning_counts_the_patches_whose_coded_rms_is_within_the_
     assert tolerance_warning(coded[:, :36], 2.0) is not None  # most patches dark: warned
     assert tolerance_warning(np.hstack([coded, np.full((40, 30), 200.0)]), 2.0) is None  # most bright: not
     assert tolerance_warning(coded, 0.0) is None and tolerance_warning(coded[:5, :5], 2.0) is None
+
+
+@pytest.fixture(scope="module")
+def carphone():
+    from codedvideo.data.scenes import load_video
+
+    video = load_video("footage:carphone", frames=8, size=(48, 48))
+    mask = cv.make_code("hitomi", (48, 48), frames=8, bump=2, seed=0)
+    return video, mask, cv.simulate(video, mask)
+
+
+@pytest.mark.parametrize("options", [dict(adapt=True, adapt_rounds=2, noise_sigma=2.0), dict(preset="best")])
+def test_adapt_works_in_working_units_a_power_of_two_scale_gives_the_same_bits(carphone, options):
+    """--adapt (K-SVD per capture, then --refine with best) holds no quantity in the capture's units: a capture
+    scaled by a power of two, whose working units are then the same floats, gives the same bits scaled.  (Another
+    scale's float32 roundoff can flip K-SVD's greedy choices: docs/formats.md, "Units".)"""
+    _, mask, coded = carphone
+    base = cv.reconstruct(coded, mask, data_range=255.0, **options)
+    for scale in (1024.0, 1 / 1024):
+        scaled = dict(options, noise_sigma=options["noise_sigma"] * scale) if "noise_sigma" in options else options
+        got = cv.reconstruct(coded * np.float32(scale), mask, data_range=255.0 * scale, **scaled)
+        np.testing.assert_array_equal(got / np.float32(scale), base)

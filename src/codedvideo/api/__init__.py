@@ -345,9 +345,11 @@ def _is_dask(x) -> bool:
 
 
 @_door
+@_door
 def _stream_frames(stack: np.ndarray, mask: np.ndarray, settings) -> np.ndarray:
-    """A dask stream's frames, computed when the graph is: the numpy stack's, as one job (its warnings and errors
-    in the API's terms, as the numpy path's)."""
+    """A dask stream's frames, computed when the graph is (on whichever thread dask runs it): the numpy stack's,
+    as one job, its warnings and errors in the API's terms as the numpy path's are (the door is set again there:
+    the call that built the graph has returned)."""
     return _reconstruct_arrays(stack, mask, settings)
 
 
@@ -360,14 +362,12 @@ def _reconstruct_lazy(coded, mask, settings):
     from codedvideo.api._settings import resolve
 
     resolve(settings, door="api")  # the settings checked now; the values when the graph is computed
+    from codedvideo.api._job import check_fit
+
     masks = np.asarray(mask)
+    count, n = check_fit(coded.shape, masks.shape, "reconstruct")
     stack = coded[None] if coded.ndim == 2 else coded
-    if stack.ndim != 3 or masks.ndim not in (3, 4) or tuple(stack.shape[-2:]) != masks.shape[-2:]:
-        raise InputError(f"reconstruct: coded {tuple(coded.shape)} and mask {tuple(masks.shape)} do not fit: coded "
-                         "is (H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
-    count, n, (h, w) = stack.shape[0], masks.shape[-3], stack.shape[-2:]
-    if masks.ndim == 4 and masks.shape[0] not in (1, count):
-        raise InputError(f"reconstruct: {count} coded images, {masks.shape[0]} masks")
+    h, w = stack.shape[-2:]
     if settings.bayer is not None:  # one mosaic: its colour video (3, N, H, W), one chunk
         if coded.ndim != 2:
             raise InputError(f"reconstruct: coded {tuple(coded.shape)}; under bayer= it is one single-channel "

@@ -18,12 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from codedvideo.model import doors
+from codedvideo.model import doors, physics
 from codedvideo.api._record import Scores
 from codedvideo.api._settings import Resolved, for_noise, setting_name
 from codedvideo.solvers.guard import sparse_weight
 from codedvideo.engine.bayer import check_even, reconstruct_bayer, static_estimate
-from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, result_recipe, trivial_estimate
+from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, result_recipe
 from codedvideo.engine.methods import SPARSE, WITH_DICTIONARY
 from codedvideo.engine.windows import cache_room
 from codedvideo.engine.config import omp_settings
@@ -86,6 +86,20 @@ class Captures:
         return self.truths[i * n : (i + 1) * n] if len(self.truths) >= (i + 1) * n else None
 
 
+def check_fit(coded_shape: tuple, mask_shape: tuple, where: str) -> tuple[int, int]:
+    """``(T, N)`` of coded images of ``coded_shape`` ((H, W) or (T, H, W)) under masks of ``mask_shape`` ((N, H, W)
+    for every capture, (T, N, H, W) one each, or (1, N, H, W) shared, as read); a one-line :class:`InputError`
+    naming both shapes where they do not fit."""
+    if len(coded_shape) not in (2, 3) or len(mask_shape) not in (3, 4) or \
+            tuple(coded_shape[-2:]) != tuple(mask_shape[-2:]):
+        raise InputError(f"{where}: coded {tuple(coded_shape)} and mask {tuple(mask_shape)} do not fit: coded is "
+                         "(H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
+    count = 1 if len(coded_shape) == 2 else coded_shape[0]
+    if len(mask_shape) == 4 and mask_shape[0] not in (1, count):
+        raise InputError(f"{where}: {count} coded images, {mask_shape[0]} masks")
+    return count, mask_shape[-3]
+
+
 def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
                    where: str = "reconstruct") -> tuple[Captures, bool]:
     """Arrays as the API takes them -> (:class:`Captures`, whether ``coded`` was one (H, W) image), checked as the
@@ -96,13 +110,9 @@ def array_captures(coded, mask, truth=None, *, bayer: str | None = None,
     dtype = np.asarray(coded).dtype if hasattr(coded, "dtype") else None
     image = check_coded(coded, f"{where}: coded")
     given = np.asarray(mask)
-    if image.ndim not in (2, 3) or given.ndim not in (3, 4) or image.shape[-2:] != given.shape[-2:]:
-        raise InputError(f"{where}: coded {tuple(image.shape)} and mask {tuple(given.shape)} do not fit: coded is "
-                         "(H, W) or (T, H, W), the mask (N, H, W) or (T, N, H, W), of the same H and W")
+    check_fit(image.shape, given.shape, where)
     single = image.ndim == 2
     codeds = image[None] if single else image
-    if given.ndim == 4 and given.shape[0] not in (1, len(codeds)):  # (one (1, N, H, W) mask: shared, as read)
-        raise InputError(f"{where}: {len(codeds)} coded images, {given.shape[0]} masks")
     masks = [check_mask(m, f"{where}: mask") for m in (given if given.ndim == 4 else [given])]
     truths = None
     if truth is not None:
@@ -436,4 +446,4 @@ class ReconstructionJob:
         job = self.captures
         if job.kind == "bayer":
             return static_estimate(job.codeds[i], job.mask(i), self.r.bayer)
-        return trivial_estimate(job.codeds[i], job.mask(i))
+        return physics.static_estimate(job.codeds[i], job.mask(i))

@@ -804,9 +804,7 @@ def _return_freed_blocks() -> None:
     """The command's process (not a library user's): with glibc, large blocks in their own mappings.
 
     The tile threads' arrays of a few MB each were otherwise carved from per-thread arenas that freed memory
-    does not leave: measured on this project's machine (whole processes, one 1920x1080 N = 18 stream of 6
-    captures) the peak resident memory was 744 MiB with glibc's default and 548 MiB with this threshold,
-    and at 3840x2160 it grew by about 140 MiB a capture (1315 MiB for one, 1880 MiB for five).  Elsewhere
+    does not leave, so resident memory grew with every capture (docs/research.md, "Memory").  Elsewhere
     (another C library, another system) nothing is changed.
     """
     if not sys.platform.startswith("linux"):
@@ -823,9 +821,9 @@ def _return_freed_blocks() -> None:
 def console_main() -> None:
     """The ``codedvideo`` command: :func:`main`, then leave without finalising the interpreter.
 
-    Freeing the modules a run loaded (numba, scipy, zarr, dask) takes 0.2 to
-    0.6 s after the work is done and every output is closed (measured on a
-    2-core machine: a 4 s reconstruction took 4.4 s as a whole process).  So
+    Freeing the modules a run loaded (numba, scipy, zarr, dask) takes a
+    noticeable share of a short run after the work is done and every output is
+    closed (docs/research.md, "Streams: where the start-up goes").  So
     the exit handlers run (log handlers, zarr's event loop), the standard
     streams are flushed, and the process ends with the command's exit code.
     An exception that escapes :func:`main` exits the usual way, traceback and all.

@@ -249,8 +249,8 @@ class Runner:
             cio.write_array(vol_path, volume.astype(np.float32))
             self.computed += 1
             return existing
-        q = evaluate(volume, cap["truth"])
-        trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), cap["truth"])["psnr"]
+        q = evaluate(volume, cap["truth"], data_range=EIGHT_BIT)
+        trivial = evaluate(static_estimate(cap["coded"], cap["mask"]), cap["truth"], data_range=EIGHT_BIT)["psnr"]
         record = dict(settings, key=key, psnr=q["psnr"], ssim=q["ssim"], trivial_psnr=trivial, seconds=seconds,
                       atoms_mean=info.get("atoms_mean"), patches=info.get("patches", 0))
         if info.get("refine_trace"):  # the PSNR along the refinement, for the error-against-time figure

@@ -6,48 +6,37 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from codedvideo.engine.windows import sparse_volumes
+from codedvideo.model import doors
 from codedvideo.model.errors import InputError
 from codedvideo.solvers.dictionaries import KsvdSettings, learn_dictionary
 
 #: Adapting the dictionary to a capture (``--adapt``): K-SVD started from the dictionary, its atoms kept,
 #: for this many iterations on this many 7x7xN patches of the capture's own first reconstruction, taken as
 #: they are (no rotations, flips or time reversal: they would spread the atoms over motions the scene
-#: lacks).  Measured on the 24 held-out real cases (README), the non-local method alone 33.71 dB: one
-#: iteration 34.36 (with augmentation 33.84), 2 34.45, 3 34.49, 4 34.52 (0.32 s at 256x256, against 0.19
-#: for one), 4 on 14000 patches 34.54 (0.73 s); sparsity 4 or 8 no better.  A dictionary adapted to one
-#: capture does not carry to the next (-1.3 to +1.4 dB a case, no gain on average): each gets its own.
+#: lacks).  More iterations, patches or atoms a patch gained little for their time, and a dictionary adapted to
+#: one capture does not carry to the next, so each gets its own (docs/research.md, "Adapting the dictionary to
+#: each capture").
 ADAPT_SAMPLES, ADAPT_ITERATIONS, ADAPT_SPARSITY = 7000, 4, 6
 #: An atom the capture's patches leave unused is kept in the adaptation of a complete orthonormal basis (the DCT of
 #: ``--method dct``, and its adaptations in later rounds), where replacing it with a badly represented patch, as
-#: K-SVD does, takes a direction out of the span the next pass needs; a learnt dictionary's is replaced.
-#: Measured, ``--adapt`` over no adaptation, hitomi L = 2, on synth:default, carphone, bikes-a and bunny: the DCT
-#: at N = 64, 64x64, -0.41 to -0.16 dB replaced, +0.35 to +0.85 kept; at N = 16, 48x48, -0.44 to +1.76
-#: replaced, +0.72 to +3.15 kept; at N = 8 and 16, 32x32, better kept on 7 of 8 (0.98 dB worse on
-#: synth:default at N = 8).  Learnt dictionaries lost with their atoms kept: best on the 8 held-out 256x256
-#: cases with the shipped N = 8 one (bikes-a, bikes-b, carphone, bunny; hitomi L = 2 and Bernoulli) -0.08 dB on
-#: average; the shipped N = 16 one (512 atoms, fewer than its 784 rows), ``--adapt`` at 64x64 and 128x128 -0.24
-#: to +0.01.
+#: K-SVD does, takes a direction out of the span the next pass needs; a learnt dictionary's is replaced, since
+#: keeping them lost there (docs/quality.md, "Adapting the dictionary to each capture").
 KEEP_UNUSED = "kept in an orthonormal basis"
 #: ``nonlocal --adapt``: the first pass solves the groups of every 7th reference patch (a survey, 0.2 of the
 #: groups of the non-local method's stride 3), the second pass the groups of every 4th from the survey's
-#: result, with no per-patch tiles (:attr:`codedvideo.engine.parallel.TileWork.first`).  Measured on the 24
-#: held-out real cases, in one thread: surveys of every 5th or 7th reference gave the quality of
-#: two full passes (GAP-TV + 3.80 dB with a second pass of every 3rd, against + 3.84), in 5.5 to 5.9x the
-#: default's time against 9.2x; with a second pass of every 4th, + 3.66 dB in 4.3x (README).
+#: result, with no per-patch tiles (:attr:`codedvideo.engine.parallel.TileWork.first`).  A sparse survey gives
+#: the second pass what a full first pass gives, and a second pass of every 4th trades a tenth of a dB for a
+#: third of the time (docs/research.md, "Adapting the dictionary to each capture").
 ADAPT_SURVEY_STEP, ADAPT_REFINE_STEP = 7, 4
 #: ``--adapt-rounds 2`` (``--preset best``): the dictionary adapted again to the second pass's result (K-SVD
 #: started from the first adaptation, the same settings), then a third pass with it; the non-local method's
-#: third pass solves the groups of every 3rd reference, matched on the second pass's result.  Measured in one
-#: thread (the research_best script of docs/research.md, 256x256, N = 8, hitomi L = 2 and Bernoulli, no noise; chosen on bikes-a and
-#: carphone): over ``nonlocal --adapt`` +0.46 dB on those, +0.48 dB on bikes-b and bunny (every
-#: case +0.18 or more) and +0.45 on their next 8 frames, in 1.8x its time; a third pass every 4th +0.38, a
-#: third adaptation and a fourth pass +0.51 (worst case +0.10) in 2.1x, denser second passes +0.13 to +0.20.
+#: third pass solves the groups of every 3rd reference, matched on the second pass's result: the candidate that
+#: gained most held out for its time (docs/research.md, "Spending `best`'s time").
 ADAPT_LAST_STEP = 3
 
 
@@ -123,11 +112,11 @@ def adapt_capture(job, i: int, stage=None) -> tuple[np.ndarray, str | None, dict
     D_i, store, done, spent = dictionary, None, [], 0.0
     keep = is_basis(dictionary)  # (decided on the dictionary the first round starts from, for every round)
     for k, settings in enumerate(pass_settings):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+        with doors.muted():
             pass_job = sparse_volumes(1, lambda _: job.for_sparse(i),
                                       dictionary if k == 0 else (lambda _, D=D_i: (D, "")), settings=settings,
-                                      run=dataclasses.replace(o.execution, desc=f"pass {k + 1} of {i + 1}/{job.inputs.count}"),
+                                      run=dataclasses.replace(o.execution,
+                                                              desc=f"pass {k + 1} of {i + 1}/{job.inputs.count}"),
                                       dictionary_key=o.dictionary_key,
                                       first_of=None if store is None else (lambda _, s=store: s))
             with contextlib.closing(pass_job):  # closed here: the graph's thread has ended

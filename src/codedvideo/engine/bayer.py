@@ -257,9 +257,9 @@ def static_estimate(coded: np.ndarray, mask: np.ndarray, pattern: str,
     Bilinear normalised interpolation of each channel's own pixels (pixels
     never open, or not ``measured`` (H, W) bool, carry no weight).  The
     baseline a Bayer reconstruction must beat.  Malvar-He-Cutler's
-    gradient-corrected demosaic is 0.2 to 0.8 dB worse here (measured on the
-    colour default scene and four real clips): neighbouring pixels integrate
-    different sub-frames, so its cross-channel gradients carry motion.
+    gradient-corrected demosaic is worse here: neighbouring pixels integrate
+    different sub-frames, so its cross-channel gradients carry motion
+    (docs/research.md, "Bayer mosaics: the joint colour dictionary").
     """
     shutter = np.asarray(mask, np.float32)
     counts = shutter.sum(0)
@@ -273,9 +273,8 @@ def static_estimate(coded: np.ndarray, mask: np.ndarray, pattern: str,
 #: Colour directions of the joint dictionary: luminance, then two chroma directions (orthonormal).
 COLOR_BASIS = (np.array([[1, 1, 1], [1, 0, -1], [1, -2, 1]], np.float64)
                / np.sqrt([[3.0], [2.0], [6.0]]))
-#: Share of the grey atoms (the spatially smoothest) that also serve as chroma atoms.  Measured on
-#: the colour default scene (N = 8, L = 2, RGGB, 512 atoms): 16 atoms 27.55 dB, 64 27.93 dB,
-#: 128 27.92 dB, 256 27.77 dB, all 512 27.41 dB (and 1.5 to 2x the time of 128).
+#: Share of the grey atoms (the spatially smoothest) that also serve as chroma atoms: fewer lose colour detail,
+#: more lose quality and time (docs/research.md, "Bayer mosaics: the joint colour dictionary").
 CHROMA_FRACTION = 0.25
 
 
@@ -336,32 +335,25 @@ def reconstruct_bayer(options: CaptureSettings, coded: np.ndarray, mask: np.ndar
     matched as whole colour blocks, and ``adapt`` adapts the lifted
     dictionary itself to the colour result).  Then a static correction: each channel's
     measurement residual / open count, interpolated from its own pixels, is
-    added to every sub-frame (+0.05 to 0.2 dB measured).  With ``refine``
+    added to every sub-frame.  With ``refine``
     (``--refine``, ``--preset best``) the stack is refined under the colour
     mask before the correction, each group within one channel's own
-    sub-frames (``blocks=3``, :func:`codedvideo.solvers.refine.refine`; ``best``
-    +0.16 to +0.82 dB, docs/quality.md, "Bayer mosaics"); under read noise
+    sub-frames (``blocks=3``, :func:`codedvideo.solvers.refine.refine`;
+    docs/quality.md, "Bayer mosaics"); under read noise
     without the correction (:func:`_corrected`).  ``thinout``,
     ``interp`` and ``gaptv``: each channel alone, its other pixels missing (and
     refined alone).
     A mask with one pattern for every pixel carries no temporal information:
     the result is the demosaicked static estimate (:func:`static_estimate`).
 
-    Measured on 128x128 crops of the colour footage bikes-a and carphone
-    (N = 8, hitomi L = 2, RGGB, no noise): joint ``omp`` 32.68 / 29.10 dB,
-    ``nonlocal`` 34.69 / 30.39, ``nonlocal --adapt`` 35.16 / 30.97,
-    ``--preset best`` 35.53 / 31.33.  On the colour default scene (256x256,
-    N = 8, L = 2, RGGB, the N = 8 dictionary; PSNR over the 3 x 8 frames): joint 28.11 dB; each
-    channel alone with the others' pixels missing 25.66 dB; the coded image
-    demosaicked (Malvar) and each channel reconstructed at full resolution
-    26.74 dB; the mosaic reconstructed as grey, then every sub-frame
-    demosaicked 16.60 dB; demosaicked static estimate 23.79 dB.
+    The joint coding beats each channel alone, demosaicking first and the mosaic
+    reconstructed as grey (docs/cli.md, "Bayer mosaics"; the methods on colour
+    footage: docs/research.md, "Bayer mosaics: the joint colour dictionary").
 
     ``options``: the method and its options (:class:`~codedvideo.engine.captures.CaptureSettings`: ``method``,
     ``dictionary`` (the grey one), ``white_level``, ``data_range``, ``settings``, ``config``, ``cache``, ...).
     """
     import dataclasses
-    import warnings
 
     from codedvideo.engine.captures import reconstruct_capture
 
@@ -381,8 +373,7 @@ def reconstruct_bayer(options: CaptureSettings, coded: np.ndarray, mask: np.ndar
         info = dict(method="static", patches=0, patches_per_second=0.0,
                     seconds=dict(reconstruct=time.perf_counter() - t0), saturated_pixels=int((~measured).sum()))
         return volume, dict(info, bayer=dict(pattern=colours, approach="static"))
-    with warnings.catch_warnings():  # a channel's other pixels are missing by design
-        warnings.filterwarnings("ignore", message=".*pixels are never open.*")
+    with doors.muted("pixels are never open"):  # a channel's other pixels are missing by design
         if method in SPARSE:
             entry = method_named(method)
             if entry.dictionary:
@@ -423,8 +414,8 @@ def _corrected(volume: np.ndarray, info: dict, coded: np.ndarray, mask: np.ndarr
     """A colour result ``(3, N, H, W)`` with the static correction added (:func:`_channel_residual`), its seconds
     and ``correction_rms`` in ``info``.  ``relaxed`` (a result refined under read noise): as it is,
     ``correction_rms`` None, since the refinement's steps were relaxed so as not to put the noise back, and the
-    correction would (measured on 128x128 crops of four clips at sigma 4, ``best``: -0.10 to +0.01 dB with it);
-    refined without noise it halves the measurement residual at the same PSNR (within 0.03 dB)."""
+    correction would; refined without noise it halves the measurement residual at the same PSNR (docs/quality.md,
+    "Bayer mosaics")."""
     if relaxed:
         return volume, dict(info, correction_rms=None)
     t0 = time.perf_counter()

@@ -486,11 +486,6 @@ def reconstruct_capture(options: CaptureSettings, coded: np.ndarray, mask: np.nd
     return volume, info
 
 
-def trivial_estimate(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Every sub-frame = coded / open count: the baseline a method must beat."""
-    return physics.static_estimate(coded, mask)
-
-
 def sparse_method(method: str, settings: OmpSettings, dictionary: np.ndarray | None, dictionary_key: str,
                   dictionary_name: str, *, frames: int) -> tuple[OmpSettings, np.ndarray, str]:
     """The settings, dictionary and its cache key a sparse method runs with.

@@ -243,11 +243,11 @@ class ReconstructConfig(_Strict):
     #: (omp: about twice the time; nonlocal: a sparse survey first, about 1.2x its time; README, "Adapting the
     #: dictionary").
     adapt: bool = False
-    #: With ``adapt``: 2 adapts again to the second pass's result and reconstructs a third time (``best``: +0.5 dB
-    #: on held-out real footage over one round, 1.8x its time; docs/quality.md, "Presets").
+    #: With ``adapt``: 2 adapts again to the second pass's result and reconstructs a third time (``best``;
+    #: docs/research.md, "Spending `best`'s time").
     adapt_rounds: int = Field(1, ge=1, le=2)
     #: Iterations of GAP with a low-rank prior on groups of similar patches after the method's result (0: none;
-    #: ``best``: 32, +0.9 dB on held-out real footage over its two rounds; docs/quality.md, "Refinement").
+    #: ``best``: 32; docs/quality.md, "Refinement").
     refine: int = Field(0, ge=0, le=200)
     #: Tile side in pixels (a tile of 4096 at N = 64 already holds 4 GiB of volume).
     tile: int = Field(DEFAULT_TILE, ge=8, le=4096)
@@ -565,19 +565,14 @@ def preset_options(name: str) -> str:
 
 
 #: Read noise from which ``best`` leaves out its non-local passes and its adaptation (keeping the refinement):
-#: in working units (grey levels of a data range of 255).  Measured at 128x128, N = 8, hitomi L = 2, with
-#: ``--noise-sigma`` given, on synth:default and four real clips (carphone, bunny, bikes-a, bikes-b): at 25 grey
-#: levels the refined per-patch OMP is above the default on all five (+0.27 to +1.30 dB) and the non-local recipe
-#: on four of them by 0.08 to 0.51 dB more; from 27 to 29 the non-local recipe fell below the default on bunny
-#: (29.01 against 29.20 dB at 28, where the refined OMP gave 29.45), so from 25 on best is the refined OMP, the
-#: step that never lost to the default there.  (Chosen after all five clips were seen: no held-out check.)
+#: in working units (grey levels of a data range of 255).  From here on the refined per-patch OMP never lost to
+#: the default, while the non-local recipe did on one clip (docs/quality.md, "`best` under heavy read noise").
 NOISY_BEST = 25.0
 #: The keys of a preset the noise rule leaves out (their defaults taken).
 _NOISY_KEYS = ("method", "adapt", "adapt_rounds")
 #: Read noise from which ``best`` leaves out its refinement as well: the default itself.  The refinement's gain
-#: over the default falls with the noise (at 128x128, hitomi L = 2: +0.07 to +0.15 dB at 60, +0.01 to +0.13 at 70,
-#: -0.02 to +0.11 at 90 on synth:default, carphone and bunny; at 64x64 on synth:default -0.02 at 70 and -0.05 at
-#: 100), and past this it may lose.
+#: over the default falls with the noise, and past this it may lose (docs/quality.md, "`best` under heavy read
+#: noise").
 NOISIEST_BEST = 80.0
 
 
@@ -604,8 +599,8 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
     OMP, and the refinement alone gains on it), and from :data:`NOISIEST_BEST` on its refinement too; an option
     given beside the preset stands.  ``blind``: why the capture's code leaves its patches blind to what they fit
     (:func:`codedvideo.solvers.guard.sparse_weight`; empty: it does not); the preset's non-local method and
-    adaptation are then left out as under heavy noise (measured: they fell up to 2 dB below the default there,
-    while the refinement gained on it).
+    adaptation are then left out as under heavy noise (they fell below the default there, while the refinement
+    gained on it: docs/research.md, "Long shutter bumps").
     """
     if name is not None and name not in PRESETS:
         raise ConfigError(f"preset {name!r}: unknown; choose one of {', '.join(PRESETS)}")
@@ -661,8 +656,8 @@ def auto_tolerance(sigma: float) -> float:
     """Default RMS residual tolerance of Eq. 3 for read noise ``sigma``, both in working units (data range 255).
 
     Without noise a floor of 2 grey levels stops OMP on patches that are
-    already explained: on the default scenes it costs under 0.02 dB against
-    0.5 and saves about 10 % of the atoms (measured, see README).
+    already explained at almost no cost in quality (docs/research.md,
+    "Dictionary and training").
     """
     return float(max(sigma, 2.0))
 

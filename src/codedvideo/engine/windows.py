@@ -301,8 +301,8 @@ def sparse_volumes(
     every pixel has the same shutter pattern (open in every sub-frame: bump
     length N, the global shutter, N = 1; or a global flutter sequence) no
     pixel tells one instant from another, so per-patch sparse coding can only
-    invent motion (measured: a flutter code fell 6 dB below the static
-    estimate): that capture's result is the static estimate ``coded / open
+    invent motion (docs/sampling.md, "Sampling schemes and sensor model"):
+    that capture's result is the static estimate ``coded / open
     count`` itself (``method: "static"``), computed without tiles.
     """
     planner = _Planner(count, capture, D, dictionary_key, settings=settings, tile=run.tile, cache=run.cache,

@@ -71,8 +71,27 @@ def key(config_key: str) -> str:
     return name(_FIELDS_OF_KEYS.get(config_key, config_key.rsplit(".", 1)[-1]))
 
 
+#: Parts of messages the call in progress keeps to itself (:func:`muted`; empty: none).
+_muted: contextvars.ContextVar[tuple[str, ...]] = contextvars.ContextVar("codedvideo_muted", default=())
+
+
+@contextlib.contextmanager
+def muted(matching: str = ""):
+    """Within the block, :func:`warn` drops the messages that contain ``matching`` (every message when empty), for
+    this call only: other threads and other calls keep theirs, where ``warnings.catch_warnings`` would change the
+    filters of the whole process.  (A job's first passes are muted: its last job says the same warnings.)"""
+    token = _muted.set(_muted.get() + (matching,))
+    try:
+        yield
+    finally:
+        _muted.reset(token)
+
+
 def warn(message: str, category: type[Warning] = UserWarning) -> None:
-    """``warnings.warn`` at the first frame outside codedvideo: the line of the caller's code that led to it."""
+    """``warnings.warn`` at the first frame outside codedvideo: the line of the caller's code that led to it
+    (unless the call in progress muted it: :func:`muted`)."""
+    if any(part in message for part in _muted.get()):
+        return
     frame, level = sys._getframe(1), 2
     while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE):
         frame, level = frame.f_back, level + 1

@@ -34,8 +34,7 @@ def volume_extremes(v) -> tuple[float, float]:
 
 #: A reconstruction holding values further than this share of the data range below 0 or above the range is
 #: implausible (intensities are never negative, and a frame peaks at its range): the problem is ill-posed for
-#: the method (measured: a bump of 15 of 16 sub-frames gave -1059 to 1390 on 8-bit frames, 5.9 dB against the
-#: trivial estimate's 22.8), and the run says so.
+#: the method, and the run says so (docs/research.md, "Long shutter bumps").
 IMPLAUSIBLE_SHARE = 0.5
 
 
@@ -52,7 +51,7 @@ def mean_psnr(per_frame) -> float:
     return float(np.mean(values)) if values.size else float("nan")
 
 
-def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
+def evaluate(recon, truth, *, data_range: float) -> dict:
     """Per-frame and mean PSNR/SSIM of a reconstruction.
 
     Parameters
@@ -61,7 +60,9 @@ def evaluate(recon, truth, *, data_range: float = EIGHT_BIT) -> dict:
         slices of consecutive frames (a lazy stack); compared
         :data:`EVALUATE_BLOCK` frames at a time
     data_range : float
-        Peak value of the frames (255 for 8-bit grey levels).
+        Peak value of the frames, always given (255 for 8-bit grey levels, 1 for [0, 1] floats): a default would
+        score frames of another scale against the wrong peak.  :func:`codedvideo.evaluate` finds it from the
+        truth's values where it is not given.
 
     Returns
     -------

@@ -152,12 +152,9 @@ def correct_raw(
         Clip ``raw - black_level`` at 0 (the sum of frames is never negative).
     trust_saturated : bool
         Count the pixels at the white level but keep them as measurements
-        (``--trust-saturated``).  Measured on overexposed scenes (the default
-        scene 1.4 to 3 times too bright for a 9-bit ADC, 3 to 11 % of the
-        pixels saturated; a bright spot moving across it, 1 to 4 %), keeping
-        them as measurements of the white level gave 1 to 4.3 dB more than
-        leaving them out: the clipped value is a better guess than what the
-        neighbours extrapolate.  Leaving them out wins where a pixel at the
+        (``--trust-saturated``).  On overexposed scenes the clipped value is a
+        better guess than what the neighbours extrapolate (docs/research.md,
+        "Clipped captures").  Leaving them out wins where a pixel at the
         white level holds nothing of the scene (a hot pixel stuck at full scale).
     where : str
         Names the input in error messages.
@@ -420,9 +417,9 @@ def outlier_scores(coded: np.ndarray, mask: np.ndarray, *, size: int = 5, simila
     and edges make it large) and a fifth of the image's median ``|d|``, times
     :data:`MAD_TO_SIGMA` -- and the score is the smaller of the two: a defect
     stands out from both references, a pixel on a moving edge agrees with the
-    neighbours that saw the same instants (measured on the test scenes: 3 to
-    7 times fewer false alarms on clean captures than the plain median alone,
-    for a few per cent fewer detections).  Pixels never open score 0.
+    neighbours that saw the same instants, so it raises far fewer false alarms
+    than the plain median alone (docs/research.md, "Defective pixels").  Pixels
+    never open score 0.
 
     Returns
     -------

@@ -40,15 +40,12 @@ STILL_FLOOR = 0.5
 STILL_SIGMAS = 3.0
 #: Largest read noise of the still answer ``coded / open count`` (``sigma / open count``), in working units, for
 #: which a pixel may be still.  Above it OMP's estimate of a still patch beats the still answer, and a second
-#: capture no longer tells slow motion from noise (measured on the default 70 %-still scene, hitomi L = 2, 6
-#: captures: the still answer gains 3.2 dB at 5, 0.7 dB at 7, loses 0.3 dB at 8 and 5.8 dB at 20; the
-#: sequence as a whole lost 4.3 dB to capture by capture at sigma 40 before this bound).
+#: capture no longer tells slow motion from noise (docs/research.md, "Streams: still answers under read noise").
 STILL_NOISE_MAX = 6.0
 #: A still region is *flat* where the variance of ``coded / open count`` over a 7x7 window is at most this
 #: multiple of its read noise's: there the single-capture still test (a few 2D DCT atoms fitted within the
 #: noise, :func:`codedvideo.solvers.region.still_patches`) removes the noise that the still answer keeps
-#: (measured: a flat still background at sigma 5 gave 44.4 dB as still answers against 55.0 dB capture by
-#: capture, and the whole frame lost 0.7 dB at sigma 10).
+#: (docs/research.md, "Streams: still answers under read noise").
 FLAT_VARIANCE = 1.5
 
 
@@ -138,16 +135,12 @@ def still_values(codeds, masks, i: int, *, sigma: float, scale: float = 1.0,
 CUT_CELLS = 64
 #: Smoothing of the coarse image, cells.
 CUT_SMOOTH = 1.0
-#: Correlation of the two coarse images below which the captures show different scenes.  Measured at
-#: N = 8, bump 2 (read noise 0 and 2): ordinary motion gave at least 0.28 (bikes.mp4, 25 fps, a blurred car
-#: crossing the whole frame between two captures), 0.71 on synthetic zoom, 0.93 on carphone and bigbuckbunny,
-#: at least 0.72 on the synthetic scenes; cuts gave -0.11 (the default scene and its mirror image), 0.03 to
-#: 0.04 (carphone and its mirror image), -0.2 (bikes, a capture holding a cut of its own), -0.11 to 0.29
-#: (carphone then bikes: two clips cut together are not always told apart, the price of joining fast motion).
+#: Correlation of the two coarse images below which the captures show different scenes: below what ordinary
+#: motion gave and above most cuts, leaning to joining fast motion (docs/research.md, "Streams: cuts and joins").
 CUT_CORRELATION = 0.2
 #: Ratio of the mean ``coded / open count`` of the two captures above which (or below whose inverse) the
-#: exposure changed too much to join.  Measured: ordinary footage 0.89 to 1.14 (bikes, carphone, bigbuckbunny,
-#: the synthetic scenes); 0.61, 0.75 and 1.45 where bikes cuts to another shot inside a capture.
+#: exposure changed too much to join: between ordinary footage and cuts (docs/research.md, "Streams: cuts and
+#: joins").
 CUT_GAIN = 1.3
 #: A capture is *dark* when its mean ``coded / open count`` is at most this, in working units (data range
 #: 255); the gain is taken with this floor, so two dark captures agree.
@@ -350,9 +343,8 @@ def _warp(frames: np.ndarray, vy: np.ndarray, vx: np.ndarray, tau: np.ndarray, *
     """Frame ``f`` of ``frames`` (F, H, W) sampled at ``(y + vy tau[f], x + vx tau[f])``: (F, H, W) float32.
 
     Linear interpolation, edges repeated (a coordinate outside the frame is
-    moved onto its border).  Linear, not cubic: measured on 10 captures of the
-    default scene (256x256, N = 8) cubic gave 29.21 against 29.14 dB and the
-    same step ratio (0.99) for twice the time of a join.  Compiled
+    moved onto its border).  Linear, not cubic: cubic gained little for twice
+    the time of a join (docs/research.md, "Streams: cuts and joins").  Compiled
     (:func:`_warp_kernel`): the values of ``scipy.ndimage.map_coordinates(order=1,
     mode="nearest")`` to the rounding of the coordinates, about ten times faster.
 
@@ -494,8 +486,8 @@ def join_captures(
 
 #: Rows of the frame a join works out at a time (:func:`_join_region`), each with :func:`_join_margin` rows
 #: more either side: its working memory is about 60 planes of a band whatever the frame's height, and its values
-#: are the whole frame's bit for bit (tested).  Measured at 3840x2160, N = 18, two captures on disk, motion over
-#: the whole frame (tracemalloc): 217 MB against 2787 MB as one band, 27.8 s against 24.5 s.
+#: are the whole frame's bit for bit (tested); a little slower than one band, for a fraction of its memory
+#: (docs/research.md, "Memory").
 JOIN_BAND_ROWS = 128
 #: Rows of a band's new values written to a file (a spilled capture) at once: it reads and writes whole frames.
 JOIN_WRITE_ROWS = 512

@@ -24,8 +24,8 @@ GAP-TV: generalized alternating projection with total-variation denoising
 diagonal (the open count of each pixel), so the projection onto
 ``{x : Phi x = y}`` is a per-pixel update.  The TV step is scikit-image's
 Chambolle denoiser on the whole (N, H, W) volume (3D TV; ``temporal=False``
-gives the classical per-sub-frame 2D TV, about 2 dB worse on the training
-scenes, see :func:`gap_tv`).
+gives the classical per-sub-frame 2D TV, worse on the training scenes, see
+:func:`gap_tv`).
 
 It starts from the static estimate (coded / open count in every sub-frame),
 not from the mask-weighted one: on single-bump codes the latter stalls far
@@ -176,9 +176,7 @@ def interp(coded: np.ndarray, mask: np.ndarray, *, radius_t: int = 3, radius_xy:
     mask : ndarray of shape (N, H, W)
     radius_t : int
         Temporal half-width (1: each sub-frame from its own samples only).
-        Tuned on training scenes (``synth:train-0`` to ``train-5``, 96x96,
-        grid code, no noise; mean PSNR for 1 / 2 / 3 / 4): N = 8: 28.45 /
-        29.36 / 29.44 / 29.35 dB, N = 16: 26.53 / 27.28 / 27.49 / 27.52 dB.
+        Tuned on training scenes (docs/research.md, "Tuning the baselines").
     radius_xy : int, optional
         Spatial half-width; default the grid spacing
         ``ceil(sqrt(N / mean open count))``.
@@ -235,25 +233,10 @@ def gap_tv(
     """Reconstruct a video by GAP-TV.
 
     The defaults of ``settings`` were tuned on synthetic *training* scenes (``synth:train-0`` to
-    ``train-5``, 96x96, N = 8, no noise; PSNR averaged over the six scenes for
-    the codes hitomi L = 2 / hitomi L = 3 / bernoulli p = 0.5).  3D TV
-    (``temporal=True``) against per-frame 2D TV, accelerated, weight 0.01 /
-    0.1, 20 iterations: 30.0 / 30.8 / 30.5 and 30.8 / 31.5 / 31.0 dB against
-    28.9 / 29.5 / 29.1 and 28.2 / 28.4 / 27.9 dB; 2D TV also got worse with
-    more iterations (60: 28.2 / 28.5 / 28.4 at weight 0.01), the static
-    estimate alone gives 28.8 / 29.4 / 27.2 dB.  3D TV, 40 iterations, weight
-    0.1 / 0.2 / 0.4: 30.9 / 31.6 / 31.0, 31.1 / 31.7 / 31.1, 31.3 / 31.7 /
-    31.1 dB; 80 iterations changed nothing by more than 0.01 dB.
-    Weight 0.3 / 0.6 (40 iterations): 31.2 / 31.7 / 31.1 and 31.3 / 31.7 / 31.0 dB; 10 inner TV
-    iterations instead of 5: 0.3 to 0.5 dB worse and twice as slow.  With read
-    noise (hitomi L = 2), weight 0.1 / 0.3 / 0.6: sigma 8: 28.1 / 28.3 / 28.3 dB,
-    sigma 40: 23.2 / 23.0 / 22.7 dB.
-
-    Checked afterwards (not tuned) on the report's test scenes (``default``,
-    ``coins-translate``, ``camera-rotate``, 96x96, N = 8, no noise): these
-    defaults give 26.5 / 26.8 / 25.7 dB, the former defaults (2D TV, weight
-    0.06, 40 iterations) 24.2 / 24.1 / 24.3 dB; weight 0.6 would give 0.2 to
-    0.3 dB more there (on the training scenes 0.3 and 0.6 tie, so 0.3 stays).
+    ``train-5``, 96x96, N = 8, no noise): 3D TV beats per-frame 2D TV, 40
+    iterations are enough, and weights 0.3 and 0.6 tie, so 0.3 stays; the report's
+    test scenes were checked afterwards, not tuned on (docs/research.md, "Tuning
+    the baselines").
 
     Parameters
     ----------

@@ -28,21 +28,8 @@ sums add up to the whole pass, then :func:`finish`), so that no group is solved
 twice (:mod:`codedvideo.engine.parallel`).  With ``group=1`` it is the default
 reconstruction (the same still test, the same OMP operation for operation, the same fold).
 
-Measured (tasks/bench_nonlocal.py, 256x256, N = 8, the 3 codes x sigma 0 and 4 of
-case_quality; seconds include the default's): on the four held-out real clips
-33.71 dB against the default's 32.40 and GAP-TV's 30.68 (GAP-TV + 3.03 dB, the
-default GAP-TV + 1.72), 4.4x the default's time on the tile graph (4.1x after
-the interleaved dot products of the Gram-Schmidt steps), never
-below it (+0.64 to +2.45 dB a case); synthetic scenes +0.90 dB.  Chosen on a 5-case mix: groups of
-16 at reference stride 3 (8 at stride 2: +1.08 dB, 12: +1.25 but 1.4x slower,
-24 at stride 3: +1.29 but 1.75x), a support of 16 atoms (8: +0.75, 24 helps
-noiseless Bernoulli and hurts noisy hitomi L=3), projection onto the
-measurements (+0.1).  Measured and left off: a second pass regrouping on the new
-estimate (+0.01), similarity weights (0), a distance cap on members (groups
-shrink, worse), a pull of the members' coefficients towards the group's shared
-fit (worse at every strength tried: the members are shifted copies, not the same
-coefficients), misfit weights (+0.1, slower), BM3D's 1/atoms weights (+0.01),
-a tolerance 0.6x or 1.5x the default's (0 / -0.04).
+Its quality and time are in docs/quality.md; how the group size, stride, support and projection were
+chosen, and the variants left off, are in docs/research.md, "The non-local method".
 """
 
 from __future__ import annotations
@@ -97,14 +84,10 @@ GROUP_ATOMS_CAP = 24
 
 #: A patch with fewer pixels than this within a pixel of one ever open is neither a reference nor a member of any
 #: group: beside a block of missing pixels (saturated or defective), a group's shared atoms fitted to the few
-#: measured pixels of a corner give values far outside the data range (-3000 to 2600 in 8-bit frames with 13x13
-#: and 14x14 blocks, 64x64 synth:default, when such patches take part).  Its pixels take the estimates of the
+#: measured pixels of a corner give values far outside the data range.  Its pixels take the estimates of the
 #: patches that see enough of them, or the first estimate's where none does (:func:`finish`).  Two thirds of the
-#: patch, chosen on blocks of 8 to 20 pixels in that scene: `best` within 1.4 dB of the default inside them,
-#: above it in three of five, every value from -199 to 295 (a half allows values up to 734; 40 of 49
-#: loses 4 dB in both 8x8 blocks).  Counted within a pixel of a measurement, so that a code's own scattered
-#: never-open pixels leave every patch in (Bernoulli(0.1), N = 8, leaves 43 % of the pixels never open, and no
-#: patch of it falls below the bound).
+#: patch, counted within a pixel of a measurement, so that a code's own scattered never-open pixels leave every
+#: patch in (docs/research.md, "The non-local method").
 MIN_OPEN = P.PATCH * P.PATCH * 2 // 3 + 1
 
 
@@ -122,9 +105,7 @@ def _near_measured(mask: np.ndarray) -> np.ndarray:
 def group_atoms(max_atoms: int, m: int = P.PATCH * P.PATCH) -> int:
     """The atoms of a group's shared support for the per-patch budget ``max_atoms``, and never more than
     4/5 of a patch's ``m`` measurements: every member still fits its coefficients to its own measurements,
-    and a support as large as them fits the noise and the code (measured, 64x64 synthetic scene, hitomi
-    L = 2, tolerance 0: a support of 64 or 49 atoms gave values from -220 to 496 for 0..255 and 21 dB
-    against the default's 30.6; 32 to 40 atoms 31.3 to 30.7 dB)."""
+    and a support as large as them fits the noise and the code (docs/research.md, "The non-local method")."""
     return min(max(max_atoms, min(ATOMS_FACTOR * max_atoms, GROUP_ATOMS_CAP)), (4 * m) // 5)
 
 
@@ -238,7 +219,7 @@ class NonlocalOptions:
     project : bool
         After each pass, add the per-pixel minimum-norm correction that makes
         the estimate reproduce the coded image exactly (None: for groups of more
-        than one; measured +0.1 dB on average).
+        than one; docs/research.md, "The non-local method").
     origin, image_shape : the region's corner in the image and the image's (H, W)
         (reference strides count from the image's corner, as in the default).
     refs : (y0, y1, x0, x1), optional

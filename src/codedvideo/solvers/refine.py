@@ -246,9 +246,8 @@ WATCH_EVERY = 8
 #: about this size: 64 MB in float32), so that the memory of the refinement is bounded at any image size.
 BAND_VOXELS = 1 << 24
 #: Rows a band reads beyond its own on either side (its results there are left to the neighbouring band): the
-#: groups of a band's edge see this many rows of the image beyond it.  Measured on the 768x768 mosaics of the
-#: bench (N = 8, hitomi L = 2 and Bernoulli) in bands of 242 rows with their halos, as at 3840x2160 N = 18: 8,
-#: 16 and 32 rows all within 0.006 dB of the whole image; 16 refines 13 to 18 % faster than 32.
+#: groups of a band's edge see this many rows of the image beyond it.  Wider halos gave the same result for more
+#: time (docs/quality.md, "Refinement under the measurement").
 HALO = 16
 
 

@@ -1,4 +1,4 @@
-"""Values at the ends of float (issue 29): every numeric option of every command gives a finite answer or one
+"""Option ranges, to the ends of float: every numeric option of every command gives a finite answer or one
 line (exit 2) naming the option, the value and the allowed range; never a traceback, a leaked numpy warning
 or a non-finite value written.  And the PSNR a user reads does not depend on the units of the files."""
 import argparse

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import codedvideo as cv
 from codedvideo.formats import io as cio
 from codedvideo.app.cli import main
 from codedvideo.solvers.dictionaries import dct_dictionary
@@ -481,3 +482,16 @@ def test_color_channels_on_a_grey_coded_image_is_refused(files, tmp_path, capsys
     """Reported: it wrote a one-channel "colour" result (1, N, H, W) without a word."""
     fails(capsys, [*reconstruct_args(files, tmp_path), "--color", "channels"], "coded.npy", "one channel",
           root=tmp_path / "out")
+
+
+def test_dictionary_records_that_do_not_fit_are_named_plainly(tmp_path):
+    """A store whose record says frames '8' (a string) was refused as 'built for N = 8, the mask has N = 8'; one
+    whose atoms have the wrong rows was refused without its file; training's --init spoke of a mask."""
+    from codedvideo.formats.store import check_dictionary
+
+    with pytest.raises(cv.InputError, match=r"d.zarr: its record's frames '8' is not a whole number"):
+        check_dictionary(dict(patch=7, frames="8"), 8, tmp_path / "d.zarr")
+    with pytest.raises(cv.InputError, match=r"d.zarr: atoms of 300 rows; N = 8 needs N x 49 = 392"):
+        check_dictionary(dict(patch=7, frames=8), 8, tmp_path / "d.zarr", np.zeros((300, 4), np.float32))
+    with pytest.raises(cv.InputError, match=r"built for N = 16 sub-frames, training for N = 8"):
+        check_dictionary(dict(patch=7, frames=16), 8, tmp_path / "d.zarr", needs="training for")
