@@ -184,7 +184,7 @@ def test_the_still_path_is_exact_for_a_still_scene(tmp_path, capsys, new_code):
     from codedvideo.data.synth import make_scene
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * N, axis=0)
-    cap = simulate_capture(still, code=CodeSpec("hitomi", bump=2, new_code_per_capture=new_code), sigma=0, seed=1,
+    cap = simulate_capture(still, code=CodeSpec("hitomi", bump=2), new_code_per_capture=new_code, sigma=0, seed=1,
                            captures=T)
     for name in ("coded", "mask", "truth"):
         np.save(tmp_path / f"{name}.npy", cap[name])
@@ -462,7 +462,7 @@ def test_simulate_streams_a_video_file_capture_by_capture_with_the_same_files(tm
         _run(capsys, "simulate", tmp_path / source, "--frames", N, "--captures", "all", "--start", 2, "--size", H, W,
              "--noise-sigma", 2, "--seed", 7, *flags, "--output", tmp_path / "cap")
     whole = simulate_capture(read_clip(str(tmp_path / source), frames=3 * N, size=(H, W), start=2),
-                             code=CodeSpec("hitomi", bump=2, new_code_per_capture=new_code), sigma=2.0, seed=7,
+                             code=CodeSpec("hitomi", bump=2), new_code_per_capture=new_code, sigma=2.0, seed=7,
                              captures=3)
     for name in ("coded", "mask", "truth"):
         np.testing.assert_array_equal(np.load(tmp_path / "cap" / f"{name}.npy"), whole[name], err_msg=name)
@@ -550,7 +550,7 @@ def test_pixels_never_open_in_several_captures_are_one_warning(tmp_path, capsys)
     from codedvideo.data.synth import make_scene
 
     video = make_scene("default", frames=4 * N, size=(H, W))
-    cap = simulate_capture(video, code=CodeSpec("bernoulli", bump=2, new_code_per_capture=True), sigma=0, seed=2,
+    cap = simulate_capture(video, code=CodeSpec("bernoulli", bump=2), new_code_per_capture=True, sigma=0, seed=2,
                            captures=4)
     closed = [int((~cap["mask"][t].any(0)).sum()) for t in range(4)]
     assert sum(c > 0 for c in closed) >= 2, closed
@@ -719,7 +719,7 @@ def test_a_pixel_is_still_only_where_its_still_answer_is_quiet_enough():
 
     still = np.repeat(make_scene("default", frames=1, size=(H, W)), T * 8, axis=0)
     for bump in (2, 3):
-        cap = simulate_capture(still, code=CodeSpec("hitomi", bump=bump, new_code_per_capture=True), sigma=0, seed=1,
+        cap = simulate_capture(still, code=CodeSpec("hitomi", bump=bump), new_code_per_capture=True, sigma=0, seed=1,
                                captures=T)
         mask_of = lambda j: cap["mask"][j]  # noqa: E731
         quiet = agreeing_pixels(cap["coded"], mask_of, 1, sigma=STILL_NOISE_MAX * bump)

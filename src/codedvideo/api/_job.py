@@ -195,8 +195,7 @@ def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
     noise = r.noise
     if not (noise.black_level or noise.bits is not None or r.bad_pixels is not None or r.detect_bad_pixels):
         return None
-    from codedvideo.model.sensor import (RawLevels, bad_pixel_array, correct_raw as correct_frames, read_bad_pixels,
-                                         vote_bad_pixels)
+    from codedvideo.model.sensor import bad_pixel_array, correct_raw as correct_frames, read_bad_pixels, vote_bad_pixels
 
     count = len(job.labels)
     shape = tuple(job.mask(0).shape[-2:])
@@ -204,12 +203,11 @@ def correct_raw(r: Resolved, job: Captures) -> _Lazy | None:
         if isinstance(r.bad_pixels, (str, os.PathLike)) else bad_pixel_array(r.bad_pixels, shape, "bad_pixels")
 
     files = getattr(job.codeds, "files", None)  # (a folder of images: each capture its file)
-    levels = RawLevels(black_level=noise.black_level, bits=noise.bits, white_level=noise.white_level)
 
     def correct(coded, mask, i):  # (an error names the capture of a stack: one flash must not read as all)
         where = job.source if count == 1 else f"{job.source}, capture {i + 1} of {count}" + \
             (f" ({Path(files[i]).name})" if files is not None and i < len(files) else "")
-        return correct_frames(coded, mask, levels=levels, bad_pixels=listed, trust_saturated=r.trust_saturated,
+        return correct_frames(coded, mask, levels=noise, bad_pixels=listed, trust_saturated=r.trust_saturated,
                               where=where)
 
     codeds, masks = job.codeds, job.masks  # as read (job's own accessors are replaced below)

@@ -24,7 +24,6 @@ from codedvideo.engine.simulation import sensor_model, simulate_capture
 from codedvideo.engine.training import train_dictionary
 from codedvideo.formats import io as cio
 from codedvideo.formats.volumes import CAPTURE_FILES, metrics_path, write_capture, write_json, write_volume
-from codedvideo.model.codes import CodeSpec
 
 
 def run_pipeline(cfg: PipelineConfig, *, progress: bool = True, config_path: str | Path | None = None) -> dict:
@@ -54,8 +53,7 @@ def _run_pipeline(cfg: PipelineConfig, *, progress: bool, config_path: str | Pat
         # short or too small video, or a code file that does not fit, ends the run in a second, not after K-SVD
         t0 = time.perf_counter()
         video = load_video(cfg.scene.video, frames=cfg.frames, size=cfg.scene.size, seed=cfg.seed, start=cfg.scene.start)
-        code = CodeSpec(cfg.code.name, cfg.code.bump, p=cfg.code.p, path=cfg.code.path)
-        capture = simulate_capture(video, code=code, sigma=cfg.noise.sigma, seed=cfg.seed,
+        capture = simulate_capture(video, code=cfg.code, sigma=cfg.noise.sigma, seed=cfg.seed,
                                    sensor=sensor_model(cfg.noise))
         del video
         report["seconds"]["simulate"] = time.perf_counter() - t0
@@ -174,4 +172,5 @@ def _reconstruct(cfg: PipelineConfig, capture: dict, dict_path, out: Path, repor
     report.update(job_record(job, output=outputs["video"], write=report["seconds"]["write"], started=started),
                   outputs=outputs)
     if "quality" in report:
-        report["seconds"]["evaluate"] = job.seconds_scored + report["quality"].get("output_file", {}).get("seconds", 0.0)
+        written = report["quality"].get("output_file", {})  # (the video read back and scored, when it was)
+        report["seconds"]["evaluate"] = job.seconds_scored + written.get("seconds", 0.0)

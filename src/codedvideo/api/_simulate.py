@@ -65,11 +65,10 @@ class SimulationPlan:
         """The keywords of :func:`codedvideo.engine.simulation.simulate_capture` but the number of captures (a
         Bayer capture is one colour capture: a new code per capture does not reach it)."""
         from codedvideo.engine.simulation import sensor_model
-        from codedvideo.model.codes import CodeSpec
 
-        s, c = self.settings, self.code
-        code = CodeSpec(c.name, c.bump, p=c.p, path=c.path, new_code_per_capture=s.new_code_per_capture and not s.bayer)
-        return dict(code=code, sigma=self.noise.sigma, seed=s.seed, sensor=sensor_model(self.noise))
+        s = self.settings
+        return dict(code=self.code, sigma=self.noise.sigma, seed=s.seed, sensor=sensor_model(self.noise),
+                    new_code_per_capture=s.new_code_per_capture and not s.bayer)
 
 
 def _code(s: SimulateSettings, door: str) -> CodeConfig:

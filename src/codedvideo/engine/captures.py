@@ -241,7 +241,8 @@ def _adapt(job: _Job) -> None:
     (:func:`codedvideo.engine.adaptation.adapt_capture`), into ``job``."""
     o = job.options
     for i in range(job.inputs.count):
-        D_i, store, record = adapt_capture(job, i, stage=None if o.trace is None else functools.partial(_stage, o.trace, i))
+        stage = None if o.trace is None else functools.partial(_stage, o.trace, i)
+        D_i, store, record = adapt_capture(job, i, stage=stage)
         if D_i is not o.dictionary:
             job.adapted[i] = D_i
         if store is not None:
@@ -261,15 +262,15 @@ def _solved(job: _Job):
     o, count = job.options, job.inputs.count
     if not job.sparse:
         return ((i, None, None) for i in range(count))
-    run = functools.partial(sparse_volumes, count, job.for_sparse, settings=o.settings, budget=job.budget)
+    solve = functools.partial(sparse_volumes, count, job.for_sparse, settings=o.settings, budget=job.budget)
     if not job.adapted:
-        return run(o.dictionary, run=o.execution, dictionary_key=o.dictionary_key)
+        return solve(o.dictionary, run=o.execution, dictionary_key=o.dictionary_key)
     # a capture not adapted (flat) keeps the dictionary and its key: its second job is the first's, from the cache
     # (with the survey, the method's own job at the second pass's stride)
     adapted = job.adapted
-    return run(lambda i: (adapted.pop(i), "") if i in adapted else (o.dictionary, o.dictionary_key),
-               run=dataclasses.replace(o.execution, desc="adapted"),
-               first_of=job.first_stores.get if job.survey else None)
+    return solve(lambda i: (adapted.pop(i), "") if i in adapted else (o.dictionary, o.dictionary_key),
+                 run=dataclasses.replace(o.execution, desc="adapted"),
+                 first_of=job.first_stores.get if job.survey else None)
 
 
 def reconstruct_captures(options: CaptureSettings, codeds, mask_of, *,

@@ -22,6 +22,7 @@ def simulate_capture(
     seed: int,
     sensor: physics.SensorModel | None = None,
     captures: int = 1,
+    new_code_per_capture: bool = False,
 ) -> dict[str, np.ndarray]:
     """Coded capture(s) of a video: mask, coded image(s) (noisy) and the truth.
 
@@ -30,9 +31,8 @@ def simulate_capture(
     video : ndarray of shape (T * N, H, W)
         ``captures`` consecutive captures of N sub-frames each.
     code : CodeSpec
-        The code (:func:`codedvideo.model.codes.make_code`; its ``path`` for ``file``), and whether each
-        capture has a new one (``new_code_per_capture``: instead of the same code repeated, as a real
-        sensor repeats its code).
+        The code (:func:`codedvideo.model.codes.make_code`; its ``path`` for ``file``): a :class:`CodeSpec`, or
+        any object with its ``name``, ``bump``, ``p`` and ``path`` (pipeline.yaml's validated ``code:``).
     sigma : float
         Gaussian read noise, grey levels.
     seed : int
@@ -42,6 +42,8 @@ def simulate_capture(
         by ``sigma``.  None: read noise only.
     captures : int
         T, the number of coded images (a coded camera's stream).
+    new_code_per_capture : bool
+        A new code for every capture instead of the same code repeated (as a real sensor repeats its code).
 
     Returns
     -------
@@ -53,7 +55,7 @@ def simulate_capture(
         raise InputError(f"video of {video.shape[0]} frames: not {captures} captures of equal length")
     n = video.shape[0] // captures
     stream = simulate_stream((video[t * n : (t + 1) * n] for t in range(captures)), code=code, sigma=sigma,
-                             seed=seed, sensor=sensor, captures=captures)
+                             seed=seed, sensor=sensor, captures=captures, new_code_per_capture=new_code_per_capture)
     coded, masks = [], []
     for one, mask, _ in stream:
         coded.append(one)
@@ -64,7 +66,7 @@ def simulate_capture(
 
 
 def simulate_stream(clips, *, code: CodeSpec, sigma: float, seed: int, sensor: physics.SensorModel | None = None,
-                    captures: int = 1,
+                    captures: int = 1, new_code_per_capture: bool = False,
                     codes: list | None = None) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """:func:`simulate_capture` one capture at a time: ``clips`` yields the T clips (N, H, W) in order; yields
     ``(coded (H, W), mask (N, H, W), clip)`` for each, from the same seeded streams (the same captures bit for
@@ -81,9 +83,9 @@ def simulate_stream(clips, *, code: CodeSpec, sigma: float, seed: int, sensor: p
             masks = [load_code_file(code.path, frames=clip.shape[0], shape=clip.shape[1:]) if code.name == "file"
                      else make_code(code.name, clip.shape[1:], frames=clip.shape[0], bump=code.bump, p=code.p,
                                     rng=code_rng)
-                     for _ in range(captures if code.new_code_per_capture else 1)]
+                     for _ in range(captures if new_code_per_capture else 1)]
             if masks[0].ndim == 4:  # a code file of one code per capture, in turn
-                if code.new_code_per_capture:
+                if new_code_per_capture:
                     raise InputError(f"code file {code.path}: holds {masks[0].shape[0]} codes, one per capture; "
                                      "a new code per capture does not apply")
                 masks = list(masks[0])

@@ -98,15 +98,12 @@ class CodeSpec:
         Open probability of ``bernoulli`` and ``shifting``.
     path : str or Path, optional
         The mask file of ``file`` (:func:`codedvideo.formats.volumes.load_code_file`).
-    new_code_per_capture : bool
-        A new code for every capture instead of the same code repeated (as a real sensor repeats its code).
     """
 
     name: str
     bump: int
     p: float = OPEN_PROBABILITY
     path: str | os.PathLike | None = None
-    new_code_per_capture: bool = False
 
 
 def _check_bump(frames: int, bump: int, patch: int | None) -> None:

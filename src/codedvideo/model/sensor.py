@@ -144,7 +144,8 @@ def correct_raw(
     levels : RawLevels
         The black level (a number or a dark frame), the ADC's bit depth and the
         white level of the raw values; ``RawLevels()`` subtracts nothing and
-        tests no saturation.
+        tests no saturation.  Any object with those three attributes will do
+        (a run passes its validated ``noise:`` settings as they are).
     bad_pixels : ndarray, optional
         Defective pixels: a boolean map (H, W) or integer ``(y, x)`` rows (K, 2)
         (:func:`read_bad_pixels`, :func:`detect_bad_pixels`).
