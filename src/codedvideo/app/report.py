@@ -33,6 +33,7 @@ import json
 import sys
 import tempfile
 import time
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -151,11 +152,13 @@ class Runner:
             self._captures = {k: api.simulate_whole(plan, 1)}  # (the last one only: each is used in turn)
         return self._captures[k]
 
-    def _job(self, cap: dict, method: str, dictionary, sigma: float, **chosen) -> api.ReconstructionJob:
-        """The API's reconstruction job of one experiment: the pipeline's ``reconstruct:`` settings with those
-        ``chosen`` (None: the pipeline's), in the report's 8-bit units."""
+    def _job(self, cap: dict, method: str, dictionary, sigma: float, tuning: Tuning) -> api.ReconstructionJob:
+        """The API's reconstruction job of one experiment: the pipeline's ``reconstruct:`` settings with the
+        experiment's ``tuning`` (None: the pipeline's; its ``atoms`` chose ``dictionary``), in the report's 8-bit
+        units."""
         r = self.cfg.reconstruct
-        given = {k: v for k, v in chosen.items() if v is not None and v is not False}
+        given = {k: v for k, v in dataclasses.asdict(tuning).items()
+                 if k != "atoms" and v is not None and v is not False}
         # pipeline.yaml's settings as a run takes them, less what an experiment sets itself: no preset, its own
         # method and steps, the automatic tolerance, the noise-free simulated capture's 8-bit units, a fresh cache
         settings = api.replaced(api.run_settings(self.cfg, dictionary, sigma, progress=False), **dict(dict(
@@ -164,7 +167,7 @@ class Runner:
             **given), method=method)
         # a refined experiment is scored along its refinement (that scoring's time is left out of its own)
         captures = api.Captures(codeds=[cap["coded"]], masks=[cap["mask"]], source="report: simulated capture",
-                                truths=cap["truth"] if chosen.get("refine") else None)
+                                truths=cap["truth"] if tuning.refine else None)
         return api.ReconstructionJob(captures, api.resolve_settings(settings))
 
     def main_atoms(self) -> int:
@@ -205,9 +208,7 @@ class Runner:
         if entry.dictionary:
             D, meta = self.dictionary(frames, tuning.atoms)
             dkey = meta["sha256"]
-        job = self._job(cap, method, D, sigma, max_atoms=tuning.max_atoms, tol_rms=tuning.tol_rms,
-                        stride=tuning.stride, adapt=tuning.adapt, adapt_rounds=tuning.adapt_rounds,
-                        refine=tuning.refine)
+        job = self._job(cap, method, D, sigma, tuning)
         omp = job.omp if entry.sparse else None
         if entry.sparse:
             settings.update(omp.__dict__, tile=self.cfg.reconstruct.tile)
