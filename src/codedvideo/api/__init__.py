@@ -236,18 +236,17 @@ def train(videos, *, frames: int, atoms: int = KSVD_ATOMS, samples: int = KSVD_S
     -------
     D : ndarray of shape (N * 49, atoms), float32
     """
-    from codedvideo.solvers.dictionaries import KsvdSettings, learn_dictionary
+    from codedvideo.solvers.dictionaries import learn_dictionary
     from codedvideo.data.scenes import working_units
 
     # the settings checked as the command line's and pipeline.yaml's are, before any work (atoms below sparsity,
     # samples too few for the atoms...)
-    plan_training(frames=frames, dictionary=dict(atoms=atoms, samples=samples, iterations=iterations,
-                                                 sparsity=sparsity, augment=augment), seed=seed, door="api")
+    cfg = plan_training(frames=frames, dictionary=dict(atoms=atoms, samples=samples, iterations=iterations,
+                                                       sparsity=sparsity, augment=augment), seed=seed, door="api")
     clips = [working_units(np.array(v, np.float32), what=f"training video {i + 1}") for i, v in enumerate(videos)]
     if not clips:
         raise InputError("train: no training video given")
-    D, _ = learn_dictionary(clips, frames=frames, seed=seed, settings=KsvdSettings(
-        atoms=atoms, samples=samples, iterations=iterations, sparsity=sparsity, augment=augment))
+    D, _ = learn_dictionary(clips, frames=frames, seed=seed, settings=cfg.dictionary.ksvd())
     return D
 
 

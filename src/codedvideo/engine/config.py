@@ -21,7 +21,7 @@ from codedvideo.model.errors import ConfigError
 from codedvideo.model.patches import PATCH
 from codedvideo.model.physics import SensorModel
 from codedvideo.model.units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX
-from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY
+from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY, KsvdSettings
 from codedvideo.solvers.region import OmpSettings
 
 STAGES = ("train", "simulate", "reconstruct", "evaluate")
@@ -171,6 +171,11 @@ class DictionaryConfig(_Strict):
     init: str | None = None
     #: Rotate, flip and reverse the training patches (the paper's augmentation); off to fit one scene.
     augment: bool = True
+
+    def ksvd(self) -> KsvdSettings:
+        """The solver's view of this section: its K-SVD settings (the solver's own defaults for the rest)."""
+        return KsvdSettings(atoms=self.atoms, samples=self.samples, iterations=self.iterations,
+                            sparsity=self.sparsity, augment=self.augment)
 
     @model_validator(mode="after")
     def _settings_used(self, info: ValidationInfo) -> "DictionaryConfig":

@@ -18,7 +18,7 @@ from codedvideo.formats import io as cio
 from codedvideo.formats.store import entry_lock, load_dictionary, save_dictionary
 from codedvideo.model.errors import ConfigError, InputError
 from codedvideo.model.patches import PATCH
-from codedvideo.solvers.dictionaries import KsvdSettings, dct_dictionary, learn_dictionary
+from codedvideo.solvers.dictionaries import dct_dictionary, learn_dictionary
 
 log = logging.getLogger("codedvideo")
 
@@ -66,8 +66,7 @@ def train_dictionary(cfg: PipelineConfig, *, output: str | Path | None = None, p
                     D, meta = learn_dictionary(
                         videos,
                         frames=cfg.frames,
-                        settings=KsvdSettings(atoms=dc.atoms, samples=dc.samples, iterations=dc.iterations,
-                                              sparsity=dc.sparsity, augment=dc.augment),
+                        settings=dc.ksvd(),
                         seed=cfg.seed,
                         progress=(lambda it, rmse: (bar.update(1), bar.set_postfix(rmse=f"{rmse:.2f}"))) if bar else None,
                         init=None if dc.init is None else init_dictionary(dc.init, cfg.frames)[0],
