@@ -543,7 +543,7 @@ def omp_settings(rc: ReconstructConfig, sigma: float, *, scale: float = 1.0):
     """
     tol = auto_tolerance(sigma * scale) if rc.tol_rms == "auto" else float(rc.tol_rms) * scale
     return OmpSettings(max_atoms=rc.max_atoms, tol_rms=tol, batch=rc.batch, static_atoms=rc.static_atoms,
-                       stride=rc.stride, weighting=rc.weighting, method=rc.method)
+                       stride=rc.stride, weighting=rc.weighting, method=rc.method, exact=not sigma > 0)
 
 
 def _refusal(key: str, options: dict) -> str | None:

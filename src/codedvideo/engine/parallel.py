@@ -149,7 +149,8 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
 # times the default's).  Instead: (1) the default's tiles give the first estimate; (2) blocks of half a
 # tile each solve the groups of the references whose corners they hold, from the first estimate around
 # them, and return the summed estimates and weights; (3) each tile adds the sums of the blocks that
-# reach it (in block order: deterministic), divides and projects onto its measurements, and is written.
+# reach it (in block order: deterministic), divides, projects onto its measurements (when they are exact: no
+# read noise), and is written.
 
 
 #: Key prefixes of the stage tasks (counted by the progress bar beside the tiles).
@@ -215,10 +216,11 @@ def _groups_task(store_path: str, block: Tile, firsts: list, D: np.ndarray, sett
     return region, summed, weight[None], time.perf_counter() - t0
 
 
-def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], patch: int) -> np.ndarray:
-    """Stage 3: a tile's core from the sums of the blocks that reach it, projected onto its measurements
-    (pixels that only wholly still patches cover: the still answer), written to every place; its
-    statistics are the first estimate's plus the time of the blocks it owns."""
+def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], settings: OmpSettings,
+                  patch: int) -> np.ndarray:
+    """Stage 3: a tile's core from the sums of the blocks that reach it, projected onto its measurements where
+    they are exact (``settings.exact``; pixels that only wholly still patches cover: the still answer), written to
+    every place; its statistics are the first estimate's plus the time of the blocks it owns."""
     from codedvideo.solvers.nonlocal_sc import finish, keep_still
 
     t0 = time.perf_counter()
@@ -235,7 +237,8 @@ def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], p
         around = (max(0, y0 - patch + 1), min(h, y1 + patch - 1), max(0, x0 - patch + 1), min(w, x1 + patch - 1))
         coded, mask, still = store.read_inputs(*around)  # the core and every patch over it
         inside = (slice(y0 - around[0], y1 - around[0]), slice(x0 - around[2], x1 - around[2]))
-        volume = finish(summed, weight[0], coded[inside], mask[(slice(None), *inside)], first=volume)
+        volume = finish(summed, weight[0], coded[inside], mask[(slice(None), *inside)], project=settings.exact,
+                        first=volume)
         keep_still(volume, coded, mask, still.astype(bool), patch, *inside)
     owned_seconds = sum(part[3] for part, mine in zip(parts, owned) if mine and part is not None)
     stats[STAT_NAMES.index("seconds_total")] += owned_seconds + time.perf_counter() - t0
@@ -320,7 +323,7 @@ def _nonlocal_tasks(places: dict, d_nodes: dict, settings: OmpSettings, patch: i
             parts.append(blocks[key])
             owned.append(tile.core[0] <= b.core[0] < tile.core[1] and tile.core[2] <= b.core[2] < tile.core[3])
         own_first = first_of(first_tiles[tile.index])
-        out.append(combine_task(tuple(where), own_first, parts, owned, patch,
+        out.append(combine_task(tuple(where), own_first, parts, owned, settings, patch,
                                 dask_key_name=f"tile-{run}-{last - i:09d}"))
     return out
 

@@ -219,7 +219,8 @@ class NonlocalOptions:
     project : bool
         After each pass, add the per-pixel minimum-norm correction that makes
         the estimate reproduce the coded image exactly (None: for groups of more
-        than one; docs/research.md, "The non-local method").
+        than one when ``settings.exact``, the capture free of read noise; docs/research.md, "The non-local
+        method").
     origin, image_shape : the region's corner in the image and the image's (H, W)
         (reference strides count from the image's corner, as in the default).
     refs : (y0, y1, x0, x1), optional
@@ -261,7 +262,7 @@ def _options(opts: NonlocalOptions, settings: OmpSettings, shape: tuple[int, int
     step = opts.step
     if step is None:
         step = 1 if group == 1 else settings.group_step or STEP
-    project = group > 1 if opts.project is None else opts.project
+    project = group > 1 and settings.exact if opts.project is None else opts.project
     if group < 1 or opts.window < 0 or opts.iterations < 0 or step < 1:
         raise ValueError("group >= 1, window >= 0, iterations >= 0, step >= 1")
     if opts.sums and opts.iterations != 1:

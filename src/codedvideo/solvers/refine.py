@@ -68,6 +68,12 @@ BLEND = 0.5
 CHUNK = 4096
 #: A noisy capture's relaxation of the steps to the measurements, ``RELAX noise_sigma^2 / sigma^2`` (:func:`relaxed`).
 RELAX = 0.25
+#: From this read noise on (grey levels of an 8-bit capture) the steps are relaxed by :data:`RELAX_HEAVY` instead of
+#: :data:`RELAX`: under such noise the steps relaxed by ``RELAX`` drew the estimate toward the noise and the refined
+#: result fell below its start on some held-out clips, while below it ``RELAX`` gained more (docs/research.md,
+#: "Under read noise").
+HEAVY_NOISE = 25.0
+RELAX_HEAVY = 1.0
 #: Elements of a band of rows in a step to the measurements (its float32 copy of the mask's band: 16 MB).
 BAND = 1 << 22
 
@@ -76,7 +82,7 @@ def recipe() -> dict:
     """The refinement's settings but the iterations (what a record of its result is keyed by)."""
     return dict(prior="frame-patches", side=SIDE, group=GROUP, step=STEP, frames=FRAMES, window=WINDOW,
                 regroup=REGROUP, grids="shifted", shrink=SHRINK, sigma_start=SIGMA_START, sigma_end=SIGMA_END,
-                blend=BLEND, relax=RELAX)
+                blend=BLEND, relax=RELAX, heavy_noise=HEAVY_NOISE, relax_heavy=RELAX_HEAVY)
 
 
 def grid_shift(matching: int, step: int = STEP) -> tuple[int, int]:
@@ -212,9 +218,11 @@ def sigmas(iterations: int, start: float = SIGMA_START, end: float = SIGMA_END) 
 
 def relaxed(open2: np.ndarray, noise_sigma: float, sigma: float) -> np.ndarray:
     """The reciprocal of each pixel's summed squared shutter weights ``open2`` plus ``RELAX noise_sigma^2 /
-    sigma^2`` (0 where a pixel is never open): a noisy capture's step to its measurements, shorter the lower
-    the denoiser's level ``sigma`` (the measurements' noise then weighs more against the prior's)."""
-    lam = np.float32(RELAX * noise_sigma * noise_sigma / (sigma * sigma))
+    sigma^2`` (0 where a pixel is never open; ``RELAX_HEAVY`` from read noise :data:`HEAVY_NOISE` on): a noisy
+    capture's step to its measurements, shorter the lower the denoiser's level ``sigma`` (the measurements' noise
+    then weighs more against the prior's)."""
+    relax = RELAX_HEAVY if noise_sigma >= HEAVY_NOISE else RELAX
+    lam = np.float32(relax * noise_sigma * noise_sigma / (sigma * sigma))
     return np.divide(1.0, open2 + lam, out=np.zeros_like(open2), where=open2 > 0)
 
 
@@ -291,7 +299,8 @@ def refine(coded: np.ndarray, mask: np.ndarray, start: np.ndarray, *, iterations
     ``coded`` (H, W) and ``mask`` (N, H, W) are the measurements the result keeps (a pixel never open is not
     held to any).  ``noise_sigma``: the capture's read noise; above 0 the measurements are not held exactly:
     plain GAP (no accumulated residual), each step (and the last projection) relaxed by ``RELAX noise_sigma^2 /
-    sigma^2`` at the iteration's noise level ``sigma`` (:func:`to_measurements`).  0: accelerated GAP, exact
+    sigma^2`` (``RELAX_HEAVY`` from :data:`HEAVY_NOISE` on) at the iteration's noise level ``sigma``
+    (:func:`relaxed`, :func:`to_measurements`).  0: accelerated GAP, exact
     steps.  ``known`` (H, W) bool: pixels whose values are known (a stream's still answers): they keep their
     values of ``start`` in every estimate, and no group is referenced where a patch holds only those (a still
     scene costs the steps to the measurements only).  ``blocks``: the N frames are that many videos of

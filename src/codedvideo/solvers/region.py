@@ -56,6 +56,8 @@ class OmpSettings:
         Patch stride (1 to the patch size): ``stride**2`` times fewer patches.
     weighting : {"uniform", "fit"}
         How the overlapping estimates of a pixel are averaged.
+    exact : bool
+        The measurements are exact (no read noise): the non-local method's result is projected onto them.
     """
 
     max_atoms: int = 8
@@ -75,6 +77,10 @@ class OmpSettings:
     #: "nonlocal": stride of its groups' reference patches (0: :data:`codedvideo.solvers.nonlocal_sc.STEP`).
     #: ``--adapt`` surveys with a sparser grid first (:data:`codedvideo.engine.adaptation.ADAPT_SURVEY_STEP`).
     group_step: int = 0
+    #: "nonlocal": whether the groups' average is projected onto the measurements, so that it reproduces the
+    #: coded image exactly.  False under read noise: the measurements then hold the noise, and projecting onto
+    #: them put it back into the estimate (docs/research.md, "The non-local method under read noise").
+    exact: bool = True
 
 
 def tile_halo(settings: OmpSettings, patch: int = P.PATCH) -> int:
