@@ -243,17 +243,13 @@ def test_best_under_heavy_read_noise_leaves_out_its_non_local_passes_and_keeps_t
     assert resolve_preset("fast", {}, noise=2 * NOISY_BEST) == resolve_preset("fast", {})
 
 
-def test_best_under_the_heaviest_read_noise_is_the_default():
-    """From NOISIEST_BEST on the refinement lost to the default as well (-0.05 dB at sigma 100), so best leaves it
-    out too; a refinement given beside the preset stands."""
-    from codedvideo.engine.config import NOISIEST_BEST, resolve_preset
-
-    options, left_out = resolve_preset("best", {}, noise=NOISIEST_BEST)
-    assert options == resolve_preset("default", {})[0]
-    assert set(left_out) == {"method", "adapt", "adapt_rounds", "refine"} and "80 or more" in left_out["refine"]
-    below, left = resolve_preset("best", {}, noise=NOISIEST_BEST - 1)
-    assert below["refine"] == 32 and "refine" not in left
-    given, left = resolve_preset("best", {"refine": 16}, noise=NOISIEST_BEST)
+def test_best_under_the_heaviest_read_noise_keeps_its_refinement():
+    """With its steps relaxed for heavy noise the refinement stayed above the default up to read noise 220 (+0.01 to
+    +0.31 dB, docs/quality.md), so best keeps it at any noise; a refinement given beside the preset stands."""
+    options, left_out = resolve_preset("best", {}, noise=220.0)
+    assert options["refine"] == 32 and options["method"] == "omp"
+    assert set(left_out) == {"method", "adapt", "adapt_rounds"}
+    given, left = resolve_preset("best", {"refine": 16}, noise=220.0)
     assert given["refine"] == 16 and "refine" not in left
 
 
@@ -271,21 +267,22 @@ def test_best_under_heavy_noise_is_the_refined_default_in_any_units_and_says_why
     assert best.record["preset"]["options"]["method"] == "omp"
 
 
-@pytest.mark.parametrize("crop", [(96, 96), (192, 192)])
-def test_best_under_heavy_read_noise_is_not_below_the_default_on_held_out_footage(crop):
+@pytest.mark.parametrize("crop,sigma", [((96, 96), 40), ((192, 192), 40), ((96, 96), 120)])
+def test_best_under_heavy_read_noise_is_above_the_default_on_held_out_footage(crop, sigma):
     """Measured (issue 48, make bench CASES=robust): at read noise 40 on bunny, hitomi L = 2, the refined default
     (what best is there) fell 0.05 dB below the default on the centre crop and 0.20 dB on a corner's, its steps
-    relaxed too little for such noise."""
+    relaxed too little for such noise; from 80 on best was the default itself, leaving the refinement's gain
+    (+0.24 dB here at 120) out."""
     from codedvideo.data.footage import footage_scene
 
     y, x = crop
     video = (footage_scene("bunny", frames=8)[:, y:y + 64, x:x + 64] / 255).astype(np.float32)
     mask = cv.make_code("hitomi", (64, 64), frames=8, bump=2, seed=0)
-    coded = cv.simulate(video, mask, noise_sigma=40 / 255, seed=1)
+    coded = cv.simulate(video, mask, noise_sigma=sigma / 255, seed=1)
     psnr = {}
     for name in ("default", "best"):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # (best says what it left out)
-            out = cv.reconstruct(coded, mask, preset=name, noise_sigma=40 / 255, data_range=1.0, progress=False)
+            out = cv.reconstruct(coded, mask, preset=name, noise_sigma=sigma / 255, data_range=1.0, progress=False)
         psnr[name] = cv.evaluate(np.clip(out, 0, 1), video, data_range=1.0)["psnr"]
     assert psnr["best"] >= psnr["default"] + 0.1, psnr

@@ -575,10 +575,6 @@ def preset_options(name: str) -> str:
 NOISY_BEST = 25.0
 #: The keys of a preset the noise rule leaves out (their defaults taken).
 _NOISY_KEYS = ("method", "adapt", "adapt_rounds")
-#: Read noise from which ``best`` leaves out its refinement as well: the default itself.  The refinement's gain
-#: over the default falls with the noise, and past this it may lose (docs/quality.md, "`best` under heavy read
-#: noise").
-NOISIEST_BEST = 80.0
 
 
 def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
@@ -601,8 +597,8 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
 
     ``noise``: the capture's read noise in working units, once it is known; from :data:`NOISY_BEST` on, the
     preset's non-local method and adaptation are left out (measured: under such noise they lose to the per-patch
-    OMP, and the refinement alone gains on it), and from :data:`NOISIEST_BEST` on its refinement too; an option
-    given beside the preset stands.  ``blind``: why the capture's code leaves its patches blind to what they fit
+    OMP, and the refinement alone gains on it, at every noise measured); an option given beside the preset
+    stands.  ``blind``: why the capture's code leaves its patches blind to what they fit
     (:func:`codedvideo.solvers.guard.sparse_weight`; empty: it does not); the preset's non-local method and
     adaptation are then left out as under heavy noise (they fell below the default there, while the refinement
     gained on it: docs/research.md, "Long shutter bumps").
@@ -621,14 +617,11 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
         options[key] = defaults[key]
         left_out[key] = problem
     if name and noise is not None and noise >= NOISY_BEST:
-        noisiest = noise >= NOISIEST_BEST
-        for key in _NOISY_KEYS + (("refine",) if noisiest else ()):
+        for key in _NOISY_KEYS:
             if key in PRESETS[name] and key not in given and options[key] != defaults[key]:
                 options[key] = defaults[key]
                 left_out[key] = (f"read noise of {noise:.3g} grey levels (of a data range of 255) is "
-                                 + (f"{NOISIEST_BEST:g} or more, where the default was measured as good as any step "
-                                    "beyond it" if noisiest else
-                                    f"{NOISY_BEST:g} or more, where the per-patch OMP, refined, was measured better"))
+                                 f"{NOISY_BEST:g} or more, where the per-patch OMP, refined, was measured better")
     if name and blind:
         for key in _NOISY_KEYS:
             if key in PRESETS[name] and key not in given and options[key] != defaults[key]:
