@@ -571,8 +571,9 @@ def preset_options(name: str) -> str:
 
 #: Read noise from which ``best`` leaves out its non-local passes and its adaptation (keeping the refinement):
 #: in working units (grey levels of a data range of 255).  From here on the refined per-patch OMP never lost to
-#: the default, while the non-local recipe did on one clip (docs/quality.md, "`best` under heavy read noise").
-NOISY_BEST = 25.0
+#: the default, while the non-local recipe did on some crops of one clip at 35 and 40; at 25 and 30 it stayed
+#: above the default (docs/research.md, "The non-local method under read noise").
+NOISY_BEST = 30.0
 #: The keys of a preset the noise rule leaves out (their defaults taken).
 _NOISY_KEYS = ("method", "adapt", "adapt_rounds")
 
