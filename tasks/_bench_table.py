@@ -172,9 +172,17 @@ def _lines_robust(r: dict) -> list[str]:
     return lines
 
 
+def _lines_robust_noise(r: dict) -> list[str]:
+    """The read-noise sweep off the centre crops: best - the default and the default's margin, each noise level."""
+    return [f"  read noise {sigma}: best - default worst {s['best_lead_worst']:+.2f} / median "
+            f"{s['best_lead_median']:+.2f} dB; default - max(trivial, GAP-TV) worst {s['default_margin_worst']:+.2f} dB "
+            f"({s['cases']} captures)" for sigma, s in r["summary"].items()]
+
+
 #: The table's lines of each case that has its own.
 _CASE_LINES = {
     "robust": _lines_robust,
+    "robust-noise": _lines_robust_noise,
     "units": _lines_units,
     "adapt": _lines_adapt,
     "presets": _lines_presets,

@@ -36,6 +36,9 @@ Cases (issue "Fast reconstruction"):
   robust   the default and best against the still estimate and GAP-TV on every code a user can give: N = 8, 16
            and 18, every hitomi bump length, Bernoulli p 0.1 to 0.9, the other families, read noise 0 to 40,
            held-out clips at 64x64 (tasks/bench_robust.py; its own results file as well)
+  robust-noise  the same figures under read noise 4 to 79 on the centre and two corners of four held-out
+           clips (N = 8, hitomi L = 2 and Bernoulli 0.5): best against the default where the centre crops
+           alone missed a flat corner (tasks/bench_robust.py --noise-crops)
   footage  coded video of held-out real clips (bikes.mp4: 31 captures of 272x640; carphone: 15 of
            144x176; N = 8, read noise 2): simulated and reconstructed by the CLI as one job and
            capture by capture, PSNR, SSIM, boundary step and seconds; the job again in [0, 1] floats
@@ -752,6 +755,15 @@ def case_robust(quick: bool) -> dict:
                 sgemm_gflops=sgemm_gflops())
 
 
+def case_robust_noise(quick: bool) -> dict:
+    """Issue "never below the simple answers" under read noise, off the centre crops (tasks/bench_robust.py
+    --noise-crops)."""
+    import bench_robust as br
+
+    rows = br.noise_sweep(quick)
+    return dict(case="robust-noise", size=64, summary=br.noise_summary(rows), rows=rows, sgemm_gflops=sgemm_gflops())
+
+
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
              sequence=case_sequence, video=case_video, footage=case_footage, calibrated=case_calibrated, startup=case_startup, units=case_units)
 CASES["nonlocal"] = case_nonlocal  # a keyword: not a dict() argument
@@ -761,6 +773,7 @@ CASES["outputs4k"] = case_outputs4k
 CASES["presets"] = case_presets
 CASES["front"] = case_front
 CASES["robust"] = case_robust
+CASES["robust-noise"] = case_robust_noise
 
 
 def run_child(name: str, quick: bool) -> dict:
