@@ -37,8 +37,8 @@ Cases (issue "Fast reconstruction"):
            and 18, every hitomi bump length, Bernoulli p 0.1 to 0.9, the other families, read noise 0 to 40,
            held-out clips at 64x64 (tasks/bench_robust.py; its own results file as well)
   robust-noise  the same figures under read noise 4 to 79 on the centre and two corners of four held-out
-           clips (N = 8, hitomi L = 2 and Bernoulli 0.5): best against the default where the centre crops
-           alone missed a flat corner (tasks/bench_robust.py --noise-crops)
+           clips (N = 8, hitomi L = 2 and Bernoulli 0.5): best against the default on flat corners as well as
+           the centres (tasks/bench_robust.py --noise-crops)
   footage  coded video of held-out real clips (bikes.mp4: 31 captures of 272x640; carphone: 15 of
            144x176; N = 8, read noise 2): simulated and reconstructed by the CLI as one job and
            capture by capture, PSNR, SSIM, boundary step and seconds; the job again in [0, 1] floats

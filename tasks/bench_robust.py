@@ -7,9 +7,10 @@ still estimate (coded / open count, a plain long exposure) and GAP-TV on the sam
 frames; the default is run on the capture in [0, 1] floats and in 8-bit units (its PSNR in both), best on the
 [0, 1] capture.  ``cv.reconstruct`` in one process (the command line's bits); seconds per call.
 
-``--noise-crops``: read noise off the centre crops instead, where a flat corner showed what the centre crops did
-not: 64x64 crops at the centre and two corners of bikes-a, bikes-b, carphone and bunny, N = 8, hitomi L = 2 and
-Bernoulli 0.5, read noise 4 to 79 grey levels (:data:`NOISE_SIGMAS`), the same figures for each capture.
+``--noise-crops``: read noise on the corners of the clips as well as their centres (a flat corner does not behave
+as the centre does): 64x64 crops at the centre and two corners of bikes-a, bikes-b, carphone and bunny, N = 8,
+hitomi L = 2 and Bernoulli 0.5, read noise 4 to 79 grey levels (:data:`NOISE_SIGMAS`), the same figures for each
+capture.
 
     python tasks/bench_robust.py [--quick] [--best] [--size 64] [--out bench/results/robust.json]
     python tasks/bench_robust.py --noise-crops [--quick] [--out bench/results/robust_noise.json]
