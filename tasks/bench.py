@@ -39,6 +39,8 @@ Cases (issue "Fast reconstruction"):
   robust-noise  the same figures under read noise 4 to 79 on the centre and two corners of four held-out
            clips (N = 8, hitomi L = 2 and Bernoulli 0.5): best against the default on flat corners as well as
            the centres (tasks/bench_robust.py --noise-crops)
+  robust-grid  the same figures for the grid code at N = 8, 16 and 18 on the centre and four corners of the
+           four clips (tasks/bench_robust.py --grid-crops)
   footage  coded video of held-out real clips (bikes.mp4: 31 captures of 272x640; carphone: 15 of
            144x176; N = 8, read noise 2): simulated and reconstructed by the CLI as one job and
            capture by capture, PSNR, SSIM, boundary step and seconds; the job again in [0, 1] floats
@@ -761,7 +763,17 @@ def case_robust_noise(quick: bool) -> dict:
     import bench_robust as br
 
     rows = br.noise_sweep(quick)
-    return dict(case="robust-noise", size=64, summary=br.noise_summary(rows), rows=rows, sgemm_gflops=sgemm_gflops())
+    return dict(case="robust-noise", size=64, summary=br.crop_summary(rows), rows=rows, sgemm_gflops=sgemm_gflops())
+
+
+def case_robust_grid(quick: bool) -> dict:
+    """Issue "never below the simple answers" on the grid code, off the centre crops (tasks/bench_robust.py
+    --grid-crops)."""
+    import bench_robust as br
+
+    rows = br.grid_sweep(quick)
+    return dict(case="robust-grid", size=64, summary=br.crop_summary(rows, "frames"), rows=rows,
+                sgemm_gflops=sgemm_gflops())
 
 
 CASES = dict(a=case_a, b=case_b, b1=case_b1, c=case_c, static=case_static, quality=case_quality, bayer=case_bayer,
@@ -774,6 +786,7 @@ CASES["presets"] = case_presets
 CASES["front"] = case_front
 CASES["robust"] = case_robust
 CASES["robust-noise"] = case_robust_noise
+CASES["robust-grid"] = case_robust_grid
 
 
 def run_child(name: str, quick: bool) -> dict:

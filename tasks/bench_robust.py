@@ -12,8 +12,12 @@ as the centre does): 64x64 crops at the centre and two corners of bikes-a, bikes
 hitomi L = 2 and Bernoulli 0.5, read noise 4 to 79 grey levels (:data:`NOISE_SIGMAS`), the same figures for each
 capture.
 
+``--grid-crops``: the grid code, whose patterns repeat on a small lattice, on the centre and the four corners of the
+same clips at N = 8, 16 and 18, the same figures for each capture.
+
     python tasks/bench_robust.py [--quick] [--best] [--size 64] [--out bench/results/robust.json]
     python tasks/bench_robust.py --noise-crops [--quick] [--out bench/results/robust_noise.json]
+    python tasks/bench_robust.py --grid-crops [--quick] [--out bench/results/robust_grid.json]
 """
 from __future__ import annotations
 
@@ -35,6 +39,9 @@ NOISE_SCENES = ("bunny", "carphone", "bikes-a", "bikes-b")
 NOISE_CROPS = ((96, 96), (0, 0), (192, 192))
 NOISE_CODES = (("hitomi", dict(bump=2)), ("bernoulli", dict(p=0.5)))
 NOISE_SIGMAS = (4.0, 8.0, 15.0, 20.0, 25.0, 30.0, 40.0, 60.0, 79.0)
+#: ``--grid-crops``: the grid code's sub-frames, and the corners of its 64x64 crops (the centre and the four corners).
+GRID_FRAMES = (8, 16, 18)
+GRID_CROPS = ((96, 96), (0, 0), (0, 192), (192, 0), (192, 192))
 FAMILIES = (("rowwise", dict(bump=2)), ("rowwise", dict(bump=4)), ("rowwise", dict(bump=6)), ("thinout", {}),
             ("grid", {}), ("flutter", {}), ("shifting", dict(p=0.5)), ("hitomi-tiled", dict(bump=2)),
             ("hitomi-tiled", dict(bump=4)), ("global", {}))
@@ -107,35 +114,52 @@ def sweep(size: int, quick: bool, best: bool, scenes=SCENES, log=sys.stderr) -> 
     return rows
 
 
-def noise_sweep(quick: bool, log=sys.stderr) -> list[dict]:
-    """Every capture of ``--noise-crops`` (:data:`NOISE_SCENES` x :data:`NOISE_CROPS` x :data:`NOISE_CODES` x
-    :data:`NOISE_SIGMAS`; ``quick``: the first two crops at 15 and 40 grey levels), each :func:`one_case` with best."""
+def crop_sweep(frames: int, crops, captures, scenes=NOISE_SCENES, log=sys.stderr) -> list[dict]:
+    """:func:`one_case` with best on 64x64 crops (their top left corners ``crops`` in the 256x256 ``scenes``) of
+    ``frames`` sub-frames, each capture of ``captures`` (``(code, options, read noise)``) on each crop."""
     from codedvideo.data.footage import footage_scene
 
     rows = []
-    for scene in NOISE_SCENES:
-        whole = footage_scene(scene, frames=8) / 255
-        for y, x in NOISE_CROPS[:2] if quick else NOISE_CROPS:
+    for scene in scenes:
+        whole = footage_scene(scene, frames=frames) / 255
+        for y, x in crops:
             video = whole[:, y:y + 64, x:x + 64].astype(np.float32)
-            for name, options in NOISE_CODES:
-                for sigma in (15.0, 40.0) if quick else NOISE_SIGMAS:
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore")  # (out-of-range and preset warnings: the figures say it)
-                        row = dict(scene=scene, crop=[y, x], **one_case(video, name, options, sigma, True))
-                    rows.append(row)
-                    print(_line(row), file=log, flush=True)
+            for name, options, sigma in captures:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # (out-of-range and preset warnings: the figures say it)
+                    row = dict(scene=scene, crop=[y, x], **one_case(video, name, options, sigma, True))
+                rows.append(row)
+                print(_line(row), file=log, flush=True)
     return rows
 
 
-def noise_summary(rows: list[dict]) -> dict:
-    """For each read noise level of :func:`noise_sweep`: best - the default and the default - the better simple
-    answer, worst and median, dB."""
+def noise_sweep(quick: bool, log=sys.stderr) -> list[dict]:
+    """Every capture of ``--noise-crops`` (:data:`NOISE_SCENES` x :data:`NOISE_CROPS` x :data:`NOISE_CODES` x
+    :data:`NOISE_SIGMAS`; ``quick``: the first two crops at 15 and 40 grey levels), each :func:`one_case` with best."""
+    sigmas = (15.0, 40.0) if quick else NOISE_SIGMAS
+    return crop_sweep(8, NOISE_CROPS[:2] if quick else NOISE_CROPS,
+                      [(name, options, sigma) for name, options in NOISE_CODES for sigma in sigmas], log=log)
+
+
+def grid_sweep(quick: bool, log=sys.stderr) -> list[dict]:
+    """Every capture of ``--grid-crops``: the grid code at each of :data:`GRID_FRAMES` on :data:`NOISE_SCENES` x
+    :data:`GRID_CROPS` (``quick``: N = 16 on the first two crops), each :func:`one_case` with best."""
+    rows = []
+    for frames in (16,) if quick else GRID_FRAMES:
+        rows += crop_sweep(frames, GRID_CROPS[:2] if quick else GRID_CROPS, [("grid", {}, 0.0)], log=log)
+    return rows
+
+
+def crop_summary(rows: list[dict], key: str = "sigma") -> dict:
+    """For each value of ``key`` in the rows of :func:`crop_sweep` (the read noise, or the sub-frames): best - the
+    default and the default - the better simple answer, worst and median, dB."""
     out = {}
-    for sigma in dict.fromkeys(r["sigma"] for r in rows):
-        level = [r for r in rows if r["sigma"] == sigma]
+    for value in dict.fromkeys(r[key] for r in rows):
+        level = [r for r in rows if r[key] == value]
         lead = [r["best"] - r["default"] for r in level]
         margin = [r["default"] - r["floor"] for r in level]
-        out[f"{sigma:g}"] = dict(cases=len(level), best_lead_worst=min(lead), best_lead_median=float(np.median(lead)),
+        out[f"{value:g}"] = dict(cases=len(level), best_lead_worst=min(lead), best_lead_median=float(np.median(lead)),
+                                 best_below_default_0_05=sum(x < -0.05 for x in lead),
                                  default_margin_worst=min(margin))
     return out
 
@@ -168,17 +192,24 @@ def main() -> int:
     ap.add_argument("--best", action="store_true", help="also --preset best (several times the time)")
     ap.add_argument("--noise-crops", action="store_true",
                     help="read noise 4 to 79 on the centre and two corners of four clips, best included")
+    ap.add_argument("--grid-crops", action="store_true",
+                    help="the grid code at N = 8, 16 and 18 on the centre and four corners of four clips, best included")
     ap.add_argument("--size", type=int, default=64, help="crop side (default 64)")
     ap.add_argument("--out", default=None, help="results file (default: bench/results/robust.json, or "
-                                                "robust_noise.json with --noise-crops)")
+                                                "robust_noise.json with --noise-crops, robust_grid.json with "
+                                                "--grid-crops)")
     a = ap.parse_args()
     if a.noise_crops:
         rows = noise_sweep(a.quick)
-        result = dict(size=64, quick=a.quick, summary=noise_summary(rows), rows=rows)
+        result = dict(size=64, quick=a.quick, summary=crop_summary(rows), rows=rows)
+    elif a.grid_crops:
+        rows = grid_sweep(a.quick)
+        result = dict(size=64, quick=a.quick, summary=crop_summary(rows, "frames"), rows=rows)
     else:
         rows = sweep(a.size, a.quick, a.best)
         result = dict(size=a.size, quick=a.quick, summary=summary(rows), rows=rows)
-    out = Path(a.out or ROOT / "bench" / "results" / ("robust_noise.json" if a.noise_crops else "robust.json"))
+    name = "robust_noise.json" if a.noise_crops else "robust_grid.json" if a.grid_crops else "robust.json"
+    out = Path(a.out or ROOT / "bench" / "results" / name)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result["summary"], indent=1))

@@ -21,7 +21,7 @@ import numpy as np
 from codedvideo.model import doors, physics
 from codedvideo.api._record import Scores
 from codedvideo.api._settings import Resolved, for_noise, setting_name
-from codedvideo.solvers.guard import sparse_weight
+from codedvideo.solvers.guard import coarse_lattice, sparse_weight
 from codedvideo.engine.bayer import check_even, reconstruct_bayer, static_estimate
 from codedvideo.engine.captures import CaptureSettings, reconstruct_stream, result_recipe
 from codedvideo.engine.methods import SPARSE, WITH_DICTIONARY
@@ -298,10 +298,12 @@ class ReconstructionJob:
                         white_level=noise.white_level, black_level=noise.black_level),
             names={k: setting_name(k, door) for k in ("noise_sigma", "data_range", "white_level", "tol_rms",
                                                       "black_level")})
-        # the read noise known in working units: heavy noise leaves out a preset's non-local passes
-        # and a code that leaves its patches blind (long bumps): they are left out as well
-        weight, blind = sparse_weight(np.asarray(captures.mask(0))) if resolved.settings.preset else (1.0, "")
-        self.r = for_noise(resolved, noise.sigma * self.units.scale, blind=blind if weight < 1 else "")
+        # the read noise known in working units: heavy noise leaves out a preset's non-local passes, and so do a
+        # code that leaves its patches blind (long bumps) and one that samples each sub-frame on a coarse lattice
+        mask0 = np.asarray(captures.mask(0)) if resolved.settings.preset else None
+        weight, blind = sparse_weight(mask0) if mask0 is not None else (1.0, "")
+        self.r = for_noise(resolved, noise.sigma * self.units.scale, blind=blind if weight < 1 else "",
+                           lattice=coarse_lattice(mask0) if mask0 is not None else "")
         self.omp = omp_settings(rc, noise.sigma, scale=self.units.scale)
         self._warn_before_work()
         h, w = captures.codeds[0].shape[-2:]

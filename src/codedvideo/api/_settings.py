@@ -128,15 +128,16 @@ def _resolve(s: ReconstructSettings, door: str) -> Resolved:
     return Resolved(s, rc, noise, data_range, preset, method, door)
 
 
-def for_noise(r: Resolved, noise: float, blind: str = "") -> Resolved:
+def for_noise(r: Resolved, noise: float, blind: str = "", lattice: str = "") -> Resolved:
     """``r`` once the capture's read noise is known in working units (``noise``): the preset resolved again with
     it (:func:`codedvideo.engine.config.resolve_preset`; ``blind``: why the capture's code leaves its patches
-    blind, or empty), the keys it leaves out said in a warning; ``r`` itself when nothing changes."""
+    blind, ``lattice``: why it samples each sub-frame on a coarse lattice, each empty where it does not), the keys
+    it leaves out said in a warning; ``r`` itself when nothing changes."""
     s = r.settings
     if s.preset is None:
         return r
     given = _given(s)
-    options, left_out = resolve_preset(s.preset, given, bayer=s.bayer, noise=noise, blind=blind)
+    options, left_out = resolve_preset(s.preset, given, bayer=s.bayer, noise=noise, blind=blind, lattice=lattice)
     if left_out.keys() == r.preset["left_out"].keys():
         return r
     rc = r.rc.model_copy(update={k: options[k] for k in PRESET_KEYS if k != "method"})

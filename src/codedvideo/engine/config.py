@@ -579,7 +579,7 @@ _NOISY_KEYS = ("method", "adapt", "adapt_rounds")
 
 
 def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
-                   noise: float | None = None, blind: str = "") -> tuple[dict, dict[str, str]]:
+                   noise: float | None = None, blind: str = "", lattice: str = "") -> tuple[dict, dict[str, str]]:
     """The values of :data:`PRESET_KEYS` for a run: those ``given`` beside the preset, then preset ``name``'s
     (None: no preset), then the defaults of ``reconstruct:``.
 
@@ -602,7 +602,9 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
     stands.  ``blind``: why the capture's code leaves its patches blind to what they fit
     (:func:`codedvideo.solvers.guard.sparse_weight`; empty: it does not); the preset's non-local method and
     adaptation are then left out as under heavy noise (they fell below the default there, while the refinement
-    gained on it: docs/research.md, "Long shutter bumps").
+    gained on it: docs/research.md, "Long shutter bumps").  ``lattice``: why the code samples each sub-frame on
+    a lattice too coarse for the non-local passes (:func:`codedvideo.solvers.guard.coarse_lattice`; empty: it
+    does not); they and the adaptation are left out too (docs/research.md, "A grid code's repeating patterns").
     """
     if name is not None and name not in PRESETS:
         raise ConfigError(f"preset {name!r}: unknown; choose one of {', '.join(PRESETS)}")
@@ -617,18 +619,21 @@ def resolve_preset(name: str | None, given: dict, *, bayer: str | None = None,
             raise ConfigError(f"option {as_option(key, given[key])}: {problem}")
         options[key] = defaults[key]
         left_out[key] = problem
-    if name and noise is not None and noise >= NOISY_BEST:
+    reasons = []  # (why the preset's non-local passes and adaptation are left out: the first that holds is said)
+    if noise is not None and noise >= NOISY_BEST:
+        reasons.append(f"read noise of {noise:.3g} grey levels (of a data range of 255) is {NOISY_BEST:g} or more, "
+                       "where the per-patch OMP, refined, was measured better")
+    if lattice:
+        reasons.append(f"the code has {lattice}, where the non-local passes fell below the default on some "
+                       "held-out scenes and the per-patch OMP, refined, on none")
+    if blind:
+        reasons.append(f"the code has {blind}, where the per-patch OMP blended with GAP-TV, refined, was measured "
+                       "better")
+    for why in reasons if name else ():
         for key in _NOISY_KEYS:
             if key in PRESETS[name] and key not in given and options[key] != defaults[key]:
                 options[key] = defaults[key]
-                left_out[key] = (f"read noise of {noise:.3g} grey levels (of a data range of 255) is "
-                                 f"{NOISY_BEST:g} or more, where the per-patch OMP, refined, was measured better")
-    if name and blind:
-        for key in _NOISY_KEYS:
-            if key in PRESETS[name] and key not in given and options[key] != defaults[key]:
-                options[key] = defaults[key]
-                left_out[key] = (f"the code has {blind}, where the per-patch OMP blended with GAP-TV, refined, "
-                                 "was measured better")
+                left_out[key] = why
     return options, left_out
 
 
