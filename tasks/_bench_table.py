@@ -175,7 +175,7 @@ def _lines_robust(r: dict) -> list[str]:
 def _crop_lines(r: dict, label: str) -> list[str]:
     """A sweep over crops (tasks/bench_robust.py): best - the default and the default's margin, each ``label``
     (the read noise, or the sub-frames) in its summary."""
-    return [f"  {label} {value}: best - default worst {s['best_lead_worst']:+.2f} / median "
+    return [f"  {label + ' ' if label else ''}{value}: best - default worst {s['best_lead_worst']:+.2f} / median "
             f"{s['best_lead_median']:+.2f} dB; default - max(trivial, GAP-TV) worst {s['default_margin_worst']:+.2f} dB "
             f"({s['cases']} captures)" for value, s in r["summary"].items()]
 
@@ -185,16 +185,16 @@ def _lines_robust_noise(r: dict) -> list[str]:
     return _crop_lines(r, "read noise")
 
 
-def _lines_robust_grid(r: dict) -> list[str]:
-    """The grid code off the centre crops, each N."""
-    return _crop_lines(r, "grid N =")
+def _lines_robust_crops(r: dict) -> list[str]:
+    """The codes off the centre crops, each N and code."""
+    return _crop_lines(r, "")
 
 
 #: The table's lines of each case that has its own.
 _CASE_LINES = {
     "robust": _lines_robust,
     "robust-noise": _lines_robust_noise,
-    "robust-grid": _lines_robust_grid,
+    "robust-crops": _lines_robust_crops,
     "units": _lines_units,
     "adapt": _lines_adapt,
     "presets": _lines_presets,
