@@ -127,7 +127,8 @@ def _period(mask: np.ndarray, axis: int, longest: int) -> int | None:
     itself (None: none does)."""
     size = mask.shape[axis]
     for p in range(1, min(longest, size - 1) + 1):
-        if np.array_equal(mask.take(np.arange(p, size), axis), mask.take(np.arange(size - p), axis)):
+        ahead, behind = ((slice(None),) * axis + (slice(p, None),)), ((slice(None),) * axis + (slice(None, -p),))
+        if np.array_equal(mask[ahead], mask[behind]):
             return p
     return None
 
@@ -138,8 +139,8 @@ def coarse_lattice(mask: np.ndarray, patch: int = PATCH) -> str:
     :data:`COARSE_LATTICE` pixels or more along both axes and smaller than ``patch``, as the grid code is at
     N = 16 and 18.
 
-    Each 7x7 patch then sees every sub-frame at the same few places, so a scene's fine detail aliases the same
-    way in the patches the non-local passes group together.  On held-out crops under the grid code at N = 16
+    Each 7x7 patch then sees every sub-frame at the same few places, so a scene's fine detail is likely to alias
+    alike in the patches the non-local passes group together.  On held-out crops under the grid code at N = 16
     and 18, ``best`` fell below the default on 6 of 40, while the per-patch OMP, refined, was above it on all;
     a 3 x 3 grid (N = 8) and a random tile of 7 x 7 lost on none (docs/research.md, "A grid code's repeating
     patterns").
