@@ -33,9 +33,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ("bikes-a", "carphone", "bunny")
 SIGMAS = (4.0, 15.0, 40.0)
-#: ``--noise-crops``: the clips, the corners of their 64x64 crops in the 256x256 scenes (the centre, top left and
-#: bottom right), the codes and the read noise levels (grey levels of 255).
-NOISE_SCENES = ("bunny", "carphone", "bikes-a", "bikes-b")
+#: ``--noise-crops`` and ``--crops``: the clips.
+CROP_SCENES = ("bunny", "carphone", "bikes-a", "bikes-b")
+#: ``--noise-crops``: the corners of the 64x64 crops in the 256x256 scenes (the centre, top left and bottom right),
+#: the codes and the read noise levels (grey levels of 255).
 NOISE_CROPS = ((96, 96), (0, 0), (192, 192))
 NOISE_CODES = (("hitomi", dict(bump=2)), ("bernoulli", dict(p=0.5)))
 NOISE_SIGMAS = (4.0, 8.0, 15.0, 20.0, 25.0, 30.0, 40.0, 60.0, 79.0)
@@ -117,7 +118,7 @@ def sweep(size: int, quick: bool, best: bool, scenes=SCENES, log=sys.stderr) -> 
     return rows
 
 
-def crop_sweep(frames: int, crops, captures, scenes=NOISE_SCENES, log=sys.stderr) -> list[dict]:
+def crop_sweep(frames: int, crops, captures, scenes=CROP_SCENES, log=sys.stderr) -> list[dict]:
     """:func:`one_case` with best on 64x64 crops (their top left corners ``crops`` in the 256x256 ``scenes``) of
     ``frames`` sub-frames, each capture of ``captures`` (``(code, options, read noise)``) on each crop."""
     from codedvideo.data.footage import footage_scene
@@ -137,7 +138,7 @@ def crop_sweep(frames: int, crops, captures, scenes=NOISE_SCENES, log=sys.stderr
 
 
 def noise_sweep(quick: bool, log=sys.stderr) -> list[dict]:
-    """Every capture of ``--noise-crops`` (:data:`NOISE_SCENES` x :data:`NOISE_CROPS` x :data:`NOISE_CODES` x
+    """Every capture of ``--noise-crops`` (:data:`CROP_SCENES` x :data:`NOISE_CROPS` x :data:`NOISE_CODES` x
     :data:`NOISE_SIGMAS`; ``quick``: the first two crops at 15 and 40 grey levels), each :func:`one_case` with best."""
     sigmas = (15.0, 40.0) if quick else NOISE_SIGMAS
     return crop_sweep(8, NOISE_CROPS[:2] if quick else NOISE_CROPS,
@@ -145,7 +146,7 @@ def noise_sweep(quick: bool, log=sys.stderr) -> list[dict]:
 
 
 def crops_sweep(quick: bool, log=sys.stderr) -> list[dict]:
-    """Every capture of ``--crops``: :data:`CROP_CODES` on :data:`NOISE_SCENES` x :data:`CROPS` (``quick``: the
+    """Every capture of ``--crops``: :data:`CROP_CODES` on :data:`CROP_SCENES` x :data:`CROPS` (``quick``: the
     first two codes on the first two crops), each :func:`one_case` with best."""
     rows = []
     for frames, name, options in CROP_CODES[:2] if quick else CROP_CODES:
@@ -153,9 +154,14 @@ def crops_sweep(quick: bool, log=sys.stderr) -> list[dict]:
     return rows
 
 
+def _code(row: dict) -> str:
+    """A row's code and its options: ``hitomi bump=8``."""
+    return row["code"] + "".join(f" {k}={row[k]:g}" for k in ("bump", "p") if k in row)
+
+
 def code_label(row: dict) -> str:
     """A row's N and code, as :func:`crop_summary` groups the rows of ``--crops``: ``N = 16 hitomi bump=8``."""
-    return f"N = {row['frames']} {row['code']}" + "".join(f" {k}={row[k]:g}" for k in ("bump", "p") if k in row)
+    return f"N = {row['frames']} {_code(row)}"
 
 
 def crop_summary(rows: list[dict], key=lambda row: f"{row['sigma']:g}") -> dict:
@@ -174,7 +180,7 @@ def crop_summary(rows: list[dict], key=lambda row: f"{row['sigma']:g}") -> dict:
 
 
 def _line(row: dict) -> str:
-    code = row["code"] + "".join(f" {k}={row[k]}" for k in ("bump", "p") if k in row)
+    code = _code(row)
     best = f" best {row['best']:6.2f}" if "best" in row else ""
     return (f"N={row['frames']:2d} {code:22s} sigma {row['sigma']:4.0f} {row['scene']:9s} trivial {row['trivial']:6.2f}"
             f" gaptv {row['gaptv']:6.2f} default {row['default']:6.2f} ({row['default'] - row['floor']:+.2f})"
@@ -199,10 +205,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="a few codes at N = 8 and 16, no noise sweep")
     ap.add_argument("--best", action="store_true", help="also --preset best (several times the time)")
-    ap.add_argument("--noise-crops", action="store_true",
-                    help="read noise 4 to 79 on the centre and two corners of four clips, best included")
-    ap.add_argument("--crops", action="store_true",
-                    help="ten codes at N = 8, 16 and 18 on the centre and four corners of four clips, best included")
+    crops = ap.add_mutually_exclusive_group()
+    crops.add_argument("--noise-crops", action="store_true",
+                       help="read noise 4 to 79 on the centre and two corners of four clips, best included")
+    crops.add_argument("--crops", action="store_true",
+                       help="ten codes at N = 8, 16 and 18 on the centre and four corners of four clips, best included")
     ap.add_argument("--size", type=int, default=64, help="crop side (default 64)")
     ap.add_argument("--out", default=None, help="results file (default: bench/results/robust.json, or "
                                                 "robust_noise.json with --noise-crops, robust_crops.json with "
