@@ -162,7 +162,7 @@ def test_passes_over_boxes_of_references_add_up_to_the_whole_pass(rng, D):
     assert all(p[0].any() for p in parts)  # every box holds references of its own
     np.testing.assert_allclose(sum(p[0] for p in parts), total_s, rtol=1e-5, atol=1e-3)
     np.testing.assert_array_equal(sum(p[1] for p in parts), total_w)
-    np.testing.assert_allclose(finish(sum(p[0] for p in parts), sum(p[1] for p in parts), coded, mask), whole,
+    np.testing.assert_allclose(finish(sum(p[0] for p in parts), sum(p[1] for p in parts), coded, mask, first=first), whole,
                                rtol=0, atol=1e-3)
     assert not np.allclose(parts[0][0], total_s)  # a box alone is not the whole pass
     with pytest.raises(ValueError, match="one pass"):

@@ -92,6 +92,36 @@ def test_still_patches_take_the_cheap_path_with_the_same_answer():
     assert dict(zip(STAT_NAMES, st_mov))["patches_static"] < 0.05 * dict(zip(STAT_NAMES, st_mov))["patches"]
 
 
+@pytest.mark.parametrize("code", ["hitomi", "bernoulli"])
+def test_the_still_test_keeps_a_change_of_the_light_below_the_tolerance(code):
+    """A flat region whose light flickers by less than the tolerance passes the still test; its temporal profile,
+    fitted through each patch's code, keeps the flicker that the still image alone flattens, and under heavy
+    noise the profile's ridge keeps the still image."""
+    from codedvideo.solvers.region import region_patches, still_patches
+
+    n, h, w = 8, 14, 15
+    flicker = 1.5 * np.sin(np.arange(n) * 2 * np.pi / 5)  # grey levels: below the tolerance of 2
+    video = np.broadcast_to((100 + flicker)[:, None, None], (n, h, w)).astype(np.float32)
+    mask = make_code(code, (h, w), frames=n, bump=2, rng=3)
+    patches = region_patches(simulate(video, mask).astype(np.float32), mask, True, 7)
+    rows = np.arange(patches.y.shape[0])
+    tol = patches.n_open * 2.0**2
+    codes = (patches.codes, patches.corners(rows))
+    ok, flat = still_patches(patches.y, patches.n_pix, tol, 8, frames=n)
+    ok_p, kept = still_patches(patches.y, patches.n_pix, tol, 8, frames=n, codes=codes)
+    ok_n, noisy = still_patches(patches.y, patches.n_pix, patches.n_open * 30.0**2, 8, frames=n, codes=codes,
+                                ridge=(30.0 / 2.0) ** 2)
+    assert ok.all() and ok_p.all() and ok_n.all()
+    truth = np.broadcast_to((100 + flicker)[None, :, None], (rows.size, n, 49))
+
+    def rms(a):
+        return float(np.sqrt(np.mean(np.square(a, dtype=np.float64))))
+
+    assert rms(flat.reshape(-1, n, 49) - truth) > 0.9  # the still image: the flicker is gone
+    assert rms(kept.reshape(-1, n, 49) - truth) < 0.2 * rms(flat.reshape(-1, n, 49) - truth)
+    assert rms(noisy - flat) < 0.1 * rms(kept - flat)  # a ridge of (30 / 2)**2: under a tenth of the profile
+
+
 @pytest.mark.parametrize("code", ["hitomi", "hitomi-tiled", "bernoulli"])
 def test_still_test_equals_omp_over_the_still_dictionary(code):
     """The closed-form still test (no dictionary search) agrees with OMP over the still atoms."""

@@ -63,13 +63,15 @@ REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
 # ----------------------------------------------------------------------------- keys
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v11"  # v4: per-tile digests in the working store; v5: still patches across captures;
+RECON_VERSION = "recon-v12"  # v4: per-tile digests in the working store; v5: still patches across captures;
 # v6: the non-local method in three stages (its estimates summed block by block: other roundings);
 # v7: equal non-local tiles told apart by all their blocks read (v6 could share one answer between two);
 # v8: a non-local group's support capped (nonlocal_sc.group_atoms: max_atoms over 12 gave other supports)
 # v9: a patch estimate with more than twice its still answer's energy solved again with the coefficient prior
 # v10: that energy from the coefficients (the estimate's own only where a pixel is never open)
 # v11: a non-local result under read noise left unprojected (OmpSettings.exact)
+# v12: the still test's patches with their temporal profiles (region.still_patches); a pixel never open keeps the
+# non-local method's first estimate
 
 
 def content_key(*parts) -> str:

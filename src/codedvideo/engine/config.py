@@ -20,7 +20,7 @@ from codedvideo.engine.methods import ADAPTIVE, WITH_DICTIONARY
 from codedvideo.model.errors import ConfigError
 from codedvideo.model.patches import PATCH
 from codedvideo.model.physics import SensorModel
-from codedvideo.model.units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX
+from codedvideo.model.units import DATA_RANGE_MAX, DATA_RANGE_MIN, LEVEL_MAX, TOL_FLOOR
 from codedvideo.solvers.dictionaries import KSVD_ATOMS, KSVD_ITERATIONS, KSVD_SAMPLES, KSVD_SPARSITY, KsvdSettings
 from codedvideo.solvers.region import OmpSettings
 
@@ -663,7 +663,7 @@ def auto_tolerance(sigma: float) -> float:
     already explained at almost no cost in quality (docs/research.md,
     "Dictionary and training").
     """
-    return float(max(sigma, 2.0))
+    return float(max(sigma, TOL_FLOOR))
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):

@@ -41,6 +41,10 @@ WORKING_RANGE = EIGHT_BIT
 #: Data ranges the values are rounded up to, with the room left for noise.
 COMMON_RANGES = (1.0, 255.0, 4095.0, 65535.0)
 NOISE_ROOM = 1.05
+#: The residual tolerance of a capture without read noise, in working units (grey levels of 8-bit frames): OMP's
+#: tolerance is never below it (:func:`codedvideo.engine.config.auto_tolerance`), and the still test's temporal
+#: profiles take it as the scale of the sub-frame changes they fit (:func:`codedvideo.solvers.region.still_patches`).
+TOL_FLOOR = 2.0
 
 #: The bounds of every number in the capture's units, shared by pipeline.yaml's fields (codedvideo.engine.config)
 #: and the command line's options.  Work is in float32 (about 3.4e38 at most, 1.2e-38 the smallest normal):

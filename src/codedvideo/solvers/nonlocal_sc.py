@@ -345,8 +345,12 @@ def _references(region: _Region, settings: OmpSettings, opts: NonlocalOptions, s
     if settings.static_atoms > 0:
         rows = np.flatnonzero(ref & ~region.calm)
         if rows.size:
+            # the still images get their temporal profiles under read noise only: without noise the profiles here
+            # cost best up to 1.5 dB on a flat corner (docs/research.md, "Flat regions that change below the tolerance")
             ok, still_est = still_patches(patches.y[rows], patches.n_pix[rows], region.tol[rows],
-                                          settings.static_atoms, frames=n, patch=opts.patch)
+                                          settings.static_atoms, frames=n, patch=opts.patch,
+                                          codes=None if settings.exact else (patches.codes, patches.corners(rows)),
+                                          ridge=settings.ridge)
             still_ok[rows[ok]] = True
             stats.patches_static = int(ok.sum())
     if region.calm.any():  # their still answer, each pixel's value in every sub-frame, after the still test's rows
@@ -556,9 +560,15 @@ def finish(summed: np.ndarray, weight: np.ndarray, coded: np.ndarray, mask: np.n
     """A pass's estimate from its sums: each pixel's summed estimates divided by its weight (where it got none,
     the ``first`` estimate's value, or NaN), then, with ``project``, made to reproduce the coded image
     (:func:`project_measurements`).  Only pixels whose patches all see few measurements (:data:`MIN_OPEN`) get no
-    estimate from a group and are not filled as uncovered."""
+    estimate from a group and are not filled as uncovered.  A pixel never open keeps the ``first`` estimate's
+    value where given: no measurement holds the groups' atoms there, and in a block of bad pixels they reached
+    values far beyond the scene's (tests/test_nonlocal.py)."""
     with np.errstate(invalid="ignore", divide="ignore"):
         volume = np.where(weight > 0, summed / weight, np.nan if first is None else first).astype(np.float32)
+    if first is not None:
+        unseen = ~np.asarray(mask).any(0)
+        if unseen.any():
+            volume[:, unseen] = first[:, unseen]
     return project_measurements(volume, coded, mask) if project else volume
 
 

@@ -335,6 +335,72 @@ def still_kernel(y, n_pix, C, tol, atoms, ok, frame):
 
 
 @njit(nogil=True, cache=True, fastmath=CONTRACT)
+def profile_kernel(y, frame, codes, corners, patch, ridge, out):
+    """The temporal profiles of :func:`codedvideo.solvers.region.still_patches`, one patch at a time.
+
+    Patch ``p`` (corner ``corners[p]`` in the region, coded values ``y[p]``,
+    still image ``frame[p]``) gets in ``out[p]`` the profile ``f`` (one value
+    per sub-frame, the same at every pixel of the patch) that minimises
+    ``||y - W (s + f)||^2 + ridge ||f||^2``: ``(W W^T + ridge I) f = W r``
+    with ``r = y - n s`` the still image's residual, solved by Cholesky.
+    ``codes`` is the region's code as (h, w, N) (each pixel's weights in a
+    row); only the sub-frames a pixel is open in are visited.
+    """
+    N = codes.shape[2]
+    M = np.empty((N, N), np.float64)
+    b = np.empty(N, np.float64)
+    open_t = np.empty(N, np.int64)
+    open_w = np.empty(N, np.float64)
+    for p in range(y.shape[0]):
+        M[:, :] = 0.0
+        b[:] = 0.0
+        for dy in range(patch):
+            for dx in range(patch):
+                r0 = corners[p, 0] + dy
+                c0 = corners[p, 1] + dx
+                k = 0
+                n_i = 0.0
+                for t in range(N):
+                    v = codes[r0, c0, t]
+                    if v != 0.0:
+                        open_t[k] = t
+                        open_w[k] = v
+                        n_i += v
+                        k += 1
+                r = np.float64(y[p, dy * patch + dx]) - n_i * frame[p, dy * patch + dx]
+                for a in range(k):
+                    b[open_t[a]] += open_w[a] * r
+                    for c in range(k):
+                        M[open_t[a], open_t[c]] += open_w[a] * open_w[c]
+        for t in range(N):
+            M[t, t] += ridge
+        # Cholesky in place (lower triangle), then the two triangular solves
+        for j in range(N):
+            d = M[j, j]
+            for k in range(j):
+                d -= M[j, k] * M[j, k]
+            d = np.sqrt(d)
+            M[j, j] = d
+            for i in range(j + 1, N):
+                e = M[i, j]
+                for k in range(j):
+                    e -= M[i, k] * M[j, k]
+                M[i, j] = e / d
+        for i in range(N):
+            e = b[i]
+            for k in range(i):
+                e -= M[i, k] * b[k]
+            b[i] = e / M[i, i]
+        for i in range(N - 1, -1, -1):
+            e = b[i]
+            for k in range(i + 1, N):
+                e -= M[k, i] * b[k]
+            b[i] = e / M[i, i]
+        for t in range(N):
+            out[p, t] = b[t]
+
+
+@njit(nogil=True, cache=True, fastmath=CONTRACT)
 def synthesize_into(index, coef, count, Dt, out):
     """``out[p] = sum_t coef[p, t] Dt[index[p, t]]`` over the ``count[p]`` selected atoms."""
     for p in range(index.shape[0]):
@@ -671,4 +737,6 @@ def load_kernels() -> float:
     synthesize(res, D)
     still_kernel(np.ones((1, 4), np.float32), np.ones((1, 4)), np.eye(4), np.zeros(1), 1, np.zeros(1, np.bool_),
                  np.zeros((1, 4)))
+    profile_kernel(np.ones((1, 1), np.float32), np.ones((1, 1)), np.ones((1, 1, 2), np.float32),
+                   np.zeros((1, 2), np.int64), 1, 1.0, np.zeros((1, 2)))
     return time.perf_counter() - t

@@ -16,10 +16,11 @@ import numpy as np
 
 from codedvideo.model import patches as P
 from codedvideo.model.codes import is_binary
+from codedvideo.model.units import TOL_FLOOR
 from codedvideo.solvers.omp import (PRIOR, GroupedOperator, MaskedOperator, masked_operator, omp, periodic_groups,
                                    pixel_patterns)
-from codedvideo.solvers.omp_kernel import (MAX_TABLE_BYTES, TableOMP, WeightsOMP, atom_rows, still_kernel,
-                                           synthesize_rows, table_fits)
+from codedvideo.solvers.omp_kernel import (MAX_TABLE_BYTES, TableOMP, WeightsOMP, atom_rows, profile_kernel,
+                                           still_kernel, synthesize_rows, table_fits)
 
 #: Names of the per-tile statistics, in the order of the stats vector.
 #: Search radius of the non-local method's block matching (:mod:`codedvideo.solvers.nonlocal_sc`), in pixels: a
@@ -58,6 +59,9 @@ class OmpSettings:
         How the overlapping estimates of a pixel are averaged.
     exact : bool
         The measurements are exact (no read noise): the non-local method's result is projected onto them.
+    profile_ridge : float
+        The ridge of the still test's temporal profiles (:func:`still_patches`), in units of one open pixel
+        (None: from the tolerance, :attr:`ridge`).
     """
 
     max_atoms: int = 8
@@ -81,6 +85,15 @@ class OmpSettings:
     #: coded image exactly.  False under read noise: the measurements then hold the noise, and projecting onto
     #: them put it back into the estimate (docs/research.md, "The non-local method under read noise").
     exact: bool = True
+    #: The still test's temporal profiles: their ridge in units of one open pixel (:attr:`ridge`).  None: from
+    #: the tolerance in working units, ``(tol_rms / TOL_FLOOR)**2``: 1 without read noise, growing with it, so
+    #: that the profile fits a change of the light and not the noise.
+    profile_ridge: float | None = None
+
+    @property
+    def ridge(self) -> float:
+        """The ridge of the still test's temporal profiles: :attr:`profile_ridge`, or ``(tol_rms / TOL_FLOOR)**2``."""
+        return (self.tol_rms / TOL_FLOOR) ** 2 if self.profile_ridge is None else self.profile_ridge
 
 
 def tile_halo(settings: OmpSettings, patch: int = P.PATCH) -> int:
@@ -135,7 +148,8 @@ def still_answers(y: np.ndarray, n_pix: np.ndarray, frames: int) -> np.ndarray:
 
 
 def still_patches(
-    y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, atoms: int, *, frames: int, patch: int = P.PATCH
+    y: np.ndarray, n_pix: np.ndarray, tol: np.ndarray, atoms: int, *, frames: int, patch: int = P.PATCH,
+    codes: tuple[np.ndarray, np.ndarray] | None = None, ridge: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The still-scene test: which patches a still, spatially sparse scene explains.
 
@@ -152,6 +166,18 @@ def still_patches(
     :func:`codedvideo.solvers.omp_kernel.still_kernel`, a few per cent of a patch's OMP).
     Patches with a pixel that is never open are left to the full dictionary.
 
+    With ``codes`` each passing patch also gets its temporal profile: one
+    value per sub-frame, the same at every pixel, added to ``s_k`` where the
+    patch's code sees it (a fade, a flicker of the light, a slow change of a
+    flat region, all below the tolerance).  It is the ridge least-squares fit
+    of the residual ``y - n s_k`` through the patch's code, with a ridge in
+    units of one open pixel (:attr:`OmpSettings.ridge`: 1 without
+    read noise, growing with the noise so that a noisy patch keeps its still
+    image; docs/research.md, "Flat regions that change below the tolerance").
+    The per-patch OMP always asks for it; the non-local method's own still
+    test under read noise only (:mod:`codedvideo.solvers.nonlocal_sc`).
+    Compiled: :func:`codedvideo.solvers.omp_kernel.profile_kernel`.
+
     Parameters
     ----------
     y : ndarray of shape (P, m)
@@ -164,6 +190,11 @@ def still_patches(
     atoms : int
     frames : int
         N, the sub-frames of the estimate.
+    codes : (ndarray of shape (h, w, N), ndarray of shape (P, 2)), optional
+        The region's code with each pixel's weights in a row (:attr:`RegionPatches.codes`) and every patch's
+        corner in it; None: no temporal profile, every sub-frame ``s_k``.
+    ridge : float
+        The temporal profile's ridge, in units of one open pixel.
 
     Returns
     -------
@@ -176,7 +207,15 @@ def still_patches(
     still_kernel(np.ascontiguousarray(y, dtype=np.float32), np.ascontiguousarray(n_pix, dtype=np.float64),
                  _still_basis(patch), np.ascontiguousarray(tol, dtype=np.float64),
                  int(atoms), ok, frame)
-    return ok, np.tile(frame[ok].astype(np.float32), (1, frames))
+    estimate = np.tile(frame[ok].astype(np.float32), (1, frames))
+    if codes is not None and ok.any():
+        grid, corners = codes
+        profile = np.zeros((int(ok.sum()), frames), np.float64)
+        profile_kernel(np.ascontiguousarray(y[ok], dtype=np.float32), frame[ok], grid,
+                       np.ascontiguousarray(corners[ok], dtype=np.int64), patch, ridge, profile)
+        m = patch * patch
+        estimate += np.repeat(profile.astype(np.float32), m, axis=1)
+    return ok, estimate
 
 
 def _few_patterns(mask: np.ndarray, D: np.ndarray, m: int) -> bool:
@@ -332,6 +371,8 @@ class RegionPatches:
         Patch corners along each axis (``Pn = hp * wp``).
     patch : int
         Patch side (``m = patch**2``).
+    weights : ndarray of shape (N, h, w)
+        The region's code as the solvers read it (binary, or a calibrated mask's float32 weights).
     """
 
     y: np.ndarray
@@ -339,6 +380,17 @@ class RegionPatches:
     n_open: np.ndarray
     grid: tuple[int, int]
     patch: int
+    weights: np.ndarray
+
+    @functools.cached_property
+    def codes(self) -> np.ndarray:
+        """The code with each pixel's weights in a row, (h, w, N) float32: what the still test's temporal
+        profiles read (:func:`still_patches`), made on first use."""
+        return np.ascontiguousarray(np.moveaxis(self.weights, 0, -1), dtype=np.float32)
+
+    def corners(self, index: np.ndarray) -> np.ndarray:
+        """The (row, column) corners in the region of the patches ``index`` (raveled grid), (len, 2) int64."""
+        return np.stack(np.divmod(np.asarray(index, dtype=np.int64), self.grid[1]), axis=1)
 
 
 def region_patches(coded: np.ndarray, mask: np.ndarray, binary: bool, patch: int) -> RegionPatches:
@@ -348,7 +400,7 @@ def region_patches(coded: np.ndarray, mask: np.ndarray, binary: bool, patch: int
     n_pix = P.extract(mask.sum(0, dtype=np.int32) if binary else mask.sum(0, dtype=np.float64), patch)
     n_open = (n_pix > 0).sum(1).astype(np.float32)
     return RegionPatches(y=y, n_pix=n_pix, n_open=n_open, grid=P.grid_shape(coded.shape, patch),
-                          patch=patch)
+                          patch=patch, weights=mask)
 
 
 def stride_grid(stride: int, grid: tuple[int, int], patch: int, origin: tuple[int, int],
@@ -450,8 +502,8 @@ def _fold_bands(patches: RegionPatches, valid: np.ndarray, stilled: tuple, D: np
         y, tol = patches.y[sl], patches.n_open[sl] * settings.tol_rms**2
         t0 = time.perf_counter()
         calm = None if still_rows is None else still_rows[sl]
-        est = _band_estimates(_Band(y, patches.n_pix[sl], tol, np.flatnonzero(valid[sl]), calm, sl), atoms, settings,
-                              solve, counts, frames=n, patch=patch)
+        est = _band_estimates(_Band(y, patches.n_pix[sl], tol, np.flatnonzero(valid[sl]), calm, sl, patches), atoms,
+                              settings, solve, counts, frames=n, patch=patch)
         counts.seconds += time.perf_counter() - t0
         wp_ = valid[sl].astype(np.float32)
         if settings.weighting == "fit":
@@ -475,6 +527,11 @@ class _Band:
     valid_rows: np.ndarray
     calm: np.ndarray | None
     sl: slice
+    region: RegionPatches
+
+    def codes(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The region's code and the corners of the band's patches ``rows``, for :func:`still_patches`."""
+        return self.region.codes, self.region.corners(self.sl.start + rows)
 
 
 def _band_estimates(band: _Band, atoms: np.ndarray, settings: OmpSettings, solve, counts: _Counts, *, frames: int,
@@ -494,7 +551,7 @@ def _band_estimates(band: _Band, atoms: np.ndarray, settings: OmpSettings, solve
             rows = rows[~calm_rows]
     if settings.static_atoms > 0 and rows.size:
         ok, still_est = still_patches(y[rows], n_pix[rows], tol[rows], settings.static_atoms, frames=frames,
-                                      patch=patch)
+                                      patch=patch, codes=band.codes(rows), ridge=settings.ridge)
         est[rows[ok]] = still_est
         counts.static += int(ok.sum())
         rows = rows[~ok]
