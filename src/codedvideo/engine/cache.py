@@ -63,7 +63,7 @@ REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
 # ----------------------------------------------------------------------------- keys
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v12"  # v4: per-tile digests in the working store; v5: still patches across captures;
+RECON_VERSION = "recon-v13"  # v4: per-tile digests in the working store; v5: still patches across captures;
 # v6: the non-local method in three stages (its estimates summed block by block: other roundings);
 # v7: equal non-local tiles told apart by all their blocks read (v6 could share one answer between two);
 # v8: a non-local group's support capped (nonlocal_sc.group_atoms: max_atoms over 12 gave other supports)
@@ -72,6 +72,7 @@ RECON_VERSION = "recon-v12"  # v4: per-tile digests in the working store; v5: st
 # v11: a non-local result under read noise left unprojected (OmpSettings.exact)
 # v12: the still test's patches with their temporal profiles (region.still_patches); a pixel never open keeps the
 # non-local method's first estimate
+# v13: only a pixel with no open pixel within half a patch keeps it (nonlocal_sc.finish)
 
 
 def content_key(*parts) -> str:

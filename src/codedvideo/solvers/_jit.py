@@ -8,7 +8,9 @@ module only, in this layer.
 
 The helpers are those of the per-patch OMP (:func:`codedvideo.solvers.omp_kernel._omp_kernel`) that the
 simultaneous OMP of a group (:func:`codedvideo.solvers.nonlocal_kernel.somp_kernel`) repeats operation for
-operation: the table correlation, the interleaved dot product and the column norms.
+operation: the table correlation, the interleaved dot product and the column norms; and the small Cholesky
+solve that the groups' least squares and the still test's temporal profiles
+(:func:`codedvideo.solvers.omp_kernel.profile_kernel`) share.
 
 numba caches a compiled kernel by its own file: a change to a helper here is not seen by a kernel of another
 module that is already cached (it calls or inlines the helper) until that kernel's file changes or its
@@ -96,3 +98,27 @@ def _column_norms2(B, pat, c):
         row = B[i, pat[i]]
         for k in range(K):
             c[k] += row[k] * row[k]
+
+
+@njit(nogil=True, cache=True)
+def _chol_solve(M, b, n, L, x):
+    """Solve ``M x = b`` for the symmetric positive definite ``M[:n, :n]`` (lower triangle read)."""
+    for i in range(n):
+        for j in range(i + 1):
+            s = M[i, j]
+            for t in range(j):
+                s -= L[i, t] * L[j, t]
+            if i == j:
+                L[i, i] = np.sqrt(s) if s > 0.0 else 1e-150
+            else:
+                L[i, j] = s / L[j, j]
+    for i in range(n):
+        s = b[i]
+        for t in range(i):
+            s -= L[i, t] * x[t]
+        x[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for t in range(i + 1, n):
+            s -= L[t, i] * x[t]
+        x[i] = s / L[i, i]

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from codedvideo.solvers._jit import CONTRACT, _column_norms2, _correlate, _dot, njit
+from codedvideo.solvers._jit import CONTRACT, _chol_solve, _column_norms2, _correlate, _dot, njit
 
 
 @njit(nogil=True, cache=True)
@@ -296,30 +296,6 @@ def somp_kernel(y, pat, members, size, B, floor, tol, kmax, dep_tol, select_bits
                 for u in range(n_sel):
                     coef[g, a, u] = h[u]
                 res2[g, a] = rr
-
-
-@njit(nogil=True, cache=True)
-def _chol_solve(M, b, n, L, x):
-    """Solve ``M x = b`` for the symmetric positive definite ``M[:n, :n]`` (lower triangle read)."""
-    for i in range(n):
-        for j in range(i + 1):
-            s = M[i, j]
-            for t in range(j):
-                s -= L[i, t] * L[j, t]
-            if i == j:
-                L[i, i] = np.sqrt(s) if s > 0.0 else 1e-150
-            else:
-                L[i, j] = s / L[j, j]
-    for i in range(n):
-        s = b[i]
-        for t in range(i):
-            s -= L[i, t] * x[t]
-        x[i] = s / L[i, i]
-    for i in range(n - 1, -1, -1):
-        s = x[i]
-        for t in range(i + 1, n):
-            s -= L[t, i] * x[t]
-        x[i] = s / L[i, i]
 
 
 @njit(nogil=True, cache=True)

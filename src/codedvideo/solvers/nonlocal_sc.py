@@ -560,13 +560,15 @@ def finish(summed: np.ndarray, weight: np.ndarray, coded: np.ndarray, mask: np.n
     """A pass's estimate from its sums: each pixel's summed estimates divided by its weight (where it got none,
     the ``first`` estimate's value, or NaN), then, with ``project``, made to reproduce the coded image
     (:func:`project_measurements`).  Only pixels whose patches all see few measurements (:data:`MIN_OPEN`) get no
-    estimate from a group and are not filled as uncovered.  A pixel never open keeps the ``first`` estimate's
-    value where given: no measurement holds the groups' atoms there, and in a block of bad pixels they reached
-    values far beyond the scene's (tests/test_nonlocal.py)."""
+    estimate from a group and are not filled as uncovered.  A pixel with no open pixel within half a patch of it
+    (inside a block of bad pixels) keeps the ``first`` estimate's value where given: no measurement near it holds
+    the groups' atoms, and there they reached values far beyond the scene's (tests/test_nonlocal.py)."""
+    from scipy.ndimage import maximum_filter
+
     with np.errstate(invalid="ignore", divide="ignore"):
         volume = np.where(weight > 0, summed / weight, np.nan if first is None else first).astype(np.float32)
     if first is not None:
-        unseen = ~np.asarray(mask).any(0)
+        unseen = ~maximum_filter(np.asarray(mask).any(0), size=P.PATCH, mode="constant", cval=False)
         if unseen.any():
             volume[:, unseen] = first[:, unseen]
     return project_measurements(volume, coded, mask) if project else volume

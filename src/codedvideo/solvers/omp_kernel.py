@@ -46,7 +46,7 @@ from collections import OrderedDict
 
 import numpy as np
 
-from codedvideo.solvers._jit import CONTRACT, REASSOC, _column_norms2, _correlate, _dot, njit, prange
+from codedvideo.solvers._jit import CONTRACT, REASSOC, _chol_solve, _column_norms2, _correlate, _dot, njit, prange
 from codedvideo.solvers.omp import _TINY, DEPENDENCE_TOL, MIN_VISIBLE, SELECT_BITS, OmpResult, _safe_inverse
 
 #: Largest pattern table (bytes) this path builds; beyond it (codes with many
@@ -342,13 +342,15 @@ def profile_kernel(y, frame, codes, corners, patch, ridge, out):
     still image ``frame[p]``) gets in ``out[p]`` the profile ``f`` (one value
     per sub-frame, the same at every pixel of the patch) that minimises
     ``||y - W (s + f)||^2 + ridge ||f||^2``: ``(W W^T + ridge I) f = W r``
-    with ``r = y - n s`` the still image's residual, solved by Cholesky.
+    with ``r = y - n s`` the still image's residual, solved by Cholesky (:func:`codedvideo.solvers._jit._chol_solve`).
     ``codes`` is the region's code as (h, w, N) (each pixel's weights in a
     row); only the sub-frames a pixel is open in are visited.
     """
     N = codes.shape[2]
     M = np.empty((N, N), np.float64)
+    L = np.empty((N, N), np.float64)
     b = np.empty(N, np.float64)
+    f = np.empty(N, np.float64)
     open_t = np.empty(N, np.int64)
     open_w = np.empty(N, np.float64)
     for p in range(y.shape[0]):
@@ -374,30 +376,9 @@ def profile_kernel(y, frame, codes, corners, patch, ridge, out):
                         M[open_t[a], open_t[c]] += open_w[a] * open_w[c]
         for t in range(N):
             M[t, t] += ridge
-        # Cholesky in place (lower triangle), then the two triangular solves
-        for j in range(N):
-            d = M[j, j]
-            for k in range(j):
-                d -= M[j, k] * M[j, k]
-            d = np.sqrt(d)
-            M[j, j] = d
-            for i in range(j + 1, N):
-                e = M[i, j]
-                for k in range(j):
-                    e -= M[i, k] * M[j, k]
-                M[i, j] = e / d
-        for i in range(N):
-            e = b[i]
-            for k in range(i):
-                e -= M[i, k] * b[k]
-            b[i] = e / M[i, i]
-        for i in range(N - 1, -1, -1):
-            e = b[i]
-            for k in range(i + 1, N):
-                e -= M[k, i] * b[k]
-            b[i] = e / M[i, i]
+        _chol_solve(M, b, N, L, f)
         for t in range(N):
-            out[p, t] = b[t]
+            out[p, t] = f[t]
 
 
 @njit(nogil=True, cache=True, fastmath=CONTRACT)
