@@ -59,7 +59,7 @@ class OmpSettings:
         How the overlapping estimates of a pixel are averaged.
     exact : bool
         The measurements are exact (no read noise): the non-local method's result is projected onto them.
-    profile_ridge : float
+    profile_ridge : float or None
         The ridge of the still test's temporal profiles (:func:`still_patches`), in units of one open pixel
         (None: from the tolerance, :attr:`ridge`).
     """
