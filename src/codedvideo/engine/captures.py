@@ -33,6 +33,7 @@ from codedvideo.model.sequence import erode_to_patches, normalised
 from codedvideo.model.units import EIGHT_BIT, DataRange
 from codedvideo.solvers import guard
 from codedvideo.solvers import refine as refinement
+from codedvideo.solvers import temporal
 from codedvideo.solvers.region import OmpSettings
 
 
@@ -327,6 +328,8 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
         volume, info = _guarded(solved, solved_info, coded_used, mask_used, still)
     if o.config.refine and moving and info.get("method") != "static":
         volume, info = _refined(job, i, (coded_used, mask_used, still), volume, info)
+    if solved is not None:
+        volume, info = _windowed(job, i, (coded_used, mask_used, still), volume, info)
     if measured is not None:  # still answers averaged over captures: the residual of this capture's own
         residual = physics.forward(volume, mask_used) - measured
         info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
@@ -365,6 +368,68 @@ def _guarded(volume: np.ndarray, info: dict, coded: np.ndarray, mask: np.ndarray
         result[:, kept] = values
     seconds = dict(info.get("seconds", {}), guard=time.perf_counter() - t0)
     return result, dict(info, guard=dict(sparse_weight=round(weight, 4), reason=reason), seconds=seconds)
+
+
+@functools.lru_cache(maxsize=1)
+def _window_dictionary() -> tuple[np.ndarray, str] | None:
+    """The shipped dictionary of :data:`codedvideo.solvers.temporal.WINDOW` sub-frames and its cache key (None where
+    none is shipped)."""
+    from codedvideo.data import shipped
+    from codedvideo.formats.store import load_dictionary
+    from codedvideo.solvers.dictionaries import prepare_dictionary
+
+    path = shipped.verified(temporal.WINDOW)
+    if path is None:
+        return None
+    D, meta = load_dictionary(path)
+    prepared = prepare_dictionary(D, str(path))
+    return prepared, meta.get("sha256", "") if prepared is D else ""
+
+
+def _windows_apply(options: CaptureSettings, mask: np.ndarray) -> bool:
+    """Whether a capture under ``mask`` is windowed (:func:`codedvideo.solvers.temporal.applies`): with the
+    dictionary shipped for its N (one given by the user is theirs alone) and one shipped for the windows."""
+    from codedvideo.data import shipped
+
+    n = mask.shape[0]
+    return (options.dictionary_name == str(shipped.path_for(n)) and temporal.applies(mask, guard.sparse_weight(mask)[0])
+            and _window_dictionary() is not None)
+
+
+def _windowed(job: _Job, i: int, used: tuple, volume: np.ndarray, info: dict) -> tuple[np.ndarray, dict]:
+    """A sparse-coded capture's result blended with its windows' (:mod:`codedvideo.solvers.temporal`) where its
+    code has short exposures at N above the window's: the windows' captures reconstructed as one job as the
+    capture is (its method, adaptation and refinement) with the window's shipped dictionary, combined and
+    blended with ``volume`` (working units; the pixels only still patches cover keep their still answer), what
+    was done in the record (``windows``).  ``used``: the capture's coded image, mask and still pixels (working
+    units)."""
+    from codedvideo.data import shipped
+
+    coded, mask, still = used
+    o = job.options
+    if not _windows_apply(o, mask):
+        return volume, info
+    t0 = time.perf_counter()
+    D, key = _window_dictionary()
+    scale = job.inputs.scale
+    first = temporal.starts(mask.shape[0])
+    parts = [temporal.window_capture(coded, mask, s) for s in first]
+    options = dataclasses.replace(o, dictionary=D, dictionary_key=key, trace=None,
+                                  dictionary_name=str(shipped.path_for(temporal.WINDOW)))
+    volumes: list = [None] * len(first)
+    with doors.muted():  # (what the windows would say, the capture's own run says: a window's pixels outside it
+        # are never open by design)
+        results = reconstruct_captures(options, [part / scale for part, _ in parts], lambda j: parts[j][1])
+        with contextlib.closing(results):
+            for j, part, _ in results:
+                volumes[j] = part * scale
+    kept = None if still is None else erode_to_patches(still, PATCH)
+    values = None if kept is None else volume[:, kept]
+    result = temporal.blended(volume, temporal.combined(volumes, first, mask.shape[0]))
+    if values is not None:
+        result[:, kept] = values
+    seconds = dict(info.get("seconds", {}), windows=time.perf_counter() - t0)
+    return result, dict(info, windows=dict(temporal.recipe(), starts=first), seconds=seconds)
 
 
 def _seconds_so_far(job: _Job, i: int, info: dict) -> float:
@@ -588,7 +653,7 @@ def result_recipe(method: str, *, adapt: bool = False, adapt_rounds: int = 1, re
 
     entry = methods.method(method)
     if entry.sparse:
-        recipe: dict = dict(version=RECON_VERSION)
+        recipe: dict = dict(version=RECON_VERSION, windows=temporal.recipe())
         if adapt:
             recipe["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY,
                                    unused=KEEP_UNUSED,
