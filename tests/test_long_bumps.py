@@ -152,6 +152,20 @@ def test_the_share_of_sub_frames_a_window_sees_is_the_coverage_count(k):
     np.testing.assert_array_equal(seen, window_coverage(opened, k) > 0)
 
 
+def test_values_beyond_a_quarter_of_the_data_range_are_said():
+    # frames from 0 to 1.25 of the data range pass unsaid; beyond it the run warns (it once waited for 1.5)
+    video = np.full((8, 32, 32), 240, np.float32)
+    mask = cv.make_code("hitomi", (32, 32), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    for data_range, said_expected in ((180.0, True), (200.0, False)):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            frames = cv.reconstruct(coded, mask, data_range=data_range, progress=False)
+        assert frames.max() == pytest.approx(240, abs=0.5)
+        told = any("far outside the data range" in str(w.message) for w in said)
+        assert told is said_expected, data_range
+
+
 def test_a_bump_of_15_of_16_stays_within_the_data_range_through_both_doors(tmp_path):
     """A bump of 15 of 16 sub-frames leaves the motion nearly unobserved: OMP gave values from -578 to 1202 on
     8-bit frames (8.4 dB against the trivial estimate's 25.1), then a warning that they lay far outside the data

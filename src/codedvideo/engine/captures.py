@@ -417,8 +417,8 @@ def _windowed(job: _Job, i: int, used: tuple, volume: np.ndarray, info: dict) ->
     options = dataclasses.replace(o, dictionary=D, dictionary_key=key, trace=None,
                                   dictionary_name=str(shipped.path_for(temporal.WINDOW)))
     volumes: list = [None] * len(first)
-    with doors.muted():  # (what the windows would say, the capture's own run says: a window's pixels outside it
-        # are never open by design)
+    # muted: a window's pixels outside it are never open by design, and what else it would say, the capture says
+    with doors.muted():
         results = reconstruct_captures(options, [part / scale for part, _ in parts], lambda j: parts[j][1])
         with contextlib.closing(results):
             for j, part, _ in results:

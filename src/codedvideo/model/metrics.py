@@ -34,8 +34,8 @@ def volume_extremes(v) -> tuple[float, float]:
 
 #: A reconstruction holding values further than this share of the data range below 0 or above the range is
 #: implausible (intensities are never negative, and a frame peaks at its range): the problem is ill-posed for
-#: the method, and the run says so (docs/research.md, "Long shutter bumps").
-IMPLAUSIBLE_SHARE = 0.5
+#: the method or the range does not fit, and the run says so (docs/research.md, "Long shutter bumps").
+IMPLAUSIBLE_SHARE = 0.25
 
 
 #: The most a frame's PSNR counts in a mean (dB).  Rounding a frame to 8 bits costs at most half a grey level in
