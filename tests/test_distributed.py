@@ -265,3 +265,18 @@ def test_a_scheduler_without_dask_distributed_installed_is_one_line(monkeypatch)
     with pytest.raises(ConfigError, match=r"scheduler tcp://127.0.0.1:1: needs dask.distributed.*codedvideo\[distributed\]"):
         check_scheduler("tcp://127.0.0.1:1")
     check_scheduler("threads")  # the local schedulers need nothing more
+
+
+def test_a_windowed_stream_on_worker_processes_is_bit_identical_to_a_local_run(cluster, tmp_path):
+    """A stream at N = 16 whose pixels each open briefly: each capture's windows run as a job of their own while
+    the stream's job is open, on the same scheduler (solvers/temporal.py)."""
+    import codedvideo as cv
+
+    video = (cv.synthetic_scene("default", frames=32, size=(32, 32)) / 255).astype(np.float32)
+    mask = cv.make_code("hitomi", (32, 32), frames=16, bump=2, seed=0)
+    coded = np.stack([cv.simulate(video[k * 16:(k + 1) * 16], mask, seed=k) for k in range(2)])
+    runs = [cv.reconstruct(coded, mask, data_range=1.0, progress=False, full_output=True, cache=str(tmp_path / name),
+                           **({"scheduler": cluster.scheduler_address} if name == "remote" else {}))
+            for name in ("local", "remote")]
+    assert all("windows" in info for info in runs[1].info)
+    np.testing.assert_array_equal(runs[0].frames, runs[1].frames)

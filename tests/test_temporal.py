@@ -1,5 +1,7 @@
 """Temporal windows (solvers/temporal.py): a capture at N = 16 or 18 whose pixels each open briefly, seen as
 overlapping captures of 8 sub-frames as well, on real footage the dictionaries never saw."""
+import json
+
 import numpy as np
 import pytest
 
@@ -114,3 +116,19 @@ def test_the_full_result_is_kept_where_it_holds_still_and_weighs_a_quarter_where
     out = temporal.blended(full, windows)
     assert np.array_equal(out[:, :, :10], full[:, :, :10])
     assert np.allclose(out[:, :, 30:], full[:, :, 30:] + 7 * (1 - temporal.FULL_WEIGHT), atol=1e-3)
+
+
+def test_the_command_line_windows_as_the_api_does(tmp_path):
+    from codedvideo.app.cli import main
+
+    video = (footage_scene("bikes-a", frames=16, size=(32, 32)) / 255).astype(np.float32)
+    mask = cv.make_code("hitomi", (32, 32), frames=16, seed=0, bump=2)
+    coded = cv.simulate(video, mask, seed=1)
+    np.save(tmp_path / "coded.npy", coded)
+    np.save(tmp_path / "mask.npy", mask)
+    assert main(["-q", "reconstruct", "--coded", str(tmp_path / "coded.npy"), "--mask", str(tmp_path / "mask.npy"),
+                 "--data-range", "1", "--output", str(tmp_path / "r.npy")]) == 0
+    api = cv.reconstruct(coded, mask, data_range=1.0, progress=False, full_output=True)
+    np.testing.assert_array_equal(np.load(tmp_path / "r.npy"), api.frames)
+    record = json.loads((tmp_path / "r.metrics.json").read_text())["reconstruction"]
+    assert record["windows"]["starts"] == api.info[0]["windows"]["starts"] == temporal.starts(16)
