@@ -392,8 +392,9 @@ def _windows_apply(options: CaptureSettings, mask: np.ndarray) -> bool:
     from codedvideo.data import shipped
 
     n = mask.shape[0]
-    return (options.dictionary_name == str(shipped.path_for(n)) and temporal.applies(mask, guard.sparse_weight(mask)[0])
-            and _window_dictionary() is not None)
+    if n <= temporal.WINDOW or options.dictionary_name != str(shipped.path_for(n)):
+        return False  # (before the code is read: the paper's N = 8 pays nothing for the windows)
+    return temporal.applies(mask, guard.sparse_weight(mask)[0]) and _window_dictionary() is not None
 
 
 def _windowed(job: _Job, i: int, used: tuple, volume: np.ndarray, info: dict) -> tuple[np.ndarray, dict]:

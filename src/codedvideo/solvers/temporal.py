@@ -13,7 +13,7 @@ where the full result holds still to :data:`FULL_WEIGHT` where it moves (:func:`
 half of a patch's pixels, and where nothing moves the full capture's every pixel gives the better answer
 (docs/research.md, "Short exposures at N = 16 and 18").
 
-Arrays in, arrays out; the engine runs the windows' sparse coding (``engine/captures.py``).
+Arrays in, arrays out; the engine reconstructs the windows (``engine/captures.py``).
 """
 
 from __future__ import annotations
