@@ -351,6 +351,17 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
     return i, volume, info
 
 
+def _keeping_still(volume: np.ndarray, still: np.ndarray | None, blend) -> np.ndarray:
+    """``blend(volume)`` (which may overwrite ``volume``), the pixels that only still patches cover (of the still
+    pixels ``still``; None: none) keeping their values in ``volume``: their still answer."""
+    kept = None if still is None else erode_to_patches(still, PATCH)
+    values = None if kept is None else volume[:, kept]
+    result = blend(volume)
+    if values is not None:
+        result[:, kept] = values
+    return result
+
+
 def _guarded(volume: np.ndarray, info: dict, coded: np.ndarray, mask: np.ndarray,
              still: np.ndarray | None) -> tuple[np.ndarray, dict]:
     """A sparse-coded capture's result under the floor of :mod:`codedvideo.solvers.guard`: on a code whose
@@ -361,11 +372,7 @@ def _guarded(volume: np.ndarray, info: dict, coded: np.ndarray, mask: np.ndarray
     if weight >= 1.0 or info.get("method") == "static" and not guard.shared_by_all(mask):
         return volume, info
     t0 = time.perf_counter()
-    kept = None if still is None else erode_to_patches(still, PATCH)
-    values = None if kept is None else volume[:, kept]
-    result = guard.blended(volume, coded, mask, weight, data_range=EIGHT_BIT)
-    if values is not None:
-        result[:, kept] = values
+    result = _keeping_still(volume, still, lambda v: guard.blended(v, coded, mask, weight, data_range=EIGHT_BIT))
     seconds = dict(info.get("seconds", {}), guard=time.perf_counter() - t0)
     return result, dict(info, guard=dict(sparse_weight=round(weight, 4), reason=reason), seconds=seconds)
 
@@ -424,11 +431,8 @@ def _windowed(job: _Job, i: int, used: tuple, volume: np.ndarray, info: dict) ->
         with contextlib.closing(results):
             for j, part, _ in results:
                 volumes[j] = part * scale
-    kept = None if still is None else erode_to_patches(still, PATCH)
-    values = None if kept is None else volume[:, kept]
-    result = temporal.blended(volume, temporal.combined(volumes, first, mask.shape[0]))
-    if values is not None:
-        result[:, kept] = values
+    windows = temporal.combined(volumes, first, mask.shape[0])
+    result = _keeping_still(volume, still, lambda v: temporal.blended(v, windows))
     seconds = dict(info.get("seconds", {}), windows=time.perf_counter() - t0)
     return result, dict(info, windows=dict(temporal.recipe(), starts=first), seconds=seconds)
 
