@@ -33,6 +33,7 @@ from codedvideo.model.sequence import erode_to_patches, normalised
 from codedvideo.model.units import EIGHT_BIT, DataRange
 from codedvideo.solvers import guard
 from codedvideo.solvers import refine as refinement
+from codedvideo.solvers import stillness
 from codedvideo.solvers import temporal
 from codedvideo.solvers.region import OmpSettings
 
@@ -80,6 +81,11 @@ class CaptureSettings:
         The captures' read noise (capture units, ``--noise-sigma``): with ``refine``, a noisy capture's steps to
         its measurements are relaxed by it (:func:`codedvideo.solvers.refine.refine`); a stream's still
         answers follow it (:func:`reconstruct_stream`).
+    still_regions : bool
+        Move a sparse method's result toward the still estimate where the capture's code shows the scene holding
+        still (:mod:`codedvideo.solvers.stillness`); the temporal windows' own captures, a Bayer capture's
+        stacked colours (``blocks`` above 1) and a stream's captures with still answers from other captures are
+        not.
     trace : callable, optional
         With ``refine``: ``trace(i, iterations, volume, seconds, rows)`` with the rows ``rows`` of capture ``i``'s
         estimate (working units) before the refinement (``iterations`` 0) and every few of its iterations
@@ -100,6 +106,7 @@ class CaptureSettings:
     progress: bool = True
     blocks: int = 1
     noise_sigma: float = 0.0
+    still_regions: bool = True
     trace: object = None
 
     @property
@@ -330,14 +337,15 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
         volume, info = _refined(job, i, (coded_used, mask_used, still), volume, info)
     if solved is not None:
         volume, info = _windowed(job, i, (coded_used, mask_used, still), volume, info)
+        volume, info = _still_regions(job, (coded_used, mask_used, still), volume, info,
+                                      _clipped(job, i) if saturated else None)
     if measured is not None:  # still answers averaged over captures: the residual of this capture's own
         residual = physics.forward(volume, mask_used) - measured
         info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
     if job.sparse and info.get("method") != "static":  # (the static estimate says so)
         info = _sparse_info(job, i, info, mask_used)
     if saturated:  # a saturated pixel recorded at least the white level: no frame sum below it
-        clipped = np.asarray(inputs.codeds[i]) >= np.float32(o.white_level)
-        info["saturated_raised"] = physics.raise_to_white(volume, clipped, inputs.mask_of(i),
+        info["saturated_raised"] = physics.raise_to_white(volume, _clipped(job, i), inputs.mask_of(i),
                                                           float(o.white_level) * float(inputs.scale))
     if still is not None and not job.sparse:  # no patches: the pixels whose every patch would be still
         inner = erode_to_patches(still, PATCH)
@@ -422,7 +430,7 @@ def _windowed(job: _Job, i: int, used: tuple, volume: np.ndarray, info: dict) ->
     scale = job.inputs.scale
     first = temporal.starts(mask.shape[0])
     parts = [temporal.window_capture(coded, mask, s) for s in first]
-    options = dataclasses.replace(o, dictionary=D, dictionary_key=key, trace=None,
+    options = dataclasses.replace(o, dictionary=D, dictionary_key=key, trace=None, still_regions=False,
                                   dictionary_name=str(shipped.path_for(temporal.WINDOW)))
     volumes: list = [None] * len(first)
     # muted: a window's pixels outside it are never open by design, and what else it would say, the capture says
@@ -435,6 +443,32 @@ def _windowed(job: _Job, i: int, used: tuple, volume: np.ndarray, info: dict) ->
     result = _keeping_still(volume, still, lambda v: temporal.blended(v, windows))
     seconds = dict(info.get("seconds", {}), windows=time.perf_counter() - t0)
     return result, dict(info, windows=dict(temporal.recipe(), starts=first), seconds=seconds)
+
+
+def _clipped(job: _Job, i: int) -> np.ndarray:
+    """Capture ``i``'s pixels at or above the white level."""
+    return np.asarray(job.inputs.codeds[i]) >= np.float32(job.options.white_level)
+
+
+def _still_regions(job: _Job, used: tuple, volume: np.ndarray, info: dict,
+                   excluded: np.ndarray | None) -> tuple[np.ndarray, dict]:
+    """A sparse-coded capture's result moved toward the still estimate where its code shows the scene holding
+    still and the result strays from the measurement more than the still estimate would
+    (:mod:`codedvideo.solvers.stillness`; working units; saturated pixels, ``excluded``, keep theirs), the share
+    of the frame it moved in the record (``still_regions``).  ``used``: the capture's coded image, mask and
+    still pixels (working units).  A capture of a stream with pixels whose still answer other captures gave
+    (``still``) is left as it is: those captures told still from moving pixel by pixel."""
+    coded, mask, still = used
+    o = job.options
+    if not o.still_regions or o.blocks != 1 or still is not None:  # (blocks: a Bayer capture's stacked colours)
+        return volume, info
+    t0 = time.perf_counter()
+    weight = stillness.still_weight(volume, coded, mask, noise_sigma=float(o.noise_sigma) * float(job.inputs.scale),
+                                    excluded=excluded)
+    share = float(weight.mean())
+    result = stillness.blended(volume, coded, mask, weight) if share > 0 else volume
+    seconds = dict(info.get("seconds", {}), still_regions=time.perf_counter() - t0)
+    return result, dict(info, still_regions=dict(share=round(share, 4)), seconds=seconds)
 
 
 def _seconds_so_far(job: _Job, i: int, info: dict) -> float:
@@ -658,7 +692,7 @@ def result_recipe(method: str, *, adapt: bool = False, adapt_rounds: int = 1, re
 
     entry = methods.method(method)
     if entry.sparse:
-        recipe: dict = dict(version=RECON_VERSION, windows=temporal.recipe())
+        recipe: dict = dict(version=RECON_VERSION, windows=temporal.recipe(), still_regions=stillness.recipe())
         if adapt:
             recipe["adapt"] = dict(samples=ADAPT_SAMPLES, iterations=ADAPT_ITERATIONS, sparsity=ADAPT_SPARSITY,
                                    unused=KEEP_UNUSED,
