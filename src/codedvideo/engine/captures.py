@@ -333,12 +333,17 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
         volume, info = reconstruct_method(o.method, coded_used, mask_used)
     else:
         volume, info = _guarded(solved, solved_info, coded_used, mask_used, still)
+    used = (coded_used, mask_used, still)
+    excluded = _clipped(job, i) if saturated else None
+    judged = None
     if o.config.refine and moving and info.get("method") != "static":
-        volume, info = _refined(job, i, (coded_used, mask_used, still), volume, info)
+        if solved is not None:  # (judged before the refinement: it brings the result to the measurement)
+            judged = _still_weight(job, used, volume, excluded)
+        volume, info = _refined(job, i, used, volume, info)
     if solved is not None:
-        volume, info = _windowed(job, i, (coded_used, mask_used, still), volume, info)
-        volume, info = _still_regions(job, (coded_used, mask_used, still), volume, info,
-                                      _clipped(job, i) if saturated else None)
+        volume, info = _windowed(job, i, used, volume, info)
+        volume, info = _still_regions(job, used, volume, info, judged if judged is not None
+                                      else _still_weight(job, used, volume, excluded))
     if measured is not None:  # still answers averaged over captures: the residual of this capture's own
         residual = physics.forward(volume, mask_used) - measured
         info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
@@ -450,24 +455,34 @@ def _clipped(job: _Job, i: int) -> np.ndarray:
     return np.asarray(job.inputs.codeds[i]) >= np.float32(job.options.white_level)
 
 
-def _still_regions(job: _Job, used: tuple, volume: np.ndarray, info: dict,
-                   excluded: np.ndarray | None) -> tuple[np.ndarray, dict]:
-    """A sparse-coded capture's result moved toward the still estimate where its code shows the scene holding
-    still and the result strays from the measurement more than the still estimate would
-    (:mod:`codedvideo.solvers.stillness`; working units; saturated pixels, ``excluded``, keep theirs), the share
-    of the frame it moved in the record (``still_regions``).  ``used``: the capture's coded image, mask and
-    still pixels (working units).  A capture of a stream with pixels whose still answer other captures gave
-    (``still``) is left as it is: those captures told still from moving pixel by pixel."""
+def _still_weight(job: _Job, used: tuple, volume: np.ndarray, excluded: np.ndarray | None) -> tuple:
+    """``(weight, seconds)``: where a sparse-coded capture's result ``volume`` is moved toward the still estimate
+    (:func:`codedvideo.solvers.stillness.still_weight`, working units; saturated pixels, ``excluded``, keep
+    theirs), None where no pixel is: the job does not ask for it, a Bayer capture's stacked colours (``blocks``), a
+    capture of a stream with pixels whose still answer other captures gave (``used``'s still pixels: those told
+    still from moving pixel by pixel).  ``used``: the capture's coded image, mask and still pixels."""
     coded, mask, still = used
     o = job.options
-    if not o.still_regions or o.blocks != 1 or still is not None:  # (blocks: a Bayer capture's stacked colours)
-        return volume, info
+    if not o.still_regions or o.blocks != 1 or still is not None:
+        return None, 0.0
     t0 = time.perf_counter()
     weight = stillness.still_weight(volume, coded, mask, noise_sigma=float(o.noise_sigma) * float(job.inputs.scale),
                                     excluded=excluded)
+    return weight, time.perf_counter() - t0
+
+
+def _still_regions(job: _Job, used: tuple, volume: np.ndarray, info: dict, judged: tuple) -> tuple[np.ndarray, dict]:
+    """A sparse-coded capture's result moved toward the still estimate by ``judged`` (:func:`_still_weight`:
+    found on the result, or on it before its refinement, which brings it to the measurement), the share of the
+    frame it moved in the record (``still_regions``).  ``used``: the capture's coded image, mask and still
+    pixels (working units)."""
+    weight, seconds = judged
+    if weight is None:
+        return volume, info
+    t0 = time.perf_counter()
     share = float(weight.mean())
-    result = stillness.blended(volume, coded, mask, weight) if share > 0 else volume
-    seconds = dict(info.get("seconds", {}), still_regions=time.perf_counter() - t0)
+    result = stillness.blended(volume, used[0], used[1], weight) if share > 0 else volume
+    seconds = dict(info.get("seconds", {}), still_regions=seconds + time.perf_counter() - t0)
     return result, dict(info, still_regions=dict(share=round(share, 4)), seconds=seconds)
 
 
