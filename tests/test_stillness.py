@@ -122,3 +122,15 @@ def test_under_a_refinement_the_still_regions_are_found_on_the_result_before_it(
     refined = cv.reconstruct(coded, mask, data_range=255.0, progress=False, full_output=True, refine=4)
     assert refined.info[0]["still_regions"]["share"] > 0.5
     assert _score(refined.frames / 255, video) >= _score(plain.frames / 255, video) - 0.05
+
+
+def test_a_code_whose_rows_share_one_pattern_takes_nothing():
+    # row-wise: the neighbours along a row have no spread of centroids, and a texture stronger across the rows
+    # read as a negative slope (no motion) on a moving scene: -0.58 dB on the centre of bunny at N = 8, L = 6
+    frames = 8
+    video = np.stack([np.roll(_texture(64, 3), t, axis=0) for t in range(frames)])
+    mask = cv.make_code("rowwise", (64, 64), frames=frames, seed=0, bump=6)
+    coded = _coded(video, mask)
+    assert np.isnan(stillness.motion(coded, mask)).all()
+    strayed = video + np.random.default_rng(0).normal(0, 5, video.shape).astype(np.float32)
+    assert not stillness.still_weight(strayed, coded, mask).any()

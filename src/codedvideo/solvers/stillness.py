@@ -21,7 +21,9 @@ pixel where the result itself moves (its standard deviation over the sub-frames,
 
 Where it acts: textured regions that hold still, which the dictionary fits to a few grey levels and the still
 estimate gives exactly (docs/research.md, "Telling still from moving in a single capture").  Codes that give
-every pixel the same exposure (flutter, a global shutter) have no spread of centroids: nothing is taken there.
+every pixel the same exposure (flutter, a global shutter) have no spread of centroids, and codes whose every row
+(or column) shares one pattern (row-wise, thin-out) none along it, where the texture across it would read as
+motion: nothing is taken there.
 
 Arrays in, arrays out, in working units (the grey levels of an 8-bit capture); memory: a few float32 images
 of the capture's size beside the volume.
@@ -85,6 +87,8 @@ def motion(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
     of centroids to read it from).  The pairs' moments are summed over blocks of :data:`BLOCK` pixels and the
     windows slide block by block."""
     z, n = _normalised(coded, mask)
+    if _one_pattern_along_lines(mask):
+        return np.full(z.shape, np.nan, np.float32)
     cen = _centroids(mask, n)
     frames = mask.shape[0]
     h, w = z.shape
@@ -112,6 +116,13 @@ def motion(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
         best = np.fmax(best, np.sqrt(np.maximum(slope, 0) * np.float32((frames * frames - 1) / 12.0)))
         best[np.isnan(slope)] = np.nan
     return np.repeat(np.repeat(best, BLOCK, 0), BLOCK, 1)[:h, :w]
+
+
+def _one_pattern_along_lines(mask: np.ndarray) -> bool:
+    """Whether every row, or every column, of ``mask`` shares one pattern (row-wise and thin-out codes): the
+    neighbours along it have no spread of centroids, and the texture across it would read as motion."""
+    m = np.asarray(mask)
+    return bool((m == m[:, :, :1]).all() or (m == m[:, :1, :]).all())
 
 
 def _block_sums(a: np.ndarray, block: int) -> np.ndarray:
