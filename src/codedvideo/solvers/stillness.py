@@ -164,9 +164,11 @@ def read_noise(coded: np.ndarray, mask: np.ndarray) -> float:
 def still_weight(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0,
                  excluded: np.ndarray | None = None) -> np.ndarray:
     """Each pixel's weight (H, W) float32 in [0, 1] of the still estimate against ``volume`` (module text).
-    ``noise_sigma``: the read noise given, in the coded image's units (0: found); ``excluded``: pixels that keep
-    ``volume`` (saturated ones)."""
-    z, n = _normalised(coded, mask)
+    ``noise_sigma``: the read noise given, in the coded image's units (the larger of it and the one found,
+    :func:`read_noise`, is taken out of the residual; the given one, or a :data:`NOISE_SHARE` of the found
+    one's variance, is counted against the still estimate); ``excluded``: pixels that keep ``volume`` (saturated
+    ones)."""
+    _, n = _normalised(coded, mask)
     found = read_noise(coded, mask)
     given = float(noise_sigma)
     per_open = np.divide(1.0, n, out=np.zeros_like(n), where=n > 0) ** 2
