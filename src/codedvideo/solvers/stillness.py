@@ -35,6 +35,7 @@ import numpy as np
 
 from codedvideo.model import physics
 from codedvideo.model.patches import PATCH
+from codedvideo.model.sequence import normalised
 
 #: The neighbours ``(dy, dx)`` whose differences make the variogram.
 OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, 2), (2, 0))
@@ -86,7 +87,7 @@ def motion(coded: np.ndarray, mask: np.ndarray) -> np.ndarray:
     coded image's units per sub-frame (the largest over :data:`WINDOWS`; NaN where the code gives no spread
     of centroids to read it from).  The pairs' moments are summed over blocks of :data:`BLOCK` pixels and the
     windows slide block by block."""
-    z, n = _normalised(coded, mask)
+    z, n = normalised(coded, mask)
     if _one_pattern_along_lines(mask):
         return np.full(z.shape, np.nan, np.float32)
     cen = _centroids(mask, n)
@@ -134,19 +135,13 @@ def _block_sums(a: np.ndarray, block: int) -> np.ndarray:
     return padded.reshape(k, hb, block, wb, block).sum((2, 4))
 
 
-def _normalised(coded: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    n = np.asarray(mask).sum(0, dtype=np.float32)
-    z = np.divide(np.asarray(coded, np.float32), n, out=np.zeros(n.shape, np.float32), where=n > 0)
-    return z, n
-
-
 def read_noise(coded: np.ndarray, mask: np.ndarray) -> float:
     """The read noise of a capture, in its units, from its still estimate: the median absolute Laplacian of
     each :data:`NOISE_BLOCK`-pixel block, the :data:`NOISE_PERCENTILE`-th percentile of the blocks (the
     flattest), times the typical open count.  Texture raises it (a lone block: the whole image's median)."""
     from scipy.ndimage import convolve
 
-    z, n = _normalised(coded, mask)
+    z, n = normalised(coded, mask)
     if min(z.shape) < 3 or not (n > 0).any():
         return 0.0
     kernel = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
@@ -168,7 +163,7 @@ def still_weight(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, *, noi
     :func:`read_noise`, is taken out of the residual; the given one, or a :data:`NOISE_SHARE` of the found
     one's variance, is counted against the still estimate); ``excluded``: pixels that keep ``volume`` (saturated
     ones)."""
-    _, n = _normalised(coded, mask)
+    _, n = normalised(coded, mask)
     found = read_noise(coded, mask)
     given = float(noise_sigma)
     per_open = np.divide(1.0, n, out=np.zeros_like(n), where=n > 0) ** 2
@@ -197,7 +192,7 @@ def _moving(volume: np.ndarray) -> np.ndarray:
 
 def blended(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """``volume`` (overwritten) with each pixel's sub-frames moved toward its still estimate by ``weight``."""
-    z, _ = _normalised(coded, mask)
+    z, _ = normalised(coded, mask)
     rows = np.flatnonzero(weight.any(1))
     if rows.size:
         band = slice(int(rows[0]), int(rows[-1]) + 1)
