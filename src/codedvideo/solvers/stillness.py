@@ -46,8 +46,9 @@ BLOCK = 2
 #: Side of the window over which the result's residual is averaged.
 RESIDUAL_WINDOW = 15
 #: The result's motion at a pixel (grey levels, as :data:`codedvideo.solvers.temporal.STILL_BELOW`) up to which
-#: the still estimate may be taken there, and from which it is not.
-MOVING = (3.0, 6.0)
+#: the still estimate may be taken there, and from which it is not: a small object moving in a still window
+#: escapes the windows' estimate, but the result shows it move.
+MOVING = (2.0, 4.0)
 #: Side of the blocks whose Laplacian gives the read noise, and the percentile of their estimates taken.
 NOISE_BLOCK = 16
 NOISE_PERCENTILE = 10.0
