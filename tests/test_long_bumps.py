@@ -164,6 +164,19 @@ def test_values_beyond_a_quarter_of_the_data_range_are_said():
         assert frames.max() == pytest.approx(240, abs=0.5)
         told = any("far outside the data range" in str(w.message) for w in said)
         assert told is said_expected, data_range
+        assert not any("read noise" in str(w.message) for w in said)  # none was given
+
+
+def test_values_beyond_the_data_range_under_a_read_noise_given_name_it_among_the_causes():
+    # heavy read noise carries frames beyond the range (read noise 60 of 255: up to 1.26 of it on held-out crops)
+    video = np.full((8, 32, 32), 240, np.float32)
+    mask = cv.make_code("hitomi", (32, 32), frames=8, bump=2, seed=0)
+    coded = cv.simulate(video, mask)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        cv.reconstruct(coded, mask, data_range=180.0, noise_sigma=2.0, progress=False)
+    told = [str(w.message) for w in said if "far outside the data range" in str(w.message)]
+    assert len(told) == 1 and "read noise of 2 given (noise_sigma)" in told[0], told
 
 
 def test_a_bump_of_15_of_16_stays_within_the_data_range_through_both_doors(tmp_path):

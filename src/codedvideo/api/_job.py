@@ -411,7 +411,8 @@ class ReconstructionJob:
 
     def _warn_implausible(self, i: int, volume) -> None:
         """Say, once a job, a result far outside ``[0, data range]`` (:data:`IMPLAUSIBLE_SHARE`): values no
-        intensity takes, from a code whose patterns leave the motion nearly unobserved (long bumps)."""
+        intensity takes, from heavy read noise (the frames are not clipped), a range that does not fit, or a code
+        whose patterns leave the motion nearly unobserved (long bumps)."""
         if self._implausible_said:
             return
         lo, hi = volume_extremes(volume)
@@ -419,8 +420,11 @@ class ReconstructionJob:
         if lo < -IMPLAUSIBLE_SHARE * value or hi > (1 + IMPLAUSIBLE_SHARE) * value:
             self._implausible_said = True
             where = self.captures.source if self.count == 1 else f"{self.captures.source}, capture {i + 1}"
+            sigma = float(self.r.noise.sigma)
+            noise = (f"the read noise of {sigma:g} given ({doors.name('noise_sigma')}), which the frames carry "
+                     f"unclipped, " if sigma > 0 else "")
             doors.warn(f"{where}: the reconstruction holds values from {lo:.4g} to {hi:.4g}, far outside the data "
-                          f"range [0, {value:g}] ({self.units.source}): a data range or white level that does "
+                          f"range [0, {value:g}] ({self.units.source}): {noise}a data range or white level that does "
                           f"not fit the captures, or a code that leaves the motion nearly unobserved for the "
                           f"method {self.r.method} (long shutter bumps make it ill-conditioned); compare the "
                           f"trivial estimate in the record, or {doors.name('method')} gaptv")
