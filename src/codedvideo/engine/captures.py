@@ -334,7 +334,7 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
     else:
         volume, info = _guarded(solved, solved_info, coded_used, mask_used, still)
     used = (coded_used, mask_used, still)
-    excluded = _clipped(job, i) if saturated else None
+    excluded = _clipped(job, i) if saturated else None  # (the still regions leave them; raised at the end)
     judged = None
     if o.config.refine and moving and info.get("method") != "static":
         if solved is not None:  # (judged before the refinement: it brings the result to the measurement)
@@ -350,7 +350,7 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
     if job.sparse and info.get("method") != "static":  # (the static estimate says so)
         info = _sparse_info(job, i, info, mask_used)
     if saturated:  # a saturated pixel recorded at least the white level: no frame sum below it
-        info["saturated_raised"] = physics.raise_to_white(volume, _clipped(job, i), inputs.mask_of(i),
+        info["saturated_raised"] = physics.raise_to_white(volume, excluded, inputs.mask_of(i),
                                                           float(o.white_level) * float(inputs.scale))
     if still is not None and not job.sparse:  # no patches: the pixels whose every patch would be still
         inner = erode_to_patches(still, PATCH)
