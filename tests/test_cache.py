@@ -560,3 +560,22 @@ def test_a_cache_budget_of_0_is_refused(files, tmp_path, capsys):
     cfg = tmp_path / "p.yaml"
     cfg.write_text(f"reconstruct: {{cache_budget: 0}}\noutput: {{dir: {tmp_path / 'out'}}}\ncache: {tmp_path / 'c'}\n")
     fails(capsys, ["run", cfg], "reconstruct.cache_budget", root=tmp_path)
+
+
+def test_a_tiles_misfit_map_is_checked_with_it(tmp_path):
+    # the non-local method's tiles carry the misfit their projection took away; a changed misfit fails the digest
+    from codedvideo.formats.store import WorkStore, write_tiles
+
+    rng = np.random.default_rng(0)
+    coded = rng.random((TILE, TILE)).astype(np.float32)
+    mask = (rng.random((4, TILE, TILE)) < 0.5).astype(np.uint8)
+    store = WorkStore.create(tmp_path / "s.zarr", coded, mask, tile=TILE, n_stats=7, n_tiles=1, attrs=dict(key="a"))
+    (tile,) = store.tiles()
+    volume, stats = rng.random((4, TILE, TILE)).astype(np.float32), np.arange(7.0)
+    misfit = rng.normal(0, 1, (TILE, TILE)).astype(np.float32)
+    write_tiles([(store, tile.index, tile.core)], volume, stats, misfit)
+    ok, damaged, read, _, found = store.read_verified([tile])
+    assert ok.all() and np.array_equal(found, misfit) and np.array_equal(read, volume)
+    store.array("misfit")[0, 0] = misfit[0, 0] + 1
+    ok, damaged, *_ = store.read_verified([tile])
+    assert not ok.any() and damaged.all()

@@ -121,6 +121,8 @@ def adapt_capture(job, i: int, stage=None) -> tuple[np.ndarray, str | None, dict
                                       first_of=None if store is None else (lambda _, s=store: s))
             with contextlib.closing(pass_job):  # closed here: the graph's thread has ended
                 _, first, info = next(pass_job)
+        if info is not None:  # (the misfit map is the last pass's, for its still regions)
+            info.pop("misfit_taken", None)
         learnt = first is not None and info.get("method") != "static"  # (one pattern for all pixels: no tiles)
         spent += sum(v for v in (info or {}).get("seconds", {}).values() if isinstance(v, (int, float)))
         if stage is not None and first is not None:

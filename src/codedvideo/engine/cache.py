@@ -63,7 +63,7 @@ REMOVED_WHEN_BROKEN = ("broken", "stale", "leftover")
 # ----------------------------------------------------------------------------- keys
 #: Part of every reconstruction cache key: bump it when the per-tile algorithm changes
 #: its output, so that tiles computed by an older version are never reused.
-RECON_VERSION = "recon-v13"  # v4: per-tile digests in the working store; v5: still patches across captures;
+RECON_VERSION = "recon-v14"  # v4: per-tile digests in the working store; v5: still patches across captures;
 # v6: the non-local method in three stages (its estimates summed block by block: other roundings);
 # v7: equal non-local tiles told apart by all their blocks read (v6 could share one answer between two);
 # v8: a non-local group's support capped (nonlocal_sc.group_atoms: max_atoms over 12 gave other supports)
@@ -73,6 +73,7 @@ RECON_VERSION = "recon-v13"  # v4: per-tile digests in the working store; v5: st
 # v12: the still test's patches with their temporal profiles (region.still_patches); a pixel never open keeps the
 # non-local method's first estimate
 # v13: only a pixel with no open pixel within half a patch keeps it (nonlocal_sc.finish)
+# v14: the non-local tiles keep the misfit their projection took away beside them (working store layout 4)
 
 
 def content_key(*parts) -> str:
@@ -433,7 +434,7 @@ def _check_reconstruction(path: Path) -> tuple[str, str]:
     if inputs_digest(coded, mask, still) != attrs.get("inputs_digest"):
         return "broken", "inputs do not match their recorded digest"
     try:
-        ok, damaged, _, _ = store.read_verified(store.tiles())
+        ok, damaged, *_ = store.read_verified(store.tiles())
         # of the damaged, a tile whose results are written but whose digest is gone (deleted, or a run killed
         # between the two writes) cannot be verified: said apart from one that fails its checksum
         unverifiable = damaged & ~store._rows("digest", 0).any(axis=1)

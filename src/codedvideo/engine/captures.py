@@ -325,6 +325,7 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
     baseline's; refined, saturated pixels raised to the white level, still answers kept, in capture units."""
     o, inputs = job.options, job.inputs
     coded_used, mask_used, still, moving, saturated, measured = inputs.used(i)
+    taken = None if solved_info is None else solved_info.pop("misfit_taken", None)  # (a map: not for the record)
     if not moving:  # nothing moves: no sparse coding at all
         volume, info = static_volume(coded_used, mask_used)
         if guard.shared_by_all(mask_used):  # (where every capture looks still: the floor holds there too)
@@ -335,15 +336,17 @@ def _finish(job: _Job, i: int, solved: np.ndarray | None, solved_info: dict | No
         volume, info = _guarded(solved, solved_info, coded_used, mask_used, still)
     used = (coded_used, mask_used, still)
     excluded = _clipped(job, i) if saturated else None  # (the still regions leave them; raised at the end)
+    if taken is not None:  # (the sparse estimate's share of a result blended with GAP-TV)
+        taken = taken * np.float32(info.get("guard", {}).get("sparse_weight", 1.0))
     judged = None
     if o.config.refine and moving and info.get("method") != "static":
         if solved is not None:  # (judged before the refinement: it brings the result to the measurement)
-            judged = _still_weight(job, used, volume, excluded)
+            judged = _still_weight(job, used, volume, excluded, taken)
         volume, info = _refined(job, i, used, volume, info)
     if solved is not None:
         volume, info = _windowed(job, i, used, volume, info)
         volume, info = _still_regions(job, used, volume, info, judged if judged is not None
-                                      else _still_weight(job, used, volume, excluded))
+                                      else _still_weight(job, used, volume, excluded, taken))
     if measured is not None:  # still answers averaged over captures: the residual of this capture's own
         residual = physics.forward(volume, mask_used) - measured
         info["measurement_residual_rms"] = float(np.sqrt(np.mean(residual.astype(np.float64) ** 2)))
@@ -455,19 +458,21 @@ def _clipped(job: _Job, i: int) -> np.ndarray:
     return np.asarray(job.inputs.codeds[i]) >= np.float32(job.options.white_level)
 
 
-def _still_weight(job: _Job, used: tuple, volume: np.ndarray, excluded: np.ndarray | None) -> tuple:
+def _still_weight(job: _Job, used: tuple, volume: np.ndarray, excluded: np.ndarray | None,
+                  taken: np.ndarray | None = None) -> tuple:
     """``(weight, seconds)``: where a sparse-coded capture's result ``volume`` is moved toward the still estimate
     (:func:`codedvideo.solvers.stillness.still_weight`, working units; saturated pixels, ``excluded``, keep
-    theirs), None where no pixel is: the job does not ask for it, a Bayer capture's stacked colours (``blocks``), a
-    capture of a stream with pixels whose still answer other captures gave (``used``'s still pixels: those told
-    still from moving pixel by pixel).  ``used``: the capture's coded image, mask and still pixels."""
+    theirs; ``taken``: the misfit that the non-local method's projection took away), None where no pixel is: the
+    job does not ask for it, a Bayer capture's stacked colours (``blocks``), a capture of a stream with pixels
+    whose still answer other captures gave (``used``'s still pixels: those told still from moving pixel by
+    pixel).  ``used``: the capture's coded image, mask and still pixels."""
     coded, mask, still = used
     o = job.options
     if not o.still_regions or o.blocks != 1 or still is not None:
         return None, 0.0
     t0 = time.perf_counter()
     weight = stillness.still_weight(volume, coded, mask, noise_sigma=float(o.noise_sigma) * float(job.inputs.scale),
-                                    excluded=excluded)
+                                    excluded=excluded, taken=taken)
     return weight, time.perf_counter() - t0
 
 

@@ -40,6 +40,7 @@ import dask.threaded
 import numpy as np
 from dask.highlevelgraph import HighLevelGraph
 
+from codedvideo.model import physics
 from codedvideo.model.errors import CodedVideoError, SchedulerError
 from codedvideo.solvers.region import STAT_NAMES, OmpSettings, Placement, reconstruct_region, tile_halo
 from codedvideo.formats.store import WorkStore, write_tiles
@@ -150,7 +151,7 @@ def _tile_task(places: tuple, D: np.ndarray, settings: OmpSettings, patch: int) 
 # tile each solve the groups of the references whose corners they hold, from the first estimate around
 # them, and return the summed estimates and weights; (3) each tile adds the sums of the blocks that
 # reach it (in block order: deterministic), divides, projects onto its measurements (when they are exact: no
-# read noise), and is written.
+# read noise; the misfit the projection took away is kept beside it), and is written.
 
 
 #: Key prefixes of the stage tasks (counted by the progress bar beside the tiles).
@@ -219,13 +220,14 @@ def _groups_task(store_path: str, block: Tile, firsts: list, D: np.ndarray, sett
 def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], settings: OmpSettings,
                   patch: int) -> np.ndarray:
     """Stage 3: a tile's core from the sums of the blocks that reach it, projected onto its measurements where
-    they are exact (``settings.exact``; pixels that only wholly still patches cover: the still answer), written to
-    every place; its statistics are the first estimate's plus the time of the blocks it owns."""
-    from codedvideo.solvers.nonlocal_sc import finish, keep_still
+    they are exact (``settings.exact``; the misfit the projection took away written beside it; pixels that only
+    wholly still patches cover: the still answer), written to every place; its statistics are the first
+    estimate's plus the time of the blocks it owns."""
+    from codedvideo.solvers.nonlocal_sc import finish, keep_still, project_measurements
 
     t0 = time.perf_counter()
     core, volume, stats = first
-    stats = stats.copy()
+    stats, misfit = stats.copy(), None
     if all(part is not None for part in parts):
         summed = np.zeros_like(volume)
         weight = np.zeros((1, *volume.shape[1:]), np.float32)
@@ -237,12 +239,14 @@ def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], s
         around = (max(0, y0 - patch + 1), min(h, y1 + patch - 1), max(0, x0 - patch + 1), min(w, x1 + patch - 1))
         coded, mask, still = store.read_inputs(*around)  # the core and every patch over it
         inside = (slice(y0 - around[0], y1 - around[0]), slice(x0 - around[2], x1 - around[2]))
-        volume = finish(summed, weight[0], coded[inside], mask[(slice(None), *inside)], project=settings.exact,
-                        first=volume)
+        volume = finish(summed, weight[0], coded[inside], mask[(slice(None), *inside)], project=False, first=volume)
+        if settings.exact:  # the misfit the projection takes away is kept: the still regions judge by it
+            misfit = coded[inside] - physics.forward(volume, mask[(slice(None), *inside)])
+            volume = project_measurements(volume, coded[inside], mask[(slice(None), *inside)])
         keep_still(volume, coded, mask, still.astype(bool), patch, *inside)
     owned_seconds = sum(part[3] for part, mine in zip(parts, owned) if mine and part is not None)
     stats[STAT_NAMES.index("seconds_total")] += owned_seconds + time.perf_counter() - t0
-    write_tiles([(WorkStore.opened(path), tile.index, tile.core) for path, tile in places], volume, stats)
+    write_tiles([(WorkStore.opened(path), tile.index, tile.core) for path, tile in places], volume, stats, misfit)
     return stats
 
 
@@ -753,7 +757,7 @@ def plan_store(store: WorkStore, coded: np.ndarray, mask: np.ndarray, still: np.
     if store.created:
         ok = damaged = np.zeros(len(tiles), bool)
     else:
-        ok, damaged, _, _ = store.read_verified(tiles, assemble=False)
+        ok, damaged, *_ = store.read_verified(tiles, assemble=False)
         if damaged.any():
             log.warning("cache entry %s: tiles %s failed their checksum or lost it (damaged); computing them again",
                         store.path, np.flatnonzero(damaged).tolist())
@@ -781,19 +785,26 @@ def store_volume(store: WorkStore, plan: StorePlan, D: np.ndarray, settings: Omp
     are computed again (up to :data:`MAX_ATTEMPTS` rounds).  The summary holds
     the tiles computed now, reused and found damaged, the summed statistics
     and ``seconds_verify``, the time spent reading tiles back and checking
-    them.  The caller holds the store's lock.
+    them, and, where the non-local method projected its tiles onto the coded
+    image, ``misfit_taken``: the (H, W) map of the measurement misfit that
+    the projection took away (:func:`_combine_task`; for the still regions,
+    :func:`codedvideo.solvers.stillness.still_weight`).  The caller holds the
+    store's lock.
     """
-    volume, summary = _verified_volume(store, plan, D, settings, patch=patch, scheduler=scheduler, workers=workers)
+    volume, misfit, summary = _verified_volume(store, plan, D, settings, patch=patch, scheduler=scheduler,
+                                               workers=workers)
+    if misfit.any():
+        summary["misfit_taken"] = misfit
     return volume, dict(summary, tiles_damaged=int(plan.damaged.sum()))
 
 
 def _verified_volume(store: WorkStore, plan: StorePlan, D, settings, *, patch, scheduler,
-                     workers) -> tuple[np.ndarray, dict]:
+                     workers) -> tuple[np.ndarray, np.ndarray, dict]:
     """Read every tile of a store back, checked against its digest; compute the ones that fail again (those of
-    ``plan``'s work were computed in this run)."""
+    ``plan``'s work were computed in this run): the volume, its misfit map and the summary."""
     tiles, computed, first = list(plan.tiles), {t.index for t in plan.work.tiles}, plan.work.first
     t0 = time.perf_counter()
-    ok, _, volume, stats = store.read_verified(tiles)
+    ok, _, volume, stats, misfit = store.read_verified(tiles)
     seconds_verify = time.perf_counter() - t0
     stats = np.where(ok[:, None], stats, np.nan)
     for _ in range(MAX_ATTEMPTS - 1):
@@ -808,7 +819,7 @@ def _verified_volume(store: WorkStore, plan: StorePlan, D, settings, *, patch, s
             pass
         computed.update(t.index for t in todo)
         t0 = time.perf_counter()
-        ok_now, _, _, read_stats = store.read_verified(todo, volume)
+        ok_now, _, _, read_stats, _ = store.read_verified(todo, volume, misfit=misfit)
         seconds_verify += time.perf_counter() - t0
         stats[ok_now] = read_stats[ok_now]
         ok |= ok_now
@@ -823,5 +834,5 @@ def _verified_volume(store: WorkStore, plan: StorePlan, D, settings, *, patch, s
         if name.startswith("seconds"):
             totals[name] = float(stats[now, k].sum())
     totals["patches_computed"] = float(stats[now, STAT_NAMES.index("patches")].sum())
-    return volume, dict(tiles=len(tiles), tiles_computed=len(computed), tiles_reused=len(tiles) - len(computed),
-                        seconds_verify=seconds_verify, **totals)
+    return volume, misfit, dict(tiles=len(tiles), tiles_computed=len(computed),
+                                tiles_reused=len(tiles) - len(computed), seconds_verify=seconds_verify, **totals)

@@ -290,7 +290,9 @@ def sparse_volumes(
     i : int
     volume : ndarray of shape (N, H, W), float32
     info : dict
-        The statistics of :func:`reconstruct_volume`.
+        The statistics of :func:`reconstruct_volume`; where the non-local method brought its tiles to the
+        measurement, also ``misfit_taken``, the (H, W) map of the misfit that this took away
+        (:func:`codedvideo.engine.parallel.store_volume`), for the caller to pop.
 
     Each capture's working store is the cache entry ``cache/recon-KEY.zarr``,
     shared by every run with the same inputs and settings (equal captures of
@@ -347,6 +349,7 @@ def reconstruct_volume(
                              dictionary_key=dictionary_key)
     with contextlib.closing(results):
         _, volume, info = next(results)
+    info.pop("misfit_taken", None)  # (for the still regions of a job of captures)
     return volume, info
 
 

@@ -9,7 +9,8 @@ A working store of a reconstruction is a cache entry shared by every run with
 the same inputs and settings.  Its inputs are written under a temporary name
 and renamed into place, so the entry is never visible half-made; its tiles are
 then filled one by one, each tile writing its volume chunk, its statistics row
-and, last, a blake2b digest of both (:func:`tile_digest`).  A tile counts as
+(and, from the non-local method, its misfit map) and, last, a blake2b digest of them
+(:func:`tile_digest`).  A tile counts as
 done only when the digest matches what is read back, so a tile that was cut
 short, damaged, truncated, deleted or copied over from another tile is
 recomputed, never returned.  Runs on one entry are serialised by an exclusive
@@ -52,12 +53,12 @@ log = logging.getLogger("codedvideo")
 FORMAT_VERSION = 1
 DICTIONARY_KIND = "codedvideo-dictionary"
 WORKSTORE_KIND = "codedvideo-reconstruction"
-#: Layout of a working store: 2 added the per-tile ``digest`` array, 3 the ``still`` map.
-WORKSTORE_FORMAT = 3
+#: Layout of a working store: 2 added the per-tile ``digest`` array, 3 the ``still`` map, 4 the ``misfit`` map.
+WORKSTORE_FORMAT = 4
 #: Bytes of a tile digest (blake2b).
 DIGEST_SIZE = 32
 #: The arrays of a working store.
-WORKSTORE_ARRAYS = ("coded", "mask", "still", "volume", "stats", "digest")
+WORKSTORE_ARRAYS = ("coded", "mask", "still", "volume", "misfit", "stats", "digest")
 
 
 def lock_path(entry: str | os.PathLike) -> Path:
@@ -249,8 +250,9 @@ def load_dictionary(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
 
 
 def tile_digest(key: str, index: int, core: tuple[int, int, int, int], volume: np.ndarray,
-                stats: np.ndarray) -> np.ndarray:
-    """The checksum of one finished tile: blake2b of its identity, volume core and statistics row.
+                stats: np.ndarray, misfit: np.ndarray | None = None) -> np.ndarray:
+    """The checksum of one finished tile: blake2b of its identity, volume core, statistics row and misfit core
+    (None: all zero, as a tile that writes none leaves it).
 
     The identity (entry key, tile index, core region) is part of it, so a
     tile's chunks copied over another tile's -- digest included -- do not
@@ -261,6 +263,8 @@ def tile_digest(key: str, index: int, core: tuple[int, int, int, int], volume: n
     h.update(json.dumps([str(key), int(index), [int(c) for c in core], list(v.shape)]).encode())
     h.update(v.data)
     h.update(np.ascontiguousarray(stats, dtype="<f8").data)
+    m = np.zeros(v.shape[1:], "<f4") if misfit is None else np.ascontiguousarray(misfit, dtype="<f4")
+    h.update(m.data)
     return np.frombuffer(h.digest(), dtype=np.uint8)
 
 
@@ -307,6 +311,7 @@ def workstore_layout(n: int, h: int, w: int, *, tile: int, n_stats: int, n_tiles
         mask=((n, h, w), (n, tile, tile), np.dtype(mask), 0),
         still=((h, w), (tile, tile), np.dtype("uint8"), 0),
         volume=((n, h, w), (n, tile, tile), np.dtype("float32"), np.nan),
+        misfit=((h, w), (tile, tile), np.dtype("float32"), 0.0),
         stats=((n_tiles, n_stats), (1, n_stats), np.dtype("float64"), np.nan),
         digest=((n_tiles, DIGEST_SIZE), (1, DIGEST_SIZE), np.dtype("uint8"), 0),
     )
@@ -367,9 +372,11 @@ async def _build_entry(path: Path, layout: dict, inputs: dict[str, np.ndarray], 
 
 
 def write_tiles(places: list[tuple["WorkStore", int, tuple[int, int, int, int]]], volume: np.ndarray,
-                stats: np.ndarray) -> None:
+                stats: np.ndarray, misfit: np.ndarray | None = None) -> None:
     """Write one solved tile to each of its places ``(store, tile index, core region)``: every volume
-    core and statistics row concurrently, then (last) every digest.
+    core, statistics row and misfit core (the measurement misfit that projecting the core onto the coded image
+    took away, :func:`codedvideo.solvers.nonlocal_sc.finish`; None: none, the store's zeros) concurrently, then
+    (last) every digest.
 
     A tile cut short before its digest does not match the digest on disk
     (none, or an old one of other contents), so it is never taken for done; a
@@ -377,12 +384,15 @@ def write_tiles(places: list[tuple["WorkStore", int, tuple[int, int, int, int]]]
     """
     tile_volume = np.ascontiguousarray(volume, dtype=np.float32)
     tile_stats = np.ascontiguousarray(stats, dtype=np.float64)
+    tile_misfit = None if misfit is None else np.ascontiguousarray(misfit, dtype=np.float32)
     writes, digests = [], []
     for store, index, (y0, y1, x0, x1) in places:  # arrays opened here: never from inside zarr's event loop
         writes.append((store.array("volume").async_array, (slice(None), slice(y0, y1), slice(x0, x1)), tile_volume))
         writes.append((store.array("stats").async_array, (slice(index, index + 1), slice(None)), tile_stats[None]))
+        if tile_misfit is not None:
+            writes.append((store.array("misfit").async_array, (slice(y0, y1), slice(x0, x1)), tile_misfit))
         digests.append((store.array("digest").async_array, (slice(index, index + 1), slice(None)),
-                        tile_digest(store.key, index, (y0, y1, x0, x1), tile_volume, tile_stats)[None]))
+                        tile_digest(store.key, index, (y0, y1, x0, x1), tile_volume, tile_stats, tile_misfit)[None]))
 
     async def write():
         await asyncio.gather(*(arr.setitem(sel, value) for arr, sel, value in writes))
@@ -568,7 +578,8 @@ class WorkStore:
                     pass
             return out
 
-    def read_verified(self, tiles, volume: np.ndarray | None = None, *, assemble: bool = True):
+    def read_verified(self, tiles, volume: np.ndarray | None = None, *, assemble: bool = True,
+                      misfit: np.ndarray | None = None):
         """Read tiles and check each against its digest.
 
         Parameters
@@ -580,8 +591,11 @@ class WorkStore:
             whose cores that failed are NaN.
         assemble : bool
             False: only check the tiles, one core at a time (the returned
-            volume is None), so that planning a job of many captures never
-            holds their volumes.
+            volume and misfit are None), so that planning a job of many
+            captures never holds their volumes.
+        misfit : ndarray (H, W) float32, optional
+            Verified misfit cores are copied into it (with ``volume``).
+            None: a new array, as for ``volume``.
 
         Returns
         -------
@@ -593,6 +607,8 @@ class WorkStore:
         volume : ndarray (N, H, W) float32
         stats : ndarray (n_tiles, n_stats) float64
             The statistics rows as read (valid where ``ok``).
+        misfit : ndarray (H, W) float32
+            The misfit map (:func:`write_tiles`) of the verified cores, 0 elsewhere (None when not assembled).
         """
         wanted = list(tiles)
         assembled = volume
@@ -601,9 +617,9 @@ class WorkStore:
         n_tiles = digests.shape[0]
         ok = np.zeros(n_tiles, bool)
         damaged = np.zeros(n_tiles, bool)
-        varr = self.array("volume")
+        varr, marr = self.array("volume"), self.array("misfit")
         claimed = [t for t in wanted if digests[t.index].any()]
-        bulk = None
+        bulk, misfits = None, None
         if not assemble:
             assembled = None
         elif claimed and 2 * len(claimed) > n_tiles:  # most of the volume: one read, chunks fetched concurrently
@@ -611,23 +627,30 @@ class WorkStore:
                 bulk = np.asarray(varr[...])
             except Exception:  # some chunk cannot be decoded: tile by tile below
                 bulk = None
+        if claimed and 2 * len(claimed) > n_tiles:
+            try:
+                misfits = np.asarray(marr[...])
+            except Exception:
+                misfits = None
+        found = misfit if misfit is not None or not assemble else np.zeros(marr.shape, np.float32)
         adopt = assemble and assembled is None and bulk is not None and len(wanted) == n_tiles
         if assemble and assembled is None:
             assembled = bulk if adopt else np.full(varr.shape, np.nan, np.float32)
         for t in claimed:
             y0, y1, x0, x1 = t.core
-            if bulk is not None:
-                core = bulk[:, y0:y1, x0:x1]
-            else:
-                try:
-                    core = np.asarray(varr[:, y0:y1, x0:x1])
-                except Exception:
-                    damaged[t.index] = True
-                    continue
-            if tile_digest(self.key, t.index, t.core, core, stats[t.index]).tobytes() == digests[t.index].tobytes():
+            try:
+                core = bulk[:, y0:y1, x0:x1] if bulk is not None else np.asarray(varr[:, y0:y1, x0:x1])
+                taken = misfits[y0:y1, x0:x1] if misfits is not None else np.asarray(marr[y0:y1, x0:x1])
+            except Exception:
+                damaged[t.index] = True
+                continue
+            if tile_digest(self.key, t.index, t.core, core, stats[t.index], taken).tobytes() \
+                    == digests[t.index].tobytes():
                 ok[t.index] = True
                 if assemble and not adopt:
                     assembled[:, y0:y1, x0:x1] = core
+                if found is not None:
+                    found[y0:y1, x0:x1] = taken
             else:
                 damaged[t.index] = True
         for t in wanted:  # written (its statistics row is there) but its digest gone: deleted, or cut short
@@ -638,24 +661,25 @@ class WorkStore:
                 if not ok[t.index]:
                     y0, y1, x0, x1 = t.core
                     assembled[:, y0:y1, x0:x1] = np.nan
-        return ok, damaged, assembled, stats
+        return ok, damaged, assembled, stats, found
 
     def read_tile(self, index: int, core: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
         """One finished tile's volume core and statistics row, checked against its digest (used inside tasks:
         another job's tiles as a first estimate); a tile not done or that fails raises a one-line error."""
         y0, y1, x0, x1 = core
-        arrays = [self.array(name).async_array for name in ("volume", "stats", "digest")]
+        arrays = [self.array(name).async_array for name in ("volume", "stats", "digest", "misfit")]
 
         async def read():
             return await asyncio.gather(arrays[0].getitem((slice(None), slice(y0, y1), slice(x0, x1))),
                                         arrays[1].getitem((slice(index, index + 1), slice(None))),
-                                        arrays[2].getitem((slice(index, index + 1), slice(None))))
+                                        arrays[2].getitem((slice(index, index + 1), slice(None))),
+                                        arrays[3].getitem((slice(y0, y1), slice(x0, x1))))
 
         try:
-            volume, stats, digest = (np.asarray(a) for a in sync(read()))
+            volume, stats, digest, misfit = (np.asarray(a) for a in sync(read()))
         except Exception as exc:  # zarr raises its own types for a damaged chunk
             raise RuntimeError(f"working store {self.path}: tile {index} cannot be read ({exc})") from exc
-        if tile_digest(self.key, index, core, volume, stats[0]).tobytes() != digest[0].tobytes():
+        if tile_digest(self.key, index, core, volume, stats[0], misfit).tobytes() != digest[0].tobytes():
             raise RuntimeError(f"working store {self.path}: tile {index} is not finished or fails its checksum")
         return volume, stats[0]
 

@@ -12,6 +12,8 @@ spread of a sub-frame's time about the capture's middle is how far the still est
 
 That is weighed against how far the sparse result strays from the measurement: its residual ``coded - S x``
 per open sub-frame, averaged over :data:`RESIDUAL_WINDOW` pixels, the read noise taken out (:func:`still_weight`).
+A result brought to the measurement afterwards (the non-local method's, without read noise) no longer shows it,
+so :data:`PROJECTED_SHARE` of the misfit that the projection took away is counted back.
 Where the still estimate's expected error is at most half the result's visible one, the still estimate is taken;
 where it is as large, the result is kept; between, a linear blend.  Two guards: the motion is the largest of
 the estimates over :data:`WINDOWS` (a small moving object in a still window is seen by the smaller one), and a
@@ -49,6 +51,11 @@ RESIDUAL_WINDOW = 15
 #: the still estimate may be taken there, and from which it is not: a small object moving in a still window
 #: escapes the windows' estimate, but the result shows it move.
 MOVING = (2.0, 4.0)
+#: The share of the misfit that bringing a result to the measurement took away (the non-local method's
+#: projection) counted in its residual: the projected result strays less than its misfit before the projection
+#: says (with all of it, `best` lost up to 0.44 dB where a small object moves; docs/research.md, "Telling still
+#: from moving in a single capture").
+PROJECTED_SHARE = 0.7
 #: Side of the blocks whose Laplacian gives the read noise, and the percentile of their estimates taken.
 NOISE_BLOCK = 16
 NOISE_PERCENTILE = 10.0
@@ -66,7 +73,7 @@ def recipe() -> dict:
     """What a result with still regions depends on (a result's record is keyed by it)."""
     return dict(offsets=[list(o) for o in OFFSETS], windows=list(WINDOWS), block=BLOCK, residual_window=RESIDUAL_WINDOW,
                 moving=list(MOVING), noise_block=NOISE_BLOCK, noise_percentile=NOISE_PERCENTILE,
-                noise_share=NOISE_SHARE)
+                noise_share=NOISE_SHARE, projected_share=PROJECTED_SHARE)
 
 
 def _box(a: np.ndarray, side: int) -> np.ndarray:
@@ -158,17 +165,20 @@ def read_noise(coded: np.ndarray, mask: np.ndarray) -> float:
 
 
 def still_weight(volume: np.ndarray, coded: np.ndarray, mask: np.ndarray, *, noise_sigma: float = 0.0,
-                 excluded: np.ndarray | None = None) -> np.ndarray:
+                 excluded: np.ndarray | None = None, taken: np.ndarray | None = None) -> np.ndarray:
     """Each pixel's weight (H, W) float32 in [0, 1] of the still estimate against ``volume`` (module text).
     ``noise_sigma``: the read noise given, in the coded image's units (the larger of it and the one found,
     :func:`read_noise`, is taken out of the residual; the given one, or a :data:`NOISE_SHARE` of the found
     one's variance, is counted against the still estimate); ``excluded``: pixels that keep ``volume`` (saturated
-    ones)."""
+    ones); ``taken``: the misfit (H, W) that bringing ``volume`` to the measurement took away, of which
+    :data:`PROJECTED_SHARE` is added to its residual."""
     _, n = normalised(coded, mask)
     found = read_noise(coded, mask)
     given = float(noise_sigma)
     per_open = np.divide(1.0, n, out=np.zeros_like(n), where=n > 0) ** 2
     residual = np.asarray(coded, np.float32) - physics.forward(volume, mask)
+    if taken is not None:
+        residual += np.float32(PROJECTED_SHARE) * np.asarray(taken, np.float32)
     seen2 = _box(residual * residual * per_open, RESIDUAL_WINDOW)
     seen = np.sqrt(np.maximum(seen2 - max(given, found) ** 2 * per_open, 0))
     still = np.sqrt(np.nan_to_num(motion(coded, mask), nan=np.inf) ** 2
