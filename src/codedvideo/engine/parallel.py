@@ -239,10 +239,11 @@ def _combine_task(places: tuple, first: tuple, parts: list, owned: list[bool], s
         around = (max(0, y0 - patch + 1), min(h, y1 + patch - 1), max(0, x0 - patch + 1), min(w, x1 + patch - 1))
         coded, mask, still = store.read_inputs(*around)  # the core and every patch over it
         inside = (slice(y0 - around[0], y1 - around[0]), slice(x0 - around[2], x1 - around[2]))
-        volume = finish(summed, weight[0], coded[inside], mask[(slice(None), *inside)], project=False, first=volume)
+        core_coded, core_mask = coded[inside], mask[(slice(None), *inside)]
+        volume = finish(summed, weight[0], core_coded, core_mask, project=False, first=volume)
         if settings.exact:  # the misfit the projection takes away is kept: the still regions judge by it
-            misfit = coded[inside] - physics.forward(volume, mask[(slice(None), *inside)])
-            volume = project_measurements(volume, coded[inside], mask[(slice(None), *inside)])
+            misfit = core_coded - physics.forward(volume, core_mask)
+            volume = project_measurements(volume, core_coded, core_mask)
         keep_still(volume, coded, mask, still.astype(bool), patch, *inside)
     owned_seconds = sum(part[3] for part, mine in zip(parts, owned) if mine and part is not None)
     stats[STAT_NAMES.index("seconds_total")] += owned_seconds + time.perf_counter() - t0

@@ -425,12 +425,13 @@ def _remember(ident: tuple, store: "WorkStore") -> None:
 class WorkStore:
     """The chunked working store of one reconstruction: one cache entry.
 
-    Arrays: ``coded`` (H, W) float32, ``mask`` (N, H, W) uint8 and ``volume``
-    (N, H, W) float32, all chunked by the same ``tile x tile`` grid, and
-    ``stats`` (n_tiles, n_stats) float64 and ``digest`` (n_tiles,
-    DIGEST_SIZE) uint8 with one chunk per tile.  A tile is done when its
-    digest (written last) matches its volume core and statistics row as read
-    back (:meth:`read_verified`).
+    Arrays: ``coded`` (H, W) float32, ``mask`` (N, H, W) uint8, ``still`` (H, W)
+    uint8, ``volume`` (N, H, W) float32 and ``misfit`` (H, W) float32 (what the
+    non-local method's projection took away; 0 elsewhere), all chunked by the
+    same ``tile x tile`` grid, and ``stats`` (n_tiles, n_stats) float64 and
+    ``digest`` (n_tiles, DIGEST_SIZE) uint8 with one chunk per tile.  A tile is
+    done when its digest (written last) matches its volume core, statistics row
+    and misfit core as read back (:meth:`read_verified`).
     """
 
     def __init__(self, path: str | os.PathLike, *, mode: str = "r+"):
