@@ -5,6 +5,8 @@ BIN    := $(VENV)/bin
 CLI    := $(BIN)/codedvideo
 STAMP  := $(VENV)/.installed
 CONFIG ?= pipeline.yaml
+# processes the test suite is shared among (pytest-xdist; 0: the tests run in this one)
+TEST_WORKERS ?= 2
 
 .PHONY: help setup run test wheel-check lower-bounds docs bench report train train-config simulate reconstruct submit clean
 
@@ -24,8 +26,8 @@ setup: $(STAMP)  ## create .venv and install the project (the versions in constr
 run: $(STAMP)  ## run the whole pipeline on the embedded default scene
 	$(CLI) run "$(CONFIG)"
 
-test: $(STAMP)  ## run the test suite
-	$(BIN)/python -m pytest -q
+test: $(STAMP)  ## run the test suite (TEST_WORKERS=2 processes; TEST_WORKERS=0: one)
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS)
 
 DOCS_STAMP := $(VENV)/.docs-installed
 $(DOCS_STAMP): $(STAMP) pyproject.toml $(CONSTRAINTS)
